@@ -1,0 +1,37 @@
+"""ament_python build script: installs the package, its share/ files and executables."""
+import re
+from glob import glob
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+package_name = 'stars_ros'
+version = re.search(r'<version>([^<]+)</version>', Path('package.xml').read_text()).group(1)
+
+setup(
+    name=package_name,
+    version=version,
+    packages=find_packages(include=[package_name, package_name + '.*', 'offline_training']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/msg_schemas', glob('msg_schemas/*.json')),
+        ('share/' + package_name + '/launch', glob('launch/*.py')),
+        ('share/' + package_name + '/models', glob('models/*.pt') + glob('models/*.md')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='stars_ros maintainers',
+    maintainer_email='maintainers@stars-ros.dev',
+    description='StARS personalised ranking of socially appropriate robot actions for ROS 2.',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'ranker = stars_ros.ranker:main',
+            'scene_publisher = stars_ros.scene_publisher:main',
+            'replay = stars_ros.replay:main',
+        ],
+    },
+)

@@ -1,0 +1,269 @@
+"""Load rating datasets: the SocNav1 per-annotator files, or the generic tabular format.
+
+SocNav1 root (``raw/a.jsonl`` … or the ``raw`` folder itself): one file per annotator,
+annotator = file name without extension; one JSON scene per line with ``identifier`` and a
+0–100 ``score``, used on [0, 1] (score / 100). The single action is ``navigate``.
+Scene identity is the full ``identifier``. When one identifier carries two different
+scene contents (SocNav1 has one such case, ``01998 A``), each content becomes its own scene
+keyed ``<identifier>#<first 8 hex digits of its content digest>``: both ratings are kept,
+and no rating is attached to a scene its annotator did not see.
+
+Generic root: ``annotations.csv`` with header ``user,scene,action,score`` and either
+``scenes.csv`` (header ``scene`` then numeric feature columns; tabular encoders) or
+``scenes.jsonl`` (one scene graph per line with a ``scene`` key; graph encoders).
+Rules: every file must be non-empty; every score numeric and finite; every annotation's
+scene listed in the scene file; a (user, scene, action) triple appears once; scene keys
+are unique. Breaking a rule raises DataError naming the file and line. Scenes without
+ratings are kept (they cost nothing and may be scored later).
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError, SceneGraphError
+from .scene_graph import featurise
+from .scene_store import GraphStore, TabularStore
+
+SOCNAV_ACTION = 'navigate'
+SOCNAV_SCORE_SCALE = 100.0
+ANNOTATION_COLUMNS = ('user', 'scene', 'action', 'score')
+
+
+@dataclass
+class RatingData:
+    """Ratings as parallel arrays (one entry per rating) plus the scenes they refer to."""
+
+    users: np.ndarray           # str, per rating
+    scenes: np.ndarray          # int64 index into scene_keys / store, per rating
+    actions: np.ndarray         # int64 index into action_names, per rating
+    scores: np.ndarray          # float64 on the dataset's rating scale, per rating
+    scene_keys: list
+    store: object               # GraphStore or TabularStore, row i is scene_keys[i]
+    action_names: tuple
+    fingerprint: str
+    source: str
+    notes: list = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+    @property
+    def kind(self) -> str:
+        return self.store.kind
+
+
+def load_dataset(root) -> RatingData:
+    """Load a SocNav1 root or a generic-format root, whichever ``root`` holds."""
+    root = Path(root)
+    if (root / 'annotations.csv').exists():
+        return load_generic(root)
+    if (root / 'raw').is_dir() or sorted(root.glob('*.jsonl')):
+        return load_socnav1(root)
+    raise DataError(f'{root}: neither a SocNav1 root (raw/*.jsonl) nor a generic root (annotations.csv)')
+
+
+def _digest(paths) -> str:
+    sha = hashlib.sha256()
+    for path in paths:
+        sha.update(path.name.encode() + b'\0' + path.read_bytes())
+    return sha.hexdigest()
+
+
+def _content_digest(scene: dict) -> str:
+    content = {k: v for k, v in scene.items() if k not in ('identifier', 'score')}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+
+def _parse_json_line(path, number, line):
+    try:
+        return json.loads(line, parse_constant=_refuse_constant)
+    except (json.JSONDecodeError, ValueError) as error:
+        raise DataError(f'{path}:{number}: not valid JSON ({error})') from error
+
+
+def _refuse_constant(name):
+    raise ValueError(f'{name} is not a number')
+
+
+def _score(path, number, value):
+    try:
+        score = float(value)
+    except (TypeError, ValueError):
+        raise DataError(f'{path}:{number}: score {value!r} is not a number') from None
+    if isinstance(value, bool) or not math.isfinite(score):
+        raise DataError(f'{path}:{number}: score {value!r} is not a finite number')
+    return score
+
+
+def _featurise_at(path, number, scene):
+    try:
+        return featurise(scene)
+    except SceneGraphError as error:
+        raise DataError(f'{path}:{number}: {error}') from error
+
+
+def load_socnav1(root) -> RatingData:
+    root = Path(root)
+    folder = root / 'raw' if (root / 'raw').is_dir() else root
+    paths = sorted(folder.glob('*.jsonl'))
+    if not paths:
+        raise DataError(f'{folder}: no annotator files (*.jsonl)')
+    records = []  # (user, identifier, digest, score, path, line)
+    contents = {}  # (identifier, digest) -> (scene, path, line)
+    for path in paths:
+        lines = path.read_text().splitlines()
+        if not any(line.strip() for line in lines):
+            raise DataError(f'{path}: empty file')
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                raise DataError(f'{path}:{number}: empty line')
+            scene = _parse_json_line(path, number, line)
+            if not isinstance(scene, dict) or 'identifier' not in scene or 'score' not in scene:
+                raise DataError(f'{path}:{number}: expected an object with identifier and score')
+            score = _score(path, number, scene['score'])
+            if not 0.0 <= score <= SOCNAV_SCORE_SCALE:
+                raise DataError(f'{path}:{number}: score {score} outside 0-100')
+            identifier = str(scene['identifier'])
+            digest = _content_digest(scene)
+            contents.setdefault((identifier, digest), (scene, path, number))
+            records.append((path.stem, identifier, digest, score / SOCNAV_SCORE_SCALE, path, number))
+
+    variants = {}
+    for identifier, digest in contents:
+        variants.setdefault(identifier, []).append(digest)
+    notes = []
+    keys = {}
+    for (identifier, digest) in contents:
+        if len(variants[identifier]) > 1:
+            keys[identifier, digest] = f'{identifier}#{digest[:8]}'
+        else:
+            keys[identifier, digest] = identifier
+    for identifier, digests in variants.items():
+        if len(digests) > 1:
+            notes.append(f"identifier '{identifier}' has {len(digests)} different scene contents: "
+                         'kept as scenes ' + ', '.join(f"'{identifier}#{d[:8]}'" for d in digests))
+    scene_keys = list(dict.fromkeys(keys[k] for k in contents))
+    index = {key: i for i, key in enumerate(scene_keys)}
+    graphs = [_featurise_at(path, number, scene) for (scene, path, number) in contents.values()]
+
+    seen = {}
+    for user, identifier, digest, _, path, number in records:
+        pair = (user, keys[identifier, digest])
+        if pair in seen:
+            raise DataError(f'{path}:{number}: annotator {user} rates scene {pair[1]} again '
+                            f'(first at line {seen[pair]})')
+        seen[pair] = number
+    return RatingData(
+        users=np.array([r[0] for r in records]),
+        scenes=np.array([index[keys[r[1], r[2]]] for r in records], dtype=np.int64),
+        actions=np.zeros(len(records), dtype=np.int64),
+        scores=np.array([r[3] for r in records]),
+        scene_keys=scene_keys, store=GraphStore(graphs), action_names=(SOCNAV_ACTION,),
+        fingerprint=_digest(paths), source=str(folder), notes=notes)
+
+
+def _read_csv(path, required_first):
+    """Rows of a CSV as (line number, dict); checks header and emptiness."""
+    if not path.exists():
+        raise DataError(f'{path}: file missing')
+    with path.open(newline='') as handle:
+        reader = csv.reader(handle)
+        header = next(reader, None)
+        if header is None:
+            raise DataError(f'{path}: empty file')
+        header = [h.strip() for h in header]
+        missing = [c for c in required_first if c not in header]
+        if missing:
+            raise DataError(f'{path}:1: missing columns {missing} (header is {header})')
+        rows = []
+        for row in reader:
+            number = reader.line_num
+            if not any(cell.strip() for cell in row):
+                continue
+            if len(row) != len(header):
+                raise DataError(f'{path}:{number}: {len(row)} fields, header has {len(header)}')
+            rows.append((number, dict(zip(header, (cell.strip() for cell in row)))))
+    if not rows:
+        raise DataError(f'{path}: no data rows')
+    return header, rows
+
+
+def _load_generic_scenes(root):
+    """Scene keys and store from scenes.csv (tabular) or scenes.jsonl (graphs)."""
+    table, lines = root / 'scenes.csv', root / 'scenes.jsonl'
+    if table.exists() == lines.exists():
+        raise DataError(f'{root}: needs exactly one of scenes.csv or scenes.jsonl')
+    keys, where = [], {}
+    if table.exists():
+        header, rows = _read_csv(table, ['scene'])
+        names = [h for h in header if h != 'scene']
+        if not names:
+            raise DataError(f'{table}:1: no feature columns after scene')
+        features = np.empty((len(rows), len(names)))
+        for r, (number, row) in enumerate(rows):
+            key = row['scene']
+            if not key or key in where:
+                raise DataError(f'{table}:{number}: scene key {key!r} empty or repeated (first at line {where.get(key)})')
+            where[key] = number
+            keys.append(key)
+            for c, name in enumerate(names):
+                try:
+                    features[r, c] = float(row[name])
+                except ValueError:
+                    raise DataError(f'{table}:{number}: column {name} value {row[name]!r} is not a number') from None
+                if not math.isfinite(features[r, c]):
+                    raise DataError(f'{table}:{number}: column {name} is not finite')
+        return keys, TabularStore(features, names), table
+    graphs = []
+    text = lines.read_text().splitlines()
+    for number, line in enumerate(text, 1):
+        if not line.strip():
+            continue
+        scene = _parse_json_line(lines, number, line)
+        key = scene.get('scene') if isinstance(scene, dict) else None
+        if not isinstance(key, str) or not key or key in where:
+            raise DataError(f'{lines}:{number}: scene key {key!r} missing, empty or repeated')
+        where[key] = number
+        keys.append(key)
+        graphs.append(_featurise_at(lines, number, scene))
+    if not graphs:
+        raise DataError(f'{lines}: empty file')
+    return keys, GraphStore(graphs), lines
+
+
+def load_generic(root) -> RatingData:
+    root = Path(root)
+    keys, store, scene_file = _load_generic_scenes(root)
+    path = root / 'annotations.csv'
+    _, rows = _read_csv(path, ANNOTATION_COLUMNS)
+    index = {key: i for i, key in enumerate(keys)}
+    seen = {}
+    users, scenes, actions, scores = [], [], [], []
+    for number, row in rows:
+        for column in ANNOTATION_COLUMNS:
+            if not row[column]:
+                raise DataError(f'{path}:{number}: {column} is empty')
+        if row['scene'] not in index:
+            raise DataError(f"{path}:{number}: scene {row['scene']!r} is not in {scene_file.name}")
+        triple = (row['user'], row['scene'], row['action'])
+        if triple in seen:
+            raise DataError(f'{path}:{number}: duplicate rating of {triple} (first at line {seen[triple]})')
+        seen[triple] = number
+        users.append(row['user'])
+        scenes.append(index[row['scene']])
+        actions.append(row['action'])
+        scores.append(_score(path, number, row['score']))
+    action_names = tuple(sorted(set(actions)))
+    action_index = {name: i for i, name in enumerate(action_names)}
+    return RatingData(
+        users=np.array(users), scenes=np.array(scenes, dtype=np.int64),
+        actions=np.array([action_index[a] for a in actions], dtype=np.int64),
+        scores=np.array(scores), scene_keys=keys, store=store, action_names=action_names,
+        fingerprint=_digest([path, scene_file]), source=str(root))

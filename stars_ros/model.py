@@ -1,0 +1,96 @@
+"""The StARS model: a scene encoder fused with multi-task matrix factorisation.
+
+    ŷ(u, i, a) = ((p_u ⊙ (q_i + h_i)) + h_i)ᵀ r_a + b_u + b_i + b,    h_i = φθ(x_i)
+
+The ``base`` variant is the same encoder with a linear head over the actions,
+ŷ(i, a) = w_aᵀ h_i + c_a. Both predict per-action z-scores; ``target_mean`` and
+``target_std`` (training-split statistics, kept as buffers so they travel with the weights)
+map them back to the rating scale.
+
+A user or scene index of -1 means "not seen in training": its embedding and offset are
+exactly zero, so the prediction falls back to the content term h_iᵀ r_a and the population
+offsets, never to an untrained random row.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .encoders import Encoder
+
+UNKNOWN = -1
+
+
+def _lookup(table: nn.Embedding, index: torch.Tensor) -> torch.Tensor:
+    """Rows of ``table`` for ``index``, zeros where ``index`` is UNKNOWN."""
+    known = (index >= 0).unsqueeze(-1)
+    return table(index.clamp(min=0)) * known
+
+
+class StarsModel(nn.Module):
+    """Encoder + (personalised) scoring; ``forward`` returns z-scores for every action.
+
+    Args:
+        encoder (Encoder): φθ, output size ``dim``.
+        n_users (int): users seen in training (rows of p and b_u).
+        n_scenes (int): scenes seen in training (rows of q and b_i).
+        n_actions (int): actions (targets).
+        personalised (bool): StARS (True) or base (False).
+        feature_dim (int, optional): for tabular encoders, the size of the input
+            standardisation buffers. (default: ``None``, no standardisation)
+
+    Shapes:
+        forward(users [R], scenes [R], h [R, dim]) -> [R, n_actions]
+    """
+
+    def __init__(self, encoder: Encoder, n_users: int, n_scenes: int, n_actions: int,
+                 personalised: bool, feature_dim: int | None = None):
+        super().__init__()
+        dim = encoder.out_dim
+        self.encoder = encoder
+        self.personalised = personalised
+        self.n_actions = n_actions
+        self.register_buffer('target_mean', torch.zeros(n_actions))
+        self.register_buffer('target_std', torch.ones(n_actions))
+        if feature_dim is not None:
+            self.register_buffer('feature_mean', torch.zeros(feature_dim))
+            self.register_buffer('feature_std', torch.ones(feature_dim))
+        if personalised:
+            self.user_embedding = nn.Embedding(max(n_users, 1), dim)
+            self.scene_embedding = nn.Embedding(max(n_scenes, 1), dim)
+            self.user_bias = nn.Embedding(max(n_users, 1), 1)
+            self.scene_bias = nn.Embedding(max(n_scenes, 1), 1)
+            self.action_embedding = nn.Parameter(torch.empty(n_actions, dim))
+            self.bias = nn.Parameter(torch.zeros(1))
+        else:
+            self.head = nn.Linear(dim, n_actions)
+        self.reset_parameters()
+
+    def reset_parameters(self):
+        if self.personalised:
+            nn.init.normal_(self.user_embedding.weight, std=0.01)
+            nn.init.zeros_(self.scene_embedding.weight)
+            nn.init.zeros_(self.user_bias.weight)
+            nn.init.zeros_(self.scene_bias.weight)
+            nn.init.normal_(self.action_embedding, std=self.encoder.out_dim ** -0.5)
+            nn.init.zeros_(self.bias)
+
+    def encode(self, scene_input) -> torch.Tensor:
+        """h_i for a batch of scenes (tabular inputs are standardised first)."""
+        if hasattr(self, 'feature_mean'):
+            scene_input = (scene_input - self.feature_mean) / self.feature_std
+        return self.encoder(scene_input)
+
+    def forward(self, users: torch.Tensor, scenes: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        if not self.personalised:
+            return self.head(h)
+        p = _lookup(self.user_embedding, users)
+        q = _lookup(self.scene_embedding, scenes)
+        offsets = _lookup(self.user_bias, users) + _lookup(self.scene_bias, scenes) + self.bias
+        return ((p * (q + h)) + h) @ self.action_embedding.T + offsets
+
+    def to_rating_scale(self, z: torch.Tensor) -> torch.Tensor:
+        return z * self.target_std + self.target_mean
+
+    def to_z(self, scores: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        return (scores - self.target_mean[actions]) / self.target_std[actions]

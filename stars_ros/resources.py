@@ -1,0 +1,33 @@
+"""Find files the package ships in share/stars_ros (schemas, configs, models).
+
+The same file can live in three places: beside the source tree (a checkout), under
+``<prefix>/share/stars_ros`` (``pip install``) and under a colcon install prefix
+(``install/stars_ros/share/stars_ros``, reached by walking up from this module).
+"""
+import os
+import sys
+from pathlib import Path
+
+PACKAGE = 'stars_ros'
+
+
+def _candidate_roots():
+    here = Path(__file__).resolve().parent
+    override = os.environ.get('STARS_ROS_SHARE')
+    if override:
+        yield Path(override)
+    yield here.parent  # source checkout: <repo>/msg_schemas
+    yield Path(sys.prefix) / 'share' / PACKAGE
+    for parent in here.parents:  # colcon: <prefix>/lib/pythonX.Y/site-packages/stars_ros
+        yield parent / 'share' / PACKAGE
+
+
+def share_path(relative: str) -> Path:
+    """Return the installed or checked-out path of ``relative`` (e.g. ``msg_schemas/x.json``)."""
+    tried = []
+    for root in _candidate_roots():
+        path = root / relative
+        if path.exists():
+            return path
+        tried.append(str(path))
+    raise FileNotFoundError(f'{relative} not found; looked in: ' + ', '.join(tried))

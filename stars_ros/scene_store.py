@@ -1,0 +1,90 @@
+"""Featurised scenes kept as contiguous tensors, so a training batch is gathered by indexing.
+
+Ratings share scenes, so training encodes each distinct scene of a batch once: the
+stores only ever receive the unique scene indices of a batch.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import numpy as np
+import torch
+
+from .scene_graph import SceneGraph
+
+
+class GraphBatch(NamedTuple):
+    """Graphs of one batch laid side by side (PyG convention).
+
+    ``root`` holds the index of each graph's robot node (its first node).
+    """
+
+    x: torch.Tensor
+    edge_index: torch.Tensor
+    edge_type: torch.Tensor
+    batch: torch.Tensor
+    root: torch.Tensor
+    num_graphs: int
+
+
+def _ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """Concatenate ``arange(s, s + c)`` for every (s, c) pair without a Python loop."""
+    total = int(counts.sum())
+    offsets = torch.cumsum(counts, 0) - counts
+    return torch.repeat_interleave(starts - offsets, counts, output_size=total) + torch.arange(total)
+
+
+class GraphStore:
+    """All featurised graphs of a dataset; ``batch(indices)`` collates a subset."""
+
+    kind = 'graph'
+
+    def __init__(self, graphs: Sequence[SceneGraph]):
+        if not graphs:
+            raise ValueError('GraphStore needs at least one graph')
+        self.node_counts = torch.tensor([g.num_nodes for g in graphs])
+        self.edge_counts = torch.tensor([g.edge_index.shape[1] for g in graphs])
+        self.node_starts = torch.cumsum(self.node_counts, 0) - self.node_counts
+        self.edge_starts = torch.cumsum(self.edge_counts, 0) - self.edge_counts
+        self.x = torch.from_numpy(np.concatenate([g.x for g in graphs]))
+        self.edge_index = torch.from_numpy(np.concatenate([g.edge_index for g in graphs], axis=1))
+        self.edge_type = torch.from_numpy(np.concatenate([g.edge_type for g in graphs]))
+
+    def __len__(self) -> int:
+        return len(self.node_counts)
+
+    @property
+    def feature_dim(self) -> int:
+        return self.x.shape[1]
+
+    def batch(self, indices: torch.Tensor) -> GraphBatch:
+        node_counts = self.node_counts[indices]
+        edge_counts = self.edge_counts[indices]
+        nodes = _ranges(self.node_starts[indices], node_counts)
+        edges = _ranges(self.edge_starts[indices], edge_counts)
+        new_starts = torch.cumsum(node_counts, 0) - node_counts
+        shift = torch.repeat_interleave(new_starts, edge_counts)
+        graph_of_node = torch.repeat_interleave(torch.arange(len(indices)), node_counts)
+        return GraphBatch(x=self.x[nodes], edge_index=self.edge_index[:, edges] + shift,
+                          edge_type=self.edge_type[edges], batch=graph_of_node,
+                          root=new_starts, num_graphs=len(indices))
+
+
+class TabularStore:
+    """Scene feature rows (one per scene); ``batch(indices)`` returns a float tensor."""
+
+    kind = 'tabular'
+
+    def __init__(self, features: np.ndarray, feature_names: Sequence[str]):
+        self.features = torch.as_tensor(np.asarray(features, dtype=np.float32))
+        self.feature_names = tuple(feature_names)
+
+    def __len__(self) -> int:
+        return self.features.shape[0]
+
+    @property
+    def feature_dim(self) -> int:
+        return self.features.shape[1]
+
+    def batch(self, indices: torch.Tensor) -> torch.Tensor:
+        return self.features[indices]
