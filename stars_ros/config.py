@@ -13,7 +13,7 @@ import yaml
 
 from .errors import ConfigError
 
-VARIANTS = ('base', 'stars')
+VARIANTS = ('base', 'stars', 'mf')
 
 
 def _build(cls, values, where):
@@ -44,7 +44,8 @@ class EncoderConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """``variant``: ``base`` (encoder + linear head) or ``stars`` (encoder fused with MF).
+    """``variant``: ``base`` (encoder + linear head), ``stars`` (encoder fused with MF) or
+    ``mf`` (biased matrix factorisation alone: StARS with h_i = 0, a content-free baseline).
 
     ``dim`` is the size of h_i and of the user, scene and action embeddings.
     """

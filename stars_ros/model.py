@@ -3,7 +3,8 @@
     ŷ(u, i, a) = ((p_u ⊙ (q_i + h_i)) + h_i)ᵀ r_a + b_u + b_i + b,    h_i = φθ(x_i)
 
 The ``base`` variant is the same encoder with a linear head over the actions,
-ŷ(i, a) = w_aᵀ h_i + c_a. Both predict per-action z-scores; ``target_mean`` and
+ŷ(i, a) = w_aᵀ h_i + c_a; the ``mf`` variant is StARS with h_i = 0 (biased matrix
+factorisation, no scene content), a baseline that shows what the content adds. Both predict per-action z-scores; ``target_mean`` and
 ``target_std`` (training-split statistics, kept as buffers so they travel with the weights)
 map them back to the rating scale.
 
@@ -35,7 +36,7 @@ class StarsModel(nn.Module):
         n_users (int): users seen in training (rows of p and b_u).
         n_scenes (int): scenes seen in training (rows of q and b_i).
         n_actions (int): actions (targets).
-        personalised (bool): StARS (True) or base (False).
+        variant (str): ``'stars'``, ``'base'`` or ``'mf'``.
         feature_dim (int, optional): for tabular encoders, the size of the input
             standardisation buffers. (default: ``None``, no standardisation)
 
@@ -44,18 +45,20 @@ class StarsModel(nn.Module):
     """
 
     def __init__(self, encoder: Encoder, n_users: int, n_scenes: int, n_actions: int,
-                 personalised: bool, feature_dim: int | None = None):
+                 variant: str, feature_dim: int | None = None):
         super().__init__()
         dim = encoder.out_dim
         self.encoder = encoder
-        self.personalised = personalised
+        self.variant = variant
+        self.personalised = variant != 'base'
+        self.uses_content = variant != 'mf'
         self.n_actions = n_actions
         self.register_buffer('target_mean', torch.zeros(n_actions))
         self.register_buffer('target_std', torch.ones(n_actions))
         if feature_dim is not None:
             self.register_buffer('feature_mean', torch.zeros(feature_dim))
             self.register_buffer('feature_std', torch.ones(feature_dim))
-        if personalised:
+        if self.personalised:
             self.user_embedding = nn.Embedding(max(n_users, 1), dim)
             self.scene_embedding = nn.Embedding(max(n_scenes, 1), dim)
             self.user_bias = nn.Embedding(max(n_users, 1), 1)
@@ -76,7 +79,10 @@ class StarsModel(nn.Module):
             nn.init.zeros_(self.bias)
 
     def encode(self, scene_input) -> torch.Tensor:
-        """h_i for a batch of scenes (tabular inputs are standardised first)."""
+        """h_i for a batch of scenes (tabular inputs are standardised first; zeros for ``mf``)."""
+        if not self.uses_content:
+            count = scene_input.num_graphs if hasattr(scene_input, 'num_graphs') else len(scene_input)
+            return torch.zeros(count, self.encoder.out_dim)
         if hasattr(self, 'feature_mean'):
             scene_input = (scene_input - self.feature_mean) / self.feature_std
         return self.encoder(scene_input)

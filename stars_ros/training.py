@@ -42,7 +42,7 @@ def build_model(config: ExperimentConfig, feature_dim: int, input_kind: str,
         raise ConfigError(f'encoder: {error}') from error
     if encoder.input_kind != input_kind:
         raise ConfigError(f"encoder '{enc.name}' reads {encoder.input_kind} scenes, the data holds {input_kind} scenes")
-    return StarsModel(encoder, n_users, n_scenes, n_actions, personalised=config.model.variant == 'stars',
+    return StarsModel(encoder, n_users, n_scenes, n_actions, variant=config.model.variant,
                       feature_dim=feature_dim if input_kind == 'tabular' else None)
 
 
@@ -104,6 +104,10 @@ class StarsRecommender:
         stages = [('pretrain', cfg.pretrain_epochs, list(model.encoder.parameters()) + list(head.parameters()),
                    lambda u, s, h: head(h)),
                   ('joint', cfg.joint_epochs, list(model.parameters()), model)]
+        if not model.uses_content:
+            stages = stages[1:]  # nothing to pre-train: the encoder is not used
+            stages[0] = ('joint', cfg.joint_epochs, [p for n, p in model.named_parameters()
+                                                     if not n.startswith('encoder.')], model)
         for stage, epochs, parameters, score in stages:
             if epochs == 0:
                 continue
@@ -145,7 +149,7 @@ class StarsRecommender:
             (loss if auxiliary is None else loss + auxiliary).backward()
             nn.utils.clip_grad_norm_(parameters, cfg.grad_clip)
             optimiser.step()
-            total += float(loss) * len(pick)
+            total += loss.item() * len(pick)
             count += len(pick)
         mean_loss = total / count
         if not math.isfinite(mean_loss) or not all(torch.isfinite(p).all() for p in parameters):

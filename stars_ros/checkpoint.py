@@ -1,0 +1,121 @@
+"""Checkpoints are data, not code: one ``torch.save`` file of tensors and plain values.
+
+Loaded with ``torch.load(weights_only=True)``, so no pickled code ever runs. A SHA-256
+digest over the weights and metadata is stored inside and checked on load, so a flipped
+byte is reported instead of silently changing predictions.
+"""
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import os
+import pickle
+import tempfile
+import zipfile
+from pathlib import Path
+
+import torch
+
+from . import __version__
+from .config import ExperimentConfig
+from .errors import CheckpointError, ConfigError, StarsError
+from .training import StarsRecommender, build_model
+
+FORMAT = 'stars_ros.checkpoint'
+FORMAT_VERSION = 1
+
+
+def _digest(metadata: dict, state: dict) -> str:
+    sha = hashlib.sha256(json.dumps(metadata, sort_keys=True, default=str).encode())
+    for name in sorted(state):
+        sha.update(name.encode())
+        sha.update(state[name].detach().cpu().contiguous().numpy().tobytes())
+    return sha.hexdigest()
+
+
+def save_checkpoint(recommender: StarsRecommender, path, *, data: dict, metrics: dict | None = None,
+                    provenance: dict | None = None) -> str:
+    """Write ``recommender`` to ``path`` atomically; returns the checkpoint's digest.
+
+    Args:
+        data (dict): what it was trained on (``fingerprint``, ``source``, ``n_ratings`` ...).
+        metrics (dict, optional): held-out figures to keep with the weights.
+        provenance (dict, optional): anything else worth keeping (command line, logs used).
+    """
+    model = recommender._require_model()
+    metadata = {
+        'format': FORMAT,
+        'format_version': FORMAT_VERSION,
+        'package_version': __version__,
+        'torch_version': str(torch.__version__),
+        'created_utc': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
+        'config': recommender.config.to_dict(),
+        'input_kind': model.encoder.input_kind,
+        'feature_dim': model.encoder.in_dim,
+        'users': list(recommender.users),
+        'scene_keys': list(recommender.scene_keys),
+        'actions': list(recommender.action_names),
+        'normalisation': {'mean': model.target_mean.tolist(), 'std': model.target_std.tolist()},
+        'data': dict(data),
+        'metrics': dict(metrics or {}),
+        'provenance': dict(provenance or {}),
+    }
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    digest = _digest(metadata, state)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.name, suffix='.tmp', delete=False) as handle:
+        torch.save({'metadata': metadata, 'state_dict': state, 'digest': digest}, handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(handle.name, path)
+    return digest
+
+
+def read_checkpoint(path) -> dict:
+    """The checkpoint's raw content (``metadata``, ``state_dict``, ``digest``), verified."""
+    path = Path(path)
+    try:
+        content = torch.load(path, map_location='cpu', weights_only=True)
+    except FileNotFoundError:
+        raise CheckpointError(f'{path}: no such checkpoint file') from None
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError,
+            KeyError, AttributeError, IndexError) as error:
+        raise CheckpointError(f'{path}: not a readable checkpoint (truncated or corrupted?): {error}') from error
+    if not isinstance(content, dict) or not {'metadata', 'state_dict', 'digest'} <= set(content):
+        raise CheckpointError(f'{path}: not a stars_ros checkpoint')
+    metadata = content['metadata']
+    if metadata.get('format') != FORMAT:
+        raise CheckpointError(f'{path}: not a stars_ros checkpoint (format {metadata.get("format")!r})')
+    if metadata.get('format_version') != FORMAT_VERSION:
+        raise CheckpointError(f'{path}: checkpoint format version {metadata.get("format_version")} '
+                              f'is not supported (this is version {FORMAT_VERSION})')
+    if _digest(metadata, content['state_dict']) != content['digest']:
+        raise CheckpointError(f'{path}: checkpoint digest mismatch: the file is corrupted')
+    return content
+
+
+def load_checkpoint(path, with_digest: bool = False):
+    """Rebuild the recommender stored in ``path``; returns (recommender, metadata), plus
+    the digest when ``with_digest``."""
+    content = read_checkpoint(path)
+    metadata = content['metadata']
+    try:
+        config = ExperimentConfig.from_dict(metadata['config'])
+        recommender = StarsRecommender(config)
+        recommender._set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
+        model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
+                            len(metadata['scene_keys']), len(metadata['actions']))
+        model.load_state_dict(content['state_dict'])
+    except (ConfigError, KeyError, RuntimeError, TypeError) as error:
+        if isinstance(error, StarsError):
+            message = str(error)
+        else:
+            message = f'{type(error).__name__}: {error}'
+        raise CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}') from error
+    model.eval()
+    recommender.model = model
+    if with_digest:
+        return recommender, metadata, content['digest']
+    return recommender, metadata

@@ -1,0 +1,112 @@
+"""ROS-free inference: load a checkpoint, rank actions (or alternative scenes) for a user.
+
+Unknown users and scenes are the normal case on a robot: they get p_u = 0, b_u = 0 and
+q_i = 0, b_i = 0, so the prediction is the content term plus population offsets, and
+``Ranking.known_user`` says so (Surprise's fallback-with-a-reason, without an exception).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .checkpoint import load_checkpoint
+from .errors import SceneGraphError, UnknownActionError
+from .scene_graph import featurise
+from .scene_store import GraphStore
+
+
+@dataclass(frozen=True)
+class Ranked:
+    """One ranked entry: an action name (or a candidate scene's label), its score on the
+    rating scale, and its 1-based rank."""
+
+    name: str
+    score: float
+    rank: int
+
+
+def _ranked(names: Sequence[str], scores: np.ndarray) -> list:
+    order = sorted(range(len(names)), key=lambda k: (-scores[k], k))  # ties keep input order
+    return [Ranked(str(names[k]), float(scores[k]), rank) for rank, k in enumerate(order, 1)]
+
+
+class Predictor:
+    """Scores scenes with a trained model.
+
+    Args:
+        recommender (StarsRecommender): fitted model and vocabularies.
+        metadata (dict): the checkpoint's metadata (config, provenance, metrics).
+        digest (str): the checkpoint's SHA-256 digest, its fingerprint.
+    """
+
+    def __init__(self, recommender, metadata: dict, digest: str):
+        self.recommender = recommender
+        self.metadata = metadata
+        self.fingerprint = digest
+        self.actions = tuple(recommender.action_names)
+        self._action_index = {a: i for i, a in enumerate(self.actions)}
+
+    @classmethod
+    def load(cls, path) -> 'Predictor':
+        """Raises CheckpointError for a missing, truncated, corrupted or incompatible file."""
+        recommender, metadata, digest = load_checkpoint(path, with_digest=True)
+        return cls(recommender, metadata, digest)
+
+    @property
+    def input_kind(self) -> str:
+        return self.recommender.model.encoder.input_kind
+
+    def knows_user(self, user_id) -> bool:
+        return user_id is not None and str(user_id) in self.recommender._user_rows
+
+    def _scene_input(self, scenes: Sequence):
+        if self.input_kind == 'graph':
+            graphs = [featurise(scene) for scene in scenes]
+            return GraphStore(graphs).batch(torch.arange(len(graphs)))
+        features = np.asarray(scenes, dtype=np.float32)
+        if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
+            raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')
+        return torch.from_numpy(features)
+
+    def score(self, user_id, scenes: Sequence, scene_ids: Sequence | None = None) -> np.ndarray:
+        """Rating-scale scores [len(scenes), n_actions] of one user for a batch of scenes.
+
+        ``scenes`` are scene-graph dicts (graph models) or feature rows (tabular models);
+        ``scene_ids`` optionally name training scenes so their q_i is used.
+        """
+        if len(scenes) == 0:
+            raise SceneGraphError('no scenes to score')
+        scene_ids = [None] * len(scenes) if scene_ids is None else list(scene_ids)
+        users = [None if user_id is None else str(user_id)] * len(scenes)
+        return self.recommender.predict_scores(users, scene_ids, self._scene_input(scenes))
+
+    def _action_columns(self, actions: Sequence[str]) -> list:
+        unknown = [a for a in actions if a not in self._action_index]
+        if unknown:
+            raise UnknownActionError(f'unknown actions {unknown}; this model knows {list(self.actions)}')
+        return [self._action_index[a] for a in actions]
+
+    def rank(self, user_id, scene, candidates: Sequence[str] | None = None, scene_id=None) -> list:
+        """Candidate actions (all by default) sorted best first for ``user_id`` in ``scene``."""
+        names = list(self.actions if candidates is None else candidates)
+        if not names:
+            raise UnknownActionError('candidate list is empty')
+        columns = self._action_columns(names)
+        return _ranked(names, self.score(user_id, [scene], [scene_id])[0, columns])
+
+    def rank_scenes(self, user_id, scenes: Sequence, labels: Sequence[str] | None = None,
+                    action: str | None = None) -> list:
+        """Alternative scenes (e.g. candidate robot placements) sorted best first by the
+        score of ``action`` (required when the model has more than one)."""
+        if action is None:
+            if len(self.actions) != 1:
+                raise UnknownActionError(f'say which action ranks the scenes; this model knows {list(self.actions)}')
+            action = self.actions[0]
+        column = self._action_columns([action])[0]
+        labels = [str(k) for k in range(len(scenes))] if labels is None else list(labels)
+        if len(labels) != len(scenes):
+            raise ValueError('one label per candidate scene')
+        return _ranked(labels, self.score(user_id, scenes)[:, column])
