@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+import torch
+
+from stars_ros.checkpoint import FORMAT_VERSION, load_checkpoint, read_checkpoint, save_checkpoint
+from stars_ros.errors import CheckpointError
+
+
+def test_round_trip_predicts_the_same(tiny_checkpoint, socnav1, tmp_path):
+    recommender, metadata = load_checkpoint(tiny_checkpoint)
+    rows = np.arange(0, 9000, 700)
+    path = tmp_path / 'again.pt'
+    save_checkpoint(recommender, path, data={'fingerprint': 'x'}, metrics={'mse': 0.1})
+    again, again_metadata = load_checkpoint(path)
+    assert np.array_equal(recommender.predict_rows(socnav1, rows), again.predict_rows(socnav1, rows))
+    assert again_metadata['metrics'] == {'mse': 0.1}
+    assert again.users == recommender.users and again.action_names == ('navigate',)
+
+
+def test_metadata_carries_everything_needed(tiny_checkpoint, socnav1):
+    metadata = read_checkpoint(tiny_checkpoint)['metadata']
+    assert metadata['data']['fingerprint'] == socnav1.fingerprint
+    assert metadata['config']['encoder']['name'] == 'gcn'
+    assert len(metadata['normalisation']['mean']) == 1
+    assert {'package_version', 'torch_version', 'created_utc', 'users', 'actions'} <= set(metadata)
+
+
+def test_truncated_file(tiny_checkpoint, tmp_path):
+    data = tiny_checkpoint.read_bytes()
+    path = tmp_path / 'cut.pt'
+    path.write_bytes(data[:len(data) // 2])
+    with pytest.raises(CheckpointError, match='truncated or corrupted'):
+        load_checkpoint(path)
+
+
+def test_flipped_byte_in_weights_is_detected(tiny_checkpoint, tmp_path):
+    data = bytearray(tiny_checkpoint.read_bytes())
+    content = torch.load(tiny_checkpoint, weights_only=True)
+    weights = content['state_dict']['encoder.project.weight'].numpy().tobytes()
+    offset = bytes(data).find(weights[:64])
+    assert offset > 0
+    data[offset + 5] ^= 0xFF
+    path = tmp_path / 'flipped.pt'
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match='corrupted'):
+        load_checkpoint(path)
+
+
+def test_other_version_refused(tiny_checkpoint, tmp_path):
+    content = torch.load(tiny_checkpoint, weights_only=True)
+    content['metadata']['format_version'] = FORMAT_VERSION + 1
+    torch.save(content, tmp_path / 'future.pt')
+    with pytest.raises(CheckpointError, match='format version 2 is not supported'):
+        load_checkpoint(tmp_path / 'future.pt')
+
+
+def test_foreign_file_refused(tmp_path):
+    torch.save({'weights': torch.zeros(2)}, tmp_path / 'other.pt')
+    with pytest.raises(CheckpointError, match='not a stars_ros checkpoint'):
+        load_checkpoint(tmp_path / 'other.pt')
+    (tmp_path / 'text.pt').write_text('hello')
+    with pytest.raises(CheckpointError):
+        load_checkpoint(tmp_path / 'text.pt')
+    with pytest.raises(CheckpointError, match='no such checkpoint'):
+        load_checkpoint(tmp_path / 'missing.pt')
+
+
+class Payload:
+    def __reduce__(self):
+        return (print, ('code ran',))
+
+
+def test_pickled_code_is_never_run(tmp_path, capsys):
+    torch.save({'metadata': Payload(), 'state_dict': {}, 'digest': ''}, tmp_path / 'evil.pt')
+    with pytest.raises(CheckpointError):
+        load_checkpoint(tmp_path / 'evil.pt')
+    assert 'code ran' not in capsys.readouterr().out
+
+
+def test_incompatible_weights(tiny_checkpoint, tmp_path):
+    content = torch.load(tiny_checkpoint, weights_only=True)
+    content['metadata']['config']['model']['dim'] = 32
+    from stars_ros.checkpoint import _digest
+    content['digest'] = _digest(content['metadata'], content['state_dict'])
+    torch.save(content, tmp_path / 'mismatch.pt')
+    with pytest.raises(CheckpointError, match='incompatible'):
+        load_checkpoint(tmp_path / 'mismatch.pt')

@@ -1,0 +1,74 @@
+import json
+
+import numpy as np
+import pytest
+
+from stars_ros.errors import CheckpointError, SceneGraphError, UnknownActionError
+from stars_ros.predictor import Predictor
+
+
+@pytest.fixture(scope='module')
+def predictor(tiny_checkpoint):
+    return Predictor.load(tiny_checkpoint)
+
+
+@pytest.fixture(scope='module')
+def scenes(socnav1_root):
+    with open(socnav1_root / 'raw' / 'a.jsonl') as handle:
+        return [json.loads(next(handle)) for _ in range(5)]
+
+
+def test_rank_known_and_unknown_users(predictor, scenes):
+    assert predictor.knows_user('a') and not predictor.knows_user('stranger')
+    for user in ('a', 'stranger', None):
+        ranking = predictor.rank(user, scenes[0])
+        assert [r.name for r in ranking] == ['navigate'] and ranking[0].rank == 1
+        assert 0.0 < ranking[0].score < 1.0
+
+
+def test_users_get_different_scores(predictor, scenes):
+    scores = {user: predictor.score(user, scenes)[:, 0] for user in predictor.recommender.users}
+    assert len({tuple(np.round(s, 6)) for s in scores.values()}) > 1
+
+
+def test_batch_equals_one_by_one(predictor, scenes):
+    batch = predictor.score('b', scenes)
+    single = np.concatenate([predictor.score('b', [s]) for s in scenes])
+    assert np.allclose(batch, single, atol=1e-6)
+
+
+def test_rank_scenes_best_first(predictor, scenes):
+    ranking = predictor.rank_scenes('c', scenes, labels=[f'placement{k}' for k in range(5)])
+    scores = [r.score for r in ranking]
+    assert scores == sorted(scores, reverse=True)
+    assert [r.rank for r in ranking] == [1, 2, 3, 4, 5]
+    direct = predictor.score('c', scenes)[:, 0]
+    assert ranking[0].name == f'placement{int(np.argmax(direct))}'
+
+
+def test_unknown_action_and_bad_scene(predictor, scenes):
+    with pytest.raises(UnknownActionError, match=r"unknown actions \['dance'\]"):
+        predictor.rank('a', scenes[0], candidates=['dance'])
+    with pytest.raises(UnknownActionError):
+        predictor.rank('a', scenes[0], candidates=[])
+    with pytest.raises(SceneGraphError):
+        predictor.rank('a', {'humans': []})
+
+
+def test_missing_checkpoint_is_a_checkpoint_error(tmp_path):
+    with pytest.raises(CheckpointError):
+        Predictor.load(tmp_path / 'none.pt')
+
+
+def test_predictor_matches_training_scale(predictor, socnav1):
+    """Predictor on a raw scene == recommender on the featurised dataset row (same user)."""
+    rows = np.flatnonzero(socnav1.users == 'a')[:3]
+    expected = predictor.recommender.predict_rows(socnav1, rows)
+    keys = [socnav1.scene_keys[s] for s in socnav1.scenes[rows]]
+    raw = {}
+    with open(socnav1.source + '/a.jsonl') as handle:
+        for line in handle:
+            scene = json.loads(line)
+            raw[scene['identifier']] = scene
+    got = [predictor.score('a', [raw[k]], [k])[0, 0] for k in keys]
+    assert np.allclose(got, expected, atol=1e-5)
