@@ -1,0 +1,1 @@
+"""Command-line programs that train, evaluate and refit StARS checkpoints."""

@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# Set up the environment, then run the default test suite (slow benchmarks excluded;
+# add `-m slow` to run those). Extra arguments go to pytest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup_venv.sh
+export STARS_SOCNAV1_ROOT=${STARS_SOCNAV1_ROOT:-$(cd .. && pwd)/shared/datasets/socnav1}
+set +e
+.venv/bin/python -m pytest "$@"
+status=$?
+set -e
+if [ "$status" -eq 5 ]; then
+  echo "error: pytest collected no tests" >&2
+  exit 1
+fi
+exit "$status"
