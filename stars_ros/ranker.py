@@ -1,0 +1,359 @@
+"""The ranker node: personalised rankings of robot actions (or candidate scenes) per scene.
+
+Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feedback``;
+publishes ``stars/ranking``, ``stars/errors`` and ``/diagnostics``; serves ``~/reload``.
+See docs/ranker_node.md. Run with ``ros2 run stars_ros ranker`` or
+``python -m stars_ros.ranker --ros-args -p checkpoint:=PATH``.
+
+Threads: the executor thread parses and validates messages (cheap) and queues scene
+requests; a worker thread scores everything queued in one batch with one model snapshot and
+publishes the rankings. So the DDS queue is drained while the model runs, and ``~/reload``
+swaps the model between two batches: every ranking is scored by exactly one checkpoint,
+the one whose fingerprint it carries.
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+import rclpy
+import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from . import messages, recording
+from .errors import CheckpointError
+from .predictor import Predictor
+from .resources import share_path
+from .serving import Pending, error_kind, rank_batch
+
+DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'
+WARNINGS = ('unknown_user',)
+_INT_MAX = 2 ** 31 - 1
+
+PARAMETERS = {  # name: (default, description, read_only, range)
+    'checkpoint': ('', f'checkpoint file; empty: the packaged {DEFAULT_CHECKPOINT}. Read again by ~/reload',
+                   False, None),
+    'top_k': (0, 'publish only the best k entries of each ranking; 0: all', False, (0, _INT_MAX)),
+    'record_folder': ('stars_records', 'folder for the MCAP bags; empty: do not record', True, None),
+    'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
+                       (4096, _INT_MAX)),
+    'flush_interval': (1.0, 'seconds between flushes of the recording; a hard kill loses at most this',
+                       True, (0.01, 3600.0)),
+    'max_message_bytes': (messages.DEFAULT_MAX_BYTES, 'larger messages are refused (kind oversized)',
+                          False, (1024, 64 << 20)),
+    'queue_depth': (1000, 'QoS depth of stars/scene and the most requests waiting to be scored', True,
+                    (1, 100000)),
+    'max_batch': (16, 'most queued requests scored in one forward pass', False, (1, 1024)),
+    'log_throttle': (5.0, 'seconds between two log lines about the same kind of error', False,
+                     (0.0, 3600.0)),
+    'diagnostics_period': (1.0, 'seconds between two /diagnostics messages', True, (0.05, 3600.0)),
+}
+
+
+def _descriptor(name: str) -> ParameterDescriptor:
+    default, description, read_only, limits = PARAMETERS[name]
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if isinstance(default, int) and limits:
+        descriptor.integer_range = [IntegerRange(from_value=limits[0], to_value=limits[1], step=1)]
+    elif isinstance(default, float) and limits:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=limits[0], to_value=limits[1])]
+    return descriptor
+
+
+def resolve_checkpoint(value: str) -> str:
+    """The checkpoint parameter as a path: the packaged default when it is empty."""
+    if value:
+        return value
+    try:
+        return str(share_path(DEFAULT_CHECKPOINT))
+    except FileNotFoundError as error:
+        raise CheckpointError(f'no checkpoint given and the packaged default is missing ({error}); '
+                              'pass --ros-args -p checkpoint:=PATH') from None
+
+
+class RankerNode(Node):
+    """Serves rankings from a StARS checkpoint; see the module docstring."""
+
+    def __init__(self, **kwargs):
+        super().__init__('ranker', **kwargs)
+        self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
+                       for name, spec in PARAMETERS.items()}
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        torch.set_num_threads(1)
+        path = resolve_checkpoint(self.params['checkpoint'])
+        self.predictor = Predictor.load(path)
+        self.checkpoint_path = path
+        self.get_logger().info(f'serving {path} (fingerprint {self.predictor.fingerprint[:12]}, '
+                               f'actions {list(self.predictor.actions)})')
+
+        self._user_id = None
+        self._lock = threading.Lock()
+        self._counts = collections.Counter()
+        self._period = {}  # kind -> (count, last detail) since the last diagnostics
+        self._last_log = {}
+        self._queue = collections.deque()
+        self._wake = threading.Condition()
+        self._running = True
+
+        depth = self.params['queue_depth']
+        reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.ranking_pub = self.create_publisher(String, 'stars/ranking', reliable)
+        self.error_pub = self.create_publisher(String, 'stars/errors', 100)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.topics = {name: self.resolve_topic_name(name) for name in
+                       ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors')}
+        self.recorder = None
+        self.recorder = self._start_recorder(depth)
+        self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
+        self.create_subscription(String, 'stars/user_id', self._on_user_id, latched)
+        self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
+        self.create_service(Trigger, '~/reload', self._on_reload)
+        self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name='stars-ranker-worker', daemon=True)
+        self._worker.start()
+
+    # -- parameters ----------------------------------------------------------------------
+    def _on_set_parameters(self, changed) -> SetParametersResult:
+        for parameter in changed:
+            if parameter.name not in PARAMETERS:
+                continue
+            default, _, _, limits = PARAMETERS[parameter.name]
+            value = parameter.value
+            if type(value) is not type(default):
+                return SetParametersResult(successful=False,
+                                           reason=f'{parameter.name} must be a {type(default).__name__}')
+            if limits and not limits[0] <= value <= limits[1]:
+                return SetParametersResult(successful=False,
+                                           reason=f'{parameter.name} must be within {limits[0]}..{limits[1]}')
+        for parameter in changed:
+            if parameter.name in PARAMETERS:
+                self.params[parameter.name] = parameter.value
+        return SetParametersResult(successful=True)
+
+    # -- recording -----------------------------------------------------------------------
+    def _start_recorder(self, depth: int):
+        folder = self.params['record_folder']
+        if not folder:
+            self.get_logger().warning('record_folder is empty: scenes, rankings and feedback are not recorded')
+            return None
+        try:
+            for bag in recording.abandoned_bags(folder):
+                self.get_logger().warning(f'recovered {bag} left by a hard kill: {recording.recover(bag)}')
+        except (OSError, ValueError) as error:
+            self.report('recording', f'could not recover old bags in {folder}: {error}')
+        qos = {self.topics[t]: recording.qos_profile(depth) for t in ('stars/scene', 'stars/ranking')}
+        qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
+        qos[self.topics['stars/feedback']] = recording.qos_profile(100)
+        qos[self.topics['stars/errors']] = recording.qos_profile(100)
+        recorder = recording.Recorder(
+            folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
+            custom={'node': self.get_fully_qualified_name(), 'checkpoint': self.checkpoint_path,
+                    'fingerprint': self.predictor.fingerprint},
+            on_event=self._on_recorder_event)
+        if recorder.error is None:
+            self.get_logger().info(f'recording to {recorder.path}')
+        return recorder
+
+    def _on_recorder_event(self, level: str, text: str):
+        if level == 'error':
+            self.report('recording', text + '; ranking goes on, feedback is kept in memory until the disk works')
+        else:
+            self.get_logger().info(text)
+
+    def _record(self, topic: str, text: str):
+        if self.recorder is not None:
+            self.recorder.write(self.topics[topic], text, self.get_clock().now().nanoseconds)
+
+    # -- errors and diagnostics ----------------------------------------------------------
+    def report(self, kind: str, detail: str, topic: str = '', scene_id: str | None = None):
+        """Count, publish on stars/errors, log (throttled per kind) and record one problem."""
+        now = time.monotonic()
+        with self._lock:
+            self._counts[kind] += 1
+            count = self._period.get(kind, (0, ''))[0] + 1
+            self._period[kind] = (count, detail)
+            log = now - self._last_log.get(kind, -1e9) >= self.params['log_throttle']
+            if log:
+                self._last_log[kind] = now
+        payload = messages.dumps({'kind': kind, 'message': detail, 'topic': topic, 'scene_id': scene_id,
+                                  'level': 'warning' if kind in WARNINGS else 'error'})
+        self.error_pub.publish(String(data=payload))
+        self._record('stars/errors', payload)
+        if log:
+            line = (f'[{kind}] {detail} (total {self._counts[kind]}; repeats are logged at most every '
+                    f"{self.params['log_throttle']} s)")
+            if kind in WARNINGS:  # rclpy fixes one severity per call site
+                self.get_logger().warning(line)
+            else:
+                self.get_logger().error(line)
+
+    def _publish_diagnostics(self):
+        with self._lock:
+            period, self._period = self._period, {}
+            counts = dict(self._counts)
+        name = self.get_fully_qualified_name()
+        recorder = self.recorder
+        errors = {k for k in period if k not in WARNINGS}
+        level = DiagnosticStatus.ERROR if errors or (recorder and recorder.error) else (
+            DiagnosticStatus.WARN if period else DiagnosticStatus.OK)
+        summary = 'serving' if not period else 'serving; problems since last report: ' + ', '.join(
+            f'{k} x{n}' for k, (n, _) in sorted(period.items()))
+        values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
+                  'rankings': counts.get('ranking', 0), 'queued': len(self._queue),
+                  'recording': 'off' if recorder is None else (recorder.error or str(recorder.path)),
+                  'feedback_not_on_disk': 0 if recorder is None else recorder.pending_feedback}
+        values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
+        statuses = [DiagnosticStatus(level=level, name=f'{name}: ranker', message=summary, hardware_id=name,
+                                     values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
+        for kind, (count, detail) in sorted(period.items()):
+            statuses.append(DiagnosticStatus(
+                level=DiagnosticStatus.WARN if kind in WARNINGS else DiagnosticStatus.ERROR,
+                name=f'{name}: {kind}', message=detail, hardware_id=name,
+                values=[KeyValue(key='count', value=str(count))]))
+        array = DiagnosticArray(status=statuses)
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
+
+    # -- callbacks (executor thread) -----------------------------------------------------
+    def _on_scene(self, msg: String):
+        arrived = time.perf_counter_ns()
+        try:
+            request = messages.parse_scene_request(msg.data, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/scene'])
+            return
+        self._record('stars/scene', msg.data)
+        with self._wake:
+            if len(self._queue) >= self.params['queue_depth']:
+                overflow = True
+            else:
+                overflow = False
+                self._queue.append(Pending(request, request.user_id or self._user_id, arrived))
+                self._wake.notify()
+        if overflow:
+            self.report('overload', f"{self.params['queue_depth']} requests already wait to be scored; "
+                        'this one is dropped', self.topics['stars/scene'], request.scene_id)
+
+    def _on_user_id(self, msg: String):
+        try:
+            self._user_id = messages.parse_user_id(msg.data)
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/user_id'])
+            return
+        self._record('stars/user_id', msg.data)
+
+    def _on_feedback(self, msg: String):
+        topic = self.topics['stars/feedback']
+        try:
+            feedback = messages.parse_feedback(msg.data, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), topic)
+            return
+        if feedback.action is not None and feedback.action not in self.predictor.actions:
+            self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
+                        f'{list(self.predictor.actions)}', topic, feedback.scene_id)
+            return
+        if self.recorder is None:
+            self.report('recording', 'feedback accepted but record_folder is empty: it is not stored', topic,
+                        feedback.scene_id)
+        elif not self.recorder.write_feedback(topic, msg.data, self.get_clock().now().nanoseconds):
+            self.report('recording', 'feedback could not be written yet; kept in memory and retried', topic,
+                        feedback.scene_id)
+
+    def _on_reload(self, request, response):
+        try:
+            path = resolve_checkpoint(self.params['checkpoint'])
+            predictor = Predictor.load(path)
+        except CheckpointError as error:
+            self.report('checkpoint', f'reload failed, still serving {self.predictor.fingerprint[:12]}: {error}')
+            response.success, response.message = False, str(error)
+            return response
+        self.predictor, self.checkpoint_path = predictor, path  # the worker picks it up at its next batch
+        response.success = True
+        response.message = f'serving {path} (fingerprint {predictor.fingerprint})'
+        self.get_logger().info(response.message)
+        return response
+
+    # -- worker thread -------------------------------------------------------------------
+    def _work(self):
+        while True:
+            with self._wake:
+                while self._running and not self._queue:
+                    self._wake.wait()
+                if not self._running:
+                    return
+                batch = [self._queue.popleft() for _ in range(min(len(self._queue), self.params['max_batch']))]
+            try:
+                self._serve(batch)
+            except Exception as error:  # noqa: BLE001 - the node must keep serving
+                if not (self._running and self.context.ok()):
+                    return  # shutting down: publishers are gone
+                self.report('internal', f'{type(error).__name__}: {error}')
+
+    def _serve(self, batch):
+        predictor, top_k = self.predictor, self.params['top_k']
+        results = rank_batch(predictor, batch, top_k)
+        for item, result in zip(batch, results):
+            request = item.request
+            if isinstance(result, Exception):
+                self.report(error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
+                continue
+            known = predictor.knows_user(item.user_id)
+            if item.user_id is not None and not known:
+                self.report('unknown_user', f"user '{item.user_id}' is not in the training data: ranked by scene "
+                            'content and population offsets', self.topics['stars/scene'], request.scene_id)
+            elapsed_ms = (time.perf_counter_ns() - item.arrived) / 1e6
+            payload = messages.dumps(messages.ranking_payload(
+                request, item.user_id, known, result.ranked, predictor.fingerprint, round(elapsed_ms, 3),
+                result.action))
+            self.ranking_pub.publish(String(data=payload))
+            self._record('stars/ranking', payload)
+            with self._lock:
+                self._counts['ranking'] += 1
+
+    def close(self):
+        """Stop the worker and finish the recording (clean shutdown)."""
+        with self._wake:
+            self._running = False
+            waiting = len(self._queue)
+            self._wake.notify_all()
+        self._worker.join(timeout=10)
+        log = get_logger(self.get_name())  # not the node's: /rosout is gone by now
+        if waiting:
+            log.warning(f'{waiting} queued requests were not scored before shutdown')
+        if self.recorder is not None:
+            for entry in self.recorder.close():
+                log.error(f'feedback that could not be stored: {entry}')
+            log.info(f'recording closed: {self.recorder.path}')
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RankerNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except CheckpointError as error:
+        get_logger('ranker').fatal(str(error))
+        raise SystemExit(1) from None
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

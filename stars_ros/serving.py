@@ -1,0 +1,123 @@
+"""Rank a batch of queued scene requests with one model snapshot: the ranker node's core.
+
+ROS-free. When scenes arrive faster than they are scored, the node hands over everything
+queued (up to ``max_batch``) and requests of the same user are encoded in one forward pass,
+which is what lets a single core keep up. Results are those of ``Predictor.rank`` and
+``Predictor.rank_scenes`` on the same input (same scores, ties kept in input order). A bad
+request only fails itself: a group that raises is scored again one request at a time.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import SceneGraphError, StarsError, UnknownActionError
+from .messages import BadMessage, SceneRequest
+from .predictor import Ranked
+
+
+@dataclass(frozen=True)
+class Pending:
+    """A validated request waiting to be scored.
+
+    ``user_id`` is the one it is served for (the message's own, else the latest on
+    /stars/user_id at arrival); ``arrived`` is ``time.perf_counter_ns()`` at reception.
+    """
+
+    request: SceneRequest
+    user_id: str | None
+    arrived: int
+
+
+@dataclass(frozen=True)
+class Scored:
+    """The ranking of one request (best first, cut to ``top_k``) and, for candidate
+    scenes, the action that ranked them."""
+
+    ranked: list
+    action: str | None
+
+
+def error_kind(error: Exception) -> str:
+    """The diagnostics category of an error raised while handling a message."""
+    if isinstance(error, BadMessage):
+        return error.kind
+    if isinstance(error, UnknownActionError):
+        return 'unknown_action'
+    if isinstance(error, SceneGraphError):
+        return 'scene_graph'
+    if isinstance(error, StarsError):
+        return 'model'
+    return 'internal'
+
+
+def _order(names, scores) -> list:
+    order = sorted(range(len(names)), key=lambda k: (-scores[k], k))
+    return [Ranked(str(names[k]), float(scores[k]), rank) for rank, k in enumerate(order, 1)]
+
+
+def _ranking_action(predictor, request: SceneRequest) -> str | None:
+    """Check the request's action names against the model; the action that ranks candidate
+    scenes (None for action ranking)."""
+    if not request.ranks_scenes:
+        unknown = [a for a in request.actions or () if a not in predictor.actions]
+        if unknown:
+            raise UnknownActionError(f'unknown actions {unknown}; this model knows {list(predictor.actions)}')
+        return None
+    if request.action is None:
+        if len(predictor.actions) != 1:
+            raise UnknownActionError(f"say which 'action' ranks the candidate scenes; this model knows "
+                                     f'{list(predictor.actions)}')
+        return predictor.actions[0]
+    if request.action not in predictor.actions:
+        raise UnknownActionError(f"unknown action '{request.action}'; this model knows {list(predictor.actions)}")
+    return request.action
+
+
+def _score_group(predictor, user_id, members, top_k) -> list:
+    """Scores of ``members`` [(request, action)] of one user and one mode in one pass."""
+    ranks_scenes = members[0][0].ranks_scenes
+    graphs = [graph for request, _ in members for graph in request.graphs]
+    scene_ids = None if ranks_scenes else [request.scene_id for request, _ in members]
+    scores = predictor.score(user_id, graphs, scene_ids)
+    if not np.isfinite(scores).all():
+        raise StarsError('the model produced a non-finite score')
+    column = {a: i for i, a in enumerate(predictor.actions)}
+    results, row = [], 0
+    for request, action in members:
+        if ranks_scenes:
+            block = scores[row:row + len(request.graphs), column[action]]
+            ranked = _order(request.labels, block)
+        else:
+            names = request.actions or predictor.actions
+            ranked = _order(names, scores[row, [column[a] for a in names]])
+        row += len(request.graphs)
+        results.append(Scored(ranked[:top_k] if top_k else ranked, action))
+    return results
+
+
+def rank_batch(predictor, batch, top_k: int = 0) -> list:
+    """One ``Scored`` or one exception per ``Pending`` of ``batch``, in order."""
+    results = [None] * len(batch)
+    groups = {}
+    for k, item in enumerate(batch):
+        try:
+            action = _ranking_action(predictor, item.request)
+        except StarsError as error:
+            results[k] = error
+            continue
+        groups.setdefault((item.user_id, item.request.ranks_scenes), []).append((k, item.request, action))
+    for (user_id, _), members in groups.items():
+        try:
+            scored = _score_group(predictor, user_id, [(r, a) for _, r, a in members], top_k)
+        except StarsError:
+            scored = []
+            for _, request, action in members:  # find which request spoils the group
+                try:
+                    scored.append(_score_group(predictor, user_id, [(request, action)], top_k)[0])
+                except StarsError as error:
+                    scored.append(error)
+        for (k, _, _), result in zip(members, scored):
+            results[k] = result
+    return results

@@ -1,0 +1,141 @@
+"""Helpers for tests that run real nodes over loopback DDS.
+
+Each test module takes its own ROS domain (from the pid, so parallel runs of the suite do
+not hear each other) and discovery is limited to this machine.
+"""
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+REPO = Path(__file__).resolve().parents[1]
+RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def domain_id(offset: int) -> int:
+    """A ROS domain for this test process and ``offset`` (0..9), within 100..229."""
+    return 100 + (os.getpid() % 13) * 10 + offset
+
+
+def ros_env(domain: int) -> dict:
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''), PYTHONUNBUFFERED='1')
+
+
+def start_node(module: str, domain: int, params: dict, log_path: Path, args=()) -> subprocess.Popen:
+    """``python -m <module> [args] --ros-args -p k:=v ...`` with its output in ``log_path``."""
+    command = [sys.executable, '-m', module, *args, '--ros-args']
+    for name, value in params.items():
+        command += ['-p', f'{name}:={value}']
+    return subprocess.Popen(command, env=ros_env(domain), stdout=open(log_path, 'w'), stderr=subprocess.STDOUT)
+
+
+class RosClient:
+    """A test-side node on its own context: publishes requests, collects replies."""
+
+    def __init__(self, domain: int):
+        os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = Node('stars_test_client', context=self.context)
+        self.scene_pub = self.node.create_publisher(String, '/stars/scene', RELIABLE)
+        self.feedback_pub = self.node.create_publisher(String, '/stars/feedback', RELIABLE)
+        self.user_pub = self.node.create_publisher(String, '/stars/user_id', LATCHED)
+        self.rankings, self.errors, self.diagnostics = [], [], []
+        self._changed = threading.Condition()
+        self.node.create_subscription(String, '/stars/ranking', self._keep(self.rankings, json.loads), RELIABLE)
+        self.node.create_subscription(String, '/stars/errors', self._keep(self.errors, json.loads), RELIABLE)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._keep(self.diagnostics, None), 100)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self._spinner.start()
+
+    def _keep(self, store, convert):
+        def callback(msg):
+            with self._changed:
+                store.append(convert(msg.data) if convert else msg)
+                self._changed.notify_all()
+        return callback
+
+    def wait(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._changed.wait(min(left, 0.2))
+        return True
+
+    def scene(self, payload):
+        self.scene_pub.publish(String(data=payload if isinstance(payload, str) else json.dumps(payload)))
+
+    def feedback(self, payload: dict):
+        self.feedback_pub.publish(String(data=json.dumps(payload)))
+
+    def ranking_for(self, scene_id: str):
+        with self._changed:
+            return next((r for r in self.rankings if r['scene_id'] == scene_id), None)
+
+    def wait_ready(self, process, timeout: float, probe: dict):
+        """Wait until ``process`` answers ``probe`` (a valid request) end to end."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if process.poll() is not None:
+                raise RuntimeError(f'node exited with {process.returncode}')
+            if self.scene_pub.get_subscription_count() and self.node.count_publishers('/stars/ranking'):
+                self.scene(probe)
+                if self.wait(lambda: self.ranking_for(probe['scene_id']) is not None, 2.0):
+                    return
+            else:
+                time.sleep(0.2)
+        raise TimeoutError('node did not answer in time')
+
+    def call(self, service: str, timeout: float = 30.0):
+        client = self.node.create_client(Trigger, service)
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'{service} not available')
+        future = client.call_async(Trigger.Request())
+        if not self.wait(future.done, timeout):
+            raise TimeoutError(f'{service} did not answer')
+        return future.result()
+
+    def set_parameters(self, node_name: str, values: dict, timeout: float = 10.0):
+        client = AsyncParameterClient(self.node, node_name)
+        if not client.wait_for_services(timeout_sec=timeout):
+            raise TimeoutError(f'parameters of {node_name} not available')
+        future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        if not self.wait(future.done, timeout):
+            raise TimeoutError('set_parameters did not answer')
+        return future.result().results
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def stop(process: subprocess.Popen, signal_number, timeout: float = 30.0) -> int:
+    process.send_signal(signal_number)
+    try:
+        return process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        raise

@@ -1,0 +1,352 @@
+"""The ranker node, started for real and driven over loopback DDS.
+
+One shared node serves the ranking, error, fuzz, parameter and reload tests; the shutdown,
+hard-kill and unwritable-folder tests start their own.
+"""
+import json
+import random
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from std_msgs.msg import String
+
+from mutations import mutate
+from ros_helpers import RosClient, domain_id, start_node, stop
+from stars_ros import recording
+from stars_ros.checkpoint import save_checkpoint
+from stars_ros.config import ExperimentConfig
+from stars_ros.predictor import Predictor
+from stars_ros.scene_source import read_scenes, scene_request
+from stars_ros.training import StarsRecommender, split_rows
+
+KNOWN_USER = 'b'  # in the tiny checkpoint's training rows
+START_TIMEOUT = 90
+
+
+@pytest.fixture(scope='module')
+def scenes(socnav1_root):
+    return read_scenes(socnav1_root / 'raw' / 'b.jsonl')[:300]
+
+
+@pytest.fixture(scope='module')
+def predictor(tiny_checkpoint):
+    return Predictor.load(tiny_checkpoint)
+
+
+@pytest.fixture(scope='module')
+def other_checkpoint(socnav1, tmp_path_factory):
+    """A second small model (other seed and rows), for reload."""
+    config = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'variant': 'stars', 'dim': 16},
+              'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'lr': 3e-3, 'batch_size': 128, 'threads': 1,
+                           'seed': 5}}
+    train, _ = split_rows(len(socnav1), 0.2, 5)
+    recommender = StarsRecommender(ExperimentConfig.from_dict(config)).fit(socnav1, train[:800])
+    path = tmp_path_factory.mktemp('other') / 'other.pt'
+    save_checkpoint(recommender, path, data={'fingerprint': socnav1.fingerprint, 'source': 'socnav1'})
+    return path
+
+
+def _probe(scenes):
+    return {'scene_id': f'probe-{time.monotonic_ns()}', 'graph': scenes[0]}
+
+
+def _assert_same(reply, expected, key='action', tolerance=1e-5):
+    assert [entry[key] for entry in reply['ranking']] == [r.name for r in expected]
+    assert np.allclose([e['score'] for e in reply['ranking']], [r.score for r in expected], atol=tolerance)
+    assert [e['rank'] for e in reply['ranking']] == list(range(1, len(expected) + 1))
+
+
+@pytest.fixture(scope='module')
+def node(tiny_checkpoint, scenes, tmp_path_factory):
+    folder = tmp_path_factory.mktemp('shared_ranker')
+    domain = domain_id(0)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {
+        'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
+        'diagnostics_period': 0.3, 'log_throttle': 1.0}, folder / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+        yield process, client
+        assert process.poll() is None, 'the ranker died during the tests'
+        assert stop(process, signal.SIGINT) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+
+
+def test_ranking_equals_predictor_rank(node, scenes, predictor):
+    _, client = node
+    for k, scene in enumerate(scenes[:20]):
+        client.scene({'scene_id': scene['identifier'], 'user_id': KNOWN_USER, 'graph': scene})
+    assert client.wait(lambda: all(client.ranking_for(s['identifier']) for s in scenes[:20]), 30)
+    for scene in scenes[:20]:
+        reply = client.ranking_for(scene['identifier'])
+        assert reply['user_id'] == KNOWN_USER and reply['known_user'] is True
+        assert reply['fingerprint'] == predictor.fingerprint and reply['processing_ms'] >= 0
+        _assert_same(reply, predictor.rank(KNOWN_USER, scene, scene_id=scene['identifier']))
+
+
+def test_candidate_scenes_equal_rank_scenes_and_users_differ(node, scenes, predictor):
+    _, client = node
+    for user in ('a', 'c'):
+        client.scene(scene_request(f'placements-{user}', scenes[3], user_id=user, placements=5))
+    assert client.wait(lambda: client.ranking_for('placements-a') and client.ranking_for('placements-c'), 30)
+    for user in ('a', 'c'):
+        request = scene_request('x', scenes[3], placements=5)
+        expected = predictor.rank_scenes(user, [c['graph'] for c in request['candidates']],
+                                         labels=[c['candidate'] for c in request['candidates']])
+        reply = client.ranking_for(f'placements-{user}')
+        assert reply['action'] == 'navigate'
+        _assert_same(reply, expected, key='candidate')
+
+
+def test_user_id_topic_and_message_precedence(node, scenes, predictor):
+    _, client = node
+    client.user_pub.publish(String(data='c'))
+    time.sleep(0.5)
+    client.scene({'scene_id': 'from-topic', 'graph': scenes[5]})
+    client.scene({'scene_id': 'from-message', 'user_id': 'a', 'graph': scenes[5]})
+    client.scene({'scene_id': 'stranger', 'user_id': 'nobody-knows-me', 'graph': scenes[5]})
+    assert client.wait(lambda: all(client.ranking_for(s) for s in ('from-topic', 'from-message', 'stranger')), 30)
+    assert client.ranking_for('from-topic')['user_id'] == 'c'
+    assert client.ranking_for('from-message')['user_id'] == 'a'
+    stranger = client.ranking_for('stranger')
+    assert stranger['known_user'] is False
+    _assert_same(stranger, predictor.rank('nobody-knows-me', scenes[5], scene_id='stranger'))
+    assert client.wait(lambda: any(e['kind'] == 'unknown_user' and e['scene_id'] == 'stranger'
+                                   for e in client.errors), 10)
+
+
+BAD_INPUTS = {
+    'malformed_json': '{"scene_id": "bad", "graph": ',
+    'non_finite': '{"scene_id": "bad", "graph": {"humans": [], "room": [[0, 0], [1, NaN], [2, 3]]}}',
+    'oversized': '{"scene_id": "bad", "pad": "' + 'x' * 300000 + '"}',
+    'schema': '{"scene_id": "bad", "graph": {"humans": [], "room": []}}',
+}
+
+
+def test_bad_input_is_reported_on_both_topics_and_serving_goes_on(node, scenes):
+    process, client = node
+    for text in BAD_INPUTS.values():
+        client.scene(text)
+    crowd = dict(scenes[0], humans=[{'id': k, 'xPos': 10, 'yPos': 20, 'orientation': 0} for k in range(1, 2500)])
+    client.scene(json.dumps({'scene_id': 'crowd', 'graph': crowd}))
+    client.scene({'scene_id': 'fly', 'graph': scenes[0], 'candidates': ['fly']})
+    client.scene({'scene_id': 'twin-ids', 'graph': dict(scenes[0], objects=[dict(scenes[0]['humans'][0])])})
+    client.scene({'scene_id': 'after-the-bad-ones', 'graph': scenes[1]})
+    kinds = set(BAD_INPUTS) | {'unknown_action', 'scene_graph'}
+    assert client.wait(lambda: kinds <= {e['kind'] for e in client.errors}, 20)
+    assert client.wait(lambda: client.ranking_for('after-the-bad-ones') is not None, 20)
+    by_scene = {e['scene_id']: e for e in client.errors}
+    assert by_scene['fly']['kind'] == 'unknown_action' and 'fly' in by_scene['fly']['message']
+    assert by_scene['twin-ids']['kind'] == 'scene_graph'
+    assert any(e['kind'] == 'schema' and 'humans' in e['message'] for e in client.errors)
+
+    def reported(kind):
+        return any(s.name.endswith(': ' + kind) and s.level == b'\x02' for d in client.diagnostics for s in d.status)
+    assert client.wait(lambda: all(reported(k) for k in kinds), 10)
+    summary = [s for d in client.diagnostics for s in d.status if s.name.endswith(': ranker')][-1]
+    values = {v.key: v.value for v in summary.values}
+    assert int(values['errors.malformed_json']) >= 1 and values['fingerprint']
+    assert process.poll() is None
+
+
+def test_fuzz_never_kills_the_node_and_valid_messages_stay_correct(node, scenes, predictor):
+    """1,000 mutated messages with 250 valid ones interleaved: every message gets exactly
+    one answer (a ranking or an error), and the valid ones the right ranking."""
+    process, client = node
+    rng = random.Random(11)
+    rankings_before = len(client.rankings)
+    errors_before = len([e for e in client.errors if e['level'] == 'error'])
+    valid = {}
+    sent = 0
+    for k in range(1000):
+        base = scene_request(f'fuzz-{k}', scenes[k % 200], user_id=rng.choice('abc'), placements=2 if k % 4 == 0 else 0)
+        client.scene(mutate(base, rng))
+        sent += 1
+        if k % 4 == 3:
+            scene = scenes[200 + k // 4 % 100]
+            valid[f'valid-{k}'] = scene
+            client.scene({'scene_id': f'valid-{k}', 'user_id': KNOWN_USER, 'graph': scene})
+            sent += 1
+        if k % 50 == 49:
+            time.sleep(0.1)  # pace the sender so DDS history never overwrites unsent samples
+
+    def answered():
+        errors = len([e for e in client.errors if e['level'] == 'error']) - errors_before
+        return len(client.rankings) - rankings_before + errors >= sent
+    assert client.wait(answered, 120), 'some messages got no answer'
+    time.sleep(1.0)
+    assert answered() and process.poll() is None
+    errors = len([e for e in client.errors if e['level'] == 'error']) - errors_before
+    assert len(client.rankings) - rankings_before + errors == sent
+    for scene_id, scene in valid.items():
+        _assert_same(client.ranking_for(scene_id), predictor.rank(KNOWN_USER, scene, scene_id=scene_id))
+
+
+def test_parameters_are_checked_and_top_k_applies(node, scenes):
+    _, client = node
+    refused = client.set_parameters('/ranker', {'top_k': -1})
+    assert not refused[0].successful and 'top_k' in refused[0].reason
+    assert not client.set_parameters('/ranker', {'max_batch': 'many'})[0].successful
+    assert not client.set_parameters('/ranker', {'record_folder': '/elsewhere'})[0].successful  # read-only
+    assert client.set_parameters('/ranker', {'top_k': 2})[0].successful
+    client.scene(scene_request('top2', scenes[7], user_id='a', placements=5))
+    assert client.wait(lambda: client.ranking_for('top2') is not None, 20)
+    assert [e['rank'] for e in client.ranking_for('top2')['ranking']] == [1, 2]
+    assert client.set_parameters('/ranker', {'top_k': 0})[0].successful
+
+
+def test_reload_under_load_swaps_models_without_losing_or_misscoring(node, scenes, predictor, other_checkpoint,
+                                                                     tmp_path):
+    _, client = node
+    other = Predictor.load(other_checkpoint)
+    assert other.fingerprint != predictor.fingerprint
+    sent = []
+    stop_sending = threading.Event()
+
+    def send():
+        k = 0
+        while not stop_sending.is_set() and k < 2000:
+            scene_id = f'load-{k}'
+            client.scene({'scene_id': scene_id, 'user_id': KNOWN_USER, 'graph': scenes[k % 300]})
+            sent.append((scene_id, scenes[k % 300]))
+            k += 1
+            time.sleep(0.01)
+
+    sender = threading.Thread(target=send)
+    sender.start()
+    try:
+        time.sleep(1.0)
+        assert client.set_parameters('/ranker', {'checkpoint': str(tmp_path / 'missing.pt')})[0].successful
+        failed = client.call('/ranker/reload')
+        assert not failed.success and 'missing.pt' in failed.message
+        assert client.set_parameters('/ranker', {'checkpoint': str(other_checkpoint)})[0].successful
+        response = client.call('/ranker/reload')
+        assert response.success and other.fingerprint in response.message
+        time.sleep(1.0)
+    finally:
+        stop_sending.set()
+        sender.join()
+    assert client.wait(lambda: all(client.ranking_for(s) for s, _ in sent), 60), 'rankings were lost'
+    models = {predictor.fingerprint: predictor, other.fingerprint: other}
+    seen = []
+    for scene_id, scene in sent:
+        reply = client.ranking_for(scene_id)
+        seen.append(reply['fingerprint'])
+        _assert_same(reply, models[reply['fingerprint']].rank(KNOWN_USER, scene, scene_id=scene_id))
+    switch = seen.index(other.fingerprint)
+    assert switch > 0 and set(seen[:switch]) == {predictor.fingerprint} and set(seen[switch:]) == {other.fingerprint}
+    assert any(e['kind'] == 'checkpoint' for e in client.errors)
+
+
+# -- nodes of their own ------------------------------------------------------------------------
+@pytest.mark.parametrize('signal_number', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_number, tiny_checkpoint, scenes,
+                                                                       tmp_path):
+    domain = domain_id(1 if signal_number == signal.SIGINT else 2)
+    client = RosClient(domain)
+    client.user_pub.publish(String(data=KNOWN_USER))
+    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path},
+                         tmp_path / 'ranker.log')  # starts after the user id was published
+    try:
+        client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+        for k in range(5):
+            client.scene({'scene_id': f's{k}', 'graph': scenes[k]})
+        feedback = {'user_id': KNOWN_USER, 'scene_id': 's1', 'action': 'navigate', 'score': 0.75}
+        client.feedback(feedback)
+        assert client.wait(lambda: all(client.ranking_for(f's{k}') for k in range(5)), 30)
+        assert client.ranking_for('s0')['user_id'] == KNOWN_USER  # latched before the node existed
+        bag = next(tmp_path.glob('stars_*'))
+        deadline = time.monotonic() + 10
+        while not (bag / recording.JOURNAL).read_text() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert stop(process, signal_number) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+    assert not (bag / recording.PID_FILE).exists()
+    assert all(recording.is_finished(f) for f in bag.glob('*.mcap'))
+    messages = list(recording.read_messages(bag))
+    topics = {t for t, _, _ in messages}
+    assert {'/stars/scene', '/stars/ranking', '/stars/user_id', '/stars/feedback'} <= topics
+    assert [json.loads(m) for t, m, _ in messages if t == '/stars/feedback'] == [feedback]
+    recorded = {json.loads(m)['scene_id']: json.loads(m) for t, m, _ in messages if t == '/stars/ranking'}
+    assert recorded['s3'] == client.ranking_for('s3')
+
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(bag) as reader:
+        read = [(c.topic, store.deserialize_cdr(raw, c.msgtype).data) for c, _, raw in reader.messages()]
+        qos = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
+    assert ('/stars/feedback', json.dumps(feedback)) in read and len(read) == len(messages)
+    assert qos['/stars/user_id'][0].durability.name == 'TRANSIENT_LOCAL'
+    info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert info['message_count'] == len(messages)
+
+
+def test_hard_kill_then_recovery_keeps_everything_before_the_last_flush(tiny_checkpoint, scenes, tmp_path):
+    domain = domain_id(3)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
+                                                      'flush_interval': 0.2}, tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+        for k in range(20):
+            client.scene({'scene_id': f's{k}', 'user_id': KNOWN_USER, 'graph': scenes[k]})
+        assert client.wait(lambda: all(client.ranking_for(f's{k}') for k in range(20)), 30)
+        time.sleep(1.0)  # five flush intervals
+        bag = next(tmp_path.glob('stars_*'))
+        client.feedback({'user_id': KNOWN_USER, 'scene_id': 's2', 'candidate': 'left', 'score': 0.1})
+        deadline = time.monotonic() + 10
+        while not (bag / recording.JOURNAL).read_text() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        process.kill()  # SIGKILL, right after the feedback was journaled
+        process.wait()
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+    assert recording.abandoned_bags(tmp_path) == [bag]
+    recording.recover(bag)
+    messages = list(recording.read_messages(bag))
+    rankings = {json.loads(m)['scene_id'] for t, m, _ in messages if t == '/stars/ranking'}
+    assert {f's{k}' for k in range(20)} <= rankings
+    assert [json.loads(m)['score'] for t, m, _ in messages if t == '/stars/feedback'] == [0.1]
+
+
+def test_unwritable_record_folder_is_reported_and_ranking_goes_on(tiny_checkpoint, scenes, tmp_path):
+    blocker = tmp_path / 'a-file'
+    blocker.write_text('not a folder')
+    domain = domain_id(4)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint,
+                                                      'record_folder': blocker / 'records', 'diagnostics_period': 0.3},
+                         tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+        client.feedback({'user_id': KNOWN_USER, 'scene_id': 's', 'action': 'navigate', 'score': 0.5})
+        assert client.wait(lambda: any(e['kind'] == 'recording' and e['topic'] == '/stars/feedback'
+                                       for e in client.errors), 20)
+
+        def recording_error():
+            statuses = [s for d in client.diagnostics for s in d.status if s.name.endswith(': ranker')]
+            values = statuses and {v.key: v.value for v in statuses[-1].values}
+            return bool(values) and 'a-file' in values['recording'] and values['feedback_not_on_disk'] == '1'
+        assert client.wait(recording_error, 10)
+        client.scene({'scene_id': 'still-served', 'graph': scenes[2]})
+        assert client.wait(lambda: client.ranking_for('still-served') is not None, 20)
+        assert stop(process, signal.SIGTERM) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+    assert "feedback that could not be stored: {'topic': '/stars/feedback'" in (tmp_path / 'ranker.log').read_text()
