@@ -1,0 +1,343 @@
+"""Run the evaluation protocol (cross-validation, paired tests, sparsity sweep) and write a results folder.
+
+    python -m offline_training.evaluate --config config/eval_socnav1.yaml \
+        --protocol rows --jobs 2 [--quick] [--backbones gcn,gat] [--out results/socnav1-rows]
+
+Writes into ``--out`` (default ``results/<name>-<protocol>[-quick]``): ``command.txt``,
+``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each result
+as it arrives, so a long run that stops keeps what it finished), ``folds.csv`` (per model,
+fold and training fraction), ``selection.csv`` (inner validation of every (T1, T2)),
+``tests.csv``, ``results.json`` (everything), ``tables.md`` (the paper's tables, the
+paired tests, the sparsity table and where the time went) and ``sparsity_<metric>.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import math
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from stars_ros.data import load_dataset
+from stars_ros.errors import StarsError
+from stars_ros.evaluation import (DISPLAY, PROTOCOLS, ProtocolConfig, by_model, model_specs, paired_tests,
+                                  run_protocol, sparsity_summary, time_accounting)
+from stars_ros.stats import format_mean_sd, mean_sd
+
+from .common import DEFAULT_SOCNAV1, machine, setup_logging
+
+REPO = Path(__file__).resolve().parents[1]
+METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
+RECORD_COLUMNS = ('protocol', 'model', 'backbone', 'variant', 'fold', 'fraction', 'stage', 'T1', 'T2',
+                  'n_train', 'n_test', 'mse', 'rmse', 'pearson_r', 'ccc', 'epochs', 'fit_seconds',
+                  'predict_seconds', 'error')
+SELECTION_COLUMNS = ('model', 'fold', 'T1', 'T2', 'inner_fold', 'n_train', 'n_test', 'z_rmse', 'epochs',
+                     'fit_seconds', 'predict_seconds')
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--config', default=str(REPO / 'config' / 'eval_socnav1.yaml'),
+                        help='protocol YAML (default: %(default)s)')
+    parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1),
+                        help='SocNav1 root or generic-format root (default: %(default)s)')
+    parser.add_argument('--protocol', choices=PROTOCOLS, default='rows',
+                        help='fold grouping: annotation rows (published), scenes or annotators')
+    parser.add_argument('--quick', action='store_true',
+                        help='merge config/eval_quick.yaml (fewer folds and epochs, tiny model)')
+    parser.add_argument('--backbones', help='comma-separated subset of the config\'s backbones')
+    parser.add_argument('--jobs', type=int, default=1, help='worker processes (default: %(default)s)')
+    parser.add_argument('--threads', type=int, help='torch threads per job (default: cores // jobs)')
+    parser.add_argument('--out', help='results folder (default: results/<name>-<protocol>[-quick])')
+    parser.add_argument('--verbose', action='store_true', help='log every fit')
+    return parser.parse_args(argv)
+
+
+def configure(args) -> ProtocolConfig:
+    config = ProtocolConfig.from_yaml(args.config, REPO / 'config' / 'eval_quick.yaml' if args.quick else None)
+    if args.backbones:
+        chosen = [b.strip() for b in args.backbones.split(',') if b.strip()]
+        unknown = sorted(set(chosen) - set(config.backbones))
+        if unknown:
+            raise StarsError(f'--backbones {unknown} not in the config (it has {list(config.backbones)})')
+        values = config.to_dict()
+        values['backbones'] = {b: config.backbones[b] for b in chosen}
+        values['sweep_backbones'] = [b for b in config.sweep_backbones if b in chosen]
+        config = ProtocolConfig.from_dict(values)
+    return config
+
+
+def git_state() -> dict:
+    """Commit and whether the checkout had uncommitted changes (results must say)."""
+    def git(*command):
+        return subprocess.run(['git', *command], cwd=REPO, capture_output=True, text=True, timeout=30).stdout.strip()
+    try:
+        return {'commit': git('rev-parse', 'HEAD'), 'dirty': bool(git('status', '--porcelain', '--untracked-files=no'))}
+    except (OSError, subprocess.SubprocessError):
+        return {'commit': None, 'dirty': None}
+
+
+# -- tables -----------------------------------------------------------------------------
+def _number(value: float, digits: int) -> str:
+    return '—' if value is None or not math.isfinite(value) else f'{value:.{digits}f}'
+
+
+def _short(value: float) -> str:
+    """``.024`` as in the paper's tables."""
+    text = _number(value, 3)
+    return text.replace('0.', '.', 1) if text.startswith(('0.', '-0.')) else text
+
+
+def _p(value: float) -> str:
+    if value is None or not math.isfinite(value):
+        return '—'
+    return '< 0.001' if value < 0.001 else f'{value:.3f}'
+
+
+def _digits(metric: str) -> int:
+    return 4 if metric in ('mse', 'rmse') else 3
+
+
+def results_table(result, error: str) -> list[str]:
+    metrics = (error, 'pearson_r', 'ccc')
+    lines = ['| Model | ' + ' | '.join(METRIC_NAMES[m] for m in metrics) + ' | (T1, T2) chosen |',
+             '| --- | ' + ' | '.join('---' for _ in metrics) + ' | --- |']
+    final = by_model(result.final())
+    for spec in model_specs(result.config):
+        entries = final.get(spec.label, [])
+        if not entries:
+            continue
+        pairs = sorted({(e['T1'], e['T2']) for e in entries})
+        chosen = ', '.join(f'({t1}, {t2})' for t1, t2 in pairs) if spec.variant != 'population_mean' else '—'
+        lines.append(f'| {spec.label} | ' + ' | '.join(format_mean_sd([e[m] for e in entries], _digits(m))
+                                                        for m in metrics) + f' | {chosen} |')
+    return lines
+
+
+def tests_table(tests: list, error: str) -> list[str]:
+    metrics = (error, 'pearson_r', 'ccc')
+    present = [m for m in metrics if any(t['metric'] == m for t in tests)]
+    if not present:
+        return ['(no backbone has both variants: no paired tests)']
+    df = tests[0]['df']
+    head = ' | '.join(f'Δ{METRIC_NAMES[m]} | t({df}) | Holm p' for m in present)
+    lines = [f'| Backbone | {head} |', '| --- | ' + ' | '.join('---' for _ in range(3 * len(present))) + ' |']
+    for backbone in dict.fromkeys(t['backbone'] for t in tests):
+        cells = []
+        for metric in present:
+            found = [t for t in tests if t['backbone'] == backbone and t['metric'] == metric]
+            if found:
+                t = found[0]
+                cells += [f"{t['delta']:+.{_digits(metric)}f}", _number(t['t'], 2), _p(t['p_holm'])]
+            else:
+                cells += ['—', '—', '—']
+        lines.append(f'| {DISPLAY.get(backbone, backbone)} | ' + ' | '.join(cells) + ' |')
+    return lines
+
+
+def comparison_table(result, error: str, name: str) -> list[str]:
+    """base → StARS per backbone, the layout of the README's published table."""
+    metrics = (error, 'pearson_r', 'ccc')
+    final = {(e[0]['backbone'], e[0]['variant']): e for e in by_model(result.final()).values()}
+    lines = [f'| {name}, this run | ' + ' | '.join(f'{METRIC_NAMES[m]} base → StARS' for m in metrics) + ' |',
+             '| --- | ' + ' | '.join('---' for _ in metrics) + ' |']
+    for backbone in result.config.backbones:
+        if (backbone, 'base') not in final or (backbone, 'stars') not in final:
+            continue
+        cells = [f"{_short(mean_sd([e[m] for e in final[backbone, 'base']])[0])} → "
+                 f"{_short(mean_sd([e[m] for e in final[backbone, 'stars']])[0])}" for m in metrics]
+        lines.append(f'| {DISPLAY.get(backbone, backbone)} | ' + ' | '.join(cells) + ' |')
+    return lines if len(lines) > 2 else []
+
+
+def sparsity_table(summary: dict, error: str) -> list[str]:
+    fractions = sorted({f for by_fraction in summary.values() for f in by_fraction})
+    lines = ['| Model | ' + ' | '.join(f'{f:g}' for f in fractions) + ' |',
+             '| --- | ' + ' | '.join('---' for _ in fractions) + ' |']
+    for label, by_fraction in summary.items():
+        cells = [format_mean_sd(by_fraction[f][error], _digits(error)) if f in by_fraction else '—'
+                 for f in fractions]
+        lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
+    return lines
+
+
+def timing_table(timing: dict, load_seconds: float) -> list[str]:
+    wall = timing['wall_seconds']
+    busy = timing['worker_seconds'] or math.nan
+    lines = [f"Wall time {wall / 60:.1f} min ({wall:.0f} s) with {timing['jobs']} job(s) × "
+             f"{timing['threads_per_job']} torch thread(s); loading and featurising the data took "
+             f"{load_seconds:.1f} s before that. Fits kept the workers busy {timing['utilisation']:.0%} "
+             f"of the wall time ({busy:.0f} worker-seconds); the rest is process start-up, fold "
+             'set-up and the tail where fewer fits than workers remain.', '',
+             '| Stage | worker-seconds | share |', '| --- | --- | --- |']
+    names = {'inner': 'inner (T1, T2) selection', 'final': 'final fit on the outer-train pool',
+             'sweep': 'sparsity sweep (fractions < 1)'}
+    for stage, seconds in timing['by_stage'].items():
+        lines.append(f'| {names.get(stage, stage)} | {seconds:.0f} | {seconds / busy:.0%} |')
+    lines += ['', '| Model | selection s | final s | sweep s | s/epoch (full pool) |', '| --- | --- | --- | --- | --- |']
+    for label, stages in timing['by_model'].items():
+        per_epoch = timing['seconds_per_epoch_full_pool'].get(label)
+        lines.append(f"| {label} | {stages.get('inner', 0):.0f} | {stages.get('final', 0):.1f} | "
+                     f"{stages.get('sweep', 0):.1f} | {_number(per_epoch, 3)} |")
+    return lines
+
+
+def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) -> None:
+    config = result.config
+    error = config.error
+    k = len(result.folds)
+    lines = [f"# {config.name}: {result.protocol} protocol", '',
+             f"Command: `{header['command']}`  ", f"Data: {header['data']}  ",
+             f"Commit: {header['git']['commit']}{' (uncommitted changes)' if header['git']['dirty'] else ''}  ",
+             f"Machine: {header['machine']['processor']}, {header['machine']['cpus']} CPUs, "
+             f"torch {header['machine']['torch']}; load average at start {header['load_start']}", '',
+             f'## Results ({k} outer folds; mean ± sd over folds)', '',
+             *results_table(result, error), '',
+             f"Metrics macro-averaged over actions on the rating scale; (T1, T2) chosen per fold by "
+             f"{config.inner_folds}-fold inner validation from {[list(p) for p in config.grid]}.", '',
+             '## Paired tests, StARS − base', '',
+             *tests_table(tests, error), '',
+             'Bouckaert–Frank corrected resampled t-test (variance × (1/k + n_test/n_train)), two-sided; '
+             'p Holm-adjusted over the backbones within each metric. '
+             f'Negative Δ{METRIC_NAMES[error]} and positive Δr, ΔCCC favour StARS.', '']
+    comparison = comparison_table(result, error, config.name)
+    if comparison:
+        lines += ['## Beside the published table', '', *comparison, '']
+    summary = sparsity_summary(result)
+    if summary:
+        lines += [f'## Sparsity: {METRIC_NAMES[error]} against the training fraction', '',
+                  *sparsity_table(summary, error), '',
+                  'Fractions sampled without replacement from each outer-train pool (nested), '
+                  'scored on the fixed outer test fold; plots: ' +
+                  ', '.join(f'`sparsity_{m}.png`' for m in (error, 'pearson_r', 'ccc')) + '.', '']
+    failed = [r for r in result.records if 'error' in r]
+    if failed:
+        lines += ['## Failed fits', ''] + [f"- {r['model']} fold {r['fold']} fraction {r['fraction']}: {r['error']}"
+                                           for r in failed] + ['']
+    lines += ['## Where the time goes', '', *timing_table(timing, load_seconds), '']
+    path.write_text('\n'.join(lines))
+
+
+def plot_sparsity(folder: Path, summary: dict, error: str) -> list[str]:
+    """One PNG per metric, one panel per swept backbone (base, StARS and the baselines)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    panels = {}
+    for label in summary:
+        backbone = label.rsplit(' ', 1)[0] if label.endswith((' base', ' StARS')) else None
+        panels.setdefault(backbone, []).append(label)
+    baselines = panels.pop(None, [])
+    if not panels:
+        panels = {'baselines': []}
+    written = []
+    for metric in (error, 'pearson_r', 'ccc'):
+        figure, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False)
+        for axis, (backbone, labels) in zip(axes[0], panels.items()):
+            for label in labels + baselines:
+                fractions = list(summary[label])
+                stats = [mean_sd(summary[label][f][metric]) for f in fractions]
+                means = np.array([s[0] for s in stats])
+                sds = np.array([s[1] for s in stats])
+                if np.isnan(means).all():
+                    continue
+                line, = axis.plot(fractions, means, marker='o', label=label)
+                axis.fill_between(fractions, means - sds, means + sds, alpha=0.2, color=line.get_color())
+            axis.set_title(backbone)
+            axis.set_xlabel('training fraction of the outer-train pool')
+            axis.set_ylabel(METRIC_NAMES[metric])
+            axis.grid(alpha=0.3)
+            axis.legend(fontsize=7)
+        figure.tight_layout()
+        name = f'sparsity_{metric}.png'
+        figure.savefig(folder / name, dpi=120)
+        plt.close(figure)
+        written.append(name)
+    return written
+
+
+def write_csv(path: Path, rows: list, columns) -> None:
+    with path.open('w', newline='') as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns, extrasaction='ignore')
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _json_default(value):
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    raise TypeError(f'cannot write {type(value).__name__} as JSON')
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    setup_logging(args.verbose)
+    logging.getLogger('stars_ros.evaluation').setLevel(logging.INFO)
+    try:
+        config = configure(args)
+        if args.jobs < 1 or (args.threads is not None and args.threads < 1):
+            raise StarsError('--jobs and --threads must be positive')
+        started = time.perf_counter()
+        data = load_dataset(args.data_root)
+        load_seconds = time.perf_counter() - started
+    except (StarsError, OSError) as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
+    threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
+    name = f"{config.name}-{args.protocol}{'-quick' if args.quick else ''}"
+    folder = Path(args.out) if args.out else REPO / 'results' / name
+    folder.mkdir(parents=True, exist_ok=True)
+    command = shlex.join(['python', '-m', 'offline_training.evaluate', *(sys.argv[1:] if argv is None else argv)])
+    header = {'command': command, 'git': git_state(), 'machine': machine(),
+              'load_start': [round(v, 2) for v in os.getloadavg()],
+              'data': f'{data.source} ({len(data)} ratings, {len(set(data.users.tolist()))} users, '
+                      f'{len(data.scene_keys)} scenes, fingerprint {data.fingerprint[:12]})'}
+    (folder / 'command.txt').write_text(command + '\n')
+    (folder / 'config.yaml').write_text(yaml.safe_dump(
+        {'protocol': args.protocol, 'quick': args.quick, 'data_root': str(args.data_root),
+         'data_fingerprint': data.fingerprint, 'jobs': args.jobs, 'threads': threads, **config.to_dict()},
+        sort_keys=False))
+    (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git'],
+                                                     'load_average_start': header['load_start']}, indent=2))
+    print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
+          f'{args.jobs} job(s) × {threads} thread(s); writing {folder}', flush=True)
+    with (folder / 'records.jsonl').open('w') as stream:
+        def keep(entry):
+            stream.write(json.dumps(entry, default=_json_default) + '\n')
+            stream.flush()
+        try:
+            result = run_protocol(data, config, args.protocol, jobs=args.jobs, threads=threads, on_record=keep)
+        except (StarsError, ValueError) as error:
+            print(f'error: {error}', file=sys.stderr)
+            return 1
+
+    tests = paired_tests(result, (config.error, 'pearson_r', 'ccc'))
+    timing = {**time_accounting(result), 'load_seconds': load_seconds,
+              'load_average_end': [round(v, 2) for v in os.getloadavg()]}
+    write_csv(folder / 'folds.csv', result.records, RECORD_COLUMNS)
+    write_csv(folder / 'selection.csv', result.selection, SELECTION_COLUMNS)
+    write_csv(folder / 'tests.csv', tests, ('backbone', 'metric', 'delta', 't', 'df', 'p', 'p_holm'))
+    summary = sparsity_summary(result)
+    plots = plot_sparsity(folder, summary, config.error) if summary else []
+    write_tables(folder / 'tables.md', result, tests, timing, load_seconds, header)
+    (folder / 'results.json').write_text(json.dumps(
+        {'command': command, 'protocol': args.protocol, 'config': config.to_dict(), 'folds': result.folds,
+         'records': result.records, 'selection': result.selection, 'tests': tests, 'timing': timing,
+         'plots': plots, 'git': header['git'], 'machine': header['machine']},
+        indent=1, default=_json_default))
+    print((folder / 'tables.md').read_text())
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,533 @@
+"""The evaluation protocol: outer cross-validation, inner (T1, T2) selection, sparsity sweep.
+
+For every outer fold and model, a ``inner_folds``-fold cross-validation inside the
+outer-train pool picks the epoch pair (T1, T2) of ``grid`` with the lowest validation RMSE
+on normalised scores (z-scores under the training split's per-action mean and standard
+deviation, so actions weigh the same); the model is then retrained on the whole pool with
+that pair and scored on the outer test rows. The sparsity sweep retrains with the chosen
+pair on nested random subsets (``fractions`` of the pool, without replacement) and scores
+them on the same outer test rows; fraction 1.0 is the main result.
+
+Three protocols share this machinery and differ only in how rows are grouped into folds:
+``rows`` (random annotation rows, as published), ``cold-scene`` (grouped by scene, so no
+test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds are
+grouped the same way, so the selection sees the situation it is selecting for. The model
+needs no special case: unseen scenes and users get zero embeddings and offsets.
+
+Every model of a table is scored on the same folds: the chosen backbones in the ``base``
+and ``stars`` variants, and two baselines: ``population_mean`` (the training mean of each
+action) and ``mf`` (biased matrix factorisation, no scene content). Fits are independent
+jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
+CPU pays better than threads inside one small-graph model.
+"""
+from __future__ import annotations
+
+import concurrent.futures as futures
+import dataclasses
+import logging
+import math
+import multiprocessing
+import pickle
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, NamedTuple, Sequence
+
+import numpy as np
+import yaml
+
+from .config import EncoderConfig, ExperimentConfig
+from .data import RatingData
+from .errors import ConfigError, TrainingDivergedError
+from .metrics import regression_report
+from .stats import corrected_resampled_ttest, holm
+
+log = logging.getLogger(__name__)
+
+PROTOCOLS = ('rows', 'cold-scene', 'cold-user')
+METRICS = ('mse', 'rmse', 'pearson_r', 'ccc')
+BASELINES = ('population_mean', 'mf')
+DISPLAY = {'gcn': 'GCN', 'gin': 'GIN', 'graphsage': 'GraphSAGE', 'ggnn': 'GGNN', 'rgcn': 'RGCN',
+           'gat': 'GAT', 'mlp': 'MLP', 'resmlp': 'ResMLP', 'dcnv2': 'DCNv2', 'graceae': 'GraceAE',
+           'fttransformer': 'FT-Transformer'}
+BASELINE_LABELS = {'population_mean': 'Population mean', 'mf': 'MF (biased, no content)'}
+
+
+# -- configuration ----------------------------------------------------------------------
+def _merge(base: dict, changes: dict) -> dict:
+    """``base`` with ``changes`` merged in; nested mappings merge, anything else replaces."""
+    merged = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """What one evaluation run trains and how (read from ``config/eval_*.yaml``).
+
+    Args:
+        name (str): run name, the default results folder.
+        folds (int): outer folds k (the t-test has k·len(seeds) − 1 degrees of freedom).
+        inner_folds (int): folds of the (T1, T2) selection inside each outer-train pool.
+        seeds (tuple of int): fold-assignment seeds; more than one repeats the whole CV.
+        grid (tuple of (T1, T2)): candidate epoch pairs; one pair skips the selection.
+        fractions (tuple of float): training fractions of the sparsity sweep.
+        backbones (dict): encoder name -> encoder settings that differ from ``experiment``.
+        variants (tuple of str): ``base`` and/or ``stars``, trained for every backbone.
+        baselines (tuple of str): ``population_mean`` and/or ``mf``.
+        sweep_backbones (tuple of str): backbones that get the sparsity sweep (with the
+            baselines); empty for none.
+        error (str): error column of the tables: ``mse`` ([0, 1] scales) or ``rmse``.
+        experiment (dict): ExperimentConfig mapping shared by every model (sizes, lr, ...).
+    """
+
+    name: str = 'socnav1'
+    folds: int = 5
+    inner_folds: int = 2
+    seeds: tuple = (0,)
+    grid: tuple = ((10, 100), (50, 100), (100, 100))
+    fractions: tuple = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+    backbones: dict = field(default_factory=lambda: {'gat': {}})
+    variants: tuple = ('base', 'stars')
+    baselines: tuple = BASELINES
+    sweep_backbones: tuple = ()
+    error: str = 'mse'
+    experiment: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        for name in ('seeds', 'variants', 'baselines', 'sweep_backbones', 'fractions'):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        object.__setattr__(self, 'grid', tuple(tuple(int(t) for t in pair) for pair in self.grid))
+        if self.folds < 2 or self.inner_folds < 2:
+            raise ConfigError('folds and inner_folds must be at least 2')
+        if not self.seeds:
+            raise ConfigError('seeds must not be empty')
+        if not self.grid or any(len(pair) != 2 or min(pair) < 0 for pair in self.grid):
+            raise ConfigError(f'grid must be a non-empty list of [T1, T2] pairs >= 0, got {self.grid}')
+        if any(not 0.0 < f <= 1.0 for f in self.fractions):
+            raise ConfigError(f'fractions must lie in (0, 1], got {self.fractions}')
+        unknown = set(self.variants) - {'base', 'stars'}
+        if unknown or not self.variants and self.backbones:
+            raise ConfigError(f"variants must be a non-empty subset of ['base', 'stars'], got {list(self.variants)}")
+        if set(self.baselines) - set(BASELINES):
+            raise ConfigError(f'baselines must be a subset of {list(BASELINES)}, got {list(self.baselines)}')
+        if not isinstance(self.backbones, dict) or not (self.backbones or self.baselines):
+            raise ConfigError('backbones must be a mapping, and there must be a backbone or a baseline')
+        if set(self.sweep_backbones) - set(self.backbones):
+            raise ConfigError(f'sweep_backbones {list(self.sweep_backbones)} must be among backbones {list(self.backbones)}')
+        if self.error not in ('mse', 'rmse'):
+            raise ConfigError(f"error must be 'mse' or 'rmse', got '{self.error}'")
+        if 'mf' in self.baselines and not self.backbones and 'name' not in self.experiment.get('encoder', {}):
+            raise ConfigError('the mf baseline needs a backbone or experiment.encoder.name matching the data')
+        for backbone in self.backbones:
+            self.experiment_config(backbone, 'base')  # refuses unknown keys early
+
+    def experiment_config(self, backbone: str | None, variant: str) -> ExperimentConfig:
+        """The ExperimentConfig of one model (``backbone`` None: the experiment's encoder)."""
+        values = _merge(self.experiment, {'model': {'variant': variant}})
+        if backbone is not None:
+            settings = self.backbones[backbone] or {}
+            unknown = set(settings) - {f.name for f in dataclasses.fields(EncoderConfig)} - {'name'}
+            if unknown:
+                raise ConfigError(f'backbones.{backbone}: unknown keys {sorted(unknown)}')
+            values = _merge(values, {'encoder': {**settings, 'name': backbone}})
+        return ExperimentConfig.from_dict(values)
+
+    def to_dict(self) -> dict:
+        values = dataclasses.asdict(self)
+        for name in ('seeds', 'variants', 'baselines', 'sweep_backbones', 'fractions'):
+            values[name] = list(values[name])
+        values['grid'] = [list(pair) for pair in self.grid]
+        return values
+
+    @classmethod
+    def from_dict(cls, values: dict, overrides: dict | None = None) -> 'ProtocolConfig':
+        if not isinstance(values, dict):
+            raise ConfigError(f'protocol config must be a mapping, got {type(values).__name__}')
+        values = _merge(values, overrides or {})
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ConfigError(f'unknown protocol keys {unknown}; allowed: {sorted(names)}')
+        try:
+            return cls(**values)
+        except TypeError as error:
+            raise ConfigError(str(error)) from error
+
+    @classmethod
+    def from_yaml(cls, path, overrides_path=None) -> 'ProtocolConfig':
+        """Read ``path``; a second YAML ``overrides_path`` (e.g. the quick setting) merges in."""
+        return cls.from_dict(_read_yaml(path), _read_yaml(overrides_path) if overrides_path else None)
+
+
+def _read_yaml(path) -> dict:
+    try:
+        return yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as error:
+        raise ConfigError(f'cannot read {path}: {error}') from error
+
+
+# -- folds ------------------------------------------------------------------------------
+class Fold(NamedTuple):
+    train: np.ndarray
+    test: np.ndarray
+
+
+def row_folds(rows: np.ndarray, k: int, seed) -> list[Fold]:
+    """k folds of ``rows`` (indices into a dataset): a seeded permutation cut into k parts."""
+    rows = np.asarray(rows)
+    if not 2 <= k <= len(rows):
+        raise ValueError(f'cannot cut {len(rows)} rows into {k} folds')
+    parts = np.array_split(np.random.default_rng(seed).permutation(rows), k)
+    return [Fold(np.sort(np.concatenate(parts[:f] + parts[f + 1:])), np.sort(parts[f])) for f in range(k)]
+
+
+def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed) -> list[Fold]:
+    """k folds of ``rows`` such that the rows of one group (``groups[row]``) share a fold.
+
+    Groups are shuffled, then dealt largest first to the fold with the fewest rows so far,
+    which balances the fold sizes when a few groups are large (annotators).
+    """
+    rows = np.asarray(rows)
+    labels, inverse, counts = np.unique(np.asarray(groups)[rows], return_inverse=True, return_counts=True)
+    if not 2 <= k <= len(labels):
+        raise ValueError(f'cannot deal {len(labels)} groups into {k} folds')
+    shuffled = np.random.default_rng(seed).permutation(len(labels))
+    order = shuffled[np.argsort(-counts[shuffled], kind='stable')]
+    fold_of_group = np.empty(len(labels), dtype=np.int64)
+    sizes = np.zeros(k, dtype=np.int64)
+    for group in order:
+        target = int(np.argmin(sizes))
+        fold_of_group[group] = target
+        sizes[target] += counts[group]
+    fold_of_row = fold_of_group[inverse.ravel()]
+    return [Fold(np.sort(rows[fold_of_row != f]), np.sort(rows[fold_of_row == f])) for f in range(k)]
+
+
+def make_folds(data: RatingData, protocol: str, k: int, seed, rows: np.ndarray | None = None) -> list[Fold]:
+    """Folds of ``rows`` (all rows by default) for ``protocol`` (see PROTOCOLS)."""
+    rows = np.arange(len(data)) if rows is None else np.asarray(rows)
+    if protocol == 'rows':
+        return row_folds(rows, k, seed)
+    if protocol == 'cold-scene':
+        return grouped_folds(rows, data.scenes, k, seed)
+    if protocol == 'cold-user':
+        return grouped_folds(rows, data.users, k, seed)
+    raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
+
+
+def sweep_samples(pool: np.ndarray, fractions: Sequence[float], seed) -> dict:
+    """Nested random subsets of ``pool`` (without replacement), sorted; fraction 1.0 is the pool."""
+    order = np.random.default_rng(seed).permutation(np.asarray(pool))
+    return {f: np.sort(order[:max(1, int(round(f * len(order))))]) for f in fractions}
+
+
+# -- one fit, run in a worker -------------------------------------------------------------
+@dataclass(frozen=True)
+class FitTask:
+    """Train one model on ``train`` rows, score it on ``test`` rows."""
+
+    model: str
+    fold: str
+    stage: str          # 'inner' (selection), 'final' (fraction 1.0) or 'sweep'
+    experiment: dict    # ExperimentConfig mapping with the epochs of this fit
+    train: np.ndarray
+    test: np.ndarray
+    fraction: float = 1.0
+    inner_fold: int = -1
+
+
+_WORKER_DATA: RatingData | None = None
+
+
+def _init_worker(data_blob: bytes, threads: int) -> None:
+    import torch
+    global _WORKER_DATA
+    _WORKER_DATA = pickle.loads(data_blob)
+    torch.set_num_threads(threads)
+
+
+def normalised_rmse(y, p, actions, target_mean, target_std) -> float:
+    """RMSE of z-scores (per-action mean/std of the training split), macro over actions."""
+    y, p, actions = np.asarray(y, float), np.asarray(p, float), np.asarray(actions)
+    errors = (p - y) / np.asarray(target_std, float)[actions]
+    return float(np.mean([np.sqrt(np.mean(errors[actions == a] ** 2)) for a in np.unique(actions)]))
+
+
+def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
+    """Fit ``task``'s model and return its test metrics, z-RMSE and seconds."""
+    from .training import StarsRecommender
+    data = _WORKER_DATA if data is None else data
+    config = ExperimentConfig.from_dict(task.experiment)
+    started = time.perf_counter()
+    try:
+        recommender = StarsRecommender(config).fit(data, task.train)
+    except TrainingDivergedError as error:  # one diverged fit must not end a long run
+        return {**{m: math.nan for m in METRICS}, 'n': len(task.test), 'z_rmse': math.inf,
+                'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
+                'error': str(error)}
+    fitted = time.perf_counter()
+    predictions = recommender.predict_rows(data, task.test)
+    predicted = time.perf_counter()
+    model = recommender.model
+    y, actions = data.scores[task.test], data.actions[task.test]
+    return {**regression_report(y, predictions, actions),
+            'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.numpy(), model.target_std.numpy()),
+            'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
+            'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs}
+
+
+def population_mean(data: RatingData, train: np.ndarray, test: np.ndarray) -> dict:
+    """Scores of the constant predictor: each action's training mean."""
+    started = time.perf_counter()
+    means = {a: data.scores[train][data.actions[train] == a].mean() for a in np.unique(data.actions[train])}
+    fallback = data.scores[train].mean()
+    predictions = np.array([means.get(a, fallback) for a in data.actions[test]])
+    # Pearson r of a constant is undefined; rounding in the mean can make it look computable.
+    return {**regression_report(data.scores[test], predictions, data.actions[test]), 'pearson_r': math.nan,
+            'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0}
+
+
+class _InlineExecutor(futures.Executor):
+    """Runs each task at submission, in this process (``jobs == 1``)."""
+
+    def __init__(self, data: RatingData):
+        self.data = data
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = futures.Future()
+        try:
+            future.set_result(fn(*args, data=self.data, **kwargs))
+        except BaseException as error:  # handed to the caller through the future
+            future.set_exception(error)
+        return future
+
+
+# -- the protocol -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModelSpec:
+    label: str
+    backbone: str | None
+    variant: str            # 'base', 'stars', 'mf' or 'population_mean'
+
+
+def model_specs(config: ProtocolConfig) -> list[ModelSpec]:
+    """Baselines first, then each backbone in its variants (the paper's row order)."""
+    specs = [ModelSpec(BASELINE_LABELS[b], None, b) for b in BASELINES if b in config.baselines]
+    for backbone in config.backbones:
+        for variant in ('base', 'stars'):
+            if variant in config.variants:
+                name = DISPLAY.get(backbone, backbone)
+                specs.append(ModelSpec(f"{name} {'StARS' if variant == 'stars' else 'base'}", backbone, variant))
+    return specs
+
+
+def _candidates(spec: ModelSpec, grid) -> list[tuple[int, int]]:
+    """Epoch pairs worth trying: mf skips pre-training, so only distinct T2 matter."""
+    if spec.variant == 'mf':
+        return list(dict.fromkeys((0, t2) for _, t2 in grid))
+    return list(dict.fromkeys(grid))
+
+
+@dataclass
+class EvaluationResult:
+    """Everything a run measured; ``records`` has one entry per (model, fold, fraction)."""
+
+    protocol: str
+    config: ProtocolConfig
+    records: list = field(default_factory=list)
+    selection: list = field(default_factory=list)
+    folds: list = field(default_factory=list)     # per outer fold: id, n_train, n_test
+    wall_seconds: float = 0.0
+    jobs: int = 1
+    threads: int = 1
+
+    def final(self) -> list:
+        return [r for r in self.records if r['fraction'] == 1.0]
+
+
+def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
+                 threads: int = 1, on_record: Callable[[dict], None] | None = None) -> EvaluationResult:
+    """Run the whole protocol on ``data``; ``on_record`` sees each result as it arrives."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
+    if jobs < 1 or threads < 1:
+        raise ValueError('jobs and threads must be positive')
+    started = time.perf_counter()
+    result = EvaluationResult(protocol, config, jobs=jobs, threads=threads)
+    specs = model_specs(config)
+    swept = {s.label for s in specs if s.backbone in config.sweep_backbones
+             or (s.backbone is None and config.sweep_backbones)}
+    fractions = sorted(set(config.fractions) | {1.0})
+
+    outer = {}
+    for seed in config.seeds:
+        for f, fold in enumerate(make_folds(data, protocol, config.folds, seed)):
+            fold_id = f'{seed}:{f}'
+            outer[fold_id] = (fold, make_folds(data, protocol, config.inner_folds, [seed, f, 1], fold.train),
+                              sweep_samples(fold.train, fractions, [seed, f, 2]))
+            result.folds.append({'fold': fold_id, 'n_train': len(fold.train), 'n_test': len(fold.test)})
+
+    def record(spec, fold_id, fraction, pair, n_train, n_test, scores, stage):
+        entry = {'protocol': protocol, 'model': spec.label, 'backbone': spec.backbone, 'variant': spec.variant,
+                 'fold': fold_id, 'fraction': fraction, 'stage': stage, 'T1': pair[0], 'T2': pair[1],
+                 'n_train': n_train, 'n_test': n_test,
+                 **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
+        if 'error' in scores:
+            entry['error'] = scores['error']
+            log.warning('%s fold %s fraction %.1f: %s', spec.label, fold_id, fraction, scores['error'])
+        result.records.append(entry)
+        if on_record:
+            on_record(entry)
+
+    for spec in specs:
+        if spec.variant == 'population_mean':
+            for fold_id, (fold, _, samples) in outer.items():
+                for fraction in (fractions if spec.label in swept else [1.0]):
+                    train = samples[fraction]
+                    record(spec, fold_id, fraction, (0, 0), len(train), len(fold.test),
+                           population_mean(data, train, fold.test), 'final' if fraction == 1.0 else 'sweep')
+
+    def experiment(spec, pair):
+        base = config.experiment_config(spec.backbone, spec.variant)
+        return base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1], 'threads': threads}).to_dict()
+
+    if jobs == 1:
+        executor = _InlineExecutor(data)
+    else:
+        executor = futures.ProcessPoolExecutor(
+            max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),
+            initializer=_init_worker, initargs=(pickle.dumps(data), threads))
+    # Own queue, at most `jobs` tasks in flight: fits unlocked by a finished selection
+    # jump ahead of further selection fits, so complete results appear early.
+    waiting, in_flight = [], {}
+    inner_scores = {}
+
+    def final_tasks(spec, fold_id, pair):
+        fold, _, samples = outer[fold_id]
+        chosen = fractions if spec.label in swept else [1.0]
+        return [(FitTask(spec.label, fold_id, 'final' if f == 1.0 else 'sweep', experiment(spec, pair),
+                         samples[f], fold.test, fraction=f), spec, pair) for f in chosen]
+
+    for spec in specs:
+        if spec.variant == 'population_mean':
+            continue
+        candidates = _candidates(spec, config.grid)
+        for fold_id, (_, inner, _) in outer.items():
+            if len(candidates) == 1:
+                waiting.extend(final_tasks(spec, fold_id, candidates[0]))
+                continue
+            inner_scores[spec.label, fold_id] = {pair: [] for pair in candidates}
+            for pair in candidates:
+                for i, (train, validation) in enumerate(inner):
+                    waiting.append((FitTask(spec.label, fold_id, 'inner', experiment(spec, pair),
+                                            train, validation, inner_fold=i), spec, pair))
+    total = len(waiting)
+    done = 0
+    try:
+        while waiting or in_flight:
+            while waiting and len(in_flight) < jobs:
+                task, spec, pair = waiting.pop(0)
+                in_flight[executor.submit(run_fit, task)] = (task, spec, pair)
+            finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
+            for future in finished:
+                task, spec, pair = in_flight.pop(future)
+                scores = future.result()
+                done += 1
+                if task.stage != 'inner':
+                    record(spec, task.fold, task.fraction, pair, len(task.train), len(task.test), scores, task.stage)
+                    log.info('[%d/%d] %s fold %s fraction %.1f (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
+                             spec.label, task.fold, task.fraction, pair, scores['mse'], scores['fit_seconds'])
+                    continue
+                result.selection.append({'model': spec.label, 'fold': task.fold, 'T1': pair[0], 'T2': pair[1],
+                                         'inner_fold': task.inner_fold, 'z_rmse': scores['z_rmse'],
+                                         'n_train': len(task.train), 'n_test': len(task.test),
+                                         'fit_seconds': scores['fit_seconds'],
+                                         'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']})
+                table = inner_scores[spec.label, task.fold]
+                table[pair].append(scores['z_rmse'])
+                if all(len(v) == config.inner_folds for v in table.values()):
+                    chosen = min(table, key=lambda p: np.mean(table[p]))  # ties: first in the grid
+                    log.info('%s fold %s: chose (T1, T2) = %s by inner z-RMSE %s', spec.label, task.fold, chosen,
+                             {p: round(float(np.mean(v)), 4) for p, v in table.items()})
+                    unlocked = final_tasks(spec, task.fold, chosen)
+                    waiting[:0] = unlocked
+                    total += len(unlocked)
+    finally:
+        executor.shutdown(cancel_futures=True)
+    result.wall_seconds = time.perf_counter() - started
+    return result
+
+
+# -- summaries --------------------------------------------------------------------------
+def _fold_order(entry: dict) -> tuple:
+    return tuple(int(part) for part in entry['fold'].split(':'))
+
+
+def by_model(records: list) -> dict:
+    """model label -> records sorted by fold, in first-seen order."""
+    grouped = {}
+    for entry in records:
+        grouped.setdefault(entry['model'], []).append(entry)
+    return {label: sorted(entries, key=_fold_order) for label, entries in grouped.items()}
+
+
+def paired_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
+    """StARS − base per backbone and metric; Holm within each metric over the backbones."""
+    final = {(entries[0]['backbone'], entries[0]['variant']): entries
+             for entries in by_model(result.final()).values()}
+    tests = []
+    for metric in metrics:
+        family = []
+        for backbone in result.config.backbones:
+            if (backbone, 'stars') not in final or (backbone, 'base') not in final:
+                continue
+            stars, base = final[backbone, 'stars'], final[backbone, 'base']
+            if [e['fold'] for e in stars] != [e['fold'] for e in base]:
+                raise ValueError(f'{backbone}: base and StARS were scored on different folds')
+            values = ([e[metric] for e in stars], [e[metric] for e in base])
+            if not all(math.isfinite(v) for side in values for v in side):
+                continue
+            test = corrected_resampled_ttest(*values, [e['n_train'] for e in stars], [e['n_test'] for e in stars])
+            family.append({'backbone': backbone, 'metric': metric, 'delta': test.delta, 't': test.t,
+                           'df': test.df, 'p': test.p})
+        for entry, adjusted in zip(family, holm([e['p'] for e in family])):
+            entry['p_holm'] = float(adjusted)
+        tests.extend(family)
+    return tests
+
+
+def sparsity_summary(result: EvaluationResult) -> dict:
+    """model label -> fraction -> metric -> per-fold values, for swept models."""
+    summary = {}
+    for entry in result.records:
+        summary.setdefault(entry['model'], {}).setdefault(entry['fraction'], {m: [] for m in METRICS})
+        for metric in METRICS:
+            summary[entry['model']][entry['fraction']][metric].append(entry[metric])
+    return {label: dict(sorted(by_fraction.items())) for label, by_fraction in summary.items()
+            if len(by_fraction) > 1}
+
+
+def time_accounting(result: EvaluationResult) -> dict:
+    """Worker seconds by stage and by model, s/epoch on full pools, and the wall time."""
+    stages, models = {}, {}
+    for entry in result.selection + result.records:
+        stage = entry.get('stage', 'inner')
+        seconds = entry['fit_seconds'] + entry['predict_seconds']
+        stages[stage] = stages.get(stage, 0.0) + seconds
+        models.setdefault(entry['model'], {}).setdefault(stage, 0.0)
+        models[entry['model']][stage] += seconds
+    order = [spec.label for spec in model_specs(result.config)]
+    models = {label: models[label] for label in order if label in models}
+    per_epoch = {}
+    for label, entries in by_model([e for e in result.final() if e['epochs']]).items():
+        per_epoch[label] = float(np.mean([e['fit_seconds'] / e['epochs'] for e in entries]))
+    busy = sum(stages.values())
+    return {'wall_seconds': result.wall_seconds, 'worker_seconds': busy, 'jobs': result.jobs,
+            'threads_per_job': result.threads,
+            'utilisation': busy / (result.wall_seconds * result.jobs) if result.wall_seconds else math.nan,
+            'by_stage': stages, 'by_model': models, 'seconds_per_epoch_full_pool': per_epoch}
