@@ -63,7 +63,9 @@ class ModelConfig:
 @dataclass(frozen=True)
 class TrainConfig:
     """Two-step training: ``pretrain_epochs`` (T1) of encoder + temporary head, then
-    ``joint_epochs`` (T2) of the whole model. AdamW defaults are the published ones."""
+    ``joint_epochs`` (T2) of the whole model. AdamW defaults are the published ones.
+    ``embedding_l2`` weighs the L2 penalty on the user and scene rows of each batch during
+    joint training (0 leaves only AdamW's weight decay)."""
 
     pretrain_epochs: int = 10
     joint_epochs: int = 100
@@ -71,12 +73,15 @@ class TrainConfig:
     lr: float = 5e-5
     weight_decay: float = 1e-5
     grad_clip: float = 1.0
+    embedding_l2: float = 0.0
     seed: int = 0
     threads: int = 2
 
     def __post_init__(self):
         if self.pretrain_epochs < 0 or self.joint_epochs < 0:
             raise ConfigError('epochs must be non-negative')
+        if self.embedding_l2 < 0:
+            raise ConfigError('embedding_l2 must be non-negative')
         if self.batch_size < 1 or self.lr <= 0 or self.threads < 1:
             raise ConfigError('batch_size, lr and threads must be positive')
 

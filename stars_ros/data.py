@@ -21,16 +21,19 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import logging
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DataError, SceneGraphError
-from .scene_graph import featurise
+from .scene_graph import FEATURISER_VERSION, featurise
 from .scene_store import GraphStore, TabularStore
 
+log = logging.getLogger(__name__)
 SOCNAV_ACTION = 'navigate'
 SOCNAV_SCORE_SCALE = 100.0
 ANNOTATION_COLUMNS = ('user', 'scene', 'action', 'score')
@@ -74,6 +77,38 @@ def _digest(paths) -> str:
     for path in paths:
         sha.update(path.name.encode() + b'\0' + path.read_bytes())
     return sha.hexdigest()
+
+
+def _cache_path(fingerprint: str):
+    """Where featurised graphs of data with this fingerprint are cached (None: caching off).
+
+    ``STARS_ROS_CACHE`` names the folder (default ``~/.cache/stars_ros``; empty disables it).
+    The key holds the featuriser version, so a change of features never reads a stale cache.
+    """
+    folder = os.environ.get('STARS_ROS_CACHE', str(Path.home() / '.cache' / 'stars_ros'))
+    if not folder:
+        return None
+    return Path(folder) / f'graphs-v{FEATURISER_VERSION}-{fingerprint[:32]}.pt'
+
+
+def _cached_graph_store(fingerprint: str, build) -> GraphStore:
+    """``build()``'s GraphStore, read from the cache when this exact data was seen before."""
+    path = _cache_path(fingerprint)
+    if path is not None and path.exists():
+        try:
+            return GraphStore.load(path)
+        except Exception as error:  # a damaged cache is rebuilt, never trusted
+            log.warning('ignoring unreadable feature cache %s: %s', path, error)
+    store = build()
+    if path is not None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            temporary = path.with_suffix(f'.{os.getpid()}.tmp')
+            store.save(temporary)
+            os.replace(temporary, path)
+        except OSError as error:
+            log.warning('cannot write feature cache %s: %s', path, error)
+    return store
 
 
 def _content_digest(scene: dict) -> str:
@@ -151,7 +186,9 @@ def load_socnav1(root) -> RatingData:
                          'kept as scenes ' + ', '.join(f"'{identifier}#{d[:8]}'" for d in digests))
     scene_keys = list(dict.fromkeys(keys[k] for k in contents))
     index = {key: i for i, key in enumerate(scene_keys)}
-    graphs = [_featurise_at(path, number, scene) for (scene, path, number) in contents.values()]
+    fingerprint = _digest(paths)
+    store = _cached_graph_store(fingerprint, lambda: GraphStore(
+        [_featurise_at(path, number, scene) for (scene, path, number) in contents.values()]))
 
     seen = {}
     for user, identifier, digest, _, path, number in records:
@@ -165,8 +202,8 @@ def load_socnav1(root) -> RatingData:
         scenes=np.array([index[keys[r[1], r[2]]] for r in records], dtype=np.int64),
         actions=np.zeros(len(records), dtype=np.int64),
         scores=np.array([r[3] for r in records]),
-        scene_keys=scene_keys, store=GraphStore(graphs), action_names=(SOCNAV_ACTION,),
-        fingerprint=_digest(paths), source=str(folder), notes=notes)
+        scene_keys=scene_keys, store=store, action_names=(SOCNAV_ACTION,),
+        fingerprint=fingerprint, source=str(folder), notes=notes)
 
 
 def _read_csv(path, required_first):

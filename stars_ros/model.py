@@ -95,6 +95,16 @@ class StarsModel(nn.Module):
         offsets = _lookup(self.user_bias, users) + _lookup(self.scene_bias, scenes) + self.bias
         return ((p * (q + h)) + h) @ self.action_embedding.T + offsets
 
+    def embedding_penalty(self, users: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:
+        """Mean squared norm of the user and scene rows (and offsets) a batch touches: the
+        classic matrix-factorisation L2, which keeps q_i from memorising the one or two
+        ratings most scenes have."""
+        if not self.personalised:
+            return torch.zeros(())
+        rows = (_lookup(self.user_embedding, users), _lookup(self.scene_embedding, scenes),
+                _lookup(self.user_bias, users), _lookup(self.scene_bias, scenes))
+        return sum(row.pow(2).sum(1).mean() for row in rows)
+
     def to_rating_scale(self, z: torch.Tensor) -> torch.Tensor:
         return z * self.target_std + self.target_mean
 

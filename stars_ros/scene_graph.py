@@ -39,6 +39,7 @@ RELATIONS = ('robot-room', 'robot-human', 'robot-object', 'robot-wall',
              'room-human', 'room-object', 'room-wall',
              'interaction-human', 'interaction-object')
 CENTIMETRES_PER_METRE = 100.0
+FEATURISER_VERSION = 1  # bump whenever features or edges change: it keys the feature cache
 
 
 @dataclass(frozen=True)

@@ -42,13 +42,27 @@ class GraphStore:
     def __init__(self, graphs: Sequence[SceneGraph]):
         if not graphs:
             raise ValueError('GraphStore needs at least one graph')
-        self.node_counts = torch.tensor([g.num_nodes for g in graphs])
-        self.edge_counts = torch.tensor([g.edge_index.shape[1] for g in graphs])
-        self.node_starts = torch.cumsum(self.node_counts, 0) - self.node_counts
-        self.edge_starts = torch.cumsum(self.edge_counts, 0) - self.edge_counts
-        self.x = torch.from_numpy(np.concatenate([g.x for g in graphs]))
-        self.edge_index = torch.from_numpy(np.concatenate([g.edge_index for g in graphs], axis=1))
-        self.edge_type = torch.from_numpy(np.concatenate([g.edge_type for g in graphs]))
+        self._set(x=torch.from_numpy(np.concatenate([g.x for g in graphs])),
+                  edge_index=torch.from_numpy(np.concatenate([g.edge_index for g in graphs], axis=1)),
+                  edge_type=torch.from_numpy(np.concatenate([g.edge_type for g in graphs])),
+                  node_counts=torch.tensor([g.num_nodes for g in graphs]),
+                  edge_counts=torch.tensor([g.edge_index.shape[1] for g in graphs]))
+
+    def _set(self, x, edge_index, edge_type, node_counts, edge_counts):
+        self.x, self.edge_index, self.edge_type = x, edge_index, edge_type
+        self.node_counts, self.edge_counts = node_counts, edge_counts
+        self.node_starts = torch.cumsum(node_counts, 0) - node_counts
+        self.edge_starts = torch.cumsum(edge_counts, 0) - edge_counts
+
+    def save(self, path) -> None:
+        torch.save({'x': self.x, 'edge_index': self.edge_index, 'edge_type': self.edge_type,
+                    'node_counts': self.node_counts, 'edge_counts': self.edge_counts}, path)
+
+    @classmethod
+    def load(cls, path) -> 'GraphStore':
+        store = cls.__new__(cls)
+        store._set(**torch.load(path, weights_only=True))
+        return store
 
     def __len__(self) -> int:
         return len(self.node_counts)

@@ -101,19 +101,16 @@ class StarsRecommender:
         batch = (users, scene_rows, store_rows, actions, targets)
 
         head = model.head if not model.personalised else nn.Linear(model.encoder.out_dim, model.n_actions)
-        stages = [('pretrain', cfg.pretrain_epochs, list(model.encoder.parameters()) + list(head.parameters()),
-                   lambda u, s, h: head(h)),
-                  ('joint', cfg.joint_epochs, list(model.parameters()), model)]
-        if not model.uses_content:
-            stages = stages[1:]  # nothing to pre-train: the encoder is not used
-            stages[0] = ('joint', cfg.joint_epochs, [p for n, p in model.named_parameters()
-                                                     if not n.startswith('encoder.')], model)
-        for stage, epochs, parameters, score in stages:
+        joint_parameters = [p for n, p in model.named_parameters() if model.uses_content or not n.startswith('encoder.')]
+        stages = [('pretrain', cfg.pretrain_epochs if model.uses_content else 0,
+                   list(model.encoder.parameters()) + list(head.parameters()), lambda u, s, h: head(h), 0.0),
+                  ('joint', cfg.joint_epochs, joint_parameters, model, cfg.embedding_l2)]
+        for stage, epochs, parameters, score, l2 in stages:
             if epochs == 0:
                 continue
             optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
             for epoch in range(epochs):
-                loss = self._epoch(data, batch, score, parameters, optimiser, rng)
+                loss = self._epoch(data, batch, score, parameters, optimiser, rng, l2)
                 self.history[stage].append(loss)
                 log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
         model.eval()
@@ -132,7 +129,8 @@ class StarsRecommender:
             std = features.std(0, unbiased=False)
             model.feature_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)))
 
-    def _epoch(self, data, batch, score, parameters, optimiser, rng) -> float:
+    def _epoch(self, data, batch, score, parameters, optimiser, rng, l2: float) -> float:
+        """One pass over the training ratings; returns the mean squared error (z-scale)."""
         users, scene_rows, store_rows, actions, targets = batch
         cfg = self.config.training
         self.model.train()
@@ -144,9 +142,14 @@ class StarsRecommender:
             h = self.model.encode(data.store.batch(distinct))[inverse]
             z = score(users[pick], scene_rows[pick], h).gather(1, actions[pick, None]).squeeze(1)
             loss = nn.functional.mse_loss(z, targets[pick])
+            objective = loss
             auxiliary = self.model.encoder.auxiliary_loss()
+            if auxiliary is not None:
+                objective = objective + auxiliary
+            if l2:
+                objective = objective + l2 * self.model.embedding_penalty(users[pick], scene_rows[pick])
             optimiser.zero_grad()
-            (loss if auxiliary is None else loss + auxiliary).backward()
+            objective.backward()
             nn.utils.clip_grad_norm_(parameters, cfg.grad_clip)
             optimiser.step()
             total += loss.item() * len(pick)

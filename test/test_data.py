@@ -1,6 +1,7 @@
 import json
 
 import numpy as np
+import torch
 import pytest
 
 from stars_ros.data import load_dataset
@@ -126,3 +127,16 @@ def test_socnav1_empty_file(tmp_path):
 def test_unknown_root(tmp_path):
     with pytest.raises(DataError, match='neither'):
         load_dataset(tmp_path)
+
+
+def test_feature_cache_round_trip_and_damage(socnav1_root, socnav1, tmp_path, monkeypatch):
+    monkeypatch.setenv('STARS_ROS_CACHE', str(tmp_path / 'cache'))
+    first = load_dataset(socnav1_root)
+    cached = list((tmp_path / 'cache').glob('graphs-v*.pt'))
+    assert len(cached) == 1
+    second = load_dataset(socnav1_root)
+    assert torch.equal(second.store.x, socnav1.store.x)
+    assert torch.equal(second.store.edge_index, first.store.edge_index)
+    cached[0].write_bytes(b'damaged')
+    third = load_dataset(socnav1_root)
+    assert torch.equal(third.store.edge_type, socnav1.store.edge_type)
