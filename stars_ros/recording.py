@@ -393,6 +393,20 @@ def read_messages(bag, topics=None) -> Iterator[tuple]:
                 yield channel.topic, decoded.data, message.log_time
 
 
+def bag_topics(bag) -> dict:
+    """{topic: offered QoS} of a finished bag directory or MCAP file."""
+    bag = Path(bag)
+    topics = {}
+    for path in (_mcap_files(bag) if bag.is_dir() else [bag]):
+        with open(path, 'rb') as handle:
+            summary = make_reader(handle).get_summary()
+        if summary is None:
+            raise McapError(f'{path} has no summary: run `python -m stars_ros.recording recover {bag}` first')
+        for channel in summary.channels.values():
+            topics.setdefault(channel.topic, _topic_qos(channel))
+    return topics
+
+
 def _salvage(path: Path) -> tuple:
     """Records of a possibly truncated file up to the first damaged one."""
     schemas, channels, messages, custom = {}, {}, [], {}

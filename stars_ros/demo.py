@@ -1,0 +1,191 @@
+"""The main-job demo: the ranker serving two people, their rankings side by side, feedback
+recorded to MCAP, then a summary. Ends by itself.
+
+    python -m stars_ros.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
+
+Set-up loads the checkpoint (the packaged default unless one is given) and picks, among the
+annotators it knows, the two whose rankings of alternative robot placements differ most on
+SocNav1 scenes both of them rated. Then it starts the ranker and one scene_publisher per
+person (separate processes, as ``ros2 launch`` would), prints each pair of rankings as it
+arrives, sends each person's real SocNav1 rating of the scene as it was (placement ``stay``)
+as feedback, stops the ranker with SIGINT and reads the feedback back from the MCAP bag.
+Runs on the current ROS_DOMAIN_ID unless ``--domain-id`` is given.
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import StarsError
+from .predictor import Predictor
+from .recording import read_messages
+from .resources import share_path
+from .scene_source import PLACEMENTS, placement_candidates, read_scenes
+
+SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT', Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
+                              / 'socnav1'))
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.demo', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--checkpoint', default='', help='default: the packaged models/socnav1_gat_stars.pt')
+    parser.add_argument('--data-root', type=Path, default=SOCNAV1, help='SocNav1 root (default: %(default)s)')
+    parser.add_argument('--scenes', type=int, default=8, help='scenes per person (default: %(default)s)')
+    parser.add_argument('--placements', type=int, default=6, choices=range(2, len(PLACEMENTS) + 1),
+                        metavar=f'2..{len(PLACEMENTS)}', help='robot placements ranked per scene (default: %(default)s)')
+    parser.add_argument('--rate', type=float, default=4.0, help='scenes per second per person (default: %(default)s)')
+    parser.add_argument('--record-folder', type=Path, default=Path('stars_records'), help='default: %(default)s')
+    parser.add_argument('--domain-id', type=int, help='ROS domain for the demo (default: ROS_DOMAIN_ID)')
+    parser.add_argument('--timeout', type=float, default=180.0, help='give up after this many seconds')
+    return parser.parse_args(argv)
+
+
+def _order(scores) -> tuple:
+    return tuple(np.argsort(-np.asarray(scores), kind='stable'))
+
+
+def choose_people(predictor, root: Path, n_scenes: int, placements: int):
+    """The two known annotators whose placement orders differ on most shared scenes, and
+    those scenes with both ratings: (user_a, user_b, [(scene, rating_a, rating_b)])."""
+    rated = {}
+    for user in predictor.recommender.users:
+        path = root / 'raw' / f'{user}.jsonl'
+        if path.exists():
+            rated[user] = {s['identifier']: s for s in read_scenes(path)}
+    best = None
+    orders = {}
+    for a, b in itertools.combinations(sorted(rated), 2):
+        shared = [k for k in rated[a] if k in rated[b]][:n_scenes]
+        if len(shared) < n_scenes:
+            continue
+        for user in (a, b):
+            for key in shared:
+                if (user, key) not in orders:
+                    graphs = [c['graph'] for c in placement_candidates(rated[a][key], placements)]
+                    orders[user, key] = _order(predictor.score(user, graphs)[:, 0])
+        differ = sum(orders[a, k] != orders[b, k] for k in shared)
+        if best is None or differ > best[0]:
+            best = (differ, a, b, shared)
+    if best is None:
+        raise StarsError(f'no two annotators known to this checkpoint rated {n_scenes} of the same scenes in {root}')
+    _, a, b, shared = best
+    return a, b, [(rated[a][k], rated[a][k]['score'] / 100, rated[b][k]['score'] / 100) for k in shared]
+
+
+def _line(user, reply) -> str:
+    return f'  {user:>3}: ' + ' > '.join(f"{e['candidate']} {e['score']:.2f}" for e in reply['ranking'])
+
+
+def run(args) -> int:
+    from .ranker import resolve_checkpoint
+    checkpoint = resolve_checkpoint(args.checkpoint)
+    predictor = Predictor.load(checkpoint)
+    if not (args.data_root / 'raw').is_dir():
+        raise StarsError(f'SocNav1 not found at {args.data_root}: set STARS_SOCNAV1_ROOT or --data-root')
+    user_a, user_b, chosen = choose_people(predictor, args.data_root, args.scenes, args.placements)
+    print(f'StARS demo: checkpoint {checkpoint} (fingerprint {predictor.fingerprint[:12]}), '
+          f'{len(predictor.recommender.users)} people known, action {predictor.actions[0]!r}')
+    print(f"People: '{user_a}' and '{user_b}', the two SocNav1 annotators whose rankings of {args.placements} "
+          f'robot placements differ most on scenes both rated')
+
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    env['PYTHONPATH'] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get('PYTHONPATH', '')
+    if args.domain_id is not None:
+        env['ROS_DOMAIN_ID'] = str(args.domain_id)
+
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    work = Path(tempfile.mkdtemp(prefix='stars_demo_'))
+    scene_file = work / 'scenes.jsonl'
+    scene_file.write_text(''.join(json.dumps(scene) + '\n' for scene, _, _ in chosen))
+    args.record_folder.mkdir(parents=True, exist_ok=True)
+    before = set(args.record_folder.glob('stars_*'))
+    ranker = subprocess.Popen(
+        [sys.executable, '-m', 'stars_ros.ranker', '--ros-args', '-p', f'checkpoint:={checkpoint}',
+         '-p', f'record_folder:={args.record_folder}', '-p', 'flush_interval:=0.5', '--log-level', 'warn'], env=env)
+    publishers = []
+    rclpy.init(domain_id=args.domain_id)
+    node = Node('stars_demo')
+    reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    replies = {}
+    node.create_subscription(String, '/stars/ranking', lambda m: replies.setdefault(
+        json.loads(m.data)['scene_id'], json.loads(m.data)), reliable)
+    feedback = node.create_publisher(String, '/stars/feedback', reliable)
+    deadline = time.monotonic() + args.timeout
+    try:
+        while not (node.count_subscribers('/stars/scene') and node.count_publishers('/stars/ranking')):
+            rclpy.spin_once(node, timeout_sec=0.2)
+            if ranker.poll() is not None or time.monotonic() > deadline:
+                raise StarsError('the ranker did not start; see its log above')
+        print(f'Ranker up (pid {ranker.pid}); two scene_publisher nodes send {len(chosen)} scenes each\n')
+        for user in (user_a, user_b):
+            publishers.append(subprocess.Popen(
+                [sys.executable, '-m', 'stars_ros.scene_publisher', '--ros-args', '-r', f'__node:=scenes_{user}',
+                 '-p', f'source:={scene_file}', '-p', f'user_id:={user}', '-p', f'count:={len(chosen)}',
+                 '-p', f'rate:={args.rate}', '-p', f'placements:={args.placements}',
+                 '-p', f'scene_id_prefix:={user}/', '--log-level', 'warn'], env=env))
+        shown, differ, sent = set(), 0, 0
+        while len(shown) < len(chosen) and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+            for n, (scene, rating_a, rating_b) in enumerate(chosen):
+                a, b = replies.get(f'{user_a}/{n}'), replies.get(f'{user_b}/{n}')
+                if n in shown or a is None or b is None:
+                    continue
+                shown.add(n)
+                same = [e['candidate'] for e in a['ranking']] == [e['candidate'] for e in b['ranking']]
+                differ += not same
+                print(f"scene {scene['identifier']}: {'same order' if same else 'ORDERS DIFFER'}")
+                print(_line(user_a, a))
+                print(_line(user_b, b))
+                for user, rating in ((user_a, rating_a), (user_b, rating_b)):
+                    feedback.publish(String(data=json.dumps({'user_id': user, 'scene_id': f'{user}/{n}',
+                                                             'candidate': 'stay', 'score': rating})))
+                    sent += 1
+        if len(shown) < len(chosen):
+            raise StarsError(f'timed out: {len(shown)} of {len(chosen)} scenes ranked for both people')
+        feedback.wait_for_all_acked(Duration(seconds=5))
+        time.sleep(1.0)  # let the ranker journal the last feedback before it is stopped
+    finally:
+        for process in publishers:
+            process.wait(timeout=30)
+        ranker.send_signal(signal.SIGINT)
+        ranker.wait(timeout=30)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+    bags = sorted(set(args.record_folder.glob('stars_*')) - before)
+    recorded = list(read_messages(bags[-1])) if bags else []
+    count = {topic: sum(t == topic for t, _, _ in recorded) for topic in ('/stars/ranking', '/stars/feedback')}
+    times = [replies[k]['processing_ms'] for k in replies]
+    print(f'\nSummary: {len(times)} rankings (processing median {np.median(times):.1f} ms); '
+          f'orders differ on {differ} of {len(chosen)} scenes; {sent} feedback ratings sent.')
+    print(f"Recorded in {bags[-1] if bags else '(no bag)'}: {count['/stars/ranking']} rankings and "
+          f"{count['/stars/feedback']} feedback ratings read back from MCAP. Ranker exit code {ranker.returncode}.")
+    return 0 if count['/stars/feedback'] == sent and ranker.returncode == 0 else 1
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    try:
+        return run(args)
+    except (StarsError, OSError) as error:
+        print(f'demo failed: {error}', file=sys.stderr)
+        return 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,99 @@
+"""The replay node: plays a recorded bag back onto live topics, at recorded or scaled speed.
+
+Re-running a session against a new checkpoint is: start the ranker with that checkpoint,
+then replay the old bag's ``/stars/scene`` and ``/stars/user_id``; the new rankings are
+recorded by the ranker as usual. Each topic is published with the QoS it was recorded
+with (so user ids stay latched) and can be remapped like any topic.
+
+    ros2 run stars_ros replay --ros-args -p bag:=stars_records/stars_2026_01_01-12_00_00 -p rate:=2.0
+"""
+from __future__ import annotations
+
+import time
+
+import rclpy
+from mcap.exceptions import McapError
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from .recording import bag_topics, read_messages
+
+DEFAULT_TOPICS = ['/stars/scene', '/stars/user_id']
+
+
+def _qos(profile: dict) -> QoSProfile:
+    return QoSProfile(depth=max(int(profile.get('depth', 10)), 1000),
+                      reliability=ReliabilityPolicy.BEST_EFFORT if profile.get('reliability') == 'best_effort'
+                      else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if profile.get('durability') == 'transient_local'
+                      else DurabilityPolicy.VOLATILE)
+
+
+class Replay(Node):
+    """Publishes the chosen topics of ``bag`` in recorded order and timing (scaled by ``rate``)."""
+
+    def __init__(self, **kwargs):
+        super().__init__('replay', **kwargs)
+        declare = self.declare_parameter
+        self.bag = declare('bag', '', ParameterDescriptor(description='bag folder or MCAP file to play')).value
+        self.wanted = list(declare('topics', DEFAULT_TOPICS, ParameterDescriptor(
+            description='recorded topics to play; [""] plays them all')).value)
+        self.rate = declare('rate', 1.0, ParameterDescriptor(
+            description='speed factor: 1 recorded speed, 2 twice as fast, 0 as fast as possible')).value
+        self.wait = declare('wait_for_subscribers', 30.0, ParameterDescriptor(
+            description='seconds to wait for a subscriber on every played topic')).value
+        if not self.bag:
+            raise ValueError('set the bag parameter: -p bag:=PATH')
+        if self.rate < 0:
+            raise ValueError('rate must be >= 0')
+        recorded = bag_topics(self.bag)
+        topics = list(recorded) if self.wanted in ([], ['']) else self.wanted
+        missing = [t for t in topics if t not in recorded]
+        if missing:
+            self.get_logger().warning(f'not in the bag, not played: {missing}; it holds {list(recorded)}')
+        self._outputs = {t: self.create_publisher(String, t, _qos(recorded[t])) for t in topics if t in recorded}
+
+    def play(self) -> int:
+        """Publish everything; returns the number of messages played."""
+        deadline = time.monotonic() + self.wait
+        while time.monotonic() < deadline and not all(p.get_subscription_count() for p in self._outputs.values()):
+            time.sleep(0.1)
+        played, first, start = 0, None, time.monotonic()
+        for topic, text, log_time in read_messages(self.bag, list(self._outputs)):
+            if self.rate > 0:
+                first = log_time if first is None else first
+                delay = start + (log_time - first) / 1e9 / self.rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            self._outputs[topic].publish(String(data=text))
+            played += 1
+        for publisher in self._outputs.values():
+            publisher.wait_for_all_acked(Duration(seconds=5))
+        self.get_logger().info(f'replayed {played} messages from {self.bag}')
+        return played
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Replay()
+        node.play()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (McapError, OSError, ValueError) as error:
+        get_logger('replay').fatal(str(error))
+        raise SystemExit(1) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

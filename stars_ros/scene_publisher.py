@@ -1,0 +1,94 @@
+"""The scene_publisher node: feeds test scenes to the ranker at a set rate, for one user.
+
+Scenes come from a JSONL file (SocNav1 lines as they are) or are generated at random;
+with ``placements`` > 0 each message asks to rank that many alternative robot placements
+of the scene instead of the model's actions. Publishes ``stars/scene``.
+
+    ros2 run stars_ros scene_publisher --ros-args -p source:=raw/a.jsonl -p user_id:=a -p rate:=5.0
+"""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from .errors import DataError
+from .scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
+
+
+class ScenePublisher(Node):
+    """Publishes one scene request per timer tick; stops after ``count`` when it is set."""
+
+    def __init__(self, **kwargs):
+        super().__init__('scene_publisher', **kwargs)
+        declare = self.declare_parameter
+        self.source = declare('source', '', _text('JSONL file of scenes; empty: random scenes')).value
+        self.user_id = declare('user_id', '', _text('user id put in every request; empty: none')).value
+        rate = declare('rate', 2.0, _text('requests per second')).value
+        self.count = declare('count', 0, _text('requests to publish before exiting; 0: no end')).value
+        self.placements = declare('placements', 0, _text(
+            f'0: rank the actions; 1..{len(PLACEMENTS)}: rank that many robot placements')).value
+        self.prefix = declare('scene_id_prefix', 'scene-', _text('scene ids are this prefix + a counter')).value
+        seed = declare('seed', 0, _text('seed of the random scenes and of the file order')).value
+        wait = declare('wait_for_subscribers', 30.0, _text('seconds to wait for a subscriber first')).value
+        if not rate > 0 or self.count < 0 or not 0 <= self.placements <= len(PLACEMENTS):
+            raise ValueError(f'need rate > 0, count >= 0 and placements in 0..{len(PLACEMENTS)}')
+        self.rng = np.random.default_rng(seed)
+        self.scenes = read_scenes(self.source) if self.source else None
+        self.sent = 0
+        self.publisher = self.create_publisher(String, 'stars/scene',
+                                               QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + wait
+        while self.publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        self.timer = self.create_timer(1.0 / rate, self._tick)
+
+    def _next_scene(self) -> dict:
+        if self.scenes is None:
+            return random_scene(self.rng)
+        return self.scenes[self.sent % len(self.scenes)]
+
+    def _tick(self):
+        if self.count and self.sent >= self.count:
+            self.timer.cancel()
+            self.publisher.wait_for_all_acked(Duration(seconds=5))
+            self.get_logger().info(f'published {self.sent} scene requests')
+            raise SystemExit(0)
+        payload = scene_request(f'{self.prefix}{self.sent}', self._next_scene(), self.user_id or None,
+                                self.placements)
+        self.publisher.publish(String(data=json.dumps(payload)))
+        self.sent += 1
+
+
+def _text(description: str) -> ParameterDescriptor:
+    return ParameterDescriptor(description=description)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ScenePublisher()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
+        pass
+    except (DataError, OSError, ValueError) as error:
+        get_logger('scene_publisher').fatal(str(error))
+        raise SystemExit(1) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
