@@ -1,0 +1,172 @@
+"""Evaluation protocol: folds, selection, sweep, and the quick CLI run end to end on SocNav1."""
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stars_ros import evaluation
+from stars_ros.errors import ConfigError
+from stars_ros.evaluation import (ProtocolConfig, grouped_folds, make_folds, paired_tests, row_folds,
+                                  run_protocol, sweep_samples, time_accounting)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _check_partition(folds, rows):
+    tests = np.concatenate([f.test for f in folds])
+    assert np.array_equal(np.sort(tests), np.sort(rows))  # every row tested exactly once
+    for fold in folds:
+        assert np.intersect1d(fold.train, fold.test).size == 0
+        assert np.array_equal(np.sort(np.concatenate([fold.train, fold.test])), np.sort(rows))
+
+
+def test_row_folds_partition_and_balance():
+    rows = np.arange(3, 103)
+    folds = row_folds(rows, 5, seed=0)
+    _check_partition(folds, rows)
+    assert [len(f.test) for f in folds] == [20] * 5
+    assert [f.test.tolist() for f in row_folds(rows, 5, seed=0)] == [f.test.tolist() for f in folds]
+    assert [f.test.tolist() for f in row_folds(rows, 5, seed=1)] != [f.test.tolist() for f in folds]
+    with pytest.raises(ValueError):
+        row_folds(rows[:3], 5, seed=0)
+
+
+def test_grouped_folds_keep_groups_together_and_balance_sizes():
+    groups = np.array(['a'] * 50 + ['b'] * 30 + ['c'] * 10 + ['d'] * 10 + ['e'] * 5)
+    rows = np.arange(len(groups))
+    folds = grouped_folds(rows, groups, 3, seed=0)
+    _check_partition(folds, rows)
+    for fold in folds:
+        assert not set(groups[fold.train]) & set(groups[fold.test])
+    # largest first to the emptiest fold: {a}, {b}, {c, d, e}
+    assert sorted(len(f.test) for f in folds) == [25, 30, 50]
+    with pytest.raises(ValueError):
+        grouped_folds(rows, groups, 6, seed=0)
+
+
+@pytest.mark.parametrize('protocol, key', [('cold-scene', 'scenes'), ('cold-user', 'users')])
+def test_cold_folds_on_socnav1_never_share_a_group(socnav1, protocol, key):
+    groups = getattr(socnav1, key)
+    folds = make_folds(socnav1, protocol, 5, seed=0)
+    _check_partition(folds, np.arange(len(socnav1)))
+    for fold in folds:
+        assert not set(groups[fold.train].tolist()) & set(groups[fold.test].tolist())
+        inner = make_folds(socnav1, protocol, 2, seed=[0, 1], rows=fold.train)
+        _check_partition(inner, fold.train)
+        for part in inner:
+            assert not set(groups[part.train].tolist()) & set(groups[part.test].tolist())
+    if protocol == 'cold-user':
+        assert {len(set(socnav1.users[f.test].tolist())) for f in folds} <= {1, 2, 3, 4}
+
+
+def test_rows_protocol_shares_scenes_between_train_and_test(socnav1):
+    fold = make_folds(socnav1, 'rows', 5, seed=0)[0]
+    assert set(socnav1.scenes[fold.train].tolist()) & set(socnav1.scenes[fold.test].tolist())
+    with pytest.raises(ValueError, match='cold-user'):
+        make_folds(socnav1, 'cold-users', 5, seed=0)
+
+
+def test_sweep_samples_are_nested_without_replacement():
+    pool = np.arange(100, 300)
+    samples = sweep_samples(pool, [0.1, 0.5, 1.0], seed=[0, 0, 2])
+    assert [len(samples[f]) for f in (0.1, 0.5, 1.0)] == [20, 100, 200]
+    assert len(np.unique(samples[0.5])) == 100
+    assert set(samples[0.1]) <= set(samples[0.5]) <= set(samples[1.0])
+    assert np.array_equal(samples[1.0], pool)
+
+
+def test_protocol_config_refuses_mistakes():
+    with pytest.raises(ConfigError, match='unknown protocol keys'):
+        ProtocolConfig.from_dict({'fold': 5})
+    with pytest.raises(ConfigError, match='grid'):
+        ProtocolConfig.from_dict({'grid': [[10]]})
+    with pytest.raises(ConfigError, match='sweep_backbones'):
+        ProtocolConfig.from_dict({'backbones': {'gcn': {}}, 'sweep_backbones': ['gat']})
+    with pytest.raises(ConfigError, match='unknown keys'):
+        ProtocolConfig.from_dict({'backbones': {'gcn': {'hiden': 3}}})
+    with pytest.raises(ConfigError):
+        ProtocolConfig.from_dict({'experiment': {'training': {'lr': -1}}})
+
+
+def test_shipped_configs_parse_and_quick_merges():
+    full = ProtocolConfig.from_yaml(REPO / 'config' / 'eval_socnav1.yaml')
+    assert full.folds == 5 and full.grid == ((10, 100), (50, 100), (100, 100))
+    assert list(full.backbones) == ['gcn', 'gin', 'graphsage', 'ggnn', 'rgcn', 'gat']
+    quick = ProtocolConfig.from_yaml(REPO / 'config' / 'eval_socnav1.yaml', REPO / 'config' / 'eval_quick.yaml')
+    assert quick.folds == 2 and quick.backbones == full.backbones
+    gat = quick.experiment_config('gat', 'stars')
+    assert (gat.encoder.name, gat.encoder.hidden, gat.encoder.options) == ('gat', 16, {'heads': 4})
+
+
+def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(socnav1, monkeypatch):
+    """A fake fit whose inner error is lowest for (50, 100) only under StARS."""
+    seen = []
+
+    def fake_fit(task, data=None):
+        training = task.experiment['training']
+        pair = (training['pretrain_epochs'], training['joint_epochs'])
+        seen.append((task.model, task.stage, pair, len(task.train), task.fraction))
+        best = (50, 100) if task.experiment['model']['variant'] == 'stars' else (10, 100)
+        error = 0.5 if pair == best else 0.9
+        mse = 0.02 if task.experiment['model']['variant'] == 'stars' else 0.03
+        mse += 0.001 * len(task.test) / 1000
+        return {'mse': mse, 'rmse': mse ** 0.5, 'pearson_r': 0.9, 'ccc': 0.9, 'n': len(task.test),
+                'z_rmse': error, 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': sum(pair)}
+
+    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    config = ProtocolConfig.from_dict({'folds': 3, 'backbones': {'gcn': {}}, 'sweep_backbones': ['gcn'],
+                                       'fractions': [0.5, 1.0], 'baselines': ['population_mean', 'mf']})
+    result = run_protocol(socnav1, config, 'rows')
+    final = {(r['model'], r['fold']): (r['T1'], r['T2']) for r in result.final()}
+    assert {final['GCN StARS', f] for f in ('0:0', '0:1', '0:2')} == {(50, 100)}
+    assert {final['GCN base', f] for f in ('0:0', '0:1', '0:2')} == {(10, 100)}
+    assert {final['MF (biased, no content)', f] for f in ('0:0', '0:1', '0:2')} == {(0, 100)}
+    inner = [s for s in seen if s[1] == 'inner']
+    # folds × inner folds × candidates; mf has one distinct candidate (T2 = 100): no selection
+    assert len(inner) == 3 * 2 * (3 + 3)
+    assert len([s for s in seen if s[1] == 'sweep']) == 3 * 3  # folds × (base, StARS, mf) at 0.5
+    assert {r['model'] for r in result.records if r['fraction'] == 0.5} == {
+        'Population mean', 'MF (biased, no content)', 'GCN base', 'GCN StARS'}
+    tests = paired_tests(result, ['mse', 'ccc'])
+    mse = next(t for t in tests if t['metric'] == 'mse')
+    assert mse['delta'] == pytest.approx(-0.01) and mse['p_holm'] == 0.0
+    assert next(t for t in tests if t['metric'] == 'ccc')['p'] == 1.0
+    timing = time_accounting(result)
+    assert timing['by_stage']['inner'] == pytest.approx(len(inner) * 1.1)
+
+
+def test_quick_cli_end_to_end(socnav1_root, tmp_path):
+    out = tmp_path / 'quick'
+    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    started = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, '-m', 'offline_training.evaluate', '--quick', '--backbones', 'gcn,gat', '--jobs', '2',
+         '--data-root', str(socnav1_root), '--protocol', 'cold-scene', '--out', str(out)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    seconds = time.perf_counter() - started
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert seconds < 120, f'quick run took {seconds:.0f} s'
+    results = json.loads((out / 'results.json').read_text())
+    assert results['protocol'] == 'cold-scene' and len(results['folds']) == 2
+    models = {'Population mean', 'MF (biased, no content)', 'GCN base', 'GCN StARS', 'GAT base', 'GAT StARS'}
+    final = [r for r in results['records'] if r['fraction'] == 1.0]
+    assert {r['model'] for r in final} == models and len(final) == 2 * len(models)
+    assert all(0 < r['mse'] < 0.3 for r in final)
+    assert {(t['backbone'], t['metric']) for t in results['tests']} == {
+        (b, m) for b in ('gcn', 'gat') for m in ('mse', 'pearson_r', 'ccc')}
+    with (out / 'folds.csv').open() as handle:
+        assert len(list(csv.DictReader(handle))) == len(results['records'])
+    tables = (out / 'tables.md').read_text()
+    for heading in ('| Model | MSE | r | CCC |', '| Backbone | ΔMSE | t(1) | Holm p', 'MSE base → StARS',
+                    '## Sparsity', '## Where the time goes'):
+        assert heading in tables
+    for metric in ('mse', 'pearson_r', 'ccc'):
+        assert (out / f'sparsity_{metric}.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    assert 'offline_training.evaluate' in (out / 'command.txt').read_text()
+    assert len((out / 'records.jsonl').read_text().splitlines()) == len(results['records'])
