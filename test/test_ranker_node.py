@@ -5,7 +5,10 @@ hard-kill and unwritable-folder tests start their own.
 """
 import json
 import random
+import re
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -16,7 +19,7 @@ import yaml
 from std_msgs.msg import String
 
 from mutations import mutate
-from ros_helpers import RosClient, domain_id, start_node, stop
+from ros_helpers import RosClient, domain_id, ros_env, start_node, stop
 from stars_ros import recording
 from stars_ros.checkpoint import save_checkpoint
 from stars_ros.config import ExperimentConfig
@@ -24,6 +27,7 @@ from stars_ros.predictor import Predictor
 from stars_ros.scene_source import read_scenes, scene_request
 from stars_ros.training import StarsRecommender, split_rows
 
+pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter client
 KNOWN_USER = 'b'  # in the tiny checkpoint's training rows
 START_TIMEOUT = 90
 
@@ -244,6 +248,52 @@ def test_reload_under_load_swaps_models_without_losing_or_misscoring(node, scene
     switch = seen.index(other.fingerprint)
     assert switch > 0 and set(seen[:switch]) == {predictor.fingerprint} and set(seen[switch:]) == {other.fingerprint}
     assert any(e['kind'] == 'checkpoint' for e in client.errors)
+
+
+def test_scene_publisher_feeds_the_ranker(node, socnav1_root, tmp_path):
+    process, client = node
+    runs = [({'source': socnav1_root / 'raw' / 'a.jsonl', 'user_id': 'a', 'count': 4, 'placements': 3,
+              'scene_id_prefix': 'pub-', 'rate': 20.0}, 'pub-'),
+            ({'count': 3, 'seed': 4, 'scene_id_prefix': 'rnd-', 'rate': 20.0}, 'rnd-')]
+    for params, prefix in runs:
+        publisher = start_node('stars_ros.scene_publisher', domain_id(0), params, tmp_path / f'{prefix}.log')
+        assert publisher.wait(timeout=60) == 0, (tmp_path / f'{prefix}.log').read_text()
+    assert client.wait(lambda: all(client.ranking_for(f'pub-{k}') for k in range(4))
+                       and all(client.ranking_for(f'rnd-{k}') for k in range(3)), 30)
+    assert all(client.ranking_for(f'pub-{k}')['user_id'] == 'a' for k in range(4))
+    assert [len(client.ranking_for(f'pub-{k}')['ranking']) for k in range(4)] == [3] * 4
+    assert client.ranking_for('rnd-0')['ranking'][0]['action'] == 'navigate'
+    assert not [e for e in client.errors if str(e['scene_id']).startswith(('pub-', 'rnd-'))]
+
+
+def test_replay_reruns_a_recorded_session(node, scenes, tmp_path):
+    _, client = node
+    qos = {'/stars/scene': recording.qos_profile(), '/stars/user_id': recording.qos_profile(1, transient_local=True),
+           '/stars/ranking': recording.qos_profile()}
+    with recording.Recorder(tmp_path, qos, name='session') as recorder:
+        recorder.write('/stars/user_id', 'c', 10 ** 9)
+        for k in range(5):
+            recorder.write('/stars/scene', json.dumps({'scene_id': f'replayed-{k}', 'graph': scenes[k]}),
+                           10 ** 9 + (k + 2) * 10 ** 8)
+        recorder.write('/stars/ranking', '{"not": "played by default"}', 2 * 10 ** 9)
+    replay = start_node('stars_ros.replay', domain_id(0), {'bag': tmp_path / 'session', 'rate': 1.0},
+                        tmp_path / 'replay.log')
+    assert replay.wait(timeout=60) == 0, (tmp_path / 'replay.log').read_text()
+    assert 'replayed 6 messages' in (tmp_path / 'replay.log').read_text()
+    assert client.wait(lambda: all(client.ranking_for(f'replayed-{k}') for k in range(5)), 30)
+    assert {client.ranking_for(f'replayed-{k}')['user_id'] for k in range(5)} == {'c'}
+    assert not any(r.get('not') for r in client.rankings)
+
+
+def test_demo_runs_to_its_summary(tiny_checkpoint, socnav1_root, tmp_path):
+    demo = subprocess.run([sys.executable, '-m', 'stars_ros.demo', '--checkpoint', str(tiny_checkpoint),
+                           '--data-root', str(socnav1_root), '--scenes', '3', '--placements', '3', '--rate', '10',
+                           '--domain-id', str(domain_id(5)), '--record-folder', str(tmp_path / 'records')],
+                          env=ros_env(domain_id(5)), capture_output=True, text=True, timeout=240)
+    assert demo.returncode == 0, demo.stdout + demo.stderr
+    assert re.search(r"People: '[abc]' and '[abc]'", demo.stdout)
+    assert demo.stdout.count('scene ') == 3 and 'Summary: 6 rankings' in demo.stdout
+    assert '6 rankings and 6 feedback ratings read back from MCAP. Ranker exit code 0.' in demo.stdout
 
 
 # -- nodes of their own ------------------------------------------------------------------------
