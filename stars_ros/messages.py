@@ -183,9 +183,11 @@ def parse_user_id(text: str) -> str | None:
 
 
 def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool, ranked: Sequence,
-                    fingerprint: str, processing_ms: float, action: str | None = None) -> dict:
+                    fingerprint: str, processing_ms: float, action: str | None = None,
+                    personalised_from: int = 0) -> dict:
     """The /stars/ranking reply (a dict following ranking.schema.json) for ``ranked`` entries
-    (``predictor.Ranked``), best first."""
+    (``predictor.Ranked``), best first. ``personalised_from`` > 0: the user was scored with an
+    embedding folded in from that many feedback ratings (the field is omitted when 0)."""
     key = 'candidate' if request.ranks_scenes else 'action'
     reply = {
         'scene_id': request.scene_id,
@@ -197,7 +199,15 @@ def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool
     }
     if request.ranks_scenes:
         reply['action'] = action
+    if personalised_from:
+        reply['personalised_from'] = int(personalised_from)
     return reply
+
+
+def user_model_payload(user_id: str, model, fingerprint: str) -> dict:
+    """The stars/user_model message (user_model.schema.json) for a folded-in ``model``
+    (``foldin.UserModel``) solved against the checkpoint ``fingerprint``."""
+    return {'user_id': str(user_id), **model.to_json(), 'fingerprint': fingerprint}
 
 
 def dumps(payload: dict) -> str:

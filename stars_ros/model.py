@@ -87,12 +87,16 @@ class StarsModel(nn.Module):
             scene_input = (scene_input - self.feature_mean) / self.feature_std
         return self.encoder(scene_input)
 
-    def forward(self, users: torch.Tensor, scenes: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    def forward(self, users: torch.Tensor, scenes: torch.Tensor, h: torch.Tensor,
+                user_rows: tuple | None = None) -> torch.Tensor:
+        """``user_rows`` (p [R, dim], b_u [R, 1]) replaces the table lookup of ``users``:
+        how users folded in after training (stars_ros.foldin) are scored."""
         if not self.personalised:
             return self.head(h)
-        p = _lookup(self.user_embedding, users)
+        p, user_bias = user_rows if user_rows is not None else (
+            _lookup(self.user_embedding, users), _lookup(self.user_bias, users))
         q = _lookup(self.scene_embedding, scenes)
-        offsets = _lookup(self.user_bias, users) + _lookup(self.scene_bias, scenes) + self.bias
+        offsets = user_bias + _lookup(self.scene_bias, scenes) + self.bias
         return ((p * (q + h)) + h) @ self.action_embedding.T + offsets
 
     def embedding_penalty(self, users: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:

@@ -3,9 +3,16 @@
 Unknown users and scenes are the normal case on a robot: they get p_u = 0, b_u = 0 and
 q_i = 0, b_i = 0, so the prediction is the content term plus population offsets, and
 ``Ranking.known_user`` says so (Surprise's fallback-with-a-reason, without an exception).
+
+Users folded in after training (``stars_ros.foldin``) are served from an overlay
+user_id -> UserModel that scoring consults before the trained table. The overlay is never
+changed in place: an update builds a new dict and swaps the reference, so a thread scoring
+meanwhile sees the old or the new overlay, never half of one. ``knows_user`` keeps meaning
+"in the training data"; ``personalised_from`` counts the ratings a folded-in user was solved from.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -48,6 +55,8 @@ class Predictor:
         self.fingerprint = digest
         self.actions = tuple(recommender.action_names)
         self._action_index = {a: i for i, a in enumerate(self.actions)}
+        self._user_models = {}
+        self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
 
     @classmethod
     def load(cls, path) -> 'Predictor':
@@ -61,6 +70,35 @@ class Predictor:
 
     def knows_user(self, user_id) -> bool:
         return user_id is not None and str(user_id) in self.recommender._user_rows
+
+    @property
+    def user_models(self) -> dict:
+        """The current overlay {user_id: UserModel} (a snapshot: do not modify)."""
+        return self._user_models
+
+    def user_model(self, user_id):
+        """The folded-in UserModel of ``user_id``, or None."""
+        return None if user_id is None else self._user_models.get(str(user_id))
+
+    def personalised_from(self, user_id) -> int:
+        """How many feedback ratings ``user_id``'s folded-in embedding was solved from (0: none)."""
+        model = self.user_model(user_id)
+        return 0 if model is None else model.n_ratings
+
+    def set_user_model(self, user_id, model) -> None:
+        """Serve ``user_id`` with ``model`` (a foldin.UserModel; None removes the user)."""
+        with self._user_models_lock:
+            overlay = dict(self._user_models)
+            if model is None:
+                overlay.pop(str(user_id), None)
+            else:
+                overlay[str(user_id)] = model
+            self._user_models = overlay
+
+    def set_user_models(self, models: dict) -> None:
+        """Replace the whole overlay."""
+        with self._user_models_lock:
+            self._user_models = {str(k): v for k, v in models.items()}
 
     def _scene_input(self, scenes: Sequence):
         if self.input_kind == 'graph':
@@ -81,7 +119,12 @@ class Predictor:
             raise SceneGraphError('no scenes to score')
         scene_ids = [None] * len(scenes) if scene_ids is None else list(scene_ids)
         users = [None if user_id is None else str(user_id)] * len(scenes)
-        return self.recommender.predict_scores(users, scene_ids, self._scene_input(scenes))
+        folded = self.user_model(user_id)
+        user_rows = None
+        if folded is not None:
+            user_rows = (torch.as_tensor(folded.p, dtype=torch.float32).expand(len(scenes), -1),
+                         torch.full((len(scenes), 1), folded.b, dtype=torch.float32))
+        return self.recommender.predict_scores(users, scene_ids, self._scene_input(scenes), user_rows)
 
     def _action_columns(self, actions: Sequence[str]) -> list:
         unknown = [a for a in actions if a not in self._action_index]

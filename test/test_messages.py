@@ -123,7 +123,14 @@ def test_ranking_payload_follows_its_schema(reference):
     reply = messages.ranking_payload(scenes_request, None, False, [Ranked('b', 0.7, 1), Ranked('a', 0.2, 2)],
                                      'ab' * 32, 0.1, action='navigate')
     reference['ranking'].validate(reply)
-    assert reply['ranking'][0] == {'candidate': 'b', 'score': 0.7, 'rank': 1}
+    assert reply['ranking'][0] == {'candidate': 'b', 'score': 0.7, 'rank': 1} and 'personalised_from' not in reply
+    folded = messages.ranking_payload(request, 'g', False, [Ranked('navigate', 0.7, 1)], 'ab' * 32, 1.5,
+                                      personalised_from=3)
+    reference['ranking'].validate(folded)
+    messages.check('ranking', folded)
+    assert folded['personalised_from'] == 3
+    with pytest.raises(messages.BadMessage):
+        messages.check('ranking', {**folded, 'personalised_from': 0})
     with pytest.raises(ValueError):
         messages.dumps({'score': float('nan')})
 

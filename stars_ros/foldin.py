@@ -1,0 +1,201 @@
+"""Fold a new user into a trained StARS model from a few ratings, in closed form.
+
+With everything but the user fixed, the model's normalised prediction is linear in
+θ_u = (p_u, b_u):
+
+    z(u, i, a) = p_uᵀ(q̄_i ⊙ r_a) + b_u + [h_iᵀ r_a + b_i + b],    q̄_i = q_i + h_i
+
+(q_i = 0, b_i = 0 for scenes unseen in training). For ratings (i_j, a_j, y_j) with
+z_j = (y_j − μ_a) / σ_a, x_j = [q̄_i ⊙ r_a, 1] and c_j = h_iᵀ r_a + b_i + b, the fold-in is
+ridge regression of z_j − c_j on x_j towards a prior θ₀:
+
+    θ_u = argmin Σ_j (x_jᵀθ − (z_j − c_j))² + λ ‖θ − θ₀‖²
+        = (XᵀX + λI)⁻¹ (Xᵀ(z − c) + λθ₀),
+
+one (d+1)×(d+1) solve in float64. θ₀ is the user's own trained row when the checkpoint
+knows them (feedback refines it) and otherwise the population prior, the mean of the
+trained user rows (p, b_u). λ → ∞ returns θ₀; λ → 0 interpolates the ratings when they
+are fewer than d + 1. Encoding a scene is what costs; h_i is cached per scene content, so
+re-solving a user after one more rating takes milliseconds.
+
+ROS-free: the ranker node, the offline refit and the k-shot evaluation all use ``FoldIn``.
+"""
+from __future__ import annotations
+
+import collections
+import hashlib
+import json
+import threading
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .errors import StarsError, UnknownActionError
+from .model import UNKNOWN
+
+DEFAULT_REGULARISATION = 1.0
+DEFAULT_CACHE_SCENES = 4096
+
+
+@dataclass(frozen=True)
+class Rating:
+    """One rating to fold in: ``scene`` is a scene-graph dict (or a tabular feature row),
+    ``score`` is on the model's rating scale, ``scene_id`` names a training scene whose q_i
+    applies (None for scenes the model never saw, e.g. candidate placements)."""
+
+    scene: object
+    action: str
+    score: float
+    scene_id: str | None = None
+
+
+@dataclass(frozen=True)
+class UserModel:
+    """A folded-in user: embedding ``p`` [dim] and offset ``b`` (float64), solved from
+    ``n_ratings`` ratings with ``regularisation`` λ."""
+
+    p: np.ndarray
+    b: float
+    n_ratings: int
+    regularisation: float
+
+    def to_json(self) -> dict:
+        return {'p_u': [float(v) for v in self.p], 'b_u': float(self.b), 'n_ratings': int(self.n_ratings),
+                'regularisation': float(self.regularisation)}
+
+    @classmethod
+    def from_json(cls, values: dict) -> 'UserModel':
+        return cls(np.asarray(values['p_u'], dtype=np.float64), float(values['b_u']), int(values['n_ratings']),
+                   float(values['regularisation']))
+
+
+def solve_ridge(x: np.ndarray, y: np.ndarray, prior: np.ndarray, regularisation: float) -> np.ndarray:
+    """argmin_θ ‖xθ − y‖² + λ‖θ − prior‖² via the normal equations (λ > 0 keeps them regular)."""
+    if not regularisation > 0:
+        raise ValueError('regularisation must be positive')
+    x = np.asarray(x, dtype=np.float64)
+    gram = x.T @ x + regularisation * np.eye(x.shape[1])
+    return np.linalg.solve(gram, x.T @ np.asarray(y, dtype=np.float64) + regularisation * prior)
+
+
+def scene_digest(scene) -> str:
+    """Cache key of a scene's content (the same graph under two scene ids is encoded once)."""
+    if isinstance(scene, dict):
+        text = json.dumps(scene, sort_keys=True, separators=(',', ':'))
+    else:
+        text = json.dumps(np.asarray(scene, dtype=np.float64).tolist())
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+class FoldIn:
+    """Closed-form user fold-in against one trained model (see the module docstring).
+
+    Args:
+        predictor (Predictor): the model to fold users into; its weights are only read.
+        cache_scenes (int, optional): most encoded scenes kept (least recently used go).
+
+    ``fit`` may be called from several threads; the cache is locked.
+    """
+
+    def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES):
+        recommender = predictor.recommender
+        model = recommender._require_model()
+        if not model.personalised:
+            raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
+        self.predictor = predictor
+        self.recommender = recommender
+        self.actions = tuple(recommender.action_names)
+        self._action_index = {a: k for k, a in enumerate(self.actions)}
+        self.action_rows = model.action_embedding.detach().double().numpy()
+        self.scene_rows = model.scene_embedding.weight.detach().double().numpy()
+        self.scene_offsets = model.scene_bias.weight.detach().double().numpy()[:, 0]
+        self.bias = float(model.bias.detach())
+        self.target_mean = model.target_mean.detach().double().numpy()
+        self.target_std = model.target_std.detach().double().numpy()
+        self.user_rows = np.concatenate([model.user_embedding.weight.detach().double().numpy(),
+                                         model.user_bias.weight.detach().double().numpy()], axis=1)
+        self.population = self.user_rows.mean(0) if len(recommender.users) else np.zeros(self.user_rows.shape[1])
+        self.dim = self.action_rows.shape[1]
+        self._cache = collections.OrderedDict()
+        self._cache_scenes = cache_scenes
+        self._lock = threading.Lock()
+
+    # -- pieces ------------------------------------------------------------------------
+    def prior(self, user_id=None) -> np.ndarray:
+        """θ₀ = (p, b_u): the user's trained row if the checkpoint knows them, else the
+        population mean."""
+        row = self.recommender._user_rows.get(str(user_id)) if user_id is not None else None
+        return self.population.copy() if row is None else self.user_rows[row].copy()
+
+    def action_index(self, actions: Sequence[str]) -> np.ndarray:
+        unknown = sorted({a for a in actions if a not in self._action_index})
+        if unknown:
+            raise UnknownActionError(f'unknown actions {unknown}; this model knows {list(self.actions)}')
+        return np.array([self._action_index[a] for a in actions], dtype=np.int64)
+
+    def to_z(self, scores, actions: np.ndarray) -> np.ndarray:
+        return (np.asarray(scores, dtype=np.float64) - self.target_mean[actions]) / self.target_std[actions]
+
+    def to_rating_scale(self, z, actions: np.ndarray) -> np.ndarray:
+        return np.asarray(z) * self.target_std[actions] + self.target_mean[actions]
+
+    def design_from_h(self, h, scene_keys: Sequence, actions: np.ndarray) -> tuple:
+        """(x [n, dim+1], c [n]) for ratings whose scenes are encoded as ``h`` [n, dim]."""
+        h = np.asarray(h, dtype=np.float64)
+        rows = self.recommender.scene_index(list(scene_keys)).numpy()
+        known = rows != UNKNOWN
+        q = np.where(known[:, None], self.scene_rows[np.maximum(rows, 0)], 0.0)
+        scene_offset = np.where(known, self.scene_offsets[np.maximum(rows, 0)], 0.0)
+        r = self.action_rows[actions]
+        x = np.concatenate([(q + h) * r, np.ones((len(h), 1))], axis=1)
+        c = (h * r).sum(1) + scene_offset + self.bias
+        return x, c
+
+    def encode(self, scenes: Sequence) -> np.ndarray:
+        """h_i [len(scenes), dim] (float64), from the cache where the content was seen."""
+        keys = [scene_digest(scene) for scene in scenes]
+        with self._lock:
+            missing = {key: scene for key, scene in zip(keys, scenes) if key not in self._cache}
+        if missing:
+            with torch.no_grad():
+                h = self.recommender.model.encode(self.predictor._scene_input(list(missing.values())))
+            with self._lock:
+                for key, row in zip(missing, h.double().numpy()):
+                    self._cache[key] = row
+        with self._lock:
+            for key in keys:
+                self._cache.move_to_end(key)
+            rows = np.stack([self._cache[key] for key in keys])
+            while len(self._cache) > max(self._cache_scenes, len(keys)):
+                self._cache.popitem(last=False)
+        return rows
+
+    def design(self, ratings: Sequence[Rating]) -> tuple:
+        """(x, c, z) for ``ratings``: the regression's inputs, offsets and z-scored targets."""
+        actions = self.action_index([r.action for r in ratings])
+        x, c = self.design_from_h(self.encode([r.scene for r in ratings]), [r.scene_id for r in ratings], actions)
+        return x, c, self.to_z([r.score for r in ratings], actions)
+
+    # -- the solve ---------------------------------------------------------------------
+    def solve(self, x, c, z, prior: np.ndarray, regularisation: float) -> np.ndarray:
+        """θ = (p, b_u) [dim+1] from a design (``design`` / ``design_from_h``)."""
+        if len(z) == 0:
+            return np.asarray(prior, dtype=np.float64).copy()
+        return solve_ridge(x, np.asarray(z) - np.asarray(c), prior, regularisation)
+
+    def fit(self, ratings: Sequence[Rating], user_id=None,
+            regularisation: float = DEFAULT_REGULARISATION) -> UserModel:
+        """The user's (p_u, b_u) from ``ratings``, regularised towards ``prior(user_id)``."""
+        prior = self.prior(user_id)
+        if not ratings:
+            return UserModel(prior[:-1], float(prior[-1]), 0, regularisation)
+        theta = self.solve(*self.design(ratings), prior, regularisation)
+        return UserModel(theta[:-1], float(theta[-1]), len(ratings), regularisation)
+
+    def predict(self, user: UserModel, ratings: Sequence[Rating]) -> np.ndarray:
+        """Rating-scale predictions of ``user`` for the (scene, action) of ``ratings``."""
+        actions = self.action_index([r.action for r in ratings])
+        x, c = self.design_from_h(self.encode([r.scene for r in ratings]), [r.scene_id for r in ratings], actions)
+        return self.to_rating_scale(x @ np.append(user.p, user.b) + c, actions)

@@ -1,0 +1,159 @@
+"""Fold-in math on the tiny checkpoint: the design reproduces the model, the solve is the
+ridge solution, the limits of λ behave, and the Predictor serves folded-in users safely."""
+import json
+import threading
+
+import numpy as np
+import pytest
+
+from stars_ros import messages
+from stars_ros.foldin import FoldIn, Rating, UserModel, solve_ridge
+from stars_ros.predictor import Predictor
+
+
+@pytest.fixture()
+def predictor(tiny_checkpoint):
+    return Predictor.load(tiny_checkpoint)
+
+
+@pytest.fixture(scope='module')
+def ratings(socnav1_root):
+    """40 ratings of annotator e (SocNav1 scenes, scores on [0, 1])."""
+    lines = (socnav1_root / 'raw' / 'e.jsonl').read_text().splitlines()[:40]
+    scenes = [json.loads(line) for line in lines]
+    return [Rating(s, 'navigate', s['score'] / 100, s['identifier']) for s in scenes]
+
+
+def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings):
+    foldin = FoldIn(predictor)
+    rng = np.random.default_rng(0)
+    theta = rng.normal(size=foldin.dim + 1)
+    user = UserModel(theta[:-1], float(theta[-1]), 3, 1.0)
+    predictor.set_user_model('someone', user)
+    expected = predictor.score('someone', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
+    assert np.allclose(foldin.predict(user, ratings[:10]), expected, atol=1e-5)
+    zero = UserModel(np.zeros(foldin.dim), 0.0, 0, 1.0)  # p = 0, b = 0: the stranger's prediction
+    stranger = predictor.score('stranger', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
+    assert np.allclose(foldin.predict(zero, ratings[:10]), stranger, atol=1e-5)
+
+
+def test_solve_is_the_ridge_solution(predictor, ratings):
+    foldin = FoldIn(predictor)
+    x, c, z = foldin.design(ratings)
+    prior = foldin.prior()
+    for regularisation in (0.1, 1.0, 10.0):
+        theta = foldin.solve(x, c, z, prior, regularisation)
+        # normal equations
+        assert np.allclose((x.T @ x + regularisation * np.eye(len(prior))) @ theta,
+                           x.T @ (z - c) + regularisation * prior, atol=1e-9)
+        # the same problem as an augmented least-squares system
+        stacked = np.vstack([x, np.sqrt(regularisation) * np.eye(len(prior))])
+        target = np.concatenate([z - c, np.sqrt(regularisation) * prior])
+        assert np.allclose(theta, np.linalg.lstsq(stacked, target, rcond=None)[0], atol=1e-8)
+    with pytest.raises(ValueError):
+        solve_ridge(x, z - c, prior, 0.0)
+
+
+def test_regularisation_limits(predictor, ratings):
+    foldin = FoldIn(predictor)
+    prior = foldin.prior('stranger')
+    strong = foldin.fit(ratings, 'stranger', regularisation=1e9)
+    assert np.allclose(np.append(strong.p, strong.b), prior, atol=1e-6)
+    few = ratings[:5]  # fewer ratings than dim + 1 unknowns: a weak prior interpolates them
+    weak = foldin.fit(few, 'stranger', regularisation=1e-10)
+    assert np.allclose(foldin.predict(weak, few), [r.score for r in few], atol=1e-3)
+    assert weak.n_ratings == 5 and weak.regularisation == 1e-10
+    empty = foldin.fit([], 'stranger')
+    assert empty.n_ratings == 0 and np.allclose(np.append(empty.p, empty.b), prior)
+
+
+def test_prior_is_the_trained_row_or_the_population_mean(predictor):
+    foldin = FoldIn(predictor)
+    model = predictor.recommender.model
+    row = predictor.recommender._user_rows['a']
+    trained = np.append(model.user_embedding.weight[row].detach().numpy(), model.user_bias.weight[row, 0].item())
+    assert np.allclose(foldin.prior('a'), trained, atol=1e-6)
+    population = np.concatenate([model.user_embedding.weight.detach().numpy(),
+                                 model.user_bias.weight.detach().numpy()], axis=1).mean(0)
+    assert np.allclose(foldin.prior('never-seen'), population, atol=1e-6)
+    assert np.allclose(foldin.prior(None), population, atol=1e-6)
+
+
+def test_folded_in_user_predicts_its_ratings_better(predictor, ratings):
+    foldin = FoldIn(predictor)
+    y = np.array([r.score for r in ratings])
+    errors = [np.mean((foldin.predict(foldin.fit(ratings if lam else [], 'e-new', lam or 1.0), ratings) - y) ** 2)
+              for lam in (None, 10.0, 1.0, 0.1, 0.01)]  # None: no ratings, the prior
+    assert all(later < earlier for earlier, later in zip(errors, errors[1:])), errors  # weaker prior, closer fit
+    assert errors[-1] < 0.8 * errors[0], errors
+
+
+def test_scene_cache_encodes_each_content_once_and_is_bounded(predictor, ratings, monkeypatch):
+    foldin = FoldIn(predictor, cache_scenes=8)
+    calls = []
+    encode = predictor.recommender.model.encode
+    monkeypatch.setattr(predictor.recommender.model, 'encode', lambda inputs: calls.append(1) or encode(inputs))
+    first = foldin.encode([r.scene for r in ratings[:4]])
+    again = foldin.encode([dict(r.scene) for r in ratings[:4]])  # equal content, other objects
+    assert len(calls) == 1 and np.array_equal(first, again)
+    foldin.encode([r.scene for r in ratings[4:20]])
+    assert len(foldin._cache) == 16  # one call's scenes always fit; older ones were dropped
+    foldin.encode([r.scene for r in ratings[4:6]])
+    assert len(foldin._cache) == 8
+
+
+def test_overlay_serves_folded_users_and_leaves_others_alone(predictor, ratings):
+    scenes = [r.scene for r in ratings[:6]]
+    stranger = predictor.score('newcomer', scenes)
+    trained = predictor.score('a', scenes)
+    user = FoldIn(predictor).fit(ratings, 'newcomer')
+    predictor.set_user_model('newcomer', user)
+    assert not np.allclose(predictor.score('newcomer', scenes), stranger)
+    assert np.array_equal(predictor.score('someone-else', scenes), stranger)
+    assert np.array_equal(predictor.score('a', scenes), trained)
+    assert predictor.personalised_from('newcomer') == len(ratings) and predictor.personalised_from('x') == 0
+    assert not predictor.knows_user('newcomer')  # knows_user stays "in the training data"
+    predictor.set_user_model('newcomer', None)
+    assert np.array_equal(predictor.score('newcomer', scenes), stranger)
+
+
+def test_overlay_swap_is_safe_while_another_thread_scores(predictor, ratings):
+    scenes = [r.scene for r in ratings[:3]]
+    foldin = FoldIn(predictor)
+    models = [foldin.fit(ratings[:k], 'racer') for k in (5, 30)]
+    expected = []
+    for model in models:
+        predictor.set_user_model('racer', model)
+        expected.append(predictor.score('racer', scenes))
+    stop = threading.Event()
+    errors = []
+
+    def write():
+        k = 0
+        while not stop.is_set():
+            predictor.set_user_model('racer', models[k % 2])
+            predictor.set_user_model(f'other-{k % 50}', models[0])
+            k += 1
+    writer = threading.Thread(target=write)
+    writer.start()
+    try:
+        for _ in range(200):
+            scores = predictor.score('racer', scenes)
+            if not any(np.array_equal(scores, e) for e in expected):
+                errors.append(scores)
+    finally:
+        stop.set()
+        writer.join()
+    assert not errors
+
+
+def test_user_model_message_follows_its_schema(predictor, ratings):
+    jsonschema = pytest.importorskip('jsonschema')
+    user = FoldIn(predictor).fit(ratings[:3], 'u')
+    payload = json.loads(messages.dumps(messages.user_model_payload('u', user, predictor.fingerprint)))
+    schema = messages.load_schema('user_model')
+    jsonschema.Draft202012Validator(schema).validate(payload)
+    messages.check('user_model', payload)
+    assert UserModel.from_json(payload).n_ratings == 3
+    with pytest.raises(messages.BadMessage):
+        messages.check('user_model', {**payload, 'regularisation': 0})
