@@ -1,6 +1,7 @@
 """Find files the package ships in share/stars_ros (schemas, configs, models).
 
-The same file can live in three places: beside the source tree (a checkout), under
+The same file can live in several places: beside the source tree (a checkout), under a
+sourced workspace's ``$AMENT_PREFIX_PATH/share/stars_ros``, under
 ``<prefix>/share/stars_ros`` (``pip install``) and under a colcon install prefix
 (``install/stars_ros/share/stars_ros``, reached by walking up from this module).
 """
@@ -17,6 +18,8 @@ def _candidate_roots():
     if override:
         yield Path(override)
     yield here.parent  # source checkout: <repo>/msg_schemas
+    for prefix in filter(None, os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)):
+        yield Path(prefix) / 'share' / PACKAGE  # a sourced ROS workspace
     yield Path(sys.prefix) / 'share' / PACKAGE
     for parent in here.parents:  # colcon: <prefix>/lib/pythonX.Y/site-packages/stars_ros
         yield parent / 'share' / PACKAGE
