@@ -1,0 +1,376 @@
+"""Refit a checkpoint from the feedback in the ranker's MCAP logs.
+
+    python -m offline_training.refit --checkpoint IN.pt --logs BAG_OR_MCAP [...] --out OUT.pt \
+        [--mode user|full] [--data-root ROOT] [--regularisation L] [--epochs N]
+
+Each /stars/feedback message is joined with the scene request it names: the latest
+/stars/scene message with that scene_id logged before it, in the same log (what the node
+remembered when the feedback came). The rating that gives is the node's
+(foldin.rating_from_feedback), so both sides fold in the same data.
+
+``--mode user`` (default) solves (p_u, b_u) of every user in the logs in closed form, as
+the node's online fold-in does (same prior, same λ: by default the one the node logged on
+stars/user_model for that user, else 1.0), so the refit checkpoint ranks as the online
+fold-in did. New users get rows in the user tables; known users' rows are replaced.
+``--mode full`` starts from that and fine-tunes every parameter for ``--epochs`` joint
+epochs on the feedback (plus the original ratings when ``--data-root`` is given), with the
+checkpoint's own training settings and rating normalisation.
+
+The new checkpoint's metadata keeps the provenance (parent fingerprint, logs, ratings per
+user, mode, λ, problems found). Problems with the logs (truncated files, foreign topics,
+feedback for scenes never recorded, unknown actions or candidates, unparsable messages)
+are counted and printed at the end; the exit code is non-zero only when no usable rating
+was found (1) or the inputs cannot be read at all (2).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import shlex
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from mcap.exceptions import McapError
+
+from stars_ros import messages, recording
+from stars_ros.checkpoint import save_checkpoint
+from stars_ros.data import RatingData, load_dataset
+from stars_ros.errors import StarsError
+from stars_ros.foldin import DEFAULT_REGULARISATION, FoldIn, rating_from_feedback, scene_digest
+from stars_ros.predictor import Predictor
+from stars_ros.scene_graph import featurise
+from stars_ros.scene_store import GraphStore, TabularStore
+from stars_ros.training import StarsRecommender, build_model
+
+from .common import setup_logging
+
+USED_TOPICS = ('stars/scene', 'stars/feedback', 'stars/user_model')
+OTHER_STARS_TOPICS = ('stars/ranking', 'stars/errors', 'stars/user_id')
+
+
+@dataclass
+class LogRatings:
+    """What the logs hold: ratings per user (in log order), λ the node used, problems."""
+
+    ratings: dict = field(default_factory=dict)          # user -> [Rating]
+    regularisation: dict = field(default_factory=dict)   # user -> λ last logged on stars/user_model
+    problems: collections.Counter = field(default_factory=collections.Counter)
+    examples: dict = field(default_factory=dict)         # problem -> first few details
+    messages: int = 0
+    files: list = field(default_factory=list)
+
+    def problem(self, kind: str, detail: str):
+        self.problems[kind] += 1
+        self.examples.setdefault(kind, [])
+        if len(self.examples[kind]) < 3:
+            self.examples[kind].append(detail)
+
+    @property
+    def n_ratings(self) -> int:
+        return sum(len(r) for r in self.ratings.values())
+
+
+def _topic(name: str) -> str | None:
+    """The stars topic a recorded channel carries (any namespace), or None if foreign."""
+    for topic in USED_TOPICS + OTHER_STARS_TOPICS:
+        if name == topic or name.endswith('/' + topic):
+            return topic
+    return None
+
+
+def _decode_string(data: bytes) -> str:
+    """std_msgs/String from CDR bytes (4-byte encapsulation header, uint32 length, text, NUL)."""
+    order = 'little' if data[1] & 1 else 'big'
+    length = int.from_bytes(data[4:8], order)
+    return bytes(data[8:8 + length]).rstrip(b'\0').decode('utf-8')
+
+
+def read_log_file(path: Path, found: LogRatings) -> list:
+    """(topic, text, log_time) of one MCAP file; a damaged file gives what precedes the damage."""
+    try:
+        return list(recording.read_messages(path))
+    except (McapError, EOFError, ValueError, OSError, RuntimeError, KeyError, AssertionError) as error:
+        try:
+            _, channels, records, _, damage = recording._salvage(path)
+        except OSError as second:
+            found.problem('unreadable file', f'{path}: {second}')
+            return []
+        salvaged = [(channels[m.channel_id].topic, _decode_string(m.data), m.log_time) for m in records
+                    if m.channel_id in channels]
+        found.problem('truncated or damaged file', f'{path}: {damage or error}; {len(salvaged)} messages before '
+                      'the damage were read')
+        return salvaged
+
+
+def log_files(paths) -> list:
+    """MCAP files named by ``paths`` (bag folders or files), in order."""
+    files = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = recording._mcap_files(path)
+            files.append((path, found))
+        else:
+            files.append((path, [path]))
+    return files
+
+
+def read_logs(paths, actions) -> LogRatings:
+    """Join feedback with scene requests in every log; see the module docstring."""
+    found = LogRatings()
+    for log, files in log_files(paths):
+        if not files:
+            found.problem('no MCAP files', f'{log}: missing or holds no .mcap files')
+            continue
+        found.files += [str(f) for f in files]
+        items = []
+        for path in files:
+            if not path.exists():
+                found.problem('no MCAP files', f'{path}: no such file')
+                continue
+            items += read_log_file(path, found)
+        items.sort(key=lambda item: item[2])  # log time: rotated files and recovered feedback interleave
+        scenes = {}
+        for channel, text, log_time in items:
+            found.messages += 1
+            topic = _topic(channel)
+            if topic is None:
+                found.problem('foreign topic', channel)
+            elif topic == 'stars/scene':
+                try:
+                    request = messages.parse_scene_request(text, 1 << 30)
+                except messages.BadMessage as error:
+                    found.problem('unusable scene message', f'{log}: {error}')
+                    continue
+                scenes[request.scene_id] = request
+            elif topic == 'stars/feedback':
+                join_feedback(text, scenes, actions, found, log)
+            elif topic == 'stars/user_model':
+                try:
+                    payload = messages.load_json(text, 1 << 30)
+                    messages.check('user_model', payload)
+                except messages.BadMessage as error:
+                    found.problem('unusable user_model message', f'{log}: {error}')
+                    continue
+                found.regularisation[payload['user_id']] = float(payload['regularisation'])
+    return found
+
+
+def join_feedback(text: str, scenes: dict, actions, found: LogRatings, log) -> None:
+    try:
+        feedback = messages.parse_feedback(text, 1 << 30)
+    except messages.BadMessage as error:
+        found.problem('unusable feedback message', f'{log}: {error}')
+        return
+    if feedback.action is not None and feedback.action not in actions:
+        found.problem('unknown action', f"{log}: '{feedback.action}' (scene {feedback.scene_id})")
+        return
+    request = scenes.get(feedback.scene_id)
+    if request is None:
+        found.problem('feedback for a scene never recorded', f'{log}: scene {feedback.scene_id}')
+        return
+    rating = rating_from_feedback(feedback, request, actions)
+    if isinstance(rating, str):
+        found.problem('feedback that does not match its scene', f'{log}: {rating}')
+        return
+    found.ratings.setdefault(feedback.user_id, []).append(rating)
+
+
+def extended(parent: StarsRecommender, users, scene_keys=()) -> StarsRecommender:
+    """A copy of ``parent`` whose vocabularies also hold ``users`` and ``scene_keys`` (new
+    rows: zero offsets; user rows are then set by the caller, scene rows stay zero)."""
+    old = parent.model
+    new_users = [u for u in users if u not in parent._user_rows]
+    new_scenes = [k for k in scene_keys if k not in parent._scene_rows]
+    child = StarsRecommender(parent.config)
+    child._set_vocabularies(list(parent.users) + new_users, list(parent.scene_keys) + new_scenes,
+                            parent.action_names)
+    model = build_model(parent.config, old.encoder.in_dim, old.encoder.input_kind, len(child.users),
+                        len(child.scene_keys), len(child.action_names))
+    state = old.state_dict()
+    grown = model.state_dict()
+    for name, value in state.items():
+        if grown[name].shape == value.shape:
+            grown[name] = value.clone()
+        else:  # an embedding table that gained rows
+            grown[name] = torch.zeros_like(grown[name])
+            grown[name][:len(value)] = value
+    model.load_state_dict(grown)
+    model.eval()
+    child.model = model
+    return child
+
+
+def set_user_rows(recommender: StarsRecommender, solved: dict) -> None:
+    model = recommender.model
+    with torch.no_grad():
+        for user, user_model in solved.items():
+            row = recommender._user_rows[user]
+            model.user_embedding.weight[row] = torch.as_tensor(user_model.p, dtype=torch.float32)
+            model.user_bias.weight[row, 0] = float(user_model.b)
+
+
+def _store(parent_kind: str, scenes: list):
+    if parent_kind == 'graph':
+        return GraphStore([featurise(scene) for scene in scenes])
+    return TabularStore(np.asarray(scenes, dtype=np.float32), [])
+
+
+def _concat(first, second):
+    if isinstance(first, TabularStore):
+        return TabularStore(torch.cat([first.features, second.features]).numpy(), first.feature_names)
+    store = GraphStore.__new__(GraphStore)
+    store._set(x=torch.cat([first.x, second.x]), edge_index=torch.cat([first.edge_index, second.edge_index], 1),
+               edge_type=torch.cat([first.edge_type, second.edge_type]),
+               node_counts=torch.cat([first.node_counts, second.node_counts]),
+               edge_counts=torch.cat([first.edge_counts, second.edge_counts]))
+    return store
+
+
+def feedback_data(recommender: StarsRecommender, ratings: dict, original: RatingData | None) -> RatingData:
+    """The feedback ratings as RatingData (scenes keyed by their training key when they
+    have one, else by content), appended to ``original`` when given."""
+    keys, scenes, rows = [], [], []
+    index = {}
+    for user, user_ratings in ratings.items():
+        for rating in user_ratings:
+            key = rating.scene_id if rating.scene_id in recommender._scene_rows else f'feedback:{scene_digest(rating.scene)}'
+            if key not in index:
+                index[key] = len(keys)
+                keys.append(key)
+                scenes.append(rating.scene)
+            rows.append((user, index[key], recommender.action_names.index(rating.action), rating.score))
+    store = _store(recommender.model.encoder.input_kind, scenes)
+    users = np.array([r[0] for r in rows])
+    scene_rows = np.array([r[1] for r in rows], dtype=np.int64)
+    actions = np.array([r[2] for r in rows], dtype=np.int64)
+    scores = np.array([r[3] for r in rows], dtype=np.float64)
+    if original is None:
+        return RatingData(users, scene_rows, actions, scores, keys, store, recommender.action_names, 'feedback', 'logs')
+    if tuple(original.action_names) != tuple(recommender.action_names):
+        raise StarsError(f'--data-root actions {list(original.action_names)} differ from the checkpoint\'s '
+                         f'{list(recommender.action_names)}')
+    offset = len(original.scene_keys)
+    return RatingData(np.concatenate([original.users, users]), np.concatenate([original.scenes, scene_rows + offset]),
+                      np.concatenate([original.actions, actions]), np.concatenate([original.scores, scores]),
+                      list(original.scene_keys) + keys, _concat(original.store, store), recommender.action_names,
+                      original.fingerprint, original.source)
+
+
+def fine_tune(recommender: StarsRecommender, data: RatingData, epochs: int) -> list:
+    """``epochs`` joint epochs over every row of ``data``, from the current weights, with the
+    checkpoint's optimiser settings and rating normalisation (the trainer's ``_epoch``)."""
+    cfg = recommender.config.training
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.threads)
+    rng = np.random.default_rng(cfg.seed)
+    model = recommender.model
+    users = recommender.user_index(data.users)
+    scene_rows = recommender.scene_index(list(data.scene_keys[s] for s in data.scenes))
+    actions = torch.from_numpy(data.actions)
+    targets = model.to_z(torch.from_numpy(data.scores).float(), actions)
+    batch = (users, scene_rows, torch.from_numpy(data.scenes), actions, targets)
+    parameters = [p for n, p in model.named_parameters() if model.uses_content or not n.startswith('encoder.')]
+    optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    losses = [recommender._epoch(data, batch, model, parameters, optimiser, rng, cfg.embedding_l2)
+              for _ in range(epochs)]
+    model.eval()
+    return losses
+
+
+def print_report(found: LogRatings, solved: dict, out=None) -> None:
+    out = out or sys.stdout
+    print(f'read {len(found.files)} MCAP file(s), {found.messages} messages; {found.n_ratings} usable ratings '
+          f'from {len(found.ratings)} user(s)', file=out)
+    for user, ratings in sorted(found.ratings.items()):
+        model = solved.get(user)
+        print(f'  {user}: {len(ratings)} ratings' + (f', λ {model.regularisation:g}' if model else ''), file=out)
+    if not found.problems:
+        print('problems: none', file=out)
+        return
+    print(f'problems ({sum(found.problems.values())} messages or files not used):', file=out)
+    for kind, count in found.problems.most_common():
+        print(f'  {kind}: {count}  e.g. ' + ' | '.join(found.examples[kind]), file=out)
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--checkpoint', required=True, help='the checkpoint the node served')
+    parser.add_argument('--logs', required=True, nargs='+', help='bag folders or .mcap files recorded by the node')
+    parser.add_argument('--out', required=True, help='checkpoint to write')
+    parser.add_argument('--mode', choices=['user', 'full'], default='user', help='(default: %(default)s)')
+    parser.add_argument('--data-root', help='original ratings to fine-tune on as well (full mode)')
+    parser.add_argument('--regularisation', type=float,
+                        help="fold-in λ for every user (default: the node's, from stars/user_model, else 1.0)")
+    parser.add_argument('--epochs', type=int, default=3, help='joint epochs of full mode (default: %(default)s)')
+    parser.add_argument('--verbose', action='store_true')
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    setup_logging(args.verbose)
+    started = time.perf_counter()
+    try:
+        if args.regularisation is not None and not args.regularisation > 0:
+            raise StarsError('--regularisation must be positive')
+        predictor = Predictor.load(args.checkpoint)
+        foldin = FoldIn(predictor)
+        original = load_dataset(args.data_root) if args.data_root and args.mode == 'full' else None
+    except (StarsError, OSError) as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
+    if args.data_root and args.mode == 'user':
+        print('note: --data-root is used by --mode full only; user mode keeps every other parameter fixed')
+    found = read_logs(args.logs, predictor.actions)
+    solved = {}
+    for user, ratings in found.ratings.items():
+        regularisation = args.regularisation or found.regularisation.get(user, DEFAULT_REGULARISATION)
+        try:
+            solved[user] = foldin.fit(ratings, user, regularisation)
+        except StarsError as error:
+            found.problem('scene the model cannot encode', f'{user}: {error}')
+    for user in list(found.ratings):
+        if user not in solved:
+            del found.ratings[user]
+    print_report(found, solved)
+    if not solved:
+        print('error: no usable feedback in the logs; no checkpoint written', file=sys.stderr)
+        return 1
+    recommender = extended(predictor.recommender, list(solved))
+    set_user_rows(recommender, solved)
+    losses = []
+    if args.mode == 'full':
+        try:
+            data = feedback_data(recommender, found.ratings, original)
+        except StarsError as error:
+            print(f'error: {error}', file=sys.stderr)
+            return 2
+        recommender = extended(recommender, [], data.scene_keys)
+        losses = fine_tune(recommender, data, args.epochs)
+        print(f'full fine-tune: {args.epochs} joint epochs on {len(data)} ratings, loss {[round(v, 4) for v in losses]}')
+    parent = predictor.metadata
+    provenance = {
+        'refit': {'mode': args.mode, 'parent_fingerprint': predictor.fingerprint,
+                  'parent_checkpoint': str(args.checkpoint), 'logs': [str(p) for p in args.logs],
+                  'files': found.files, 'ratings_per_user': {u: len(r) for u, r in found.ratings.items()},
+                  'regularisation': {u: m.regularisation for u, m in solved.items()},
+                  'problems': dict(found.problems), 'epochs': args.epochs if args.mode == 'full' else 0,
+                  'fine_tune_losses': losses, 'data_root': args.data_root if original is not None else None,
+                  'command': shlex.join(['python', '-m', 'offline_training.refit',
+                                         *(sys.argv[1:] if argv is None else argv)]),
+                  'seconds': round(time.perf_counter() - started, 2)},
+        'parent': parent.get('provenance', {}),
+    }
+    digest = save_checkpoint(recommender, args.out, data=parent.get('data', {}),
+                             metrics={'parent': parent.get('metrics', {})}, provenance=provenance)
+    print(f'wrote {args.out} ({args.mode} mode, {len(solved)} user(s), digest {digest[:12]}) in '
+          f'{time.perf_counter() - started:.1f} s')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
