@@ -1,21 +1,31 @@
 """The ranker node: personalised rankings of robot actions (or candidate scenes) per scene.
 
 Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feedback``;
-publishes ``stars/ranking``, ``stars/errors`` and ``/diagnostics``; serves ``~/reload``.
-See docs/ranker_node.md. Run with ``ros2 run stars_ros ranker`` or
-``python -m stars_ros.ranker --ros-args -p checkpoint:=PATH``.
+publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` and ``/diagnostics``;
+serves ``~/reload``. See docs/ranker_node.md and docs/personalisation.md. Run with
+``ros2 run stars_ros ranker`` or ``python -m stars_ros.ranker --ros-args -p checkpoint:=PATH``.
 
 Threads: the executor thread parses and validates messages (cheap) and queues scene
 requests; a worker thread scores everything queued in one batch with one model snapshot and
 publishes the rankings. So the DDS queue is drained while the model runs, and ``~/reload``
 swaps the model between two batches: every ranking is scored by exactly one checkpoint,
 the one whose fingerprint it carries.
+
+Online fold-in: accepted feedback on a scene the node ranked (remembered in a bounded LRU
+map) is added to that user's history, and the worker re-solves the user's (p_u, b_u)
+(stars_ros.foldin) after the batch it is serving, so the ranking of others waits for at
+most one solve. The result goes into the predictor's overlay (swapped whole, so a batch
+never sees half an update), on stars/user_model (recorded), and into ``user_models.json``
+in the record folder, which a restart with the same checkpoint restores.
 """
 from __future__ import annotations
 
 import collections
+import json
+import os
 import threading
 import time
+from pathlib import Path
 
 import rclpy
 import torch
@@ -29,13 +39,17 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from . import messages, recording
-from .errors import CheckpointError
+from .errors import CheckpointError, StarsError
+from .foldin import FoldIn, Rating, UserModel, rating_from_feedback
 from .predictor import Predictor
 from .resources import share_path
 from .serving import Pending, error_kind, rank_batch
 
 DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'
-WARNINGS = ('unknown_user',)
+WARNINGS = ('unknown_user', 'unknown_scene', 'user_models')
+SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
+STATE_FILE = 'user_models.json'
+STATE_FORMAT = "stars_ros.user_models"
 _INT_MAX = 2 ** 31 - 1
 
 PARAMETERS = {  # name: (default, description, read_only, range)
@@ -55,6 +69,11 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'log_throttle': (5.0, 'seconds between two log lines about the same kind of error', False,
                      (0.0, 3600.0)),
     'diagnostics_period': (1.0, 'seconds between two /diagnostics messages', True, (0.05, 3600.0)),
+    'fold_in': (True, "personalise from feedback: re-solve the user's embedding after each rating", False, None),
+    'fold_in_min_ratings': (1, 'ratings a user needs before their folded-in embedding is served', False,
+                            (1, 100000)),
+    'fold_in_regularisation': (1.0, 'ridge weight λ pulling a folded-in user towards the prior '
+                               '(their trained row, else the population mean)', False, (1e-6, 1e6)),
 }
 
 
@@ -102,6 +121,10 @@ class RankerNode(Node):
         self._queue = collections.deque()
         self._wake = threading.Condition()
         self._running = True
+        self._scenes = collections.OrderedDict()  # scene_id -> SceneRequest (executor thread only)
+        self._histories = {}  # user_id -> [Rating]; guarded by self._lock
+        self._fold_pending = collections.OrderedDict()  # users to re-solve; guarded by self._wake
+        self._foldin = None  # FoldIn of the predictor the worker last folded into (worker thread only)
 
         depth = self.params['queue_depth']
         reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
@@ -110,10 +133,15 @@ class RankerNode(Node):
         self.ranking_pub = self.create_publisher(String, 'stars/ranking', reliable)
         self.error_pub = self.create_publisher(String, 'stars/errors', 100)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.user_model_pub = self.create_publisher(String, 'stars/user_model', reliable)
         self.topics = {name: self.resolve_topic_name(name) for name in
-                       ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors')}
+                       ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors',
+                        'stars/user_model')}
         self.recorder = None
         self.recorder = self._start_recorder(depth)
+        self.state_path = Path(self.params['record_folder']).expanduser() / STATE_FILE \
+            if self.params['record_folder'] else None
+        self._restore_user_models()
         self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
         self.create_subscription(String, 'stars/user_id', self._on_user_id, latched)
         self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
@@ -155,6 +183,7 @@ class RankerNode(Node):
         qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
         qos[self.topics['stars/feedback']] = recording.qos_profile(100)
         qos[self.topics['stars/errors']] = recording.qos_profile(100)
+        qos[self.topics['stars/user_model']] = recording.qos_profile(depth)
         recorder = recording.Recorder(
             folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
             custom={'node': self.get_fully_qualified_name(), 'checkpoint': self.checkpoint_path,
@@ -211,7 +240,8 @@ class RankerNode(Node):
         values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
                   'rankings': counts.get('ranking', 0), 'queued': len(self._queue),
                   'recording': 'off' if recorder is None else (recorder.error or str(recorder.path)),
-                  'feedback_not_on_disk': 0 if recorder is None else recorder.pending_feedback}
+                  'feedback_not_on_disk': 0 if recorder is None else recorder.pending_feedback,
+                  'folded_in_users': len(self.predictor.user_models)}
         values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
         statuses = [DiagnosticStatus(level=level, name=f'{name}: ranker', message=summary, hardware_id=name,
                                      values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
@@ -233,6 +263,10 @@ class RankerNode(Node):
             self.report(error.kind, str(error), self.topics['stars/scene'])
             return
         self._record('stars/scene', msg.data)
+        self._scenes[request.scene_id] = request
+        self._scenes.move_to_end(request.scene_id)
+        if len(self._scenes) > SCENE_MEMORY:
+            self._scenes.popitem(last=False)
         with self._wake:
             if len(self._queue) >= self.params['queue_depth']:
                 overflow = True
@@ -269,6 +303,123 @@ class RankerNode(Node):
         elif not self.recorder.write_feedback(topic, msg.data, self.get_clock().now().nanoseconds):
             self.report('recording', 'feedback could not be written yet; kept in memory and retried', topic,
                         feedback.scene_id)
+        if self.params['fold_in']:
+            self._queue_fold_in(feedback, topic)
+
+    # -- fold-in -------------------------------------------------------------------------
+    def _rating(self, feedback) -> Rating | str:
+        """The Rating ``feedback`` gives, or why it cannot be folded in."""
+        request = self._scenes.get(feedback.scene_id)
+        if request is None:
+            return (f"feedback for scene '{feedback.scene_id}', which this node has not ranked (or no longer "
+                    'remembers): recorded, not folded in')
+        return rating_from_feedback(feedback, request, self.predictor.actions)
+
+    def _queue_fold_in(self, feedback, topic: str):
+        rating = self._rating(feedback)
+        if isinstance(rating, str):
+            self.report('unknown_scene', rating, topic, feedback.scene_id)
+            return
+        with self._lock:
+            self._histories.setdefault(feedback.user_id, []).append(rating)
+        with self._wake:
+            self._fold_pending[feedback.user_id] = None
+            self._wake.notify()
+
+    def _fold_in(self, user_id: str):
+        """Re-solve ``user_id`` from their history against the current model (worker thread)."""
+        predictor = self.predictor
+        if self._foldin is None or self._foldin.predictor is not predictor:
+            self._foldin = FoldIn(predictor)
+        with self._lock:
+            ratings = list(self._histories.get(user_id, ()))
+        if len(ratings) < self.params['fold_in_min_ratings']:
+            return
+        try:
+            model = self._foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
+        except StarsError:
+            ratings = self._drop_unusable(user_id, ratings)
+            if not ratings:
+                return
+            model = self._foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
+        predictor.set_user_model(user_id, model)
+        payload = messages.dumps(messages.user_model_payload(user_id, model, predictor.fingerprint))
+        self.user_model_pub.publish(String(data=payload))
+        self._record('stars/user_model', payload)
+        self._save_user_models(predictor)
+
+    def _drop_unusable(self, user_id: str, ratings: list) -> list:
+        """Ratings whose scene the model cannot encode leave the history, each reported."""
+        unusable = []
+        for rating in ratings:
+            try:
+                self._foldin.encode([rating.scene])
+            except StarsError as error:
+                unusable.append(rating)
+                self.report(error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
+        with self._lock:
+            self._histories[user_id] = [r for r in self._histories.get(user_id, ()) if r not in unusable]
+        return [r for r in ratings if r not in unusable]
+
+    def _save_user_models(self, predictor):
+        """Write every folded-in user (model and history) to the state file, atomically."""
+        if self.state_path is None:
+            return
+        with self._lock:
+            histories = {u: list(h) for u, h in self._histories.items()}
+        users = {u: {**m.to_json(), 'ratings': [{'scene': r.scene, 'action': r.action, 'score': r.score,
+                                                 'scene_id': r.scene_id} for r in histories.get(u, ())]}
+                 for u, m in predictor.user_models.items()}
+        state = {'format': STATE_FORMAT, 'version': 1, 'fingerprint': predictor.fingerprint, 'users': users}
+        try:
+            self.state_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.state_path.with_name(self.state_path.name + '.tmp')
+            with open(tmp, 'w') as handle:
+                handle.write(messages.dumps(state))
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.replace(tmp, self.state_path)
+        except OSError as error:
+            self.report('recording', f'could not write {self.state_path}: {error}')
+
+    def _restore_user_models(self):
+        """Folded-in users of the last run, if they were solved against this checkpoint."""
+        if self.state_path is None or not self.state_path.exists():
+            return
+        try:
+            state = json.loads(self.state_path.read_text())
+            if state.get('format') != STATE_FORMAT:
+                raise ValueError(f'not a {STATE_FORMAT} file')
+            if state['fingerprint'] != self.predictor.fingerprint:
+                self.report('user_models', f"{self.state_path} was solved against checkpoint "
+                            f"{state['fingerprint'][:12]}, not the served {self.predictor.fingerprint[:12]}: "
+                            'folded-in users are not restored')
+                return
+            models = {u: UserModel.from_json(v) for u, v in state['users'].items()}
+            histories = {u: [Rating(r['scene'], r['action'], float(r['score']), r.get('scene_id'))
+                             for r in v['ratings']] for u, v in state['users'].items()}
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            self.report('user_models', f'cannot read {self.state_path}: {error}; folded-in users are not restored')
+            return
+        with self._lock:
+            self._histories.update(histories)
+        self.predictor.set_user_models(models)
+        self.get_logger().info(f'restored {len(models)} folded-in users from {self.state_path}')
+
+    def _carry_user_models(self, predictor):
+        """After a reload: users the new checkpoint was refit on keep only the feedback it did
+        not absorb; everyone with a history left is re-solved against the new model."""
+        absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
+        with self._lock:
+            for user_id, count in absorbed.items():
+                if user_id in self._histories:
+                    self._histories[user_id] = self._histories[user_id][int(count):]
+            self._histories = {u: h for u, h in self._histories.items() if h}
+            users = list(self._histories)
+        with self._wake:
+            for user_id in users:
+                self._fold_pending[user_id] = None
+            self._wake.notify()
 
     def _on_reload(self, request, response):
         try:
@@ -279,6 +430,7 @@ class RankerNode(Node):
             response.success, response.message = False, str(error)
             return response
         self.predictor, self.checkpoint_path = predictor, path  # the worker picks it up at its next batch
+        self._carry_user_models(predictor)
         response.success = True
         response.message = f'serving {path} (fingerprint {predictor.fingerprint})'
         self.get_logger().info(response.message)
@@ -288,13 +440,17 @@ class RankerNode(Node):
     def _work(self):
         while True:
             with self._wake:
-                while self._running and not self._queue:
+                while self._running and not self._queue and not self._fold_pending:
                     self._wake.wait()
                 if not self._running:
                     return
                 batch = [self._queue.popleft() for _ in range(min(len(self._queue), self.params['max_batch']))]
+                user_id = self._fold_pending.popitem(last=False)[0] if self._fold_pending else None
             try:
-                self._serve(batch)
+                if batch:
+                    self._serve(batch)
+                if user_id is not None:  # one solve between two batches: others wait at most that long
+                    self._fold_in(user_id)
             except Exception as error:  # noqa: BLE001 - the node must keep serving
                 if not (self._running and self.context.ok()):
                     return  # shutting down: publishers are gone
@@ -309,13 +465,14 @@ class RankerNode(Node):
                 self.report(error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
                 continue
             known = predictor.knows_user(item.user_id)
-            if item.user_id is not None and not known:
+            personalised = predictor.personalised_from(item.user_id)
+            if item.user_id is not None and not known and not personalised:
                 self.report('unknown_user', f"user '{item.user_id}' is not in the training data: ranked by scene "
                             'content and population offsets', self.topics['stars/scene'], request.scene_id)
             elapsed_ms = (time.perf_counter_ns() - item.arrived) / 1e6
             payload = messages.dumps(messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(elapsed_ms, 3),
-                result.action))
+                result.action, personalised))
             self.ranking_pub.publish(String(data=payload))
             self._record('stars/ranking', payload)
             with self._lock:

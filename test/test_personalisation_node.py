@@ -1,0 +1,161 @@
+"""End to end over loopback DDS: a stranger's feedback personalises their next ranking, the
+MCAP log refits offline to a checkpoint that ranks the same through ~/reload, and a restart
+restores the folded-in user.
+
+Tolerance: the refit checkpoint and the online overlay hold the same float32 (p_u, b_u), so
+their scores agree to float rounding; the test allows 1e-5 on the [0, 1] scale.
+"""
+import json
+import signal
+import time
+
+import numpy as np
+import pytest
+from std_msgs.msg import String
+
+from offline_training import refit
+from ros_helpers import RELIABLE, RosClient, domain_id, start_node, stop
+from stars_ros import recording
+from stars_ros.foldin import FoldIn, Rating
+from stars_ros.predictor import Predictor
+from stars_ros.scene_source import read_scenes, scene_request
+
+pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
+USER = 'newcomer'
+LAMBDA = 0.05
+TOLERANCE = 1e-5
+START_TIMEOUT = 90
+
+
+@pytest.fixture(scope='module')
+def scenes(socnav1_root):
+    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:20]
+
+
+def _start(domain, checkpoint, folder, log):
+    return start_node('stars_ros.ranker', domain, {
+        'checkpoint': checkpoint, 'record_folder': folder, 'flush_interval': 0.2,
+        'fold_in_regularisation': LAMBDA}, log)
+
+
+def _latest(client, scene_id):
+    with client._changed:
+        return next((r for r in reversed(client.rankings) if r['scene_id'] == scene_id), None)
+
+
+def _rank(client, scenes, tag):
+    """Rank scenes 0..5 for USER (scene ids are the SocNav1 identifiers, so q_i applies);
+    returns {identifier: reply}."""
+    before = len(client.rankings)
+    for scene in scenes[:6]:
+        client.scene({'scene_id': scene['identifier'], 'user_id': USER, 'graph': scene})
+    assert client.wait(lambda: len(client.rankings) >= before + 6, 30), f'no rankings ({tag})'
+    return {s['identifier']: _latest(client, s['identifier']) for s in scenes[:6]}
+
+
+def _score(reply):
+    return reply['ranking'][0]['score']
+
+
+def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkpoint, scenes, tmp_path):
+    domain = domain_id(7)
+    records = tmp_path / 'records'
+    client = RosClient(domain)
+    models = []
+    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    process = _start(domain, tiny_checkpoint, records, tmp_path / 'ranker-1.log')
+    probe = {'scene_id': 'probe', 'graph': scenes[19]}
+    try:
+        client.wait_ready(process, START_TIMEOUT, probe)
+        before = _rank(client, scenes, 'stranger')
+        assert all(r['known_user'] is False and 'personalised_from' not in r for r in before.values())
+
+        # feedback: the stranger likes scenes 0-3 a lot, and one candidate placement
+        placements = scene_request('placements', scenes[10], user_id=USER, placements=3)
+        client.scene(placements)
+        assert client.wait(lambda: client.ranking_for('placements') is not None, 20)
+        label = placements['candidates'][2]['candidate']
+        ratings = []
+        for scene in scenes[:4]:
+            client.feedback({'user_id': USER, 'scene_id': scene['identifier'], 'action': 'navigate', 'score': 1.0})
+            ratings.append(Rating(scene, 'navigate', 1.0, scene['identifier']))
+        client.feedback({'user_id': USER, 'scene_id': 'placements', 'candidate': label, 'score': 1.0})
+        ratings.append(Rating(placements['candidates'][2]['graph'], 'navigate', 1.0, None))
+        client.feedback({'user_id': USER, 'scene_id': 'never-ranked', 'action': 'navigate', 'score': 0.0})
+        assert client.wait(lambda: any(m['n_ratings'] == 5 for m in models), 20), models
+        assert client.wait(lambda: any(e['kind'] == 'unknown_scene' and e['level'] == 'warning'
+                                       and e['scene_id'] == 'never-ranked' for e in client.errors), 10)
+        model = [m for m in models if m['n_ratings'] == 5][-1]
+        assert model['user_id'] == USER and model['regularisation'] == LAMBDA and len(model['p_u']) == 16
+
+        after = _rank(client, scenes, 'folded in')
+        for scene in scenes[:4]:  # towards the feedback (1.0 is above every prediction)
+            assert _score(after[scene['identifier']]) > _score(before[scene['identifier']])
+        assert all(r['personalised_from'] == 5 and r['known_user'] is False for r in after.values())
+        reference = Predictor.load(tiny_checkpoint)
+        reference.set_user_model(USER, FoldIn(reference).fit(ratings, USER, LAMBDA))
+        for scene in scenes[:6]:
+            expected = reference.rank(USER, scene, scene_id=scene['identifier'])[0].score
+            assert abs(_score(after[scene['identifier']]) - expected) < TOLERANCE
+        assert stop(process, signal.SIGINT) == 0
+        assert (records / 'user_models.json').exists()
+
+        # offline refit of the log, user mode
+        bag = next(records.glob('stars_*'))
+        recorded = [json.loads(text) for topic, text, _ in recording.read_messages(bag) if topic == '/stars/user_model']
+        assert recorded[-1]['n_ratings'] == 5
+        assert any(topic == '/stars/feedback' and 'never-ranked' in text
+                   for topic, text, _ in recording.read_messages(bag))  # recorded, though not folded in
+        refitted = tmp_path / 'refit.pt'
+        assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(bag), '--out', str(refitted)]) == 0
+
+        # restart: the folded-in user is restored from user_models.json
+        process = _start(domain, tiny_checkpoint, records, tmp_path / 'ranker-2.log')
+        client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe-2', 'graph': scenes[19]})
+        restored = _rank(client, scenes, 'restored')
+        for identifier, reply in restored.items():
+            assert reply['personalised_from'] == 5
+            assert abs(_score(reply) - _score(after[identifier])) < TOLERANCE
+
+        # ~/reload to the refit checkpoint ranks as the online fold-in did
+        assert client.set_parameters('/ranker', {'checkpoint': str(refitted)})[0].successful
+        assert client.call('/ranker/reload').success
+        reloaded = _rank(client, scenes, 'reloaded')
+        fingerprint = Predictor.load(refitted).fingerprint
+        for identifier, reply in reloaded.items():
+            assert reply['fingerprint'] == fingerprint and reply['known_user'] is True
+            assert 'personalised_from' not in reply  # the checkpoint absorbed the feedback
+            assert abs(_score(reply) - _score(after[identifier])) < TOLERANCE
+        assert stop(process, signal.SIGINT) == 0
+
+        # a state file solved against another checkpoint is ignored, with a warning
+        process = _start(domain, refitted, records, tmp_path / 'ranker-3.log')
+        client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe-3', 'graph': scenes[19]})
+        assert stop(process, signal.SIGINT) == 0
+        assert 'folded-in users are not restored' in (tmp_path / 'ranker-3.log').read_text()
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+
+
+def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, scenes, tmp_path):
+    domain = domain_id(8)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
+                                                      'fold_in': False}, tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': scenes[19]})
+        before = _rank(client, scenes, 'stranger')
+        client.feedback({'user_id': USER, 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0})
+        time.sleep(1.0)
+        after = _rank(client, scenes, 'still a stranger')
+        assert all('personalised_from' not in r for r in after.values())
+        assert all(_score(after[k]) == _score(before[k]) for k in before)
+        assert client.set_parameters('/ranker', {'fold_in_min_ratings': 0})[0].successful is False
+        assert stop(process, signal.SIGINT) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+    assert not (tmp_path / 'user_models.json').exists()
