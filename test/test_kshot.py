@@ -1,0 +1,38 @@
+"""k-shot evaluation: folds and pools are sound, and the quick run writes every output."""
+import json
+
+import numpy as np
+
+from offline_training import kshot
+
+
+def test_annotator_folds_and_pools_partition_the_data(socnav1):
+    folds = kshot.annotator_folds(socnav1.users, 3, seed=0)
+    names = sorted(set(socnav1.users.tolist()))
+    assert sorted(n for fold in folds for n in fold) == names and [len(f) for f in folds] == [4, 4, 4]
+    assert folds == kshot.annotator_folds(socnav1.users, 3, seed=0) != kshot.annotator_folds(socnav1.users, 3, seed=1)
+    pools = kshot.reveal_pools(socnav1, folds[0], 20, seed=0)
+    for name, (revealed, test) in pools.items():
+        rows = np.flatnonzero(socnav1.users == name)
+        assert len(revealed) == 20 and not set(revealed) & set(test)
+        assert sorted(np.concatenate([revealed, test])) == sorted(rows)
+
+
+def test_quick_run_writes_tables_plot_and_comparable_curves(socnav1_root, tmp_path, capsys):
+    out = tmp_path / 'kshot'
+    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(socnav1_root), '--out', str(out),
+                       '--quick']) == 0
+    assert {'results.json', 'results.md', 'kshot.png'} <= {p.name for p in out.iterdir()}
+    results = json.loads((out / 'results.json').read_text())
+    assert results['complete'] and results['ks'] == [0, 2, 5] and len(results['folds']) == 2
+    for fold in (0, 1):
+        records = [r for r in results['records'] if r['fold'] == fold]
+        assert len({r['n_test'] for r in records}) == 1  # the same test rows for every k
+        zero = records[0]
+        assert zero['k'] == 0
+        assert abs(zero['fold-in (zero prior)']['mse'] - zero['unpersonalised']['mse']) < 1e-9
+        assert abs(zero['retrained']['mse'] - zero['unpersonalised']['mse']) < 1e-6  # k = 0 is the fold's model
+        assert len({json.dumps(r['unpersonalised']) for r in records}) == 1
+    assert set(results['regularisation']) == {'fold-in', 'fold-in (zero prior)'}
+    assert '| 5 | retrained |' in (out / 'results.md').read_text()
+    assert 'of the k=0 -> full retraining MSE gap' in capsys.readouterr().out
