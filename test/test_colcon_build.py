@@ -1,0 +1,70 @@
+"""`colcon build` of the package in a scratch workspace gives the install tree `ros2 run`
+and `ros2 launch` expect: executables in lib/stars_ros, the ament index marker, package.xml,
+config, schemas, launch file and the packaged model in share/stars_ros."""
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+SKIP = shutil.ignore_patterns('.git', '.venv', 'build', 'install', 'log', '__pycache__', '*.egg-info', 'results',
+                              'runs', 'stars_records', '*.mcap', '.pytest_cache')
+
+
+@pytest.fixture(scope='module')
+def workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp('colcon_ws')
+    shutil.copytree(REPO, root / 'src' / 'stars_ros', ignore=SKIP)
+    return root
+
+
+def colcon(workspace, *args):
+    env = dict(os.environ, PATH=f'{BIN}{os.pathsep}{os.environ["PATH"]}')
+    return subprocess.run([str(BIN / 'colcon'), *args], cwd=workspace, env=env, capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_colcon_sees_an_ament_python_package(workspace):
+    listed = colcon(workspace, 'list')
+    assert listed.returncode == 0, listed.stderr
+    name, path, build_type = listed.stdout.split()
+    assert (name, build_type) == ('stars_ros', '(ros.ament_python)')
+
+
+def test_colcon_build_installs_what_ros2_run_needs(workspace):
+    built = colcon(workspace, 'build', '--event-handlers', 'console_direct-')
+    assert built.returncode == 0, built.stdout + built.stderr
+    prefix = workspace / 'install' / 'stars_ros'
+    for executable in ('ranker', 'scene_publisher', 'replay'):
+        path = prefix / 'lib' / 'stars_ros' / executable
+        assert path.is_file() and os.access(path, os.X_OK), path
+    share = prefix / 'share'
+    assert (share / 'ament_index' / 'resource_index' / 'packages' / 'stars_ros').is_file()
+    for relative in ('package.xml', 'config/ranker.yaml', 'config/socnav1_gat.yaml', 'launch/ranker.launch.py',
+                     'msg_schemas/scene_graph.schema.json', 'msg_schemas/scene_request.schema.json',
+                     'msg_schemas/ranking.schema.json', 'msg_schemas/feedback.schema.json',
+                     'models/socnav1_gat_stars.pt', 'models/README.md'):
+        assert (share / 'stars_ros' / relative).is_file(), relative
+    python_dirs = list((prefix / 'lib').glob('python3*/site-packages/stars_ros'))
+    assert python_dirs and (python_dirs[0] / 'ranker.py').is_file()
+
+
+def test_installed_ranker_finds_its_packaged_files(workspace):
+    """The built package resolves the default checkpoint and schemas from its share/
+    folder (the way it does under `ros2 run`), not from this checkout."""
+    prefix = workspace / 'install' / 'stars_ros'
+    site = next((prefix / 'lib').glob('python3*/site-packages'))
+    code = ('from stars_ros.ranker import resolve_checkpoint; from stars_ros.resources import share_path; '
+            'print(resolve_checkpoint("")); print(share_path("msg_schemas/scene_graph.schema.json"))')
+    env = dict(os.environ, PYTHONPATH=str(site), AMENT_PREFIX_PATH=str(prefix))
+    env.pop('STARS_ROS_SHARE', None)
+    result = subprocess.run([sys.executable, '-c', code], cwd=workspace, env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    checkpoint, schema = result.stdout.split()
+    assert checkpoint.startswith(str(prefix / 'share' / 'stars_ros')), checkpoint
+    assert schema.startswith(str(prefix / 'share' / 'stars_ros')), schema
