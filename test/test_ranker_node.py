@@ -254,7 +254,7 @@ def test_scene_publisher_feeds_the_ranker(node, socnav1_root, tmp_path):
     process, client = node
     runs = [({'source': socnav1_root / 'raw' / 'a.jsonl', 'user_id': 'a', 'count': 4, 'placements': 3,
               'scene_id_prefix': 'pub-', 'rate': 20.0}, 'pub-'),
-            ({'count': 3, 'seed': 4, 'scene_id_prefix': 'rnd-', 'rate': 20.0}, 'rnd-')]
+            ({'count': 3, 'seed': 4, 'user_id': KNOWN_USER, 'scene_id_prefix': 'rnd-', 'rate': 20.0}, 'rnd-')]
     for params, prefix in runs:
         publisher = start_node('stars_ros.scene_publisher', domain_id(0), params, tmp_path / f'{prefix}.log')
         assert publisher.wait(timeout=60) == 0, (tmp_path / f'{prefix}.log').read_text()
