@@ -149,6 +149,9 @@ class RankerNode(Node):
         self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
         self._worker = threading.Thread(target=self._work, name='stars-ranker-worker', daemon=True)
         self._worker.start()
+        self._save_wanted = threading.Event()  # the state file is written by its own thread:
+        self._saver = threading.Thread(target=self._save_loop, name='stars-ranker-state', daemon=True)
+        self._saver.start()  # an fsync never holds up the worker
 
     # -- parameters ----------------------------------------------------------------------
     def _on_set_parameters(self, changed) -> SetParametersResult:
@@ -346,7 +349,7 @@ class RankerNode(Node):
         payload = messages.dumps(messages.user_model_payload(user_id, model, predictor.fingerprint))
         self.user_model_pub.publish(String(data=payload))
         self._record('stars/user_model', payload)
-        self._save_user_models(predictor)
+        self._save_wanted.set()
 
     def _drop_unusable(self, user_id: str, ratings: list) -> list:
         """Ratings whose scene the model cannot encode leave the history, each reported."""
@@ -360,6 +363,13 @@ class RankerNode(Node):
         with self._lock:
             self._histories[user_id] = [r for r in self._histories.get(user_id, ()) if r not in unusable]
         return [r for r in ratings if r not in unusable]
+
+    def _save_loop(self):
+        while self._running:
+            self._save_wanted.wait()
+            self._save_wanted.clear()
+            if self._running:
+                self._save_user_models(self.predictor)
 
     def _save_user_models(self, predictor):
         """Write every folded-in user (model and history) to the state file, atomically."""
@@ -485,6 +495,11 @@ class RankerNode(Node):
             waiting = len(self._queue)
             self._wake.notify_all()
         self._worker.join(timeout=10)
+        wanted = self._save_wanted.is_set()
+        self._save_wanted.set()
+        self._saver.join(timeout=10)
+        if wanted:  # the last updates are on disk before the process ends
+            self._save_user_models(self.predictor)
         log = get_logger(self.get_name())  # not the node's: /rosout is gone by now
         if waiting:
             log.warning(f'{waiting} queued requests were not scored before shutdown')
