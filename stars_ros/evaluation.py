@@ -379,7 +379,7 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
                  **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
         if 'error' in scores:
             entry['error'] = scores['error']
-            log.warning('%s fold %s fraction %.1f: %s', spec.label, fold_id, fraction, scores['error'])
+            log.warning('%s fold %s fraction %g: %s', spec.label, fold_id, fraction, scores['error'])
         result.records.append(entry)
         if on_record:
             on_record(entry)
@@ -440,7 +440,7 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
                 done += 1
                 if task.stage != 'inner':
                     record(spec, task.fold, task.fraction, pair, len(task.train), len(task.test), scores, task.stage)
-                    log.info('[%d/%d] %s fold %s fraction %.1f (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
+                    log.info('[%d/%d] %s fold %s fraction %g (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
                              spec.label, task.fold, task.fraction, pair, scores['mse'], scores['fit_seconds'])
                     continue
                 result.selection.append({'model': spec.label, 'fold': task.fold, 'T1': pair[0], 'T2': pair[1],
