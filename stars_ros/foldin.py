@@ -15,8 +15,9 @@ ridge regression of z_j − c_j on x_j towards a prior θ₀:
 one (d+1)×(d+1) solve in float64. θ₀ is the user's own trained row when the checkpoint
 knows them (feedback refines it) and otherwise the population prior, the mean of the
 trained user rows (p, b_u). λ → ∞ returns θ₀; λ → 0 interpolates the ratings when they
-are fewer than d + 1. Encoding a scene is what costs; h_i is cached per scene content, so
-re-solving a user after one more rating takes milliseconds.
+are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene object
+(``remember`` takes the h the ranking already computed: the node rates the very scene
+dicts it ranked), and re-solving a user after one more rating takes about a millisecond.
 
 ROS-free: the ranker node, the offline refit and the k-shot evaluation all use ``FoldIn``.
 """
@@ -172,24 +173,28 @@ class FoldIn:
         c = (h * r).sum(1) + scene_offset + self.bias
         return x, c
 
-    def encode(self, scenes: Sequence) -> np.ndarray:
-        """h_i [len(scenes), dim] (float64), from the cache where the content was seen."""
-        keys = [scene_digest(scene) for scene in scenes]
+    def remember(self, scenes: Sequence, h: torch.Tensor) -> None:
+        """Cache h [len(scenes), dim] of ``scenes`` (Predictor.on_encoded calls this). The
+        key is the scene object, which the entry keeps alive so its id cannot be reused."""
+        rows = h.detach().double().numpy()
         with self._lock:
-            missing = {key: scene for key, scene in zip(keys, scenes) if key not in self._cache}
+            for scene, row in zip(scenes, rows):
+                self._cache[id(scene)] = (scene, row)
+                self._cache.move_to_end(id(scene))
+            while len(self._cache) > self._cache_scenes:
+                self._cache.popitem(last=False)
+
+    def encode(self, scenes: Sequence) -> np.ndarray:
+        """h_i [len(scenes), dim] (float64): cached rows, the other scenes encoded now."""
+        with self._lock:
+            found = {id(s): self._cache[id(s)][1] for s in scenes if id(s) in self._cache}
+        missing = list({id(s): s for s in scenes if id(s) not in found}.values())
         if missing:
             with torch.no_grad():
-                h = self.recommender.model.encode(self.predictor._scene_input(list(missing.values())))
-            with self._lock:
-                for key, row in zip(missing, h.double().numpy()):
-                    self._cache[key] = row
-        with self._lock:
-            for key in keys:
-                self._cache.move_to_end(key)
-            rows = np.stack([self._cache[key] for key in keys])
-            while len(self._cache) > max(self._cache_scenes, len(keys)):
-                self._cache.popitem(last=False)
-        return rows
+                h = self.recommender.model.encode(self.predictor._scene_input(missing))
+            self.remember(missing, h)
+            found.update((id(s), row) for s, row in zip(missing, h.double().numpy()))
+        return np.stack([found[id(s)] for s in scenes])
 
     def design(self, ratings: Sequence[Rating]) -> tuple:
         """(x, c, z) for ``ratings``: the regression's inputs, offsets and z-scored targets."""

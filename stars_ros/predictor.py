@@ -57,6 +57,7 @@ class Predictor:
         self._action_index = {a: i for i, a in enumerate(self.actions)}
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
+        self.on_encoded = None  # called as on_encoded(scenes, h) after scoring encodes scenes
 
     @classmethod
     def load(cls, path) -> 'Predictor':
@@ -124,7 +125,12 @@ class Predictor:
         if folded is not None:
             user_rows = (torch.as_tensor(folded.p, dtype=torch.float32).expand(len(scenes), -1),
                          torch.full((len(scenes), 1), folded.b, dtype=torch.float32))
-        return self.recommender.predict_scores(users, scene_ids, self._scene_input(scenes), user_rows)
+        with torch.no_grad():
+            h = self.recommender._require_model().encode(self._scene_input(scenes))
+        listener = self.on_encoded
+        if listener is not None:
+            listener(scenes, h)
+        return self.recommender.predict_scores_from_h(users, scene_ids, h, user_rows)
 
     def _action_columns(self, actions: Sequence[str]) -> list:
         unknown = [a for a in actions if a not in self._action_index]

@@ -124,7 +124,7 @@ class RankerNode(Node):
         self._scenes = collections.OrderedDict()  # scene_id -> SceneRequest (executor thread only)
         self._histories = {}  # user_id -> [Rating]; guarded by self._lock
         self._fold_pending = collections.OrderedDict()  # users to re-solve; guarded by self._wake
-        self._foldin = None  # FoldIn of the predictor the worker last folded into (worker thread only)
+        self._foldin = self._fold_in_model(self.predictor)
 
         depth = self.params['queue_depth']
         reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
@@ -331,32 +331,47 @@ class RankerNode(Node):
 
     def _fold_in(self, user_id: str):
         """Re-solve ``user_id`` from their history against the current model (worker thread)."""
-        predictor = self.predictor
-        if self._foldin is None or self._foldin.predictor is not predictor:
-            self._foldin = FoldIn(predictor)
+        predictor, foldin = self.predictor, self._foldin
+        if foldin is None:
+            return
+        if foldin.predictor is not predictor:  # a reload is half-way: the next round has both
+            with self._wake:
+                self._fold_pending[user_id] = None
+            return
         with self._lock:
             ratings = list(self._histories.get(user_id, ()))
         if len(ratings) < self.params['fold_in_min_ratings']:
             return
         try:
-            model = self._foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
+            model = foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
         except StarsError:
-            ratings = self._drop_unusable(user_id, ratings)
+            ratings = self._drop_unusable(foldin, user_id, ratings)
             if not ratings:
                 return
-            model = self._foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
+            model = foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
         predictor.set_user_model(user_id, model)
         payload = messages.dumps(messages.user_model_payload(user_id, model, predictor.fingerprint))
         self.user_model_pub.publish(String(data=payload))
         self._record('stars/user_model', payload)
         self._save_wanted.set()
 
-    def _drop_unusable(self, user_id: str, ratings: list) -> list:
+    def _fold_in_model(self, predictor):
+        """The FoldIn of ``predictor``, fed with the h of every scene it ranks; None (and a
+        warning) for a model without users."""
+        try:
+            foldin = FoldIn(predictor)
+        except StarsError as error:
+            self.get_logger().warning(f'no online fold-in with this checkpoint: {error}')
+            return None
+        predictor.on_encoded = foldin.remember
+        return foldin
+
+    def _drop_unusable(self, foldin, user_id: str, ratings: list) -> list:
         """Ratings whose scene the model cannot encode leave the history, each reported."""
         unusable = []
         for rating in ratings:
             try:
-                self._foldin.encode([rating.scene])
+                foldin.encode([rating.scene])
             except StarsError as error:
                 unusable.append(rating)
                 self.report(error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
@@ -439,6 +454,7 @@ class RankerNode(Node):
             self.report('checkpoint', f'reload failed, still serving {self.predictor.fingerprint[:12]}: {error}')
             response.success, response.message = False, str(error)
             return response
+        self._foldin = self._fold_in_model(predictor)
         self.predictor, self.checkpoint_path = predictor, path  # the worker picks it up at its next batch
         self._carry_user_models(predictor)
         response.success = True

@@ -88,18 +88,22 @@ def test_folded_in_user_predicts_its_ratings_better(predictor, ratings):
     assert errors[-1] < 0.8 * errors[0], errors
 
 
-def test_scene_cache_encodes_each_content_once_and_is_bounded(predictor, ratings, monkeypatch):
+def test_scene_cache_reuses_the_rankings_encoding_and_is_bounded(predictor, ratings, monkeypatch):
     foldin = FoldIn(predictor, cache_scenes=8)
     calls = []
     encode = predictor.recommender.model.encode
     monkeypatch.setattr(predictor.recommender.model, 'encode', lambda inputs: calls.append(1) or encode(inputs))
-    first = foldin.encode([r.scene for r in ratings[:4]])
-    again = foldin.encode([dict(r.scene) for r in ratings[:4]])  # equal content, other objects
-    assert len(calls) == 1 and np.array_equal(first, again)
-    foldin.encode([r.scene for r in ratings[4:20]])
-    assert len(foldin._cache) == 16  # one call's scenes always fit; older ones were dropped
-    foldin.encode([r.scene for r in ratings[4:6]])
-    assert len(foldin._cache) == 8
+    scenes = [r.scene for r in ratings]
+    first = foldin.encode(scenes[:4])
+    assert len(calls) == 1 and np.array_equal(foldin.encode(scenes[:4]), first)  # the same objects: cached
+    assert np.allclose(foldin.encode([dict(s) for s in scenes[:4]]), first) and len(calls) == 2  # copies: encoded
+    rows = foldin.encode(scenes[4:20])
+    assert rows.shape == (16, foldin.dim) and len(foldin._cache) == 8  # bounded, least recent dropped
+    predictor.on_encoded = foldin.remember  # as the node wires it: ranking feeds the cache
+    predictor.score('x', scenes[20:23])
+    calls.clear()
+    foldin.fit(ratings[20:23], 'x')
+    assert not calls
 
 
 def test_overlay_serves_folded_users_and_leaves_others_alone(predictor, ratings):

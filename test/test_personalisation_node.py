@@ -151,7 +151,7 @@ def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, sce
         time.sleep(1.0)
         after = _rank(client, scenes, 'still a stranger')
         assert all('personalised_from' not in r for r in after.values())
-        assert all(_score(after[k]) == _score(before[k]) for k in before)
+        assert all(abs(_score(after[k]) - _score(before[k])) < 1e-6 for k in before)  # batching may round
         assert client.set_parameters('/ranker', {'fold_in_min_ratings': 0})[0].successful is False
         assert stop(process, signal.SIGINT) == 0
     finally:

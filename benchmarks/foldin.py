@@ -1,0 +1,175 @@
+"""Fold-in cost per update, and whether it delays other users' rankings in a live node.
+
+    python benchmarks/foldin.py [--checkpoint models/socnav1_gat_stars.pt] \
+        [--data-root ../shared/datasets/socnav1] [--out results/foldin_benchmark.json]
+
+1. ROS-free: users stream 50 SocNav1 ratings each; after each one the user is re-solved
+   with ``FoldIn.fit``. Two cases per update, p50 / p99 by number of ratings: the rated
+   scene was ranked first (the node's case: its h is cached from the ranking, so the update
+   is the solve) and the rated scene is new (it is encoded during the update).
+2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
+   'other', one request in flight at a time, while user 'streamer' gets scenes ranked at
+   ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
+   the streamer's rankings is followed by a feedback rating, which the node folds in.
+   Latency of 'other' (send -> ranking received) in both phases, same run, same node.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / 'test'))
+
+from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from stars_ros.foldin import FoldIn, Rating  # noqa: E402
+from stars_ros.predictor import Predictor  # noqa: E402
+from stars_ros.scene_source import read_scenes  # noqa: E402
+
+TARGET_P99_MS = 10.0  # the node's latency target (issue 4)
+
+
+def percentiles(values) -> dict:
+    values = np.asarray(values, dtype=float)
+    return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)),
+            'max': float(values.max()), 'count': int(len(values))}
+
+
+def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict:
+    """ms per update by rating count: rated scene ranked before (cached h) or new (encoded)."""
+    ranked, new = {}, {}
+    for user, scenes in scenes_by_user.items():
+        for times, rank_first in ((ranked, True), (new, False)):
+            foldin = FoldIn(predictor)
+            predictor.on_encoded = foldin.remember if rank_first else None
+            ratings = [Rating(dict(s), 'navigate', s['score'] / 100, s['identifier']) for s in scenes]
+            for n in range(1, len(ratings) + 1):
+                if rank_first:
+                    predictor.score(user, [ratings[n - 1].scene], [ratings[n - 1].scene_id])
+                started = time.perf_counter()
+                foldin.fit(ratings[:n], user, regularisation)
+                times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
+    predictor.on_encoded = None
+    return {'update_ranked_scene_ms': {n: percentiles(v) for n, v in ranked.items()},
+            'update_new_scene_ms': {n: percentiles(v) for n, v in new.items()},
+            'update_ranked_scene_ms_all': percentiles([x for v in ranked.values() for x in v]),
+            'update_new_scene_ms_all': percentiles([x for v in new.values() for x in v])}
+
+
+def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
+    from std_msgs.msg import String
+    from ros_helpers import RELIABLE, RosClient, start_node, stop
+
+    domain = 150 + os.getpid() % 50
+    client = RosClient(domain)
+    models = []
+    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    with tempfile.TemporaryDirectory() as records:
+        process = start_node('stars_ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': records},
+                             Path(records) / 'ranker.log')
+        try:
+            client.wait_ready(process, 120, {'scene_id': 'probe', 'graph': scenes[0]})
+            for k in range(50):  # warm-up
+                client.scene({'scene_id': f'warm-{k}', 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
+            client.wait(lambda: client.ranking_for('warm-49') is not None, 30)
+            results = {}
+            for phase, feedback in (('without_feedback', False), ('with_feedback', True)):
+                results[phase] = run_phase(client, models, scenes, stream_scenes, phase, feedback, args)
+            results['folded_in_updates'] = len(models)
+            stop(process, 2)
+        finally:
+            if process.poll() is None:
+                process.kill()
+            client.close()
+    return results
+
+
+def run_phase(client, models, scenes, stream_scenes, phase: str, feedback: bool, args) -> dict:
+    stop_streaming = threading.Event()
+    streamed = []
+
+    def stream():
+        period = 1.0 / args.stream_rate
+        k = 0
+        while not stop_streaming.is_set():
+            scene = stream_scenes[k % len(stream_scenes)]
+            scene_id = f'{phase}-stream-{k}'
+            client.scene({'scene_id': scene_id, 'user_id': 'streamer', 'graph': scene})
+            if client.wait(lambda: client.ranking_for(scene_id) is not None, 5) and feedback:
+                client.feedback({'user_id': 'streamer', 'scene_id': scene_id, 'action': 'navigate',
+                                 'score': scene['score'] / 100})
+            streamed.append(scene_id)
+            k += 1
+            time.sleep(period)
+
+    before = len(models)
+    streamer = threading.Thread(target=stream)
+    streamer.start()
+    latencies = []
+    try:
+        time.sleep(0.5)
+        for k in range(args.requests):
+            scene_id = f'{phase}-other-{k}'
+            sent = time.perf_counter()
+            client.scene({'scene_id': scene_id, 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
+            if client.wait(lambda: client.ranking_for(scene_id) is not None, 5):
+                latencies.append((time.perf_counter() - sent) * 1e3)
+            time.sleep(args.gap)
+    finally:
+        stop_streaming.set()
+        streamer.join()
+    time.sleep(1.0)
+    return {'other_latency_ms': percentiles(latencies), 'timeouts': args.requests - len(latencies),
+            'streamed_requests': len(streamed), 'fold_in_updates': len(models) - before}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--checkpoint', default=str(REPO / 'models' / 'socnav1_gat_stars.pt'))
+    parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
+    parser.add_argument('--users', type=int, default=10, help='users streaming 50 ratings each (part 1)')
+    parser.add_argument('--regularisation', type=float, default=1.0)
+    parser.add_argument('--requests', type=int, default=400, help="rankings of 'other' per phase")
+    parser.add_argument('--gap', type=float, default=0.01, help="seconds between two of 'other's requests")
+    parser.add_argument('--stream-rate', type=float, default=10.0, help="streamer's rankings (+ feedback) per s")
+    parser.add_argument('--out', default=str(REPO / 'results' / 'foldin_benchmark.json'))
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    predictor = Predictor.load(args.checkpoint)
+    raw = Path(args.data_root) / 'raw'
+    annotators = sorted(p.stem for p in raw.glob('*.jsonl'))
+    scenes_by_user = {name: read_scenes(raw / f'{name}.jsonl')[:50] for name in annotators[:args.users]}
+    offline = time_updates(predictor, scenes_by_user, args.regularisation)
+    for n in (1, 2, 5, 10, 20, 50):
+        r, u = offline['update_ranked_scene_ms'][n], offline['update_new_scene_ms'][n]
+        print(f'{n:2d} ratings: update after the scene was ranked p50 {r["p50"]:.3f} ms p99 {r["p99"]:.3f} ms; '
+              f'new scene p50 {u["p50"]:.2f} ms p99 {u["p99"]:.2f} ms')
+    node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], read_scenes(raw / 'g.jsonl')[:200], args)
+    for phase in ('without_feedback', 'with_feedback'):
+        figures = node[phase]
+        latency = figures['other_latency_ms']
+        print(f"other user's ranking latency {phase.replace('_', ' ')}: p50 {latency['p50']:.2f} ms, "
+              f"p99 {latency['p99']:.2f} ms, max {latency['max']:.2f} ms ({latency['count']} rankings, "
+              f"{figures['timeouts']} timeouts; {figures['fold_in_updates']} fold-in updates meanwhile)")
+    results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
+               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
+               'load_average': [round(v, 2) for v in os.getloadavg()]}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=1) + '\n')
+    print(f'wrote {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
