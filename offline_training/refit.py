@@ -125,12 +125,12 @@ def read_logs(paths, actions) -> LogRatings:
         if not files:
             found.problem('no MCAP files', f'{log}: missing or holds no .mcap files')
             continue
-        found.files += [str(f) for f in files]
         items = []
         for path in files:
             if not path.exists():
                 found.problem('no MCAP files', f'{path}: no such file')
                 continue
+            found.files.append(str(path))
             items += read_log_file(path, found)
         items.sort(key=lambda item: item[2])  # log time: rotated files and recovered feedback interleave
         scenes = {}
