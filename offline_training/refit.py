@@ -61,6 +61,7 @@ class LogRatings:
     problems: collections.Counter = field(default_factory=collections.Counter)
     examples: dict = field(default_factory=dict)         # problem -> first few details
     messages: int = 0
+    not_needed: collections.Counter = field(default_factory=collections.Counter)  # rankings, errors, user ids
     files: list = field(default_factory=list)
 
     def problem(self, kind: str, detail: str):
@@ -139,6 +140,8 @@ def read_logs(paths, actions) -> LogRatings:
             topic = _topic(channel)
             if topic is None:
                 found.problem('foreign topic', channel)
+            elif topic in OTHER_STARS_TOPICS:
+                found.not_needed[topic] += 1
             elif topic == 'stars/scene':
                 try:
                     request = messages.parse_scene_request(text, 1 << 30)
@@ -285,6 +288,9 @@ def print_report(found: LogRatings, solved: dict, out=None) -> None:
     out = out or sys.stdout
     print(f'read {len(found.files)} MCAP file(s), {found.messages} messages; {found.n_ratings} usable ratings '
           f'from {len(found.ratings)} user(s)', file=out)
+    if found.not_needed:
+        print('not needed for a refit: ' + ', '.join(f'{t} {n}' for t, n in sorted(found.not_needed.items())),
+              file=out)
     for user, ratings in sorted(found.ratings.items()):
         model = solved.get(user)
         print(f'  {user}: {len(ratings)} ratings' + (f', λ {model.regularisation:g}' if model else ''), file=out)

@@ -106,6 +106,7 @@ def test_bad_logs_are_reported_with_counts(tiny_checkpoint, scenes, tmp_path, ca
     assert 'feedback that does not match its scene: 1' in report and 'nowhere' in report
     assert 'unusable feedback message: 1' in report
     assert 'truncated or damaged file: 1' in report and 'no MCAP files: 1' in report
+    assert 'not needed for a refit: stars/ranking 1' in report
     assert out.exists()
 
 
