@@ -150,6 +150,7 @@ class RankerNode(Node):
         self._worker = threading.Thread(target=self._work, name='stars-ranker-worker', daemon=True)
         self._worker.start()
         self._save_wanted = threading.Event()  # the state file is written by its own thread:
+        self._closing = threading.Event()
         self._saver = threading.Thread(target=self._save_loop, name='stars-ranker-state', daemon=True)
         self._saver.start()  # an fsync never holds up the worker
 
@@ -380,11 +381,16 @@ class RankerNode(Node):
         return [r for r in ratings if r not in unusable]
 
     def _save_loop(self):
-        while self._running:
+        """Write the state file when asked, at most once per flush_interval: a hard kill loses
+        at most that much, as for the recording, and a stream of feedback costs one JSON dump
+        per interval, not one per rating."""
+        while True:
             self._save_wanted.wait()
+            if self._closing.is_set():
+                return
             self._save_wanted.clear()
-            if self._running:
-                self._save_user_models(self.predictor)
+            self._save_user_models(self.predictor)
+            self._closing.wait(self.params['flush_interval'])
 
     def _save_user_models(self, predictor):
         """Write every folded-in user (model and history) to the state file, atomically."""
@@ -512,6 +518,7 @@ class RankerNode(Node):
             self._wake.notify_all()
         self._worker.join(timeout=10)
         wanted = self._save_wanted.is_set()
+        self._closing.set()
         self._save_wanted.set()
         self._saver.join(timeout=10)
         if wanted:  # the last updates are on disk before the process ends
