@@ -151,6 +151,7 @@ class RankerNode(Node):
         self._worker.start()
         self._save_wanted = threading.Event()  # the state file is written by its own thread:
         self._closing = threading.Event()
+        self._rating_texts = {}  # id(Rating) -> (Rating, its JSON); the state writer's cache
         self._saver = threading.Thread(target=self._save_loop, name='stars-ranker-state', daemon=True)
         self._saver.start()  # an fsync never holds up the worker
 
@@ -398,15 +399,27 @@ class RankerNode(Node):
             return
         with self._lock:
             histories = {u: list(h) for u, h in self._histories.items()}
-        users = {u: {**m.to_json(), 'ratings': [{'scene': r.scene, 'action': r.action, 'score': r.score,
-                                                 'scene_id': r.scene_id} for r in histories.get(u, ())]}
-                 for u, m in predictor.user_models.items()}
-        state = {'format': STATE_FORMAT, 'version': 1, 'fingerprint': predictor.fingerprint, 'users': users}
+        known, self._rating_texts = self._rating_texts, {}
+        users = []
+        for user_id, model in predictor.user_models.items():
+            ratings = []
+            for rating in histories.get(user_id, ()):
+                kept = known.get(id(rating))
+                if kept is None or kept[0] is not rating:  # each rating is serialised once: a dump
+                    kept = (rating, messages.dumps({   # of long histories holds the GIL briefly
+                        'scene': rating.scene, 'action': rating.action, 'score': rating.score,
+                        'scene_id': rating.scene_id}))
+                self._rating_texts[id(rating)] = kept
+                ratings.append(kept[1])
+            users.append(f'{messages.dumps(user_id)}:{messages.dumps(model.to_json())[:-1]},'
+                         f'"ratings":[{",".join(ratings)}]}}')
+        head = messages.dumps({'format': STATE_FORMAT, 'version': 1, 'fingerprint': predictor.fingerprint})
+        text = f'{head[:-1]},"users":{{{",".join(users)}}}}}'
         try:
             self.state_path.parent.mkdir(parents=True, exist_ok=True)
             tmp = self.state_path.with_name(self.state_path.name + '.tmp')
             with open(tmp, 'w') as handle:
-                handle.write(messages.dumps(state))
+                handle.write(text)
                 handle.flush()
                 os.fsync(handle.fileno())
             os.replace(tmp, self.state_path)
