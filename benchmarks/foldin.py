@@ -10,8 +10,11 @@
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' gets scenes ranked at
    ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
-   the streamer's rankings is followed by a feedback rating, which the node folds in.
-   Latency of 'other' (send -> ranking received) in both phases, same run, same node.
+   the streamer's rankings is followed by a feedback rating, with ``fold_in`` off (the
+   feedback is validated and journaled with an fsync, as before this feature); phase C: the
+   same with ``fold_in`` on, so the node also folds every rating in. Latency of 'other'
+   (send -> ranking received) in each phase, same run, same node: C − B is what fold-in
+   adds, B − A what recording feedback adds.
 """
 from __future__ import annotations
 
@@ -84,7 +87,11 @@ def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
                 client.scene({'scene_id': f'warm-{k}', 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
             client.wait(lambda: client.ranking_for('warm-49') is not None, 30)
             results = {}
-            for phase, feedback in (('without_feedback', False), ('with_feedback', True)):
+            for phase, feedback, fold_in in (('without_feedback', False, True),
+                                             ('feedback_fold_in_off', True, False),
+                                             ('feedback_fold_in_on', True, True)):
+                if not client.set_parameters('/ranker', {'fold_in': fold_in})[0].successful:
+                    raise RuntimeError('could not set fold_in')
                 results[phase] = run_phase(client, models, scenes, stream_scenes, phase, feedback, args)
             results['folded_in_updates'] = len(models)
             stop(process, 2)
@@ -156,7 +163,7 @@ def main(argv=None) -> int:
         print(f'{n:2d} ratings: update after the scene was ranked p50 {r["p50"]:.3f} ms p99 {r["p99"]:.3f} ms; '
               f'new scene p50 {u["p50"]:.2f} ms p99 {u["p99"]:.2f} ms')
     node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], read_scenes(raw / 'g.jsonl')[:200], args)
-    for phase in ('without_feedback', 'with_feedback'):
+    for phase in ('without_feedback', 'feedback_fold_in_off', 'feedback_fold_in_on'):
         figures = node[phase]
         latency = figures['other_latency_ms']
         print(f"other user's ranking latency {phase.replace('_', ' ')}: p50 {latency['p50']:.2f} ms, "
