@@ -2,7 +2,7 @@
 
 Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feedback``;
 publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` and ``/diagnostics``;
-serves ``~/reload``. See docs/ranker_node.md and docs/personalisation.md. Run with
+serves ``~/reload``. See README.md ("The ranker node") and docs/personalisation.md. Run with
 ``ros2 run stars_ros ranker`` or ``python -m stars_ros.ranker --ros-args -p checkpoint:=PATH``.
 
 Threads: the executor thread parses and validates messages (cheap) and queues scene
