@@ -1,0 +1,221 @@
+"""End-to-end latency and sustained throughput of the ranker node, against an echo floor.
+
+    python benchmarks/node_latency.py [--checkpoint models/socnav1_gat_stars.pt] \
+        [--data-root ../shared/datasets/socnav1] [--out results/node_latency.json]
+
+Starts two nodes in turn, each in its own process on loopback DDS: the ranker (packaged
+default checkpoint, recording on) and an echo node with the same QoS that republishes each
+scene request unchanged on stars/ranking (a trivial callback, replies at least as large as
+the ranker's). A client in this process sends real SocNav1 scenes (one request per scene,
+user id included) and times scene → ranking:
+  * latency: one request in flight at a time; p50 / p99 / max over ``--latency-count``;
+  * throughput: ``--burst`` requests published at ``--rate`` per second (0: as fast as the
+    client can), then the sustained rate = replies / (last reply − first send), and the
+    number lost (no reply within 10 s of the last send).
+The ratios ranker / echo say what the model adds over the middleware floor.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import rclpy  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from stars_ros.scene_source import read_scenes  # noqa: E402
+
+QUEUE_DEPTH = 1000
+QOS = QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def echo_main():
+    """The echo node: stars/scene → stars/ranking unchanged, same QoS as the ranker."""
+    rclpy.init()
+    node = Node('echo')
+    publisher = node.create_publisher(String, 'stars/ranking', QOS)
+    node.create_subscription(String, 'stars/scene', publisher.publish, QOS)
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+class Client:
+    """Publishes requests and timestamps the replies, matched by scene_id."""
+
+    def __init__(self, domain: int):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = Node('latency_client', context=self.context)
+        self.publisher = self.node.create_publisher(String, 'stars/scene', QOS)
+        self.node.create_subscription(String, 'stars/ranking', self._on_reply, QOS)
+        self.received = {}
+        self.processing_ms = []
+        self.condition = threading.Condition()
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        threading.Thread(target=self.executor.spin, daemon=True).start()
+
+    def _on_reply(self, msg):
+        now = time.perf_counter()
+        reply = json.loads(msg.data)
+        with self.condition:
+            self.received[reply['scene_id']] = now
+            if 'processing_ms' in reply:
+                self.processing_ms.append(reply['processing_ms'])
+            self.condition.notify_all()
+
+    def send(self, text: str) -> float:
+        sent = time.perf_counter()
+        self.publisher.publish(String(data=text))
+        return sent
+
+    def wait_for(self, scene_id: str, timeout: float) -> bool:
+        deadline = time.perf_counter() + timeout
+        with self.condition:
+            while scene_id not in self.received:
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    return False
+                self.condition.wait(left)
+        return True
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def requests(scenes, prefix: str, count: int, users=('alice', 'bob')) -> list:
+    return [(f'{prefix}-{k}', json.dumps({'scene_id': f'{prefix}-{k}', 'user_id': users[k % len(users)],
+                                          'graph': scenes[k % len(scenes)]})) for k in range(count)]
+
+
+def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dict:
+    process = subprocess.Popen(command, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
+    client = Client(int(env['ROS_DOMAIN_ID']))
+    try:
+        for scene_id, text in requests(scenes, f'{name}-warm', 10 ** 6):  # until the node answers
+            if process.poll() is not None:
+                raise RuntimeError(f'{name} exited with {process.returncode}: {log.read_text()[-2000:]}')
+            if client.publisher.get_subscription_count():
+                client.send(text)
+                if client.wait_for(scene_id, 2.0):
+                    break
+            else:
+                time.sleep(0.2)
+        for scene_id, text in requests(scenes, f'{name}-warmup', 100):
+            client.send(text)
+            client.wait_for(scene_id, 5.0)
+        client.processing_ms.clear()
+
+        latencies = []
+        for scene_id, text in requests(scenes, f'{name}-lat', args.latency_count):
+            sent = client.send(text)
+            if client.wait_for(scene_id, 5.0):
+                latencies.append((client.received[scene_id] - sent) * 1e3)
+        processing = list(client.processing_ms)
+
+        burst = requests(scenes, f'{name}-burst', args.burst)
+        sent_at, period = [], 1.0 / args.rate if args.rate else 0.0
+        start = time.perf_counter()
+        for k, (_, text) in enumerate(burst):
+            if period:
+                delay = start + k * period - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+            sent_at.append(client.send(text))
+        client.wait_for(burst[-1][0], 10.0)
+        deadline = time.perf_counter() + 10.0
+        while time.perf_counter() < deadline:
+            with client.condition:
+                if all(scene_id in client.received for scene_id, _ in burst):
+                    break
+            time.sleep(0.05)
+        with client.condition:
+            replies = [client.received[s] for s, _ in burst if s in client.received]
+            burst_latency = [(client.received[s] - t) * 1e3 for (s, _), t in zip(burst, sent_at)
+                             if s in client.received]
+    finally:
+        client.close()
+        process.terminate()
+        process.wait(timeout=30)
+    duration = max(replies) - sent_at[0] if replies else float('nan')
+    return {
+        'latency_ms': {'p50': float(np.percentile(latencies, 50)), 'p99': float(np.percentile(latencies, 99)),
+                       'max': float(np.max(latencies)), 'count': len(latencies),
+                       'timeouts': args.latency_count - len(latencies)},
+        'node_processing_ms_p50': float(np.percentile(processing, 50)) if processing else None,
+        'burst': {'sent': len(burst), 'received': len(replies), 'lost': len(burst) - len(replies),
+                  'offered_per_s': len(burst) / (sent_at[-1] - sent_at[0]),
+                  'sustained_per_s': len(replies) / duration,
+                  'latency_ms_p50': float(np.percentile(burst_latency, 50)),
+                  'latency_ms_p99': float(np.percentile(burst_latency, 99))},
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--checkpoint', default='', help='ranker checkpoint (default: the packaged model)')
+    parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
+    parser.add_argument('--latency-count', type=int, default=1000)
+    parser.add_argument('--burst', type=int, default=3000)
+    parser.add_argument('--rate', type=float, default=300.0, help='offered load of the burst (0: flat out)')
+    parser.add_argument('--out', default=str(REPO / 'results' / 'node_latency.json'))
+    parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.echo:
+        echo_main()
+        return 0
+    scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
+    domain = 150 + os.getpid() % 50
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    with tempfile.TemporaryDirectory() as records:
+        ranker = [sys.executable, '-m', 'stars_ros.ranker', '--ros-args', '-p', f'record_folder:={records}',
+                  '-p', f'queue_depth:={QUEUE_DEPTH}']
+        if args.checkpoint:
+            ranker += ['-p', f'checkpoint:={args.checkpoint}']
+        echo = [sys.executable, str(Path(__file__).resolve()), '--echo']
+        results = {name: measure(name, command, env, scenes, args, Path(records) / f'{name}.log')
+                   for name, command in (('echo', echo), ('ranker', ranker))}
+    results['ratio'] = {
+        'latency_p50': results['ranker']['latency_ms']['p50'] / results['echo']['latency_ms']['p50'],
+        'latency_p99': results['ranker']['latency_ms']['p99'] / results['echo']['latency_ms']['p99']}
+    results['settings'] = {'latency_count': args.latency_count, 'burst': args.burst, 'rate': args.rate,
+                           'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
+                           'machine': machine()}
+    for name in ('echo', 'ranker'):
+        lat, burst = results[name]['latency_ms'], results[name]['burst']
+        print(f"{name:6s} latency p50 {lat['p50']:.2f} ms  p99 {lat['p99']:.2f} ms  max {lat['max']:.2f} ms | "
+              f"burst {burst['sent']} at {burst['offered_per_s']:.0f}/s: sustained {burst['sustained_per_s']:.0f}/s, "
+              f"lost {burst['lost']}, p99 {burst['latency_ms_p99']:.2f} ms")
+    print(f"ratio ranker/echo: p50 {results['ratio']['latency_p50']:.2f}, p99 {results['ratio']['latency_p99']:.2f}")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=2) + '\n')
+    print(f'wrote {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
