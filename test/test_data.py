@@ -85,7 +85,7 @@ def test_generic_errors_name_file_and_line(tmp_path, annotations, scenes, messag
 
 def test_generic_jsonl_scene_error_names_line(tmp_path):
     lines = json.dumps({'scene': 's1', **SCENE}) + '\n' + json.dumps({'scene': 's2', 'humans': []})
-    with pytest.raises(DataError, match=r'scenes.jsonl:2: scene graph invalid at <root>: .*'room'):
+    with pytest.raises(DataError, match=r"scenes.jsonl:2: scene graph invalid at <root>: .*'room'"):
         load_dataset(write_generic(tmp_path / 'd', GOOD_ANNOTATIONS, scenes_jsonl=lines))
 
 
