@@ -47,6 +47,7 @@ from .serving import Pending, error_kind, rank_batch
 
 DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'
 WARNINGS = ('unknown_user', 'unknown_scene', 'user_models')
+MAX_STRANGERS_REMEMBERED = 10000
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
 STATE_FILE = 'user_models.json'
 STATE_FORMAT = "stars_ros.user_models"
@@ -116,6 +117,7 @@ class RankerNode(Node):
         self._user_id = None
         self._lock = threading.Lock()
         self._counts = collections.Counter()
+        self._strangers_reported = set()
         self._period = {}  # kind -> (count, last detail) since the last diagnostics
         self._last_log = {}
         self._queue = collections.deque()
@@ -476,6 +478,7 @@ class RankerNode(Node):
         self._foldin = self._fold_in_model(predictor)
         self.predictor, self.checkpoint_path = predictor, path  # the worker picks it up at its next batch
         self._carry_user_models(predictor)
+        self._strangers_reported = set()  # who is a stranger depends on the model
         response.success = True
         response.message = f'serving {path} (fingerprint {predictor.fingerprint})'
         self.get_logger().info(response.message)
@@ -511,9 +514,6 @@ class RankerNode(Node):
                 continue
             known = predictor.knows_user(item.user_id)
             personalised = predictor.personalised_from(item.user_id)
-            if item.user_id is not None and not known and not personalised:
-                self.report('unknown_user', f"user '{item.user_id}' is not in the training data: ranked by scene "
-                            'content and population offsets', self.topics['stars/scene'], request.scene_id)
             elapsed_ms = (time.perf_counter_ns() - item.arrived) / 1e6
             payload = messages.dumps(messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(elapsed_ms, 3),
@@ -522,6 +522,19 @@ class RankerNode(Node):
             self._record('stars/ranking', payload)
             with self._lock:
                 self._counts['ranking'] += 1
+            if item.user_id is not None and not known and not personalised:
+                self._report_stranger(item.user_id, request.scene_id)
+
+    def _report_stranger(self, user_id: str, scene_id: str):
+        """Warn once per unknown user and model, not per ranking: strangers are the normal
+        case on a robot, and a warning per ranking would cost every one of them latency."""
+        if user_id in self._strangers_reported:
+            return
+        if len(self._strangers_reported) >= MAX_STRANGERS_REMEMBERED:
+            self._strangers_reported.clear()
+        self._strangers_reported.add(user_id)
+        self.report('unknown_user', f"user '{user_id}' is not in the training data: ranked by scene content and "
+                    'population offsets (reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
 
     def close(self):
         """Stop the worker and finish the recording (clean shutdown)."""
