@@ -101,20 +101,22 @@ class Predictor:
         with self._user_models_lock:
             self._user_models = {str(k): v for k, v in models.items()}
 
-    def _scene_input(self, scenes: Sequence):
+    def _scene_input(self, scenes: Sequence, validate: bool = True):
         if self.input_kind == 'graph':
-            graphs = [featurise(scene) for scene in scenes]
+            graphs = [featurise(scene, validate=validate) for scene in scenes]
             return GraphStore(graphs).batch(torch.arange(len(graphs)))
         features = np.asarray(scenes, dtype=np.float32)
         if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
             raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')
         return torch.from_numpy(features)
 
-    def score(self, user_id, scenes: Sequence, scene_ids: Sequence | None = None) -> np.ndarray:
+    def score(self, user_id, scenes: Sequence, scene_ids: Sequence | None = None,
+              validate: bool = True) -> np.ndarray:
         """Rating-scale scores [len(scenes), n_actions] of one user for a batch of scenes.
 
         ``scenes`` are scene-graph dicts (graph models) or feature rows (tabular models);
-        ``scene_ids`` optionally name training scenes so their q_i is used.
+        ``scene_ids`` optionally name training scenes so their q_i is used. ``validate=False``
+        skips the schema check for scenes already validated against it (the node's requests).
         """
         if len(scenes) == 0:
             raise SceneGraphError('no scenes to score')
@@ -126,7 +128,7 @@ class Predictor:
             user_rows = (torch.as_tensor(folded.p, dtype=torch.float32).expand(len(scenes), -1),
                          torch.full((len(scenes), 1), folded.b, dtype=torch.float32))
         with torch.no_grad():
-            h = self.recommender._require_model().encode(self._scene_input(scenes))
+            h = self.recommender._require_model().encode(self._scene_input(scenes, validate))
         listener = self.on_encoded
         if listener is not None:
             listener(scenes, h)

@@ -80,7 +80,7 @@ def _score_group(predictor, user_id, members, top_k) -> list:
     ranks_scenes = members[0][0].ranks_scenes
     graphs = [graph for request, _ in members for graph in request.graphs]
     scene_ids = None if ranks_scenes else [request.scene_id for request, _ in members]
-    scores = predictor.score(user_id, graphs, scene_ids)
+    scores = predictor.score(user_id, graphs, scene_ids, validate=False)  # parse_scene_request validated them
     if not np.isfinite(scores).all():
         raise StarsError('the model produced a non-finite score')
     column = {a: i for i, a in enumerate(predictor.actions)}
