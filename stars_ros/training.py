@@ -166,16 +166,14 @@ class StarsRecommender:
         return self.model
 
     @torch.no_grad()
-    def predict_scores(self, users: Sequence[str], scene_keys: Sequence, scene_input,
-                       user_rows: tuple | None = None) -> np.ndarray:
+    def predict_scores(self, users: Sequence[str], scene_keys: Sequence, scene_input) -> np.ndarray:
         """Rating-scale scores [len(users), n_actions] for scenes whose encoder input is given.
 
-        ``scene_keys[k]`` may be None (a scene never seen: q_i = 0, b_i = 0); ``user_rows``
-        (p, b_u) overrides the user table (see ``StarsModel.forward``).
+        ``scene_keys[k]`` may be None (a scene never seen: q_i = 0, b_i = 0).
         """
         model = self._require_model()
         model.eval()
-        return self.predict_scores_from_h(users, scene_keys, model.encode(scene_input), user_rows)
+        return self.predict_scores_from_h(users, scene_keys, model.encode(scene_input))
 
     @torch.no_grad()
     def predict_rows(self, data: RatingData, rows: np.ndarray) -> np.ndarray:
@@ -194,7 +192,8 @@ class StarsRecommender:
 
     @torch.no_grad()
     def predict_scores_from_h(self, users, scene_keys, h, user_rows: tuple | None = None) -> np.ndarray:
-        """Like ``predict_scores`` for already encoded scenes ``h`` [len(users), dim]."""
+        """Like ``predict_scores`` for already encoded scenes ``h`` [len(users), dim];
+        ``user_rows`` (p, b_u) overrides the user table (see ``StarsModel.forward``)."""
         model = self._require_model()
         z = model(self.user_index(users), self.scene_index(scene_keys), h, user_rows)
         return model.to_rating_scale(z).numpy().astype(np.float64)
