@@ -239,6 +239,7 @@ class FitTask:
     test: np.ndarray
     fraction: float = 1.0
     inner_fold: int = -1
+    curve_every: int = 0  # > 0: also score the test rows every this many joint epochs
 
 
 _WORKER_DATA: RatingData | None = None
@@ -264,8 +265,16 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     data = _WORKER_DATA if data is None else data
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()
+    recommender = StarsRecommender(config)
+    curve = []
+
+    def score_curve(stage, epoch):
+        if stage == 'joint' and epoch % task.curve_every == 0:
+            predictions = recommender.predict_rows(data, task.test)
+            curve.append({'epoch': epoch, **regression_report(data.scores[task.test], predictions,
+                                                              data.actions[task.test])})
     try:
-        recommender = StarsRecommender(config).fit(data, task.train)
+        recommender.fit(data, task.train, on_epoch=score_curve if task.curve_every > 0 else None)
     except TrainingDivergedError as error:  # one diverged fit must not end a long run
         return {**{m: math.nan for m in METRICS}, 'n': len(task.test), 'z_rmse': math.inf,
                 'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
@@ -278,7 +287,8 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     return {**regression_report(y, predictions, actions),
             'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.numpy(), model.target_std.numpy()),
             'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
-            'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs}
+            'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs,
+            **({'curve': curve} if task.curve_every > 0 else {})}
 
 
 def population_mean(data: RatingData, train: np.ndarray, test: np.ndarray) -> dict:
@@ -305,6 +315,15 @@ class _InlineExecutor(futures.Executor):
         except BaseException as error:  # handed to the caller through the future
             future.set_exception(error)
         return future
+
+
+def fit_executor(data: RatingData, jobs: int, threads: int) -> futures.Executor:
+    """Where ``run_fit`` tasks run: inline for one job, else ``jobs`` worker processes
+    holding ``data`` and using ``threads`` torch threads each."""
+    if jobs == 1:
+        return _InlineExecutor(data)
+    return futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),
+                                       initializer=_init_worker, initargs=(pickle.dumps(data), threads))
 
 
 # -- the protocol -----------------------------------------------------------------------
@@ -396,12 +415,7 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
         base = config.experiment_config(spec.backbone, spec.variant)
         return base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1], 'threads': threads}).to_dict()
 
-    if jobs == 1:
-        executor = _InlineExecutor(data)
-    else:
-        executor = futures.ProcessPoolExecutor(
-            max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),
-            initializer=_init_worker, initargs=(pickle.dumps(data), threads))
+    executor = fit_executor(data, jobs, threads)
     # Own queue, at most `jobs` tasks in flight: fits unlocked by a finished selection
     # jump ahead of further selection fits, so complete results appear early.
     waiting, in_flight = [], {}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -76,8 +76,13 @@ class StarsRecommender:
         self._scene_rows = {k: i for i, k in enumerate(self.scene_keys)}
 
     # -- training -----------------------------------------------------------------------
-    def fit(self, data: RatingData, rows: np.ndarray | None = None) -> 'StarsRecommender':
-        """Train on ``rows`` of ``data`` (all rows by default); returns self."""
+    def fit(self, data: RatingData, rows: np.ndarray | None = None,
+            on_epoch: Callable[[str, int], None] | None = None) -> 'StarsRecommender':
+        """Train on ``rows`` of ``data`` (all rows by default); returns self.
+
+        ``on_epoch(stage, epoch)`` is called after each epoch ('pretrain' or 'joint',
+        counted from 1), e.g. to score a learning curve; it must not train the model.
+        """
         cfg = self.config.training
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
@@ -113,6 +118,8 @@ class StarsRecommender:
                 loss = self._epoch(data, batch, score, parameters, optimiser, rng, l2)
                 self.history[stage].append(loss)
                 log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
+                if on_epoch is not None:
+                    on_epoch(stage, epoch + 1)
         model.eval()
         return self
 

@@ -1,0 +1,205 @@
+"""Test-fold learning curves of one backbone's base and StARS variants on the outer CV folds.
+
+    python -m offline_training.learning_curve --config config/learning_curve_socnav1.yaml \
+        --jobs 1 [--out results/learning_curve_socnav1]
+
+Answers "would more epochs, or another learning rate, close the gap to the published
+figures?" without choosing anything on the test folds: every fit runs the full
+``joint_epochs`` and reports its test metrics every ``every`` epochs. A point at epoch T2
+is exactly the fit with (T1, T2) — the same seeds give the same first T2 epochs — so the
+curves line up with the evaluation tables. Writes ``command.txt``, ``config.yaml``,
+``machine.json``, ``records.jsonl`` (each fit as it finishes), ``curve.csv``,
+``results.json``, ``results.md`` and ``curve_<metric>.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as futures
+import json
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from stars_ros.data import load_dataset
+from stars_ros.errors import ConfigError, StarsError
+from stars_ros.evaluation import DISPLAY, FitTask, ProtocolConfig, fit_executor, make_folds, run_fit
+from stars_ros.stats import mean_sd
+
+from .common import DEFAULT_SOCNAV1, machine, setup_logging
+from .evaluate import METRIC_NAMES, git_state, write_csv
+
+REPO = Path(__file__).resolve().parents[1]
+CURVE_COLUMNS = ('setting', 'variant', 'fold', 'epoch', 'mse', 'rmse', 'pearson_r', 'ccc', 'n')
+KEYS = {'protocol', 'backbone', 'variants', 'pretrain_epochs', 'joint_epochs', 'every', 'settings'}
+
+
+def read_config(path: Path) -> dict:
+    try:
+        values = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as error:
+        raise ConfigError(f'cannot read {path}: {error}') from error
+    if not isinstance(values, dict) or set(values) != KEYS:
+        raise ConfigError(f'{path}: a learning-curve config has exactly the keys {sorted(KEYS)}')
+    if not 0 < values['every'] <= values['joint_epochs']:
+        raise ConfigError(f'{path}: need 0 < every <= joint_epochs')
+    if not values['settings'] or not all(isinstance(v, dict) for v in values['settings'].values()):
+        raise ConfigError(f'{path}: settings must map names to training settings')
+    values['protocol_config'] = ProtocolConfig.from_yaml(path.parent / values['protocol'])
+    if values['backbone'] not in values['protocol_config'].backbones:
+        raise ConfigError(f"{path}: backbone {values['backbone']} is not in {values['protocol']}")
+    return values
+
+
+def build_tasks(data, values: dict) -> list[tuple[str, str, FitTask]]:
+    """(setting, variant, task) for every setting × variant × outer fold."""
+    protocol: ProtocolConfig = values['protocol_config']
+    tasks = []
+    for setting, training in values['settings'].items():
+        for variant in values['variants']:
+            config = protocol.experiment_config(values['backbone'], variant).replace(
+                training={**training, 'pretrain_epochs': values['pretrain_epochs'],
+                          'joint_epochs': values['joint_epochs'], 'threads': 1})
+            for seed in protocol.seeds:
+                for f, fold in enumerate(make_folds(data, 'rows', protocol.folds, seed)):
+                    tasks.append((setting, variant, FitTask(f'{setting} {variant}', f'{seed}:{f}', 'curve',
+                                                            config.to_dict(), fold.train, fold.test,
+                                                            curve_every=values['every'])))
+    return tasks
+
+
+def summarise(points: list, values: dict) -> dict:
+    """(setting, variant) -> epoch -> metric -> (mean, sd) over folds."""
+    summary = {}
+    for point in points:
+        series = summary.setdefault((point['setting'], point['variant']), {})
+        series.setdefault(point['epoch'], []).append(point)
+    return {key: {epoch: {m: mean_sd([p[m] for p in entries]) for m in METRIC_NAMES}
+                  for epoch, entries in sorted(series.items())} for key, series in summary.items()}
+
+
+def write_markdown(path: Path, summary: dict, values: dict, header: dict) -> None:
+    name = DISPLAY.get(values['backbone'], values['backbone'])
+    keys = list(summary)
+    lines = [f"# Learning curves: {name} on the outer row folds of {values['protocol']}", '',
+             f"Command: `{header['command']}`", '',
+             f"Git: {header['git']}; machine: {header['machine']}; wall {header['wall_seconds']:.0f} s.", '',
+             f"T1 = {values['pretrain_epochs']} pre-training epochs, then test metrics (rating scale, macro over "
+             f"actions, mean ± sd over folds) every {values['every']} joint epochs. Settings: "
+             + '; '.join(f'**{s}** {t}' for s, t in values['settings'].items()) + '.', '',
+             '## MSE by joint epoch (T2)', '',
+             '| T2 | ' + ' | '.join(f'{s} {v}' for s, v in keys) + ' |',
+             '| --- |' + ' --- |' * len(keys)]
+    epochs = sorted({e for series in summary.values() for e in series})
+    for epoch in epochs:
+        cells = []
+        for key in keys:
+            stat = summary[key].get(epoch, {}).get('mse')
+            cells.append('—' if stat is None else f'{stat[0]:.4f} ± {stat[1]:.4f}')
+        lines.append(f'| {epoch} | ' + ' | '.join(cells) + ' |')
+    lines += ['', '## Best epoch of each curve (watched on the test folds: not a fair selection)', '',
+              '| setting | variant | best T2 | MSE | r | CCC |', '| --- | --- | --- | --- | --- | --- |']
+    for (setting, variant), series in summary.items():
+        best = min(series, key=lambda e: series[e]['mse'][0])
+        stats = series[best]
+        lines.append(f"| {setting} | {variant} | {best} | {stats['mse'][0]:.4f} | {stats['pearson_r'][0]:.3f} | "
+                     f"{stats['ccc'][0]:.3f} |")
+    path.write_text('\n'.join(lines) + '\n')
+
+
+def plot(folder: Path, summary: dict) -> list[str]:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    written = []
+    for metric in ('mse', 'pearson_r', 'ccc'):
+        figure, axis = plt.subplots(figsize=(6, 4))
+        for (setting, variant), series in summary.items():
+            epochs = list(series)
+            means = np.array([series[e][metric][0] for e in epochs])
+            sds = np.array([series[e][metric][1] for e in epochs])
+            line, = axis.plot(epochs, means, marker='.', label=f'{setting} {variant}')
+            axis.fill_between(epochs, means - sds, means + sds, alpha=0.15, color=line.get_color())
+        axis.set_xlabel('joint epochs (T2)')
+        axis.set_ylabel(METRIC_NAMES[metric])
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=8)
+        figure.tight_layout()
+        name = f'curve_{metric}.png'
+        figure.savefig(folder / name, dpi=120)
+        plt.close(figure)
+        written.append(name)
+    return written
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--config', default=str(REPO / 'config' / 'learning_curve_socnav1.yaml'))
+    parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
+    parser.add_argument('--jobs', type=int, default=1, help='worker processes, one torch thread each')
+    parser.add_argument('--out', default=str(REPO / 'results' / 'learning_curve_socnav1'))
+    parser.add_argument('--verbose', action='store_true')
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
+    try:
+        if args.jobs < 1:
+            raise StarsError('--jobs must be positive')
+        values = read_config(Path(args.config))
+        data = load_dataset(args.data_root)
+    except (StarsError, OSError) as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
+    folder = Path(args.out)
+    folder.mkdir(parents=True, exist_ok=True)
+    command = shlex.join(['python', '-m', 'offline_training.learning_curve', *(sys.argv[1:] if argv is None else argv)])
+    header = {'command': command, 'git': git_state(), 'machine': machine()}
+    (folder / 'command.txt').write_text(command + '\n')
+    (folder / 'config.yaml').write_text(yaml.safe_dump(
+        {**{k: v for k, v in values.items() if k != 'protocol_config'},
+         'protocol_resolved': values['protocol_config'].to_dict(), 'data_fingerprint': data.fingerprint},
+        sort_keys=False))
+    (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git']}, indent=2))
+    tasks = build_tasks(data, values)
+    print(f'{len(tasks)} fits of {values["joint_epochs"]} joint epochs; {args.jobs} job(s); writing {folder}',
+          flush=True)
+    started = time.perf_counter()
+    points, fits = [], []
+    executor = fit_executor(data, args.jobs, 1)
+    try:
+        with (folder / 'records.jsonl').open('w') as stream:
+            pending = {executor.submit(run_fit, task): (setting, variant, task) for setting, variant, task in tasks}
+            for done, future in enumerate(futures.as_completed(pending), 1):
+                setting, variant, task = pending[future]
+                scores = future.result()
+                if 'error' in scores:
+                    print(f'{task.model} fold {task.fold}: {scores["error"]}', file=sys.stderr)
+                    continue
+                fit = {'setting': setting, 'variant': variant, 'fold': task.fold,
+                       'fit_seconds': scores['fit_seconds'], 'curve': scores['curve']}
+                fits.append(fit)
+                points += [{'setting': setting, 'variant': variant, 'fold': task.fold, **p} for p in scores['curve']]
+                stream.write(json.dumps(fit) + '\n')
+                stream.flush()
+                print(f'[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = '
+                      f"{scores['curve'][-1]['epoch']} {scores['curve'][-1]['mse']:.4f} ({scores['fit_seconds']:.0f} s)",
+                      flush=True)
+    finally:
+        executor.shutdown(cancel_futures=True)
+    header['wall_seconds'] = time.perf_counter() - started
+    summary = summarise(points, values)
+    write_csv(folder / 'curve.csv', points, CURVE_COLUMNS)
+    write_markdown(folder / 'results.md', summary, values, header)
+    plots = plot(folder, summary)
+    (folder / 'results.json').write_text(json.dumps(
+        {**header, 'config': {k: v for k, v in values.items() if k != 'protocol_config'}, 'fits': fits,
+         'summary': {f'{s} {v}': series for (s, v), series in summary.items()}, 'plots': plots}, indent=1))
+    print((folder / 'results.md').read_text())
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
