@@ -21,8 +21,8 @@ import torch
 
 from .checkpoint import load_checkpoint
 from .errors import SceneGraphError, UnknownActionError
-from .scene_graph import featurise
-from .scene_store import GraphStore
+from .scene_graph import RELATIONS, featurise
+from .scene_store import dense_graphs
 
 
 @dataclass(frozen=True)
@@ -102,9 +102,10 @@ class Predictor:
             self._user_models = {str(k): v for k, v in models.items()}
 
     def _scene_input(self, scenes: Sequence, validate: bool = True):
-        if self.input_kind == 'graph':
+        if self.input_kind == 'graph':  # the dense form: a few small graphs (see encoders.graph)
             graphs = [featurise(scene, validate=validate) for scene in scenes]
-            return GraphStore(graphs).batch(torch.arange(len(graphs)))
+            encoder = self.recommender.model.encoder
+            return dense_graphs(graphs, len(RELATIONS) if encoder.uses_edge_type else None)
         features = np.asarray(scenes, dtype=np.float32)
         if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
             raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')

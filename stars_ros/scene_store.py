@@ -34,6 +34,40 @@ def _ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
     return torch.repeat_interleave(starts - offsets, counts, output_size=total) + torch.arange(total)
 
 
+class DenseGraphs(NamedTuple):
+    """A few graphs padded to the largest one, for inference on small scene graphs.
+
+    ``x`` [G, N, F]; ``mask`` [G, N] (real nodes); ``adjacency`` [G, N, N] with
+    ``adjacency[g, i, j]`` = number of edges j → i (messages flow to i, as in PyG);
+    ``relation_adjacency`` [G, R, N, N] the same per edge type, or None when not asked
+    for. The robot node is node 0 of every graph.
+    """
+
+    x: torch.Tensor
+    mask: torch.Tensor
+    adjacency: torch.Tensor
+    relation_adjacency: torch.Tensor | None
+
+
+def dense_graphs(graphs: Sequence[SceneGraph], relations: int | None = None) -> DenseGraphs:
+    """Pad ``graphs`` into a DenseGraphs; ``relations`` (the number of edge types) adds the
+    per-relation adjacency. Built in numpy: a scene of ~20 nodes costs microseconds."""
+    n = max(g.num_nodes for g in graphs)
+    x = np.zeros((len(graphs), n, graphs[0].x.shape[1]), dtype=np.float32)
+    mask = np.zeros((len(graphs), n), dtype=bool)
+    adjacency = np.zeros((len(graphs), n, n), dtype=np.float32)
+    typed = np.zeros((len(graphs), relations, n, n), dtype=np.float32) if relations else None
+    for k, graph in enumerate(graphs):
+        x[k, :graph.num_nodes] = graph.x
+        mask[k, :graph.num_nodes] = True
+        source, target = graph.edge_index
+        np.add.at(adjacency[k], (target, source), 1.0)
+        if typed is not None:
+            np.add.at(typed[k], (graph.edge_type, target, source), 1.0)
+    return DenseGraphs(torch.from_numpy(x), torch.from_numpy(mask), torch.from_numpy(adjacency),
+                       None if typed is None else torch.from_numpy(typed))
+
+
 class GraphStore:
     """All featurised graphs of a dataset; ``batch(indices)`` collates a subset."""
 

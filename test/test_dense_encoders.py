@@ -1,0 +1,93 @@
+"""The dense inference form of every graph backbone computes what its PyG form computes."""
+import numpy as np
+import pytest
+import torch
+
+from stars_ros.encoders import ENCODERS, resolve_encoder
+from stars_ros.scene_graph import NODE_FEATURES, RELATIONS, featurise
+from stars_ros.scene_source import random_scene
+from stars_ros.scene_store import GraphStore, dense_graphs
+
+GRAPH_BACKBONES = sorted(name for name, cls in ENCODERS.items() if cls.input_kind == 'graph')
+OPTIONS = {'gat': [{'heads': 4}, {'heads': 1}], 'rgcn': [{}, {'num_bases': 3}]}
+
+
+def _case_list():
+    for name in GRAPH_BACKBONES:
+        for options in OPTIONS.get(name, [{}]):
+            yield pytest.param(name, options, id=f"{name}-{'-'.join(f'{k}{v}' for k, v in options.items()) or 'default'}")
+
+
+CASES = list(_case_list())
+
+
+def _encoder(name, options, seed=0):
+    torch.manual_seed(seed)
+    encoder = resolve_encoder(name, len(NODE_FEATURES), 16, hidden=32, layers=3, **options).eval()
+    with torch.no_grad():  # move every parameter off its initial value (GIN's eps starts at 0, biases too)
+        for parameter in encoder.parameters():
+            parameter.add_(0.1 * torch.randn_like(parameter))
+    return encoder
+
+
+def _dense(encoder, graphs):
+    return dense_graphs(graphs, len(RELATIONS) if encoder.uses_edge_type else None)
+
+
+def test_every_graph_backbone_has_a_dense_form():
+    assert set(GRAPH_BACKBONES) == {'gcn', 'gin', 'graphsage', 'ggnn', 'rgcn', 'gat'}
+
+
+@pytest.mark.parametrize('name, options', CASES)
+def test_dense_equals_sparse_on_random_scenes(name, options):
+    rng = np.random.default_rng(1)
+    graphs = [featurise(random_scene(rng)) for _ in range(40)]
+    encoder = _encoder(name, options)
+    with torch.no_grad():
+        sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs))))
+        padded = encoder(_dense(encoder, graphs))  # graphs of different sizes in one batch
+        one_by_one = torch.cat([encoder(_dense(encoder, [g])) for g in graphs])
+    assert sparse.shape == padded.shape == (40, 16)
+    assert torch.allclose(padded, sparse, atol=1e-5, rtol=1e-4), (padded - sparse).abs().max()
+    assert torch.allclose(one_by_one, sparse, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize('name, options', CASES)
+def test_dense_equals_sparse_on_socnav1_scenes(name, options, socnav1):
+    store = socnav1.store
+    chosen = torch.from_numpy(np.random.default_rng(2).choice(len(store), 64, replace=False))
+    batch = store.batch(chosen)
+    counts = store.node_counts[chosen].tolist()
+    starts = np.cumsum([0] + counts[:-1])
+    edge_counts = store.edge_counts[chosen].tolist()
+    edge_starts = np.cumsum([0] + edge_counts[:-1])
+    graphs = [_graph(batch, start, count, edge_start, edge_count)
+              for start, count, edge_start, edge_count in zip(starts, counts, edge_starts, edge_counts)]
+    encoder = _encoder(name, options, seed=3)
+    with torch.no_grad():
+        sparse = encoder(batch)
+        dense = encoder(_dense(encoder, graphs))
+    assert torch.allclose(dense, sparse, atol=1e-5, rtol=1e-4), (dense - sparse).abs().max()
+
+
+def _graph(batch, start, count, edge_start, edge_count):
+    from stars_ros.scene_graph import SceneGraph
+    edges = slice(edge_start, edge_start + edge_count)
+    return SceneGraph(x=batch.x[start:start + count].numpy(),
+                      edge_index=(batch.edge_index[:, edges] - start).numpy(),
+                      edge_type=batch.edge_type[edges].numpy())
+
+
+def test_dense_graphs_layout():
+    rng = np.random.default_rng(4)
+    small, large = sorted((featurise(random_scene(rng)) for _ in range(2)), key=lambda g: g.num_nodes)
+    dense = dense_graphs([small, large], len(RELATIONS))
+    n = large.num_nodes
+    assert dense.x.shape == (2, n, len(NODE_FEATURES)) and dense.mask.shape == (2, n)
+    assert dense.mask[0].sum() == small.num_nodes and dense.mask[1].all()
+    assert torch.equal(dense.x[0, small.num_nodes:], torch.zeros(n - small.num_nodes, len(NODE_FEATURES)))
+    source, target = small.edge_index
+    assert dense.adjacency[0, target[0], source[0]] == 1
+    assert dense.adjacency[0].sum() == small.edge_index.shape[1]
+    assert torch.equal(dense.relation_adjacency.sum(1), dense.adjacency)
+    assert dense_graphs([small]).relation_adjacency is None
