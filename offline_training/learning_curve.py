@@ -171,22 +171,29 @@ def main(argv=None) -> int:
     executor = fit_executor(data, args.jobs, 1)
     try:
         with (folder / 'records.jsonl').open('w') as stream:
-            pending = {executor.submit(run_fit, task): (setting, variant, task) for setting, variant, task in tasks}
-            for done, future in enumerate(futures.as_completed(pending), 1):
-                setting, variant, task = pending[future]
-                scores = future.result()
-                if 'error' in scores:
-                    print(f'{task.model} fold {task.fold}: {scores["error"]}', file=sys.stderr)
-                    continue
-                fit = {'setting': setting, 'variant': variant, 'fold': task.fold,
-                       'fit_seconds': scores['fit_seconds'], 'curve': scores['curve']}
-                fits.append(fit)
-                points += [{'setting': setting, 'variant': variant, 'fold': task.fold, **p} for p in scores['curve']]
-                stream.write(json.dumps(fit) + '\n')
-                stream.flush()
-                print(f'[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = '
-                      f"{scores['curve'][-1]['epoch']} {scores['curve'][-1]['mse']:.4f} ({scores['fit_seconds']:.0f} s)",
-                      flush=True)
+            waiting, in_flight, done = list(tasks), {}, 0
+            while waiting or in_flight:  # at most `jobs` in flight: results are kept as they finish
+                while waiting and len(in_flight) < args.jobs:
+                    setting, variant, task = waiting.pop(0)
+                    in_flight[executor.submit(run_fit, task)] = (setting, variant, task)
+                finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
+                for future in finished:
+                    setting, variant, task = in_flight.pop(future)
+                    scores = future.result()
+                    done += 1
+                    if 'error' in scores:
+                        print(f'{task.model} fold {task.fold}: {scores["error"]}', file=sys.stderr)
+                        continue
+                    fit = {'setting': setting, 'variant': variant, 'fold': task.fold,
+                           'fit_seconds': scores['fit_seconds'], 'curve': scores['curve']}
+                    fits.append(fit)
+                    points += [{'setting': setting, 'variant': variant, 'fold': task.fold, **p}
+                               for p in scores['curve']]
+                    stream.write(json.dumps(fit) + '\n')
+                    stream.flush()
+                    last = scores['curve'][-1]
+                    print(f"[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = {last['epoch']} "
+                          f"{last['mse']:.4f} ({scores['fit_seconds']:.0f} s)", flush=True)
     finally:
         executor.shutdown(cancel_futures=True)
     header['wall_seconds'] = time.perf_counter() - started
