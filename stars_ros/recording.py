@@ -103,10 +103,9 @@ class _McapFile:
         self.writer.add_message(channel, log_time=log_time, data=data, publish_time=log_time)
         self.stats.add(topic, log_time)
 
-    def flush(self, sync: bool):
+    def flush(self):
+        """Write out the chunk in progress to the OS (the caller fsyncs)."""
         self.writer.flush()
-        if sync:
-            os.fsync(self.stream.fileno())
 
     def size(self) -> int:
         return self.stream.tell()
@@ -131,6 +130,11 @@ def _atomic_write(path: Path, text: str):
 
 def write_metadata(bag: Path, files: list, topics: dict, custom: dict | None = None):
     """Write rosbag2's metadata.yaml for ``files`` (``_FileStats``) with ``topics`` {name: qos}."""
+    _atomic_write(bag / METADATA_FILE, metadata_text(files, topics, custom))
+
+
+def metadata_text(files: list, topics: dict, custom: dict | None = None) -> str:
+    """rosbag2's metadata.yaml for ``files`` (``_FileStats``) with ``topics`` {name: qos}."""
     counts = {}
     for stats in files:
         for topic, n in stats.topics.items():
@@ -158,7 +162,7 @@ def write_metadata(bag: Path, files: list, topics: dict, custom: dict | None = N
         'custom_data': {k: str(v) for k, v in (custom or {}).items()},
         'ros_distro': 'jazzy',
     }
-    _atomic_write(bag / METADATA_FILE, yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False))
+    return yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False)
 
 
 class Recorder:
@@ -196,6 +200,8 @@ class Recorder:
         self._on_event = on_event or (lambda level, text: None)
         self._chunk_size = min(1 << 20, rotation_bytes // 8)
         self._lock = threading.RLock()
+        self._sync_lock = threading.Lock()  # taken after _lock, never before it
+        self._metadata_generation = self._metadata_written = 0
         self._files: list = []
         self._file: _McapFile | None = None
         self._journal = None
@@ -244,7 +250,7 @@ class Recorder:
             path = self.path / f'{self.name}_{len(self._files)}.mcap'
             self._file = _McapFile(path, self.topics, self._chunk_size, self.custom)
             self._files.append(self._file.stats)
-            write_metadata(self.path, self._files, self.topics, self.custom)
+            self._write_metadata(self._metadata_snapshot())
         except OSError as error:
             self._fail(error, 'opening the bag')
             return
@@ -308,8 +314,11 @@ class Recorder:
         self._open()
 
     def flush(self):
-        """Write out the chunk in progress and fsync; retry a failed disk. Called every
-        ``flush_interval`` by a background thread."""
+        """Write out the chunk in progress, fsync it and rewrite metadata.yaml; retry a failed
+        disk. Called every ``flush_interval`` by a background thread. The fsyncs run outside
+        the lock, on a duplicate of the file descriptor, so the threads that record (the
+        ranker's request path) never wait for the disk."""
+        synced = None
         with self._lock:
             if self._closed:
                 return
@@ -322,12 +331,41 @@ class Recorder:
                     self._fail(error, 'reopening the feedback journal', lose_file=False)
             if self._file is not None:
                 try:
-                    self._file.flush(sync=True)
-                    write_metadata(self.path, self._files, self.topics, self.custom)
+                    self._file.flush()
+                    synced = (self._file, os.dup(self._file.stream.fileno()), self._metadata_snapshot())
                 except OSError as error:
                     self._fail(error, 'flushing')
             self._retry_feedback()
             self._check_healthy()
+        if synced is None:
+            return
+        file, descriptor, metadata = synced
+        failure = None
+        try:
+            os.fsync(descriptor)
+            self._write_metadata(metadata)
+        except OSError as error:
+            failure = error
+        finally:
+            os.close(descriptor)
+        if failure is not None:
+            with self._lock:
+                if self._file is file:
+                    self._fail(failure, 'flushing')
+
+    def _metadata_snapshot(self) -> tuple:
+        """(generation, metadata.yaml text) of the files so far; call with the lock held."""
+        self._metadata_generation += 1
+        return self._metadata_generation, metadata_text(self._files, self.topics, self.custom)
+
+    def _write_metadata(self, snapshot: tuple):
+        """Write ``snapshot`` unless a newer one is already on disk (the flusher writes its
+        snapshot after releasing the lock, so a rotation may have overtaken it)."""
+        generation, text = snapshot
+        with self._sync_lock:
+            if generation > self._metadata_written:
+                _atomic_write(self.path / METADATA_FILE, text)
+                self._metadata_written = generation
 
     def _flush_loop(self):
         while not self._stop.wait(self.flush_interval):
@@ -353,7 +391,7 @@ class Recorder:
                 if self._damaged:
                     recover(self.path)
                 elif self._files:
-                    write_metadata(self.path, self._files, self.topics, self.custom)
+                    self._write_metadata(self._metadata_snapshot())
                 (self.path / PID_FILE).unlink(missing_ok=True)
             except OSError as error:
                 self._fail(error, 'closing')

@@ -150,3 +150,34 @@ def test_invalid_settings_refused(tmp_path):
         recording.Recorder(tmp_path, TOPICS, rotation_bytes=10)
     with pytest.raises(ValueError, match='flush_interval'):
         recording.Recorder(tmp_path, TOPICS, flush_interval=0)
+
+
+def test_flush_fsyncs_without_holding_up_writers(tmp_path, monkeypatch):
+    """The periodic flush waits for the disk outside the lock the ranker's threads write under."""
+    import threading
+    import time
+    real_fsync = os.fsync
+    syncing, release = threading.Event(), threading.Event()
+
+    def slow_fsync(descriptor):
+        syncing.set()
+        release.wait(10)
+        real_fsync(descriptor)
+
+    with recording.Recorder(tmp_path, TOPICS, name='bag', flush_interval=3600) as recorder:
+        recorder.write('/stars/scene', 'before', 1)
+        monkeypatch.setattr(os, 'fsync', slow_fsync)
+        flusher = threading.Thread(target=recorder.flush)
+        flusher.start()
+        assert syncing.wait(10)
+        started = time.monotonic()
+        assert recorder.write('/stars/scene', 'during', 2)  # would block until release with the fsync under the lock
+        blocked = time.monotonic() - started
+        release.set()
+        flusher.join(10)
+        monkeypatch.setattr(os, 'fsync', real_fsync)
+        assert blocked < 1.0
+        assert recorder.error is None
+    assert [m[1] for m in recording.read_messages(tmp_path / 'bag')] == ['before', 'during']
+    assert yaml.safe_load((tmp_path / 'bag' / 'metadata.yaml').read_text())[
+        'rosbag2_bagfile_information']['message_count'] == 2
