@@ -40,7 +40,7 @@ from std_srvs.srv import Trigger
 
 from . import messages, recording
 from .errors import CheckpointError, StarsError
-from .foldin import FoldIn, Rating, UserModel, rating_from_feedback
+from .foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
 from .predictor import Predictor
 from .resources import share_path
 from .serving import Pending, error_kind, rank_batch
@@ -73,6 +73,10 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'fold_in': (True, "personalise from feedback: re-solve the user's embedding after each rating", False, None),
     'fold_in_min_ratings': (1, 'ratings a user needs before their folded-in embedding is served', False,
                             (1, 100000)),
+    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state file "
+                            'keeps); older ones stay in the MCAP log for the offline refit', True, (1, 1000000)),
+    'fold_in_max_users': (1000, 'folded-in users kept; beyond this the one who rated least recently goes back to '
+                          'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),
     'fold_in_regularisation': (1.0, 'ridge weight λ pulling a folded-in user towards the prior '
                                '(their trained row, else the population mean)', False, (1e-6, 1e6)),
 }
@@ -124,7 +128,7 @@ class RankerNode(Node):
         self._wake = threading.Condition()
         self._running = True
         self._scenes = collections.OrderedDict()  # scene_id -> SceneRequest (executor thread only)
-        self._histories = {}  # user_id -> [Rating]; guarded by self._lock
+        self._histories = FeedbackHistories(self.params['fold_in_max_ratings'], self.params['fold_in_max_users'])
         self._fold_pending = collections.OrderedDict()  # users to re-solve; guarded by self._wake
         self._foldin = self._fold_in_model(self.predictor)
 
@@ -327,8 +331,7 @@ class RankerNode(Node):
         if isinstance(rating, str):
             self.report('unknown_scene', rating, topic, feedback.scene_id)
             return
-        with self._lock:
-            self._histories.setdefault(feedback.user_id, []).append(rating)
+        self._forget(self._histories.add(feedback.user_id, rating))
         with self._wake:
             self._fold_pending[feedback.user_id] = None
             self._wake.notify()
@@ -342,9 +345,8 @@ class RankerNode(Node):
             with self._wake:
                 self._fold_pending[user_id] = None
             return
-        with self._lock:
-            ratings = list(self._histories.get(user_id, ()))
-        if len(ratings) < self.params['fold_in_min_ratings']:
+        ratings = self._histories.ratings(user_id)
+        if not ratings or len(ratings) < self.params['fold_in_min_ratings']:
             return
         try:
             model = foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
@@ -379,9 +381,18 @@ class RankerNode(Node):
             except StarsError as error:
                 unusable.append(rating)
                 self.report(error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
-        with self._lock:
-            self._histories[user_id] = [r for r in self._histories.get(user_id, ()) if r not in unusable]
-        return [r for r in ratings if r not in unusable]
+        self._histories.discard(user_id, unusable)
+        return self._histories.ratings(user_id)
+
+    def _forget(self, evicted: list):
+        """Users pushed out by fold_in_max_users go back to the checkpoint's row."""
+        for user_id in evicted:
+            self.predictor.set_user_model(user_id, None)
+            self.report('user_models', f"folded-in user '{user_id}' dropped: more than fold_in_max_users = "
+                        f"{self.params['fold_in_max_users']} users rated more recently (their feedback stays in "
+                        'the MCAP log for the offline refit)')
+        if evicted:
+            self._save_wanted.set()
 
     def _save_loop(self):
         """Write the state file when asked, at most once per flush_interval: a hard kill loses
@@ -399,13 +410,13 @@ class RankerNode(Node):
         """Write every folded-in user (model and history) to the state file, atomically."""
         if self.state_path is None:
             return
-        with self._lock:
-            histories = {u: list(h) for u, h in self._histories.items()}
+        histories = self._histories.snapshot()
         known, self._rating_texts = self._rating_texts, {}
         users = []
         for user_id, model in predictor.user_models.items():
             ratings = []
-            for rating in histories.get(user_id, ()):
+            ratings_of_user, dropped = histories.get(user_id, ((), 0))
+            for rating in ratings_of_user:
                 kept = known.get(id(rating))
                 if kept is None or kept[0] is not rating:  # each rating is serialised once: a dump
                     kept = (rating, messages.dumps({   # of long histories holds the GIL briefly
@@ -414,7 +425,7 @@ class RankerNode(Node):
                 self._rating_texts[id(rating)] = kept
                 ratings.append(kept[1])
             users.append(f'{messages.dumps(user_id)}:{messages.dumps(model.to_json())[:-1]},'
-                         f'"ratings":[{",".join(ratings)}]}}')
+                         f'"ratings_dropped":{dropped},"ratings":[{",".join(ratings)}]}}')
         head = messages.dumps({'format': STATE_FORMAT, 'version': 1, 'fingerprint': predictor.fingerprint})
         text = f'{head[:-1]},"users":{{{",".join(users)}}}}}'
         try:
@@ -442,26 +453,21 @@ class RankerNode(Node):
                             'folded-in users are not restored')
                 return
             models = {u: UserModel.from_json(v) for u, v in state['users'].items()}
-            histories = {u: [Rating(r['scene'], r['action'], float(r['score']), r.get('scene_id'))
-                             for r in v['ratings']] for u, v in state['users'].items()}
+            histories = {u: ([Rating(r['scene'], r['action'], float(r['score']), r.get('scene_id'))
+                              for r in v['ratings']], int(v.get('ratings_dropped', 0)))
+                         for u, v in state['users'].items()}
         except (OSError, ValueError, KeyError, TypeError) as error:
             self.report('user_models', f'cannot read {self.state_path}: {error}; folded-in users are not restored')
             return
-        with self._lock:
-            self._histories.update(histories)
-        self.predictor.set_user_models(models)
+        evicted = set(self._histories.restore(histories))
+        self.predictor.set_user_models({u: m for u, m in models.items() if u not in evicted})
         self.get_logger().info(f'restored {len(models)} folded-in users from {self.state_path}')
 
     def _carry_user_models(self, predictor):
         """After a reload: users the new checkpoint was refit on keep only the feedback it did
         not absorb; everyone with a history left is re-solved against the new model."""
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
-        with self._lock:
-            for user_id, count in absorbed.items():
-                if user_id in self._histories:
-                    self._histories[user_id] = self._histories[user_id][int(count):]
-            self._histories = {u: h for u, h in self._histories.items() if h}
-            users = list(self._histories)
+        users = self._histories.absorb(absorbed)
         with self._wake:
             for user_id in users:
                 self._fold_pending[user_id] = None

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stars_ros import messages
-from stars_ros.foldin import FoldIn, Rating, UserModel, solve_ridge
+from stars_ros.foldin import FeedbackHistories, FoldIn, Rating, UserModel, solve_ridge
 from stars_ros.predictor import Predictor
 
 
@@ -161,3 +161,50 @@ def test_user_model_message_follows_its_schema(predictor, ratings):
     assert UserModel.from_json(payload).n_ratings == 3
     with pytest.raises(messages.BadMessage):
         messages.check('user_model', {**payload, 'regularisation': 0})
+
+
+def _rated(k):
+    return Rating({'k': k}, 'a', float(k))
+
+
+def test_histories_keep_the_most_recent_ratings_and_users():
+    histories = FeedbackHistories(max_ratings=3, max_users=2)
+    for k in range(5):
+        assert histories.add('ann', _rated(k)) == []
+    assert [r.score for r in histories.ratings('ann')] == [2.0, 3.0, 4.0]
+    assert histories.dropped('ann') == 2
+    assert histories.add('bob', _rated(10)) == []
+    histories.add('ann', _rated(5))  # ann rated most recently: bob is the oldest now
+    assert histories.add('cy', _rated(20)) == ['bob']
+    assert 'bob' not in histories and len(histories) == 2
+    assert histories.set_limits(max_ratings=1, max_users=1) == ['ann']
+    assert [r.score for r in histories.ratings('cy')] == [20.0]
+
+
+def test_histories_absorb_counts_ratings_already_trimmed():
+    """A refit that consumed the first n ratings removes exactly those, trimmed or not."""
+    histories = FeedbackHistories(max_ratings=3, max_users=10)
+    for k in range(6):  # ratings 0..5; 0..2 trimmed
+        histories.add('ann', _rated(k))
+    histories.add('bob', _rated(100))
+    assert histories.absorb({'ann': 4, 'bob': 1, 'stranger': 7}) == ['ann']
+    assert [r.score for r in histories.ratings('ann')] == [4.0, 5.0]
+    assert histories.dropped('ann') == 4
+    assert histories.absorb({'ann': 4}) == ['ann']  # the same refit again removes nothing more
+    assert histories.absorb({'ann': 6}) == []
+
+
+def test_histories_discard_and_restore_round_trip():
+    histories = FeedbackHistories(max_ratings=5, max_users=2)
+    ratings = [_rated(k) for k in range(3)]
+    for rating in ratings:
+        histories.add('ann', rating)
+    histories.discard('ann', [ratings[1]])
+    assert histories.ratings('ann') == [ratings[0], ratings[2]] and histories.dropped('ann') == 1
+    state = histories.snapshot()
+    restored = FeedbackHistories(max_ratings=1, max_users=1)
+    restored.add('old', _rated(9))
+    assert restored.restore(state) == ['old']
+    assert restored.ratings('ann') == [ratings[2]] and restored.dropped('ann') == 2
+    with pytest.raises(ValueError):
+        FeedbackHistories(0, 1)

@@ -159,3 +159,29 @@ def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, sce
             process.kill()
         client.close()
     assert not (tmp_path / 'user_models.json').exists()
+
+
+def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_path):
+    """fold_in_max_ratings solves from the most recent ratings; fold_in_max_users sends the
+    user who rated least recently back to the checkpoint, with a warning."""
+    domain = domain_id(9)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {
+        'checkpoint': tiny_checkpoint, 'record_folder': tmp_path, 'flush_interval': 0.2,
+        'fold_in_max_ratings': 2, 'fold_in_max_users': 1}, tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': scenes[19]})
+        _rank(client, scenes, 'stranger')
+        for scene in scenes[:3]:
+            client.feedback({'user_id': USER, 'scene_id': scene['identifier'], 'action': 'navigate', 'score': 1.0})
+        assert client.wait(lambda: all(r.get('personalised_from') == 2 for r in _rank(client, scenes, 'window').values()), 20)
+        client.feedback({'user_id': 'other', 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 0.0})
+        assert client.wait(lambda: any(e['kind'] == 'user_models' and USER in e['message'] for e in client.errors), 20)
+        assert all('personalised_from' not in r for r in _rank(client, scenes, 'evicted').values())
+        assert stop(process, signal.SIGINT) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+    state = json.loads((tmp_path / 'user_models.json').read_text())
+    assert list(state['users']) == ['other'] and state['users']['other']['ratings_dropped'] == 0
