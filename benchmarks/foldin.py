@@ -4,9 +4,8 @@
         [--data-root ../shared/datasets/socnav1] [--out results/foldin_benchmark.json]
 
 1. ROS-free: users stream 50 SocNav1 ratings each; after each one the user is re-solved
-   with ``FoldIn.fit``. Two cases per update, p50 / p99 by number of ratings: the rated
-   scene was ranked first (the node's case: its h is cached from the ranking, so the update
-   is the solve) and the rated scene is new (it is encoded during the update).
+   with ``FoldIn.fit`` as the node does it (the rated scene's request text parsed again,
+   featurised and encoded; earlier scenes cached). p50 / p99 by number of ratings.
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' gets scenes ranked at
    ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
@@ -36,6 +35,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'test'))
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from stars_ros import messages  # noqa: E402
 from stars_ros.foldin import FoldIn, Rating  # noqa: E402
 from stars_ros.predictor import Predictor  # noqa: E402
 from stars_ros.scene_source import read_scenes  # noqa: E402
@@ -50,24 +50,22 @@ def percentiles(values) -> dict:
 
 
 def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict:
-    """ms per update by rating count: rated scene ranked before (cached h) or new (encoded)."""
-    ranked, new = {}, {}
+    """ms per update by rating count, as in the node: the newly rated scene is parsed from
+    its request text, featurised and encoded, the user's earlier scenes come from the cache,
+    and the user is re-solved from all their ratings so far."""
+    times = {}
     for user, scenes in scenes_by_user.items():
-        for times, rank_first in ((ranked, True), (new, False)):
-            foldin = FoldIn(predictor)
-            predictor.on_encoded = foldin.remember if rank_first else None
-            ratings = [Rating(dict(s), 'navigate', s['score'] / 100, s['identifier']) for s in scenes]
-            for n in range(1, len(ratings) + 1):
-                if rank_first:
-                    predictor.score(user, [ratings[n - 1].scene], [ratings[n - 1].scene_id])
-                started = time.perf_counter()
-                foldin.fit(ratings[:n], user, regularisation)
-                times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
-    predictor.on_encoded = None
-    return {'update_ranked_scene_ms': {n: percentiles(v) for n, v in ranked.items()},
-            'update_new_scene_ms': {n: percentiles(v) for n, v in new.items()},
-            'update_ranked_scene_ms_all': percentiles([x for v in ranked.values() for x in v]),
-            'update_new_scene_ms_all': percentiles([x for v in new.values() for x in v])}
+        foldin = FoldIn(predictor)
+        texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
+        ratings = []
+        for n, (scene, text) in enumerate(zip(scenes, texts), 1):
+            started = time.perf_counter()
+            request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
+            ratings.append(Rating(request.graphs[0], 'navigate', scene['score'] / 100, request.scene_id))
+            foldin.fit(ratings, user, regularisation)
+            times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
+    return {'update_ms': {n: percentiles(v) for n, v in times.items()},
+            'update_ms_all': percentiles([x for v in times.values() for x in v])}
 
 
 def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
@@ -159,9 +157,8 @@ def main(argv=None) -> int:
     scenes_by_user = {name: read_scenes(raw / f'{name}.jsonl')[:50] for name in annotators[:args.users]}
     offline = time_updates(predictor, scenes_by_user, args.regularisation)
     for n in (1, 2, 5, 10, 20, 50):
-        r, u = offline['update_ranked_scene_ms'][n], offline['update_new_scene_ms'][n]
-        print(f'{n:2d} ratings: update after the scene was ranked p50 {r["p50"]:.3f} ms p99 {r["p99"]:.3f} ms; '
-              f'new scene p50 {u["p50"]:.2f} ms p99 {u["p99"]:.2f} ms')
+        update = offline['update_ms'][n]
+        print(f'{n:2d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms')
     node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], read_scenes(raw / 'g.jsonl')[:200], args)
     for phase in ('without_feedback', 'feedback_fold_in_off', 'feedback_fold_in_on'):
         figures = node[phase]

@@ -15,9 +15,9 @@ ridge regression of z_j − c_j on x_j towards a prior θ₀:
 one (d+1)×(d+1) solve in float64. θ₀ is the user's own trained row when the checkpoint
 knows them (feedback refines it) and otherwise the population prior, the mean of the
 trained user rows (p, b_u). λ → ∞ returns θ₀; λ → 0 interpolates the ratings when they
-are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene object
-(``remember`` takes the h the ranking already computed: the node rates the very scene
-dicts it ranked), and re-solving a user after one more rating takes about a millisecond.
+are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene object:
+re-solving a user after one more rating encodes that one scene and solves, about a
+millisecond.
 
 ROS-free: the ranker node, the offline refit and the k-shot evaluation all use ``FoldIn``.
 """
@@ -173,9 +173,9 @@ class FoldIn:
         c = (h * r).sum(1) + scene_offset + self.bias
         return x, c
 
-    def remember(self, scenes: Sequence, h: torch.Tensor) -> None:
-        """Cache h [len(scenes), dim] of ``scenes`` (Predictor.on_encoded calls this). The
-        key is the scene object, which the entry keeps alive so its id cannot be reused."""
+    def _remember(self, scenes: Sequence, h: torch.Tensor) -> None:
+        """Cache h [len(scenes), dim] of ``scenes``. The key is the scene object, which the
+        entry keeps alive so its id cannot be reused."""
         rows = h.detach().double().numpy()
         with self._lock:
             for scene, row in zip(scenes, rows):
@@ -192,7 +192,7 @@ class FoldIn:
         if missing:
             with torch.no_grad():
                 h = self.recommender.model.encode(self.predictor._scene_input(missing))
-            self.remember(missing, h)
+            self._remember(missing, h)
             found.update((id(s), row) for s, row in zip(missing, h.double().numpy()))
         return np.stack([found[id(s)] for s in scenes])
 

@@ -57,7 +57,6 @@ class Predictor:
         self._action_index = {a: i for i, a in enumerate(self.actions)}
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
-        self.on_encoded = None  # called as on_encoded(scenes, h) after scoring encodes scenes
 
     @classmethod
     def load(cls, path) -> 'Predictor':
@@ -130,9 +129,6 @@ class Predictor:
                          torch.full((len(scenes), 1), folded.b, dtype=torch.float32))
         with torch.no_grad():
             h = self.recommender._require_model().encode(self._scene_input(scenes, validate))
-        listener = self.on_encoded
-        if listener is not None:
-            listener(scenes, h)
         return self.recommender.predict_scores_from_h(users, scene_ids, h, user_rows)
 
     def _action_columns(self, actions: Sequence[str]) -> list:

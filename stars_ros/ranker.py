@@ -11,8 +11,8 @@ publishes the rankings. So the DDS queue is drained while the model runs, and ``
 swaps the model between two batches: every ranking is scored by exactly one checkpoint,
 the one whose fingerprint it carries.
 
-Online fold-in: accepted feedback on a scene the node ranked (remembered in a bounded LRU
-map) is added to that user's history, and the worker re-solves the user's (p_u, b_u)
+Online fold-in: accepted feedback on a scene the node ranked (its request text remembered
+in a bounded LRU map: strings cost the garbage collector nothing, parsed JSON would) is added to that user's history, and the worker re-solves the user's (p_u, b_u)
 (stars_ros.foldin) after the batch it is serving, so the ranking of others waits for at
 most one solve. The result goes into the predictor's overlay (swapped whole, so a batch
 never sees half an update), on stars/user_model (recorded), and into ``user_models.json``
@@ -21,6 +21,7 @@ in the record folder, which a restart with the same checkpoint restores.
 from __future__ import annotations
 
 import collections
+import gc
 import json
 import os
 import threading
@@ -127,7 +128,7 @@ class RankerNode(Node):
         self._queue = collections.deque()
         self._wake = threading.Condition()
         self._running = True
-        self._scenes = collections.OrderedDict()  # scene_id -> SceneRequest (executor thread only)
+        self._scenes = collections.OrderedDict()  # scene_id -> request text (executor thread only)
         self._histories = FeedbackHistories(self.params['fold_in_max_ratings'], self.params['fold_in_max_users'])
         self._fold_pending = collections.OrderedDict()  # users to re-solve; guarded by self._wake
         self._foldin = self._fold_in_model(self.predictor)
@@ -274,7 +275,7 @@ class RankerNode(Node):
             self.report(error.kind, str(error), self.topics['stars/scene'])
             return
         self._record('stars/scene', msg.data)
-        self._scenes[request.scene_id] = request
+        self._scenes[request.scene_id] = msg.data
         self._scenes.move_to_end(request.scene_id)
         if len(self._scenes) > SCENE_MEMORY:
             self._scenes.popitem(last=False)
@@ -320,10 +321,14 @@ class RankerNode(Node):
     # -- fold-in -------------------------------------------------------------------------
     def _rating(self, feedback) -> Rating | str:
         """The Rating ``feedback`` gives, or why it cannot be folded in."""
-        request = self._scenes.get(feedback.scene_id)
-        if request is None:
+        text = self._scenes.get(feedback.scene_id)
+        if text is None:
             return (f"feedback for scene '{feedback.scene_id}', which this node has not ranked (or no longer "
                     'remembers): recorded, not folded in')
+        try:  # parsed again: it passed before, unless max_message_bytes was lowered since
+            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            return f"feedback for scene '{feedback.scene_id}' not folded in: its request no longer passes: {error}"
         return rating_from_feedback(feedback, request, self.predictor.actions)
 
     def _queue_fold_in(self, feedback, topic: str):
@@ -362,14 +367,12 @@ class RankerNode(Node):
         self._save_wanted.set()
 
     def _fold_in_model(self, predictor):
-        """The FoldIn of ``predictor``, fed with the h of every scene it ranks; None (and a
-        warning) for a model without users."""
+        """The FoldIn of ``predictor``; None (and a warning) for a model without users."""
         try:
             foldin = FoldIn(predictor)
         except StarsError as error:
             self.get_logger().warning(f'no online fold-in with this checkpoint: {error}')
             return None
-        predictor.on_encoded = foldin.remember
         return foldin
 
     def _drop_unusable(self, foldin, user_id: str, ratings: list) -> list:
@@ -569,7 +572,9 @@ def main(args=None):
     node = None
     try:
         node = RankerNode()
-        rclpy.spin(node)
+        gc.collect()
+        gc.freeze()  # the model and imports leave the collector's generations: full
+        rclpy.spin(node)  # collections while serving then walk only what requests create
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except CheckpointError as error:

@@ -88,7 +88,7 @@ def test_folded_in_user_predicts_its_ratings_better(predictor, ratings):
     assert errors[-1] < 0.8 * errors[0], errors
 
 
-def test_scene_cache_reuses_the_rankings_encoding_and_is_bounded(predictor, ratings, monkeypatch):
+def test_scene_cache_reuses_encodings_and_is_bounded(predictor, ratings, monkeypatch):
     foldin = FoldIn(predictor, cache_scenes=8)
     calls = []
     encode = predictor.recommender.model.encode
@@ -99,11 +99,10 @@ def test_scene_cache_reuses_the_rankings_encoding_and_is_bounded(predictor, rati
     assert np.allclose(foldin.encode([dict(s) for s in scenes[:4]]), first) and len(calls) == 2  # copies: encoded
     rows = foldin.encode(scenes[4:20])
     assert rows.shape == (16, foldin.dim) and len(foldin._cache) == 8  # bounded, least recent dropped
-    predictor.on_encoded = foldin.remember  # as the node wires it: ranking feeds the cache
-    predictor.score('x', scenes[20:23])
-    calls.clear()
     foldin.fit(ratings[20:23], 'x')
-    assert not calls
+    calls.clear()
+    foldin.fit(ratings[20:24], 'x')  # one more rating: only its scene is encoded
+    assert len(calls) == 1
 
 
 def test_overlay_serves_folded_users_and_leaves_others_alone(predictor, ratings):
