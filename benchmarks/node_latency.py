@@ -12,7 +12,10 @@ user id included) and times scene → ranking:
   * throughput: ``--burst`` requests published at ``--rate`` per second (0: as fast as the
     client can), then the sustained rate = replies / (last reply − first send), and the
     number lost (no reply within 10 s of the last send).
-The ratios ranker / echo say what the model adds over the middleware floor.
+The ratios ranker / echo say what the model adds over the middleware floor. Before the
+nodes start, ``in_process`` times the steps of one request on one thread in this process
+(parse and validate, featurise, encode, score, build the reply), with the encoder in its
+dense serving form and, as a reference measured in the same run, in its PyG sparse form.
 """
 from __future__ import annotations
 
@@ -174,6 +177,53 @@ def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dic
     }
 
 
+def _timed(call):
+    """(result of call(), milliseconds it took)."""
+    started = time.perf_counter()
+    result = call()
+    return result, (time.perf_counter() - started) * 1e3
+
+
+def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
+    """Median ms of each step of one request on one torch thread (see the module docstring)."""
+    import torch
+
+    from stars_ros import messages
+    from stars_ros.predictor import Predictor
+    from stars_ros.ranker import resolve_checkpoint
+    from stars_ros.scene_graph import RELATIONS, featurise
+    from stars_ros.scene_store import GraphStore, dense_graphs
+    from stars_ros.serving import Pending, rank_batch
+
+    torch.set_num_threads(1)
+    predictor = Predictor.load(resolve_checkpoint(checkpoint))
+    model = predictor.recommender.model
+    relations = len(RELATIONS) if model.encoder.uses_edge_type else None
+    steps = {}
+
+    def request_total(text):
+        request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
+        scored = rank_batch(predictor, [Pending(request, 'alice', 0)])[0]
+        return messages.dumps(messages.ranking_payload(request, 'alice', False, scored.ranked,
+                                                       predictor.fingerprint, 1.0, scored.action, 0))
+
+    for k, (_, text) in enumerate(requests(scenes, 'in-process', count)):
+        with torch.inference_mode():
+            _, total = _timed(lambda: request_total(text))
+            request, parse = _timed(lambda: messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES))
+            graph, featurising = _timed(lambda: featurise(request.graphs[0], validate=False))
+            dense, sparse = dense_graphs([graph], relations), GraphStore([graph]).batch(torch.arange(1))
+            h, encode_dense = _timed(lambda: model.encode(dense))
+            _, encode_sparse = _timed(lambda: model.encode(sparse))
+            _, score = _timed(lambda: predictor.recommender.predict_scores_from_h(['alice'], [None], h))
+        if k >= 50:  # the first are warm-up
+            for name, ms in (('request_total', total), ('parse_validate', parse), ('featurise', featurising),
+                             ('encode_dense', encode_dense), ('encode_sparse_reference', encode_sparse),
+                             ('score_from_h', score)):
+                steps.setdefault(name, []).append(ms)
+    return {f'{name}_ms_p50': float(np.median(values)) for name, values in steps.items()}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', default='', help='ranker checkpoint (default: the packaged model)')
@@ -188,6 +238,8 @@ def main(argv=None) -> int:
         echo_main()
         return 0
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
+    steps = in_process(args.checkpoint, scenes)
+    print('in process, one thread (p50 ms): ' + ', '.join(f'{k[:-7]} {v:.3f}' for k, v in steps.items()))
     domain = 150 + os.getpid() % 50
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
@@ -199,6 +251,7 @@ def main(argv=None) -> int:
         echo = [sys.executable, str(Path(__file__).resolve()), '--echo']
         results = {name: measure(name, command, env, scenes, args, Path(records) / f'{name}.log')
                    for name, command in (('echo', echo), ('ranker', ranker))}
+    results['in_process'] = steps
     results['ratio'] = {
         'latency_p50': results['ranker']['latency_ms']['p50'] / results['echo']['latency_ms']['p50'],
         'latency_p99': results['ranker']['latency_ms']['p99'] / results['echo']['latency_ms']['p99']}
