@@ -9,9 +9,10 @@ scene request unchanged on stars/ranking (a trivial callback, replies at least a
 the ranker's). A client in this process sends real SocNav1 scenes (one request per scene,
 user id included) and times scene → ranking:
   * latency: one request in flight at a time; p50 / p99 / max over ``--latency-count``;
-  * throughput: ``--burst`` requests published at ``--rate`` per second (0: as fast as the
-    client can), then the sustained rate = replies / (last reply − first send), and the
-    number lost (no reply within 10 s of the last send).
+  * throughput: for each of ``--rates`` (per second; 0: as fast as the client can), a burst
+    of ``--burst`` requests; the sustained rate = replies per second between the first and
+    the last reply, the number lost (no reply within 10 s of the last send) and the latency
+    under that load. The default rates are the target (300/s) and 1.5 times it.
 The ratios ranker / echo say what the model adds over the middleware floor. Before the
 nodes start, ``in_process`` times the steps of one request on one thread in this process
 (parse and validate, featurise, encode, score, build the reply), with the encoder in its
@@ -139,42 +140,47 @@ def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dic
                 latencies.append((client.received[scene_id] - sent) * 1e3)
         processing = list(client.processing_ms)
 
-        burst = requests(scenes, f'{name}-burst', args.burst)
-        sent_at, period = [], 1.0 / args.rate if args.rate else 0.0
-        start = time.perf_counter()
-        for k, (_, text) in enumerate(burst):
-            if period:
-                delay = start + k * period - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
-            sent_at.append(client.send(text))
-        client.wait_for(burst[-1][0], 10.0)
-        deadline = time.perf_counter() + 10.0
-        while time.perf_counter() < deadline:
-            with client.condition:
-                if all(scene_id in client.received for scene_id, _ in burst):
-                    break
-            time.sleep(0.05)
-        with client.condition:
-            replies = [client.received[s] for s, _ in burst if s in client.received]
-            burst_latency = [(client.received[s] - t) * 1e3 for (s, _), t in zip(burst, sent_at)
-                             if s in client.received]
+        bursts = [run_burst(client, requests(scenes, f'{name}-burst-{rate:g}', args.burst), rate)
+                  for rate in args.rates]
     finally:
         client.close()
         process.terminate()
         process.wait(timeout=30)
-    duration = max(replies) - sent_at[0] if replies else float('nan')
     return {
         'latency_ms': {'p50': float(np.percentile(latencies, 50)), 'p99': float(np.percentile(latencies, 99)),
                        'max': float(np.max(latencies)), 'count': len(latencies),
                        'timeouts': args.latency_count - len(latencies)},
         'node_processing_ms_p50': float(np.percentile(processing, 50)) if processing else None,
-        'burst': {'sent': len(burst), 'received': len(replies), 'lost': len(burst) - len(replies),
-                  'offered_per_s': len(burst) / (sent_at[-1] - sent_at[0]),
-                  'sustained_per_s': len(replies) / duration,
-                  'latency_ms_p50': float(np.percentile(burst_latency, 50)),
-                  'latency_ms_p99': float(np.percentile(burst_latency, 99))},
+        'bursts': bursts,
     }
+
+
+def run_burst(client, burst: list, rate: float) -> dict:
+    """Publish ``burst`` at ``rate`` per second (0: flat out). Sustained rate = replies per
+    second between the first and the last reply: a node that keeps up answers at the offered
+    rate, one that falls behind answers at its capacity while its queue grows."""
+    sent_at, period = [], 1.0 / rate if rate else 0.0
+    start = time.perf_counter()
+    for k, (_, text) in enumerate(burst):
+        if period:
+            delay = start + k * period - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        sent_at.append(client.send(text))
+    client.wait_for(burst[-1][0], 10.0)
+    deadline = time.perf_counter() + 10.0
+    while time.perf_counter() < deadline:
+        with client.condition:
+            if all(scene_id in client.received for scene_id, _ in burst):
+                break
+        time.sleep(0.05)
+    with client.condition:
+        replies = sorted(client.received[s] for s, _ in burst if s in client.received)
+        latency = [(client.received[s] - t) * 1e3 for (s, _), t in zip(burst, sent_at) if s in client.received]
+    return {'sent': len(burst), 'received': len(replies), 'lost': len(burst) - len(replies),
+            'offered_per_s': (len(burst) - 1) / (sent_at[-1] - sent_at[0]),
+            'sustained_per_s': (len(replies) - 1) / (replies[-1] - replies[0]) if len(replies) > 1 else 0.0,
+            'latency_ms_p50': float(np.percentile(latency, 50)), 'latency_ms_p99': float(np.percentile(latency, 99))}
 
 
 def _timed(call):
@@ -230,7 +236,8 @@ def main(argv=None) -> int:
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--latency-count', type=int, default=1000)
     parser.add_argument('--burst', type=int, default=3000)
-    parser.add_argument('--rate', type=float, default=300.0, help='offered load of the burst (0: flat out)')
+    parser.add_argument('--rates', type=float, nargs='+', default=[300.0, 450.0],
+                        help='offered loads of the bursts, one burst each (0: flat out)')
     parser.add_argument('--out', default=str(REPO / 'results' / 'node_latency.json'))
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -255,14 +262,16 @@ def main(argv=None) -> int:
     results['ratio'] = {
         'latency_p50': results['ranker']['latency_ms']['p50'] / results['echo']['latency_ms']['p50'],
         'latency_p99': results['ranker']['latency_ms']['p99'] / results['echo']['latency_ms']['p99']}
-    results['settings'] = {'latency_count': args.latency_count, 'burst': args.burst, 'rate': args.rate,
+    results['settings'] = {'latency_count': args.latency_count, 'burst': args.burst, 'rates': args.rates,
                            'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
                            'machine': machine()}
     for name in ('echo', 'ranker'):
-        lat, burst = results[name]['latency_ms'], results[name]['burst']
-        print(f"{name:6s} latency p50 {lat['p50']:.2f} ms  p99 {lat['p99']:.2f} ms  max {lat['max']:.2f} ms | "
-              f"burst {burst['sent']} at {burst['offered_per_s']:.0f}/s: sustained {burst['sustained_per_s']:.0f}/s, "
-              f"lost {burst['lost']}, p99 {burst['latency_ms_p99']:.2f} ms")
+        lat = results[name]['latency_ms']
+        print(f"{name:6s} latency p50 {lat['p50']:.2f} ms  p99 {lat['p99']:.2f} ms  max {lat['max']:.2f} ms")
+        for burst in results[name]['bursts']:
+            print(f"       burst {burst['sent']} at {burst['offered_per_s']:.0f}/s: sustained "
+                  f"{burst['sustained_per_s']:.0f}/s, lost {burst['lost']}, p50 {burst['latency_ms_p50']:.2f} ms, "
+                  f"p99 {burst['latency_ms_p99']:.2f} ms")
     print(f"ratio ranker/echo: p50 {results['ratio']['latency_p50']:.2f}, p99 {results['ratio']['latency_p99']:.2f}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2) + '\n')
