@@ -38,9 +38,17 @@ def test_replace_switches_variant_only():
     assert base.model.variant == 'base' and base.encoder == config.encoder
 
 
-@pytest.mark.parametrize('path', sorted(p for p in CONFIG_DIR.glob('*.yaml') if not p.name.startswith(('eval', 'ranker'))))
+@pytest.mark.parametrize('path', sorted(p for p in CONFIG_DIR.glob('*.yaml')
+                                         if not p.name.startswith(('eval', 'ranker', 'learning_curve'))))
 def test_shipped_experiment_configs_parse(path):
     ExperimentConfig.from_yaml(path)
+
+
+@pytest.mark.parametrize('path', sorted(CONFIG_DIR.glob('learning_curve*.yaml')))
+def test_shipped_learning_curve_configs_parse(path):
+    from offline_training.learning_curve import read_config
+    values = read_config(path)
+    assert values['backbone'] in values['protocol_config'].backbones
 
 
 def test_unreadable_yaml(tmp_path):
