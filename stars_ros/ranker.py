@@ -12,9 +12,10 @@ swaps the model between two batches: every ranking is scored by exactly one chec
 the one whose fingerprint it carries.
 
 Online fold-in: accepted feedback on a scene the node ranked (its request text remembered
-in a bounded LRU map: strings cost the garbage collector nothing, parsed JSON would) is added to that user's history, and the worker re-solves the user's (p_u, b_u)
-(stars_ros.foldin) after the batch it is serving, so the ranking of others waits for at
-most one solve. The result goes into the predictor's overlay (swapped whole, so a batch
+in a bounded LRU map: strings cost the garbage collector nothing, parsed JSON would) is
+added to that user's history (bounded: foldin.FeedbackHistories), and the worker re-solves
+the user's (p_u, b_u) (stars_ros.foldin) after the batch it is serving, so the ranking of
+others waits for at most one solve. The result goes into the predictor's overlay (swapped whole, so a batch
 never sees half an update), on stars/user_model (recorded), and into ``user_models.json``
 in the record folder, which a restart with the same checkpoint restores.
 """
@@ -360,6 +361,8 @@ class RankerNode(Node):
             if not ratings:
                 return
             model = foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
+        if user_id not in self._histories:  # evicted while it was being solved
+            return
         predictor.set_user_model(user_id, model)
         payload = messages.dumps(messages.user_model_payload(user_id, model, predictor.fingerprint))
         self.user_model_pub.publish(String(data=payload))
