@@ -14,9 +14,7 @@ curves line up with the evaluation tables. Writes ``command.txt``, ``config.yaml
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as futures
 import json
-import os
 import shlex
 import sys
 import time
@@ -27,7 +25,7 @@ import yaml
 
 from stars_ros.data import load_dataset
 from stars_ros.errors import ConfigError, StarsError
-from stars_ros.evaluation import DISPLAY, FitTask, ProtocolConfig, fit_executor, make_folds, run_fit
+from stars_ros.evaluation import DISPLAY, FitTask, ProtocolConfig, fit_executor, make_folds, run_fits
 from stars_ros.stats import mean_sd
 
 from .common import DEFAULT_SOCNAV1, machine, setup_logging
@@ -168,34 +166,22 @@ def main(argv=None) -> int:
           flush=True)
     started = time.perf_counter()
     points, fits = [], []
-    executor = fit_executor(data, args.jobs, 1)
-    try:
-        with (folder / 'records.jsonl').open('w') as stream:
-            waiting, in_flight, done = list(tasks), {}, 0
-            while waiting or in_flight:  # at most `jobs` in flight: results are kept as they finish
-                while waiting and len(in_flight) < args.jobs:
-                    setting, variant, task = waiting.pop(0)
-                    in_flight[executor.submit(run_fit, task)] = (setting, variant, task)
-                finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
-                for future in finished:
-                    setting, variant, task = in_flight.pop(future)
-                    scores = future.result()
-                    done += 1
-                    if 'error' in scores:
-                        print(f'{task.model} fold {task.fold}: {scores["error"]}', file=sys.stderr)
-                        continue
-                    fit = {'setting': setting, 'variant': variant, 'fold': task.fold,
-                           'fit_seconds': scores['fit_seconds'], 'curve': scores['curve']}
-                    fits.append(fit)
-                    points += [{'setting': setting, 'variant': variant, 'fold': task.fold, **p}
-                               for p in scores['curve']]
-                    stream.write(json.dumps(fit) + '\n')
-                    stream.flush()
-                    last = scores['curve'][-1]
-                    print(f"[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = {last['epoch']} "
-                          f"{last['mse']:.4f} ({scores['fit_seconds']:.0f} s)", flush=True)
-    finally:
-        executor.shutdown(cancel_futures=True)
+    waiting = [(task, setting, variant) for setting, variant, task in tasks]
+    with (folder / 'records.jsonl').open('w') as stream:  # each fit kept as it finishes
+        for done, ((task, setting, variant), scores) in enumerate(
+                run_fits(fit_executor(data, args.jobs, 1), waiting, args.jobs), 1):
+            if 'error' in scores:
+                print(f'{task.model} fold {task.fold}: {scores["error"]}', file=sys.stderr)
+                continue
+            fit = {'setting': setting, 'variant': variant, 'fold': task.fold,
+                   'fit_seconds': scores['fit_seconds'], 'curve': scores['curve']}
+            fits.append(fit)
+            points += [{'setting': setting, 'variant': variant, 'fold': task.fold, **p} for p in scores['curve']]
+            stream.write(json.dumps(fit) + '\n')
+            stream.flush()
+            last = scores['curve'][-1]
+            print(f"[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = {last['epoch']} "
+                  f"{last['mse']:.4f} ({scores['fit_seconds']:.0f} s)", flush=True)
     header['wall_seconds'] = time.perf_counter() - started
     summary = summarise(points, values)
     write_csv(folder / 'curve.csv', points, CURVE_COLUMNS)

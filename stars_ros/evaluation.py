@@ -326,6 +326,23 @@ def fit_executor(data: RatingData, jobs: int, threads: int) -> futures.Executor:
                                        initializer=_init_worker, initargs=(pickle.dumps(data), threads))
 
 
+def run_fits(executor: futures.Executor, waiting: list, jobs: int):
+    """Run the ``(FitTask, *context)`` items of ``waiting`` with at most ``jobs`` in flight,
+    yielding ``(item, scores)`` as each fit finishes. ``waiting`` is read as the run goes, so
+    the caller may put new items in front of it between two results."""
+    in_flight = {}
+    try:
+        while waiting or in_flight:
+            while waiting and len(in_flight) < jobs:
+                item = waiting.pop(0)
+                in_flight[executor.submit(run_fit, item[0])] = item
+            finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
+            for future in finished:
+                yield in_flight.pop(future), future.result()
+    finally:
+        executor.shutdown(cancel_futures=True)
+
+
 # -- the protocol -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class ModelSpec:
@@ -415,10 +432,9 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
         base = config.experiment_config(spec.backbone, spec.variant)
         return base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1], 'threads': threads}).to_dict()
 
-    executor = fit_executor(data, jobs, threads)
     # Own queue, at most `jobs` tasks in flight: fits unlocked by a finished selection
     # jump ahead of further selection fits, so complete results appear early.
-    waiting, in_flight = [], {}
+    waiting = []
     inner_scores = {}
 
     def final_tasks(spec, fold_id, pair):
@@ -441,38 +457,26 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
                     waiting.append((FitTask(spec.label, fold_id, 'inner', experiment(spec, pair),
                                             train, validation, inner_fold=i), spec, pair))
     total = len(waiting)
-    done = 0
-    try:
-        while waiting or in_flight:
-            while waiting and len(in_flight) < jobs:
-                task, spec, pair = waiting.pop(0)
-                in_flight[executor.submit(run_fit, task)] = (task, spec, pair)
-            finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
-            for future in finished:
-                task, spec, pair = in_flight.pop(future)
-                scores = future.result()
-                done += 1
-                if task.stage != 'inner':
-                    record(spec, task.fold, task.fraction, pair, len(task.train), len(task.test), scores, task.stage)
-                    log.info('[%d/%d] %s fold %s fraction %g (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
-                             spec.label, task.fold, task.fraction, pair, scores['mse'], scores['fit_seconds'])
-                    continue
-                result.selection.append({'model': spec.label, 'fold': task.fold, 'T1': pair[0], 'T2': pair[1],
-                                         'inner_fold': task.inner_fold, 'z_rmse': scores['z_rmse'],
-                                         'n_train': len(task.train), 'n_test': len(task.test),
-                                         'fit_seconds': scores['fit_seconds'],
-                                         'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']})
-                table = inner_scores[spec.label, task.fold]
-                table[pair].append(scores['z_rmse'])
-                if all(len(v) == config.inner_folds for v in table.values()):
-                    chosen = min(table, key=lambda p: np.mean(table[p]))  # ties: first in the grid
-                    log.info('%s fold %s: chose (T1, T2) = %s by inner z-RMSE %s', spec.label, task.fold, chosen,
-                             {p: round(float(np.mean(v)), 4) for p, v in table.items()})
-                    unlocked = final_tasks(spec, task.fold, chosen)
-                    waiting[:0] = unlocked
-                    total += len(unlocked)
-    finally:
-        executor.shutdown(cancel_futures=True)
+    for done, ((task, spec, pair), scores) in enumerate(run_fits(fit_executor(data, jobs, threads), waiting, jobs), 1):
+        if task.stage != 'inner':
+            record(spec, task.fold, task.fraction, pair, len(task.train), len(task.test), scores, task.stage)
+            log.info('[%d/%d] %s fold %s fraction %g (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
+                     spec.label, task.fold, task.fraction, pair, scores['mse'], scores['fit_seconds'])
+            continue
+        result.selection.append({'model': spec.label, 'fold': task.fold, 'T1': pair[0], 'T2': pair[1],
+                                 'inner_fold': task.inner_fold, 'z_rmse': scores['z_rmse'],
+                                 'n_train': len(task.train), 'n_test': len(task.test),
+                                 'fit_seconds': scores['fit_seconds'],
+                                 'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']})
+        table = inner_scores[spec.label, task.fold]
+        table[pair].append(scores['z_rmse'])
+        if all(len(v) == config.inner_folds for v in table.values()):
+            chosen = min(table, key=lambda p: np.mean(table[p]))  # ties: first in the grid
+            log.info('%s fold %s: chose (T1, T2) = %s by inner z-RMSE %s', spec.label, task.fold, chosen,
+                     {p: round(float(np.mean(v)), 4) for p, v in table.items()})
+            unlocked = final_tasks(spec, task.fold, chosen)
+            waiting[:0] = unlocked
+            total += len(unlocked)
     result.wall_seconds = time.perf_counter() - started
     return result
 
