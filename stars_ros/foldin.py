@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import torch
 
 from .errors import StarsError, UnknownActionError
 from .model import UNKNOWN
@@ -173,10 +172,9 @@ class FoldIn:
         c = (h * r).sum(1) + scene_offset + self.bias
         return x, c
 
-    def _remember(self, scenes: Sequence, h: torch.Tensor) -> None:
+    def _remember(self, scenes: Sequence, rows: np.ndarray) -> None:
         """Cache h [len(scenes), dim] of ``scenes``. The key is the scene object, which the
         entry keeps alive so its id cannot be reused."""
-        rows = h.detach().double().numpy()
         with self._lock:
             for scene, row in zip(scenes, rows):
                 self._cache[id(scene)] = (scene, row)
@@ -190,10 +188,9 @@ class FoldIn:
             found = {id(s): self._cache[id(s)][1] for s in scenes if id(s) in self._cache}
         missing = list({id(s): s for s in scenes if id(s) not in found}.values())
         if missing:
-            with torch.no_grad():
-                h = self.recommender.model.encode(self.predictor._scene_input(missing))
+            h = self.predictor.encode(missing).astype(np.float64)
             self._remember(missing, h)
-            found.update((id(s), row) for s, row in zip(missing, h.double().numpy()))
+            found.update((id(s), row) for s, row in zip(missing, h))
         return np.stack([found[id(s)] for s in scenes])
 
     def design(self, ratings: Sequence[Rating]) -> tuple:

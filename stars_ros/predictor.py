@@ -17,10 +17,11 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import torch
 
 from .checkpoint import load_checkpoint
 from .errors import SceneGraphError, UnknownActionError
+from .inference import InferenceModel
+from .model import UNKNOWN
 from .scene_graph import RELATIONS, featurise
 from .scene_store import dense_graphs
 
@@ -57,6 +58,9 @@ class Predictor:
         self._action_index = {a: i for i, a in enumerate(self.actions)}
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
+        self._inference = InferenceModel(recommender._require_model())
+        self._stranger = (np.zeros(self._inference.dim, dtype=np.float32), np.float32(0.0))
+        self._scene_rows = np.array([UNKNOWN], dtype=np.int64)  # broadcasts: no scene id, no q_i
 
     @classmethod
     def load(cls, path) -> 'Predictor':
@@ -100,15 +104,20 @@ class Predictor:
         with self._user_models_lock:
             self._user_models = {str(k): v for k, v in models.items()}
 
-    def _scene_input(self, scenes: Sequence, validate: bool = True):
-        if self.input_kind == 'graph':  # the dense form: a few small graphs (see encoders.graph)
+    def _scene_input(self, scenes: Sequence, validate: bool):
+        if self.input_kind == 'graph':
             graphs = [featurise(scene, validate=validate) for scene in scenes]
-            encoder = self.recommender.model.encoder
-            return dense_graphs(graphs, len(RELATIONS) if encoder.uses_edge_type else None)
+            return dense_graphs(graphs, len(RELATIONS) if self.recommender.model.encoder.uses_edge_type else None)
         features = np.asarray(scenes, dtype=np.float32)
         if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
             raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')
-        return torch.from_numpy(features)
+        return features
+
+    def encode(self, scenes: Sequence, validate: bool = True) -> np.ndarray:
+        """h_i [len(scenes), dim] (float32) of scene-graph dicts or tabular feature rows."""
+        if len(scenes) == 0:
+            raise SceneGraphError('no scenes to score')
+        return self._inference.encode(self._scene_input(scenes, validate), len(scenes))
 
     def score(self, user_id, scenes: Sequence, scene_ids: Sequence | None = None,
               validate: bool = True) -> np.ndarray:
@@ -118,18 +127,26 @@ class Predictor:
         ``scene_ids`` optionally name training scenes so their q_i is used. ``validate=False``
         skips the schema check for scenes already validated against it (the node's requests).
         """
-        if len(scenes) == 0:
-            raise SceneGraphError('no scenes to score')
-        scene_ids = [None] * len(scenes) if scene_ids is None else list(scene_ids)
-        users = [None if user_id is None else str(user_id)] * len(scenes)
+        h = self.encode(scenes, validate)
+        scene_rows = self._scene_rows if scene_ids is None else self._scene_rows_of(scene_ids)
+        return self._inference.scores(h, self._user_row(user_id), scene_rows)
+
+    def _scene_rows_of(self, scene_ids: Sequence) -> np.ndarray:
+        index = self.recommender._scene_rows
+        return np.array([UNKNOWN if k is None else index.get(k, UNKNOWN) for k in scene_ids], dtype=np.int64)
+
+    def _user_row(self, user_id) -> tuple:
+        """(p_u, b_u) that scores ``user_id``: folded in, trained, or zero for a stranger."""
+        inference = self._inference
+        if not inference.personalised:
+            return None
         folded = self.user_model(user_id)
-        user_rows = None
         if folded is not None:
-            user_rows = (torch.as_tensor(folded.p, dtype=torch.float32).expand(len(scenes), -1),
-                         torch.full((len(scenes), 1), folded.b, dtype=torch.float32))
-        with torch.no_grad():
-            h = self.recommender._require_model().encode(self._scene_input(scenes, validate))
-        return self.recommender.predict_scores_from_h(users, scene_ids, h, user_rows)
+            return folded.p.astype(np.float32), np.float32(folded.b)
+        row = self.recommender._user_rows.get(str(user_id)) if user_id is not None else None
+        if row is None:
+            return self._stranger
+        return inference.user_rows[row], inference.user_offsets[row]
 
     def _action_columns(self, actions: Sequence[str]) -> list:
         unknown = [a for a in actions if a not in self._action_index]

@@ -35,7 +35,8 @@ def _ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
 
 
 class DenseGraphs(NamedTuple):
-    """A few graphs padded to the largest one, for inference on small scene graphs.
+    """A few graphs padded to the largest one, for inference on small scene graphs
+    (numpy arrays: see ``GraphEncoder.dense_form``).
 
     ``x`` [G, N, F]; ``mask`` [G, N] (real nodes); ``adjacency`` [G, N, N] with
     ``adjacency[g, i, j]`` = number of edges j → i (messages flow to i, as in PyG);
@@ -43,10 +44,10 @@ class DenseGraphs(NamedTuple):
     for. The robot node is node 0 of every graph.
     """
 
-    x: torch.Tensor
-    mask: torch.Tensor
-    adjacency: torch.Tensor
-    relation_adjacency: torch.Tensor | None
+    x: np.ndarray
+    mask: np.ndarray
+    adjacency: np.ndarray
+    relation_adjacency: np.ndarray | None
 
 
 def dense_graphs(graphs: Sequence[SceneGraph], relations: int | None = None) -> DenseGraphs:
@@ -64,8 +65,7 @@ def dense_graphs(graphs: Sequence[SceneGraph], relations: int | None = None) -> 
         np.add.at(adjacency[k], (target, source), 1.0)
         if typed is not None:
             np.add.at(typed[k], (graph.edge_type, target, source), 1.0)
-    return DenseGraphs(torch.from_numpy(x), torch.from_numpy(mask), torch.from_numpy(adjacency),
-                       None if typed is None else torch.from_numpy(typed))
+    return DenseGraphs(x, mask, adjacency, typed)
 
 
 class GraphStore:

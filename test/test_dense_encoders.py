@@ -1,4 +1,5 @@
-"""The dense inference form of every graph backbone computes what its PyG form computes."""
+"""The dense numpy form of every graph backbone (what serving runs) computes what its PyG
+form (what training runs) computes."""
 import numpy as np
 import pytest
 import torch
@@ -44,12 +45,13 @@ def test_dense_equals_sparse_on_random_scenes(name, options):
     graphs = [featurise(random_scene(rng)) for _ in range(40)]
     encoder = _encoder(name, options)
     with torch.no_grad():
-        sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs))))
-        padded = encoder(_dense(encoder, graphs))  # graphs of different sizes in one batch
-        one_by_one = torch.cat([encoder(_dense(encoder, [g])) for g in graphs])
-    assert sparse.shape == padded.shape == (40, 16)
-    assert torch.allclose(padded, sparse, atol=1e-5, rtol=1e-4), (padded - sparse).abs().max()
-    assert torch.allclose(one_by_one, sparse, atol=1e-5, rtol=1e-4)
+        sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
+    dense = encoder.dense_form()
+    padded = dense(_dense(encoder, graphs))  # graphs of different sizes in one batch
+    one_by_one = np.concatenate([dense(_dense(encoder, [g])) for g in graphs])
+    assert sparse.shape == padded.shape == (40, 16) and padded.dtype == np.float32
+    assert np.allclose(padded, sparse, atol=1e-5, rtol=1e-4), np.abs(padded - sparse).max()
+    assert np.allclose(one_by_one, sparse, atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize('name, options', CASES)
@@ -65,9 +67,20 @@ def test_dense_equals_sparse_on_socnav1_scenes(name, options, socnav1):
               for start, count, edge_start, edge_count in zip(starts, counts, edge_starts, edge_counts)]
     encoder = _encoder(name, options, seed=3)
     with torch.no_grad():
-        sparse = encoder(batch)
-        dense = encoder(_dense(encoder, graphs))
-    assert torch.allclose(dense, sparse, atol=1e-5, rtol=1e-4), (dense - sparse).abs().max()
+        sparse = encoder(batch).numpy()
+    dense = encoder.dense_form()(_dense(encoder, graphs))
+    assert np.allclose(dense, sparse, atol=1e-5, rtol=1e-4), np.abs(dense - sparse).max()
+
+
+def test_dense_form_is_a_snapshot_of_the_weights():
+    encoder = _encoder('gat', {'heads': 4})
+    graphs = [featurise(random_scene(np.random.default_rng(5)))]
+    dense = encoder.dense_form()
+    before = dense(_dense(encoder, graphs))
+    with torch.no_grad():
+        encoder.project.weight.add_(1.0)
+    assert np.array_equal(dense(_dense(encoder, graphs)), before)
+    assert not np.allclose(encoder.dense_form()(_dense(encoder, graphs)), before)
 
 
 def _graph(batch, start, count, edge_start, edge_count):
@@ -85,9 +98,9 @@ def test_dense_graphs_layout():
     n = large.num_nodes
     assert dense.x.shape == (2, n, len(NODE_FEATURES)) and dense.mask.shape == (2, n)
     assert dense.mask[0].sum() == small.num_nodes and dense.mask[1].all()
-    assert torch.equal(dense.x[0, small.num_nodes:], torch.zeros(n - small.num_nodes, len(NODE_FEATURES)))
+    assert np.array_equal(dense.x[0, small.num_nodes:], np.zeros((n - small.num_nodes, len(NODE_FEATURES))))
     source, target = small.edge_index
     assert dense.adjacency[0, target[0], source[0]] == 1
     assert dense.adjacency[0].sum() == small.edge_index.shape[1]
-    assert torch.equal(dense.relation_adjacency.sum(1), dense.adjacency)
+    assert np.array_equal(dense.relation_adjacency.sum(1), dense.adjacency)
     assert dense_graphs([small]).relation_adjacency is None

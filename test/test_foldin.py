@@ -91,8 +91,8 @@ def test_folded_in_user_predicts_its_ratings_better(predictor, ratings):
 def test_scene_cache_reuses_encodings_and_is_bounded(predictor, ratings, monkeypatch):
     foldin = FoldIn(predictor, cache_scenes=8)
     calls = []
-    encode = predictor.recommender.model.encode
-    monkeypatch.setattr(predictor.recommender.model, 'encode', lambda inputs: calls.append(1) or encode(inputs))
+    encode = predictor.encode
+    monkeypatch.setattr(predictor, 'encode', lambda scenes: calls.append(1) or encode(scenes))
     scenes = [r.scene for r in ratings]
     first = foldin.encode(scenes[:4])
     assert len(calls) == 1 and np.array_equal(foldin.encode(scenes[:4]), first)  # the same objects: cached

@@ -171,3 +171,18 @@ def test_draft07_translation_refuses_unknown_keywords():
     assert messages._draft07({'prefixItems': [{'type': 'integer'}], 'items': False}) == \
         {'items': [{'type': 'integer'}], 'additionalItems': False}
     assert messages._draft07({'$ref': '#/a', 'minimum': 1}) == {'allOf': [{'$ref': '#/a'}, {'minimum': 1}]}
+
+
+def test_inlined_references_resolve_across_files_and_refuse_recursion():
+    from stars_ros.messages import SCHEMA_BASE, _inline_refs
+    root = {'$id': SCHEMA_BASE + 'x.schema.json', 'type': 'object',
+            'properties': {'graph': {'$ref': 'scene_graph.schema.json'}, 'point': {'$ref': '#/$defs/point'}},
+            '$defs': {'point': {'type': 'number', 'minimum': 0}}}
+    inlined = _inline_refs(root, root, root['$id'])
+    assert inlined['properties']['point'] == {'type': 'number', 'minimum': 0}
+    assert inlined['properties']['graph']['required'] == ['humans', 'room']
+    assert '$ref' not in json.dumps(inlined)
+    loop = {'$id': SCHEMA_BASE + 'loop.schema.json', '$defs': {'node': {'items': {'$ref': '#/$defs/node'}}},
+            '$ref': '#/$defs/node'}
+    with pytest.raises(ValueError, match='recursive'):
+        _inline_refs(loop, loop, loop['$id'])

@@ -3,17 +3,23 @@
 All share ``GraphEncoder``: input projection, ``layers`` residual convolutions, and a
 readout that concatenates the robot node's state with the mean over all nodes (the
 question is how appropriate the *robot's* behaviour is, so its node is kept apart).
-A backbone says which convolution it uses (``init_conv``) and how that convolution reads a
-padded dense batch (``dense_structure``, the matrix its layers multiply by, computed once
-per batch, and ``dense_conv``, with the convolution's own parameters). Training runs PyG's sparse
-convolutions over big batches; serving scores one or a few scenes of ~20 nodes, where the
-dense form computes the same function with a handful of tensor operations instead of
-PyG's per-call bookkeeping (README, "Benchmarks"). ``test/test_dense_encoders.py`` checks
-that both forms agree for every backbone. The dense forms rely on what ``featurise``
-guarantees: no self loops.
+
+Training runs PyG's sparse convolutions over big batches. Serving scores one or a few
+scenes of ~20 nodes, where each tensor operation's fixed cost is the whole cost: PyG's
+per-call bookkeeping, torch's dispatch (~3–6 µs an operation here) and nn.Module calls.
+So every backbone also says how its convolution reads a padded dense numpy batch:
+``dense_weights`` (the convolution's own parameters as float32 arrays, in the layout the
+dense form multiplies by), ``dense_structure`` (the matrix its layers multiply by,
+computed once per batch) and ``dense_conv``. ``GraphEncoder.dense_form`` assembles them
+into a function over a snapshot of the weights (README, "Benchmarks").
+``test/test_dense_encoders.py`` checks that both forms agree for every backbone. The dense
+forms rely on what ``featurise`` guarantees: no self loops.
 """
 from __future__ import annotations
 
+from typing import Callable
+
+import numpy as np
 import torch
 from torch import nn
 from torch_geometric import nn as gnn
@@ -21,6 +27,24 @@ from torch_geometric import nn as gnn
 from ..scene_graph import RELATIONS
 from ..scene_store import DenseGraphs, GraphBatch
 from .base import Encoder, register
+
+
+def _array(tensor: torch.Tensor | None) -> np.ndarray | float:
+    """A parameter as a float32 array (0.0 for an absent bias, which then adds nothing)."""
+    return 0.0 if tensor is None else tensor.detach().to(torch.float32).numpy().copy()
+
+
+def _linear(layer: nn.Module) -> tuple:
+    """(weightᵀ, bias) of a torch or PyG Linear, so that ``x @ w + b`` applies it."""
+    return _array(layer.weight).T.copy(), _array(layer.bias)
+
+
+def _relu(x: np.ndarray) -> np.ndarray:
+    return np.maximum(x, 0.0)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x))
 
 
 class GraphEncoder(Encoder):
@@ -37,17 +61,19 @@ class GraphEncoder(Encoder):
     def init_conv(self, hidden: int, **options) -> nn.Module:
         raise NotImplementedError
 
-    def dense_structure(self, graphs: DenseGraphs) -> torch.Tensor:
+    def dense_weights(self, conv: nn.Module) -> dict:
+        """``conv``'s parameters as float32 arrays, as ``dense_conv`` uses them."""
+        raise NotImplementedError
+
+    def dense_structure(self, graphs: DenseGraphs) -> np.ndarray:
         """What ``dense_conv`` needs of the graphs, shared by all layers (default: adjacency)."""
         return graphs.adjacency
 
-    def dense_conv(self, conv: nn.Module, h: torch.Tensor, structure: torch.Tensor) -> torch.Tensor:
-        """``conv`` applied to node states ``h`` [G, N, hidden] of padded graphs."""
+    def dense_conv(self, weights: dict, h: np.ndarray, structure: np.ndarray) -> np.ndarray:
+        """The convolution applied to node states ``h`` [G, N, hidden] of padded graphs."""
         raise NotImplementedError
 
-    def forward(self, graphs: GraphBatch | DenseGraphs) -> torch.Tensor:
-        if isinstance(graphs, DenseGraphs):
-            return self._forward_dense(graphs)
+    def forward(self, graphs: GraphBatch) -> torch.Tensor:
         h = torch.relu(self.project(graphs.x))
         for conv in self.convs:
             if self.uses_edge_type:
@@ -58,24 +84,34 @@ class GraphEncoder(Encoder):
         pooled = gnn.global_mean_pool(h, graphs.batch, size=graphs.num_graphs)
         return self.readout(torch.cat([h[graphs.root], pooled], dim=1))
 
-    def _forward_dense(self, graphs: DenseGraphs) -> torch.Tensor:
-        h = torch.relu(self.project(graphs.x))
-        structure = self.dense_structure(graphs)
-        for conv in self.convs:
-            h = h + self.drop(torch.relu(self.dense_conv(conv, h, structure)))
-        mask = graphs.mask.unsqueeze(-1).to(h.dtype)  # padding nodes never reach real ones
-        pooled = (h * mask).sum(1) / mask.sum(1)
-        return self.readout(torch.cat([h[:, 0], pooled], dim=1))
+    def dense_form(self) -> Callable[[DenseGraphs], np.ndarray]:
+        """This encoder (in eval mode) as a numpy function of a DenseGraphs batch, over a
+        copy of the current weights: later training does not reach it."""
+        project = _linear(self.project)
+        convs = [self.dense_weights(conv) for conv in self.convs]
+        hidden_layer, output_layer = _linear(self.readout[0]), _linear(self.readout[2])
+
+        def encode(graphs: DenseGraphs) -> np.ndarray:
+            h = _relu(graphs.x @ project[0] + project[1])
+            structure = self.dense_structure(graphs)
+            for weights in convs:
+                h = h + _relu(self.dense_conv(weights, h, structure))
+            mask = graphs.mask[..., None].astype(h.dtype)  # padding nodes never reach real ones
+            pooled = (h * mask).sum(1) / mask.sum(1)
+            state = np.concatenate([h[:, 0], pooled], axis=1)
+            return _relu(state @ hidden_layer[0] + hidden_layer[1]) @ output_layer[0] + output_layer[1]
+
+        return encode
 
 
-def _mean_operator(adjacency: torch.Tensor) -> torch.Tensor:
+def _mean_operator(adjacency: np.ndarray) -> np.ndarray:
     """Rows scaled so that multiplying averages the incoming neighbours (zero without
     any), PyG's aggr='mean'."""
-    return adjacency / adjacency.sum(-1, keepdim=True).clamp(min=1)
+    return adjacency / np.maximum(adjacency.sum(-1, keepdims=True), 1.0)
 
 
-def _with_self_loops(adjacency: torch.Tensor) -> torch.Tensor:
-    return adjacency + torch.eye(adjacency.shape[-1], dtype=adjacency.dtype)
+def _with_self_loops(adjacency: np.ndarray) -> np.ndarray:
+    return adjacency + np.eye(adjacency.shape[-1], dtype=adjacency.dtype)
 
 
 @register('gcn')
@@ -83,13 +119,16 @@ class GCN(GraphEncoder):
     def init_conv(self, hidden):
         return gnn.GCNConv(hidden, hidden)
 
+    def dense_weights(self, conv):
+        return {'weight': _linear(conv.lin)[0], 'bias': _array(conv.bias)}
+
     def dense_structure(self, graphs):
         adjacency = _with_self_loops(graphs.adjacency)
-        scale = adjacency.sum(-1).rsqrt()  # in-degree with the self loop, as gcn_norm
-        return scale.unsqueeze(-1) * adjacency * scale.unsqueeze(-2)
+        scale = 1.0 / np.sqrt(adjacency.sum(-1))  # in-degree with the self loop, as gcn_norm
+        return scale[..., :, None] * adjacency * scale[..., None, :]
 
-    def dense_conv(self, conv, h, structure):
-        return structure @ conv.lin(h) + conv.bias
+    def dense_conv(self, weights, h, structure):
+        return structure @ (h @ weights['weight']) + weights['bias']
 
 
 @register('gin')
@@ -98,8 +137,12 @@ class GIN(GraphEncoder):
         return gnn.GINConv(nn.Sequential(nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, hidden)),
                            train_eps=True)
 
-    def dense_conv(self, conv, h, structure):
-        return conv.nn((1 + conv.eps) * h + structure @ h)
+    def dense_weights(self, conv):
+        return {'eps': float(conv.eps.detach()), 'first': _linear(conv.nn[0]), 'second': _linear(conv.nn[2])}
+
+    def dense_conv(self, weights, h, structure):
+        (w1, b1), (w2, b2) = weights['first'], weights['second']
+        return _relu(((1 + weights['eps']) * h + structure @ h) @ w1 + b1) @ w2 + b2
 
 
 @register('graphsage')
@@ -107,11 +150,15 @@ class GraphSAGE(GraphEncoder):
     def init_conv(self, hidden):
         return gnn.SAGEConv(hidden, hidden)
 
+    def dense_weights(self, conv):
+        return {'neighbours': _linear(conv.lin_l), 'own': _linear(conv.lin_r)}
+
     def dense_structure(self, graphs):
         return _mean_operator(graphs.adjacency)
 
-    def dense_conv(self, conv, h, structure):
-        return conv.lin_l(structure @ h) + conv.lin_r(h)
+    def dense_conv(self, weights, h, structure):
+        (wl, bl), (wr, br) = weights['neighbours'], weights['own']
+        return (structure @ h) @ wl + bl + h @ wr + br
 
 
 @register('ggnn')
@@ -121,9 +168,20 @@ class GGNN(GraphEncoder):
     def init_conv(self, hidden):
         return gnn.GatedGraphConv(hidden, num_layers=1)
 
-    def dense_conv(self, conv, h, structure):
-        messages = structure @ (h @ conv.weight[0])
-        return conv.rnn(messages.reshape(-1, h.shape[-1]), h.reshape(-1, h.shape[-1])).view_as(h)
+    def dense_weights(self, conv):
+        rnn = conv.rnn
+        return {'message': _array(conv.weight[0]), 'input': (_array(rnn.weight_ih).T.copy(), _array(rnn.bias_ih)),
+                'state': (_array(rnn.weight_hh).T.copy(), _array(rnn.bias_hh))}
+
+    def dense_conv(self, weights, h, structure):
+        messages = structure @ (h @ weights['message'])
+        (wi, bi), (wh, bh) = weights['input'], weights['state']
+        gates_in, gates_state = messages @ wi + bi, h @ wh + bh  # torch.nn.GRUCell: reset, update, new
+        reset_in, update_in, new_in = np.split(gates_in, 3, axis=-1)
+        reset_state, update_state, new_state = np.split(gates_state, 3, axis=-1)
+        reset, update = _sigmoid(reset_in + reset_state), _sigmoid(update_in + update_state)
+        candidate = np.tanh(new_in + reset * new_state)
+        return (1 - update) * candidate + update * h
 
 
 @register('rgcn')
@@ -135,15 +193,21 @@ class RGCN(GraphEncoder):
     def init_conv(self, hidden, num_bases=None):
         return gnn.RGCNConv(hidden, hidden, num_relations=len(RELATIONS), num_bases=num_bases)
 
-    def dense_structure(self, graphs):
-        return _mean_operator(graphs.relation_adjacency)  # [G, R, N, N]
-
-    def dense_conv(self, conv, h, structure):
+    def dense_weights(self, conv):
         weight = conv.weight
         if conv.num_bases is not None:
             weight = (conv.comp @ weight.view(conv.num_bases, -1)).view(conv.num_relations, *weight.shape[1:])
-        per_relation = structure @ h.unsqueeze(1)  # [G, R, N, hidden]
-        return torch.einsum('grnh,rhk->gnk', per_relation, weight) + h @ conv.root + conv.bias
+        return {'relations': _array(weight).reshape(-1, weight.shape[-1]),  # [R * hidden, hidden]
+                'root': _array(conv.root), 'bias': _array(conv.bias)}
+
+    def dense_structure(self, graphs):
+        return _mean_operator(graphs.relation_adjacency)  # [G, R, N, N]
+
+    def dense_conv(self, weights, h, structure):
+        g, n, hidden = h.shape
+        per_relation = structure @ h[:, None]  # [G, R, N, hidden]
+        stacked = per_relation.transpose(0, 2, 1, 3).reshape(g, n, -1)  # [G, N, R * hidden]
+        return stacked @ weights['relations'] + h @ weights['root'] + weights['bias']
 
 
 @register('gat')
@@ -155,18 +219,27 @@ class GAT(GraphEncoder):
             raise ValueError(f'hidden ({hidden}) must be divisible by heads ({heads})')
         return gnn.GATConv(hidden, hidden // heads, heads=heads)
 
+    def dense_weights(self, conv):
+        heads, channels = conv.heads, conv.out_channels
+        weight = _linear(conv.lin)[0]  # [hidden, heads * channels]
+        per_head = weight.reshape(-1, heads, channels)
+        attention = np.concatenate([(per_head * _array(conv.att_src)).sum(-1),  # folded into one product:
+                                    (per_head * _array(conv.att_dst)).sum(-1)], axis=1)  # [hidden, 2 heads]
+        return {'weight': weight, 'attention': attention, 'bias': _array(conv.bias), 'heads': heads,
+                'slope': float(conv.negative_slope)}
+
     def dense_structure(self, graphs):
         # GATConv adds one self loop; log gives -inf off the graph and log(k) for k parallel edges
-        return torch.log(_with_self_loops(graphs.adjacency)).unsqueeze(-1)
+        with np.errstate(divide='ignore'):
+            return np.log(_with_self_loops(graphs.adjacency))[:, None]  # [G, 1, N (to), N (from)]
 
-    def dense_conv(self, conv, h, structure):
+    def dense_conv(self, weights, h, structure):
         g, n, _ = h.shape
-        heads, channels = conv.heads, conv.out_channels
-        values = conv.lin(h).view(g, n, heads, channels)
-        source = (values * conv.att_src).sum(-1)  # [G, N, heads]
-        target = (values * conv.att_dst).sum(-1)
-        logits = nn.functional.leaky_relu(target.unsqueeze(2) + source.unsqueeze(1), conv.negative_slope)
-        logits = logits + structure
-        weights = torch.softmax(logits, dim=2).permute(0, 3, 1, 2)  # [G, heads, N (to), N (from)]
-        out = weights @ values.transpose(1, 2)  # [G, heads, N, channels]
-        return out.transpose(1, 2).reshape(g, n, heads * channels) + conv.bias
+        heads = weights['heads']
+        values = (h @ weights['weight']).reshape(g, n, heads, -1).transpose(0, 2, 1, 3)  # [G, heads, N, channels]
+        scores = (h @ weights['attention']).transpose(0, 2, 1)  # [G, 2 heads, N]
+        logits = scores[:, heads:, :, None] + scores[:, :heads, None, :]  # target + source: [G, heads, to, from]
+        logits = np.where(logits > 0, logits, weights['slope'] * logits) + structure
+        logits = np.exp(logits - logits.max(-1, keepdims=True))
+        attention = logits / logits.sum(-1, keepdims=True)
+        return (attention @ values).transpose(0, 2, 1, 3).reshape(g, n, -1) + weights['bias']

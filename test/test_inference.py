@@ -1,0 +1,65 @@
+"""The numpy serving arithmetic (stars_ros.inference) against the hand-checked StARS
+prediction and against StarsModel on a trained checkpoint."""
+import numpy as np
+import pytest
+import torch
+
+from stars_ros.inference import InferenceModel
+from stars_ros.model import UNKNOWN
+from stars_ros.predictor import Predictor
+from stars_ros.scene_graph import featurise
+from stars_ros.scene_source import read_scenes
+from stars_ros.scene_store import GraphStore
+from test_model import small_model
+
+H = np.array([[0.5, 1.0]], dtype=np.float32)
+
+
+def test_scores_by_hand():
+    inference = InferenceModel(small_model())
+    user_0 = (inference.user_rows[0], inference.user_offsets[0])
+    # the case of test_model.test_prediction_by_hand: user 0, scene 1 -> (1.8, -6.2)
+    assert inference.scores(H, user_0, np.array([1])).tolist() == [pytest.approx([1.8, -6.2])]
+    # stranger, new scene: hᵀ r_a + b -> (0.6, 0.1); known user, new scene -> (1.4, -0.6)
+    stranger = (np.zeros(2, np.float32), np.float32(0))
+    assert inference.scores(H, stranger, np.array([UNKNOWN])).tolist() == [pytest.approx([0.6, 0.1])]
+    assert inference.scores(H, user_0, np.array([UNKNOWN])).tolist() == [pytest.approx([1.4, -0.6])]
+
+
+def test_rating_scale_and_batches_of_mixed_scenes():
+    model = small_model()
+    model.target_mean.copy_(torch.tensor([3.0, 1.0]))
+    model.target_std.copy_(torch.tensor([2.0, 0.5]))
+    inference = InferenceModel(model)
+    h = np.array([[0.5, 1.0], [0.5, 1.0]], dtype=np.float32)
+    user_0 = (inference.user_rows[0], inference.user_offsets[0])
+    scores = inference.scores(h, user_0, np.array([1, UNKNOWN]))
+    assert scores.dtype == np.float64
+    assert scores.tolist() == [pytest.approx([1.8 * 2 + 3, -6.2 * 0.5 + 1]), pytest.approx([1.4 * 2 + 3, -0.6 * 0.5 + 1])]
+
+
+def test_base_and_mf_variants_match_the_model():
+    for variant in ('base', 'mf'):
+        model = small_model(variant)
+        inference = InferenceModel(model)
+        features = np.random.default_rng(0).normal(size=(3, 3)).astype(np.float32)
+        with torch.no_grad():
+            h = model.encode(torch.from_numpy(features))
+            expected = model.to_rating_scale(model(torch.tensor([0] * 3), torch.tensor([1] * 3), h)).numpy()
+        h_np = inference.encode(features, 3)
+        rows = (inference.user_rows[0], inference.user_offsets[0]) if variant == 'mf' else None
+        assert np.allclose(inference.scores(h_np, rows, np.array([1, 1, 1])), expected, atol=1e-5)
+
+
+def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoint, socnav1_root):
+    predictor = Predictor.load(tiny_checkpoint)
+    recommender = predictor.recommender
+    scenes = read_scenes(socnav1_root / 'raw' / 'b.jsonl')[:60]
+    keys = [s['identifier'] for s in scenes]  # training scenes: their q_i and b_i apply
+    assert sum(k in recommender._scene_rows for k in keys) > 10
+    batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
+    for user in (recommender.users[0], 'nobody'):
+        expected = recommender.predict_scores([user] * len(scenes), keys, batch)
+        assert np.allclose(predictor.score(user, scenes, keys), expected, atol=1e-5)
+    assert np.allclose(predictor.score('nobody', scenes),
+                       recommender.predict_scores(['nobody'] * len(scenes), [None] * len(scenes), batch), atol=1e-5)
