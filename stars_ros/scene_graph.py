@@ -72,26 +72,31 @@ def validate_scene(scene) -> None:
         raise SceneGraphError(f'scene graph invalid at {where}: {detail}') from None
 
 
-def _entities(items):
-    if not items:
-        return np.zeros((0, 3)), []
-    table = np.array([[e['xPos'], e['yPos'], e['orientation']] for e in items], dtype=np.float64)
-    ids = [e['id'] for e in items]
-    return table, ids
+def _geometry_row(x: float, y: float, orientation: float, size: float) -> list:
+    """Geometry columns of a point (x, y) in metres, as ``GEOMETRY_FEATURES``."""
+    distance = math.hypot(x, y)
+    if distance > 0:
+        return [x, y, distance, x / distance, y / distance, math.sin(orientation), math.cos(orientation), size]
+    return [x, y, 0.0, 0.0, 0.0, math.sin(orientation), math.cos(orientation), size]
 
 
-def _geometry(xy, orientation_rad, size):
-    """Geometry columns for points ``xy`` [n, 2] in metres."""
-    distance = np.hypot(xy[:, 0], xy[:, 1])
-    safe = np.where(distance > 0, distance, 1.0)
-    sin_bearing = np.where(distance > 0, xy[:, 0] / safe, 0.0)
-    cos_bearing = np.where(distance > 0, xy[:, 1] / safe, 0.0)
-    return np.column_stack([xy, distance, sin_bearing, cos_bearing,
-                            np.sin(orientation_rad), np.cos(orientation_rad), size])
+def _checked_entities(items) -> list:
+    """(id, x m, y m, orientation rad) of the humans or objects of a scene."""
+    entities = []
+    for entity in items or ():
+        values = (entity['xPos'], entity['yPos'], entity['orientation'])
+        if not all(math.isfinite(v) for v in values):
+            raise SceneGraphError('scene graph holds a non-finite number (NaN or infinity)')
+        entities.append((entity['id'], values[0] / CENTIMETRES_PER_METRE, values[1] / CENTIMETRES_PER_METRE,
+                         math.radians(values[2])))
+    return entities
 
 
 def featurise(scene: dict, validate: bool = True) -> SceneGraph:
     """Build the typed graph of ``scene``; deterministic for a given input.
+
+    Plain Python over the few dozen nodes of a scene, one array at the end: numpy's fixed
+    cost per call made a vectorised version several times slower at this size.
 
     Raises:
         SceneGraphError: the scene breaks the schema, holds non-finite numbers, repeats an
@@ -99,24 +104,19 @@ def featurise(scene: dict, validate: bool = True) -> SceneGraph:
     """
     if validate:
         validate_scene(scene)
-    humans, human_ids = _entities(scene.get("humans"))
-    objects, object_ids = _entities(scene.get("objects"))
-    room = np.asarray(scene['room'], dtype=np.float64)
-    if not (np.isfinite(humans).all() and np.isfinite(objects).all() and np.isfinite(room).all()):
+    humans = _checked_entities(scene.get('humans'))
+    objects = _checked_entities(scene.get('objects'))
+    room = [(float(x), float(y)) for x, y in scene['room']]
+    if not all(math.isfinite(x) and math.isfinite(y) for x, y in room):
         raise SceneGraphError('scene graph holds a non-finite number (NaN or infinity)')
-    ids = human_ids + object_ids
+    ids = [e[0] for e in humans] + [e[0] for e in objects]
     if len(set(ids)) != len(ids):
         raise SceneGraphError('scene graph repeats a human or object id')
-
-    if len(room) > 1 and np.array_equal(room[0], room[-1]):
+    if len(room) > 1 and room[0] == room[-1]:
         room = room[:-1]  # closed polygon: the first point is repeated last
     if len(room) < 3:
         raise SceneGraphError('room polygon needs at least 3 distinct points')
-    room_m = room / CENTIMETRES_PER_METRE
-    wall_start, wall_end = room_m, np.roll(room_m, -1, axis=0)
-    wall_vec = wall_end - wall_start
-    shoelace = 0.5 * abs(np.dot(room_m[:, 0], np.roll(room_m[:, 1], -1))
-                         - np.dot(room_m[:, 1], np.roll(room_m[:, 0], -1)))
+    room = [(x / CENTIMETRES_PER_METRE, y / CENTIMETRES_PER_METRE) for x, y in room]
 
     index_of = {entity_id: 2 + k for k, entity_id in enumerate(ids)}
     pairs = set()
@@ -127,55 +127,35 @@ def featurise(scene: dict, validate: bool = True) -> SceneGraph:
             pairs.add((min(source, target), max(source, target)))
     pairs = sorted(pairs)
 
-    n_h, n_o, n_w, n_i = len(humans), len(objects), len(room_m), len(pairs)
+    n_h, n_o, n_w, n_i = len(humans), len(objects), len(room), len(pairs)
+    area = 0.5 * abs(sum(x0 * y1 - y0 * x1 for (x0, y0), (x1, y1) in zip(room, room[1:] + room[:1])))
+    geometry = [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0],  # the robot: origin, facing +y
+                _geometry_row(sum(x for x, _ in room) / n_w, sum(y for _, y in room) / n_w, 0.0, math.sqrt(area))]
+    geometry += [_geometry_row(x, y, orientation, 0.0) for _, x, y, orientation in humans + objects]
+    for (x0, y0), (x1, y1) in zip(room, room[1:] + room[:1]):
+        dx, dy = x1 - x0, y1 - y0
+        geometry.append(_geometry_row((x0 + x1) / 2, (y0 + y1) / 2, math.atan2(dx, dy), math.hypot(dx, dy)))
+    entities = humans + objects
+    for first, second in pairs:
+        _, xa, ya, _ = entities[index_of[first] - 2]
+        _, xb, yb, _ = entities[index_of[second] - 2]
+        dx, dy = xb - xa, yb - ya
+        geometry.append(_geometry_row((xa + xb) / 2, (ya + yb) / 2, math.atan2(dx, dy), math.hypot(dx, dy)))
     counts = (1, 1, n_h, n_o, n_w, n_i)
-    node_type = np.repeat(np.arange(len(NODE_TYPES)), counts)
+    x = np.zeros((sum(counts), len(NODE_FEATURES)), dtype=np.float32)
+    x[np.arange(len(x)), np.repeat(np.arange(len(NODE_TYPES)), counts)] = 1.0
+    x[:, len(NODE_TYPES):] = geometry
 
-    entity_xy = np.concatenate([humans[:, :2], objects[:, :2]]) / CENTIMETRES_PER_METRE
-    entity_orientation = np.radians(np.concatenate([humans[:, 2], objects[:, 2]]))
-    if n_i:
-        a = entity_xy[[index_of[p[0]] - 2 for p in pairs]]
-        b = entity_xy[[index_of[p[1]] - 2 for p in pairs]]
-        link_vec = b - a
-        interaction_xy = (a + b) / 2
-    else:
-        link_vec = interaction_xy = np.zeros((0, 2))
-
-    geometry = np.concatenate([
-        np.zeros((1, len(GEOMETRY_FEATURES))) + _robot_geometry(),
-        _geometry(room_m.mean(axis=0, keepdims=True), np.zeros(1), np.array([math.sqrt(shoelace)])),
-        _geometry(entity_xy, entity_orientation, np.zeros(n_h + n_o)),
-        _geometry((wall_start + wall_end) / 2, np.arctan2(wall_vec[:, 0], wall_vec[:, 1]),
-                  np.hypot(wall_vec[:, 0], wall_vec[:, 1])),
-        _geometry(interaction_xy, np.arctan2(link_vec[:, 0], link_vec[:, 1]),
-                  np.hypot(link_vec[:, 0], link_vec[:, 1])),
-    ])
-    x = np.concatenate([np.eye(len(NODE_TYPES))[node_type], geometry], axis=1).astype(np.float32)
-
-    human_nodes = np.arange(2, 2 + n_h)
-    object_nodes = np.arange(2 + n_h, 2 + n_h + n_o)
-    wall_nodes = np.arange(2 + n_h + n_o, 2 + n_h + n_o + n_w)
-    interaction_nodes = np.arange(2 + n_h + n_o + n_w, 2 + n_h + n_o + n_w + n_i)
-    is_object = set(object_ids)
-    links_h = [(interaction_nodes[k], index_of[e]) for k, p in enumerate(pairs) for e in p if e not in is_object]
-    links_o = [(interaction_nodes[k], index_of[e]) for k, p in enumerate(pairs) for e in p if e in is_object]
-    groups = [
-        ([0], [1]),
-        (np.zeros(n_h, int), human_nodes), (np.zeros(n_o, int), object_nodes), (np.zeros(n_w, int), wall_nodes),
-        (np.ones(n_h, int), human_nodes), (np.ones(n_o, int), object_nodes), (np.ones(n_w, int), wall_nodes),
-        tuple(np.array(links_h, dtype=int).reshape(-1, 2).T),
-        tuple(np.array(links_o, dtype=int).reshape(-1, 2).T),
-    ]
-    sources = np.concatenate([np.asarray(g[0], dtype=np.int64) for g in groups])
-    targets = np.concatenate([np.asarray(g[1], dtype=np.int64) for g in groups])
-    types = np.repeat(np.arange(len(RELATIONS)), [len(g[0]) for g in groups])
-    edge_index = np.stack([np.concatenate([sources, targets]), np.concatenate([targets, sources])])
-    edge_type = np.concatenate([types, types])
+    first_h, first_o, first_w, first_i = 2, 2 + n_h, 2 + n_h + n_o, 2 + n_h + n_o + n_w
+    humans_, objects_, walls = range(first_h, first_o), range(first_o, first_w), range(first_w, first_i)
+    is_object = {e[0] for e in objects}
+    links_h = [(first_i + k, index_of[e]) for k, p in enumerate(pairs) for e in p if e not in is_object]
+    links_o = [(first_i + k, index_of[e]) for k, p in enumerate(pairs) for e in p if e in is_object]
+    groups = [[(0, 1)], [(0, n) for n in humans_], [(0, n) for n in objects_], [(0, n) for n in walls],
+              [(1, n) for n in humans_], [(1, n) for n in objects_], [(1, n) for n in walls], links_h, links_o]
+    forward = [edge for group in groups for edge in group]
+    types = [relation for relation, group in enumerate(groups) for _ in group]
+    edges = np.array(forward, dtype=np.int64).reshape(-1, 2).T
+    edge_index = np.concatenate([edges, edges[::-1]], axis=1)
+    edge_type = np.array(types + types, dtype=np.int64)
     return SceneGraph(x=x, edge_index=edge_index, edge_type=edge_type)
-
-
-def _robot_geometry():
-    """The robot sits at the origin facing +y: orientation 0, no bearing, no size."""
-    row = np.zeros(len(GEOMETRY_FEATURES))
-    row[GEOMETRY_FEATURES.index('cos_orientation')] = 1.0
-    return row
