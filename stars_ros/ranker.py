@@ -5,19 +5,25 @@ publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` and ``/diagn
 serves ``~/reload``. See README.md ("The ranker node") and docs/personalisation.md. Run with
 ``ros2 run stars_ros ranker`` or ``python -m stars_ros.ranker --ros-args -p checkpoint:=PATH``.
 
-Threads: the executor thread parses and validates messages (cheap) and queues scene
-requests; a worker thread scores everything queued in one batch with one model snapshot and
-publishes the rankings. So the DDS queue is drained while the model runs, and ``~/reload``
-swaps the model between two batches: every ranking is scored by exactly one checkpoint,
-the one whose fingerprint it carries.
+Threads: the executor thread does the serving. A scene callback takes every request
+already waiting on stars/scene, validates and queues them (beyond ``queue_depth`` waiting
+they are refused as ``overload``), and scores up to ``max_batch`` of them in one pass with
+one model snapshot; a guard condition brings the executor back for the rest once other
+ready callbacks (feedback, ``~/reload``, parameters) have had their turn. Handing requests
+to a worker thread cost ~0.7 ms a request in waiting for the GIL while the executor went
+round its wait set (README, "Benchmarks"). ``~/reload`` runs between two batches, so every
+ranking is scored by exactly one checkpoint, the one whose fingerprint it carries. The
+callbacks share the node's default, mutually exclusive callback group, so a
+multi-threaded executor keeps this order too.
 
 Online fold-in: accepted feedback on a scene the node ranked (its request text remembered
 in a bounded LRU map: strings cost the garbage collector nothing, parsed JSON would) is
-added to that user's history (bounded: foldin.FeedbackHistories), and the worker re-solves
-the user's (p_u, b_u) (stars_ros.foldin) after the batch it is serving, so the ranking of
-others waits for at most one solve. The result goes into the predictor's overlay (swapped whole, so a batch
-never sees half an update), on stars/user_model (recorded), and into ``user_models.json``
-in the record folder, which a restart with the same checkpoint restores.
+added to that user's history (bounded: foldin.FeedbackHistories), and the executor
+re-solves the user's (p_u, b_u) (stars_ros.foldin) when no scene waits, one user per
+turn, so the ranking of others waits for at most one solve (~2 ms). The result goes into
+the predictor's overlay (swapped whole), on stars/user_model (recorded), and into
+``user_models.json`` in the record folder (written by its own thread, so an fsync never
+holds up serving), which a restart with the same checkpoint restores.
 """
 from __future__ import annotations
 
@@ -126,12 +132,10 @@ class RankerNode(Node):
         self._strangers_reported = set()
         self._period = {}  # kind -> (count, last detail) since the last diagnostics
         self._last_log = {}
-        self._queue = collections.deque()
-        self._wake = threading.Condition()
-        self._running = True
+        self._queue = collections.deque()  # Pending requests (executor thread only)
         self._scenes = collections.OrderedDict()  # scene_id -> request text (executor thread only)
         self._histories = FeedbackHistories(self.params['fold_in_max_ratings'], self.params['fold_in_max_users'])
-        self._fold_pending = collections.OrderedDict()  # users to re-solve; guarded by self._wake
+        self._fold_pending = collections.OrderedDict()  # users to re-solve (executor thread only)
         self._foldin = self._fold_in_model(self.predictor)
 
         depth = self.params['queue_depth']
@@ -150,18 +154,17 @@ class RankerNode(Node):
         self.state_path = Path(self.params['record_folder']).expanduser() / STATE_FILE \
             if self.params['record_folder'] else None
         self._restore_user_models()
-        self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
+        self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
         self.create_subscription(String, 'stars/user_id', self._on_user_id, latched)
         self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
         self.create_service(Trigger, '~/reload', self._on_reload)
         self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
-        self._worker = threading.Thread(target=self._work, name='stars-ranker-worker', daemon=True)
-        self._worker.start()
-        self._save_wanted = threading.Event()  # the state file is written by its own thread:
+        self._more_work = self.create_guard_condition(self._work)
+        self._save_wanted = threading.Event()  # the state file is written by its own thread,
         self._closing = threading.Event()
         self._rating_texts = {}  # id(Rating) -> (Rating, its JSON); the state writer's cache
         self._saver = threading.Thread(target=self._save_loop, name='stars-ranker-state', daemon=True)
-        self._saver.start()  # an fsync never holds up the worker
+        self._saver.start()  # so an fsync never holds up serving
 
     # -- parameters ----------------------------------------------------------------------
     def _on_set_parameters(self, changed) -> SetParametersResult:
@@ -269,27 +272,40 @@ class RankerNode(Node):
 
     # -- callbacks (executor thread) -----------------------------------------------------
     def _on_scene(self, msg: String):
+        """Queue this request and those already waiting behind it (at most queue_depth per
+        call, so a flood cannot keep the executor from serving), then serve a batch."""
+        self._accept_scene(msg.data)
+        for _ in range(self.params['queue_depth']):
+            msg = self._take_waiting_scene()
+            if msg is None:
+                break
+            self._accept_scene(msg.data)
+        self._work()
+
+    def _take_waiting_scene(self) -> String | None:
+        """The next message waiting on stars/scene, taken as the executor takes it (None: none)."""
+        subscription = self._scene_subscription
+        with subscription.handle:
+            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+        return None if taken is None else taken[0]
+
+    def _accept_scene(self, text: str):
         arrived = time.perf_counter_ns()
         try:
-            request = messages.parse_scene_request(msg.data, self.params['max_message_bytes'])
+            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
         except messages.BadMessage as error:
             self.report(error.kind, str(error), self.topics['stars/scene'])
             return
-        self._record('stars/scene', msg.data)
-        self._scenes[request.scene_id] = msg.data
+        self._record('stars/scene', text)
+        self._scenes[request.scene_id] = text
         self._scenes.move_to_end(request.scene_id)
         if len(self._scenes) > SCENE_MEMORY:
             self._scenes.popitem(last=False)
-        with self._wake:
-            if len(self._queue) >= self.params['queue_depth']:
-                overflow = True
-            else:
-                overflow = False
-                self._queue.append(Pending(request, request.user_id or self._user_id, arrived))
-                self._wake.notify()
-        if overflow:
+        if len(self._queue) >= self.params['queue_depth']:
             self.report('overload', f"{self.params['queue_depth']} requests already wait to be scored; "
                         'this one is dropped', self.topics['stars/scene'], request.scene_id)
+            return
+        self._queue.append(Pending(request, request.user_id or self._user_id, arrived))
 
     def _on_user_id(self, msg: String):
         try:
@@ -338,18 +354,13 @@ class RankerNode(Node):
             self.report('unknown_scene', rating, topic, feedback.scene_id)
             return
         self._forget(self._histories.add(feedback.user_id, rating))
-        with self._wake:
-            self._fold_pending[feedback.user_id] = None
-            self._wake.notify()
+        self._fold_pending[feedback.user_id] = None
+        self._more_work.trigger()
 
     def _fold_in(self, user_id: str):
-        """Re-solve ``user_id`` from their history against the current model (worker thread)."""
+        """Re-solve ``user_id`` from their history against the current model."""
         predictor, foldin = self.predictor, self._foldin
         if foldin is None:
-            return
-        if foldin.predictor is not predictor:  # a reload is half-way: the next round has both
-            with self._wake:
-                self._fold_pending[user_id] = None
             return
         ratings = self._histories.ratings(user_id)
         if not ratings or len(ratings) < self.params['fold_in_min_ratings']:
@@ -361,8 +372,6 @@ class RankerNode(Node):
             if not ratings:
                 return
             model = foldin.fit(ratings, user_id, self.params['fold_in_regularisation'])
-        if user_id not in self._histories:  # evicted while it was being solved
-            return
         predictor.set_user_model(user_id, model)
         payload = messages.dumps(messages.user_model_payload(user_id, model, predictor.fingerprint))
         self.user_model_pub.publish(String(data=payload))
@@ -473,11 +482,9 @@ class RankerNode(Node):
         """After a reload: users the new checkpoint was refit on keep only the feedback it did
         not absorb; everyone with a history left is re-solved against the new model."""
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
-        users = self._histories.absorb(absorbed)
-        with self._wake:
-            for user_id in users:
-                self._fold_pending[user_id] = None
-            self._wake.notify()
+        for user_id in self._histories.absorb(absorbed):
+            self._fold_pending[user_id] = None
+        self._more_work.trigger()
 
     def _on_reload(self, request, response):
         try:
@@ -488,7 +495,7 @@ class RankerNode(Node):
             response.success, response.message = False, str(error)
             return response
         self._foldin = self._fold_in_model(predictor)
-        self.predictor, self.checkpoint_path = predictor, path  # the worker picks it up at its next batch
+        self.predictor, self.checkpoint_path = predictor, path  # from the next batch on
         self._carry_user_models(predictor)
         self._strangers_reported = set()  # who is a stranger depends on the model
         response.success = True
@@ -496,25 +503,18 @@ class RankerNode(Node):
         self.get_logger().info(response.message)
         return response
 
-    # -- worker thread -------------------------------------------------------------------
+    # -- serving (executor thread) -------------------------------------------------------
     def _work(self):
-        while True:
-            with self._wake:
-                while self._running and not self._queue and not self._fold_pending:
-                    self._wake.wait()
-                if not self._running:
-                    return
-                batch = [self._queue.popleft() for _ in range(min(len(self._queue), self.params['max_batch']))]
-                user_id = self._fold_pending.popitem(last=False)[0] if self._fold_pending else None
-            try:
-                if batch:
-                    self._serve(batch)
-                if user_id is not None:  # one solve between two batches: others wait at most that long
-                    self._fold_in(user_id)
-            except Exception as error:  # noqa: BLE001 - the node must keep serving
-                if not (self._running and self.context.ok()):
-                    return  # shutting down: publishers are gone
-                self.report('internal', f'{type(error).__name__}: {error}')
+        """One batch of queued requests, else one fold-in solve; comes back for the rest."""
+        try:
+            if self._queue:
+                self._serve([self._queue.popleft() for _ in range(min(len(self._queue), self.params['max_batch']))])
+            elif self._fold_pending:
+                self._fold_in(self._fold_pending.popitem(last=False)[0])
+        except Exception as error:  # noqa: BLE001 - the node must keep serving
+            self.report('internal', f'{type(error).__name__}: {error}')
+        if self._queue or self._fold_pending:
+            self._more_work.trigger()
 
     def _serve(self, batch):
         predictor, top_k = self.predictor, self.params['top_k']
@@ -549,12 +549,8 @@ class RankerNode(Node):
                     'population offsets (reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
 
     def close(self):
-        """Stop the worker and finish the recording (clean shutdown)."""
-        with self._wake:
-            self._running = False
-            waiting = len(self._queue)
-            self._wake.notify_all()
-        self._worker.join(timeout=10)
+        """Finish the state file and the recording (clean shutdown)."""
+        waiting = len(self._queue)
         wanted = self._save_wanted.is_set()
         self._closing.set()
         self._save_wanted.set()
