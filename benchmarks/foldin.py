@@ -12,7 +12,8 @@
    the streamer's rankings is followed by a feedback rating, with ``fold_in`` off (the
    feedback is validated and journaled with an fsync, as before this feature); phase C: the
    same with ``fold_in`` on, so the node also folds every rating in. Latency of 'other'
-   (send -> ranking received) in each phase, same run, same node: C − B is what fold-in
+   (send -> the ranking reaches the client's subscription callback) in each phase, same run,
+   same node: C − B is what fold-in
    adds, B − A what recording feedback adds.
 """
 from __future__ import annotations
@@ -76,6 +77,15 @@ def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
     client = RosClient(domain)
     models = []
     client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    arrived = {}  # scene_id -> when its ranking reached the client's callback (perf_counter)
+
+    def on_ranking(msg):
+        now = time.perf_counter()
+        with client._changed:
+            arrived[json.loads(msg.data)['scene_id']] = now
+            client._changed.notify_all()
+
+    client.node.create_subscription(String, '/stars/ranking', on_ranking, RELIABLE)
     with tempfile.TemporaryDirectory() as records:
         process = start_node('stars_ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': records},
                              Path(records) / 'ranker.log')
@@ -90,7 +100,7 @@ def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
                                              ('feedback_fold_in_on', True, True)):
                 if not client.set_parameters('/ranker', {'fold_in': fold_in})[0].successful:
                     raise RuntimeError('could not set fold_in')
-                results[phase] = run_phase(client, models, scenes, stream_scenes, phase, feedback, args)
+                results[phase] = run_phase(client, arrived, models, scenes, stream_scenes, phase, feedback, args)
             results['folded_in_updates'] = len(models)
             stop(process, 2)
         finally:
@@ -100,7 +110,7 @@ def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
     return results
 
 
-def run_phase(client, models, scenes, stream_scenes, phase: str, feedback: bool, args) -> dict:
+def run_phase(client, arrived, models, scenes, stream_scenes, phase: str, feedback: bool, args) -> dict:
     stop_streaming = threading.Event()
     streamed = []
 
@@ -111,7 +121,7 @@ def run_phase(client, models, scenes, stream_scenes, phase: str, feedback: bool,
             scene = stream_scenes[k % len(stream_scenes)]
             scene_id = f'{phase}-stream-{k}'
             client.scene({'scene_id': scene_id, 'user_id': 'streamer', 'graph': scene})
-            if client.wait(lambda: client.ranking_for(scene_id) is not None, 5) and feedback:
+            if client.wait(lambda: scene_id in arrived, 5) and feedback:
                 client.feedback({'user_id': 'streamer', 'scene_id': scene_id, 'action': 'navigate',
                                  'score': scene['score'] / 100})
             streamed.append(scene_id)
@@ -126,10 +136,11 @@ def run_phase(client, models, scenes, stream_scenes, phase: str, feedback: bool,
         time.sleep(0.5)
         for k in range(args.requests):
             scene_id = f'{phase}-other-{k}'
+            text = json.dumps({'scene_id': scene_id, 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
             sent = time.perf_counter()
-            client.scene({'scene_id': scene_id, 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
-            if client.wait(lambda: client.ranking_for(scene_id) is not None, 5):
-                latencies.append((time.perf_counter() - sent) * 1e3)
+            client.scene(text)
+            if client.wait(lambda: scene_id in arrived, 5):
+                latencies.append((arrived[scene_id] - sent) * 1e3)
             time.sleep(args.gap)
     finally:
         stop_streaming.set()

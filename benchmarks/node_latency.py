@@ -8,7 +8,11 @@ default checkpoint, recording on) and an echo node with the same QoS that republ
 scene request unchanged on stars/ranking (a trivial callback, replies at least as large as
 the ranker's). A client in this process sends real SocNav1 scenes (one request per scene,
 user id included) and times scene → ranking:
-  * latency: one request in flight at a time; p50 / p99 / max over ``--latency-count``;
+  * latency: one request in flight at a time, each sent as soon as the previous one is
+    answered; p50 / p99 / max over ``--latency-count``;
+  * paced latency: the same, but one request every ``--paced-period`` seconds (100 Hz by
+    default, a perception rate): between two requests every thread of both processes goes
+    idle, and on this VM waking them is part of what a robot's request costs;
   * throughput: for each of ``--rates`` (per second; 0: as fast as the client can), a burst
     of ``--burst`` requests; the sustained rate = replies per second between the first and
     the last reply, the number lost (no reply within 10 s of the last send) and the latency
@@ -133,12 +137,9 @@ def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dic
             client.wait_for(scene_id, 5.0)
         client.processing_ms.clear()
 
-        latencies = []
-        for scene_id, text in requests(scenes, f'{name}-lat', args.latency_count):
-            sent = client.send(text)
-            if client.wait_for(scene_id, 5.0):
-                latencies.append((client.received[scene_id] - sent) * 1e3)
+        latencies = one_at_a_time(client, requests(scenes, f'{name}-lat', args.latency_count), 0.0)
         processing = list(client.processing_ms)
+        paced = one_at_a_time(client, requests(scenes, f'{name}-paced', args.paced_count), args.paced_period)
 
         bursts = [run_burst(client, requests(scenes, f'{name}-burst-{rate:g}', args.burst), rate)
                   for rate in args.rates]
@@ -147,12 +148,29 @@ def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dic
         process.terminate()
         process.wait(timeout=30)
     return {
-        'latency_ms': {'p50': float(np.percentile(latencies, 50)), 'p99': float(np.percentile(latencies, 99)),
-                       'max': float(np.max(latencies)), 'count': len(latencies),
-                       'timeouts': args.latency_count - len(latencies)},
+        'latency_ms': summary(latencies, args.latency_count),
+        'paced_latency_ms': summary(paced, args.paced_count),
         'node_processing_ms_p50': float(np.percentile(processing, 50)) if processing else None,
         'bursts': bursts,
     }
+
+
+def one_at_a_time(client, burst: list, period: float) -> list:
+    """Latencies (ms) of ``burst`` sent one at a time, each ``period`` s after the previous
+    was sent (0: as soon as it is answered)."""
+    latencies = []
+    for scene_id, text in burst:
+        sent = client.send(text)
+        if client.wait_for(scene_id, 5.0):
+            latencies.append((client.received[scene_id] - sent) * 1e3)
+        if period:
+            time.sleep(max(0.0, sent + period - time.perf_counter()))
+    return latencies
+
+
+def summary(latencies: list, sent: int) -> dict:
+    return {'p50': float(np.percentile(latencies, 50)), 'p99': float(np.percentile(latencies, 99)),
+            'max': float(np.max(latencies)), 'count': len(latencies), 'timeouts': sent - len(latencies)}
 
 
 def run_burst(client, burst: list, rate: float) -> dict:
@@ -236,6 +254,8 @@ def main(argv=None) -> int:
     parser.add_argument('--checkpoint', default='', help='ranker checkpoint (default: the packaged model)')
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--latency-count', type=int, default=1000)
+    parser.add_argument('--paced-count', type=int, default=500)
+    parser.add_argument('--paced-period', type=float, default=0.01)
     parser.add_argument('--burst', type=int, default=3000)
     parser.add_argument('--rates', type=float, nargs='+', default=[300.0, 450.0],
                         help='offered loads of the bursts, one burst each (0: flat out)')
@@ -262,18 +282,25 @@ def main(argv=None) -> int:
     results['in_process'] = steps
     results['ratio'] = {
         'latency_p50': results['ranker']['latency_ms']['p50'] / results['echo']['latency_ms']['p50'],
-        'latency_p99': results['ranker']['latency_ms']['p99'] / results['echo']['latency_ms']['p99']}
-    results['settings'] = {'latency_count': args.latency_count, 'burst': args.burst, 'rates': args.rates,
+        'latency_p99': results['ranker']['latency_ms']['p99'] / results['echo']['latency_ms']['p99'],
+        'paced_latency_p50': results['ranker']['paced_latency_ms']['p50'] / results['echo']['paced_latency_ms']['p50'],
+        'paced_latency_p99': results['ranker']['paced_latency_ms']['p99'] / results['echo']['paced_latency_ms']['p99']}
+    results['settings'] = {'latency_count': args.latency_count, 'paced_count': args.paced_count,
+                           'paced_period': args.paced_period, 'burst': args.burst, 'rates': args.rates,
                            'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
                            'machine': machine()}
     for name in ('echo', 'ranker'):
         lat = results[name]['latency_ms']
-        print(f"{name:6s} latency p50 {lat['p50']:.2f} ms  p99 {lat['p99']:.2f} ms  max {lat['max']:.2f} ms")
+        paced = results[name]['paced_latency_ms']
+        print(f"{name:6s} latency p50 {lat['p50']:.2f} ms  p99 {lat['p99']:.2f} ms  max {lat['max']:.2f} ms; "
+              f"paced p50 {paced['p50']:.2f} ms  p99 {paced['p99']:.2f} ms  max {paced['max']:.2f} ms")
         for burst in results[name]['bursts']:
             print(f"       burst {burst['sent']} at {burst['offered_per_s']:.0f}/s: sustained "
                   f"{burst['sustained_per_s']:.0f}/s, lost {burst['lost']}, p50 {burst['latency_ms_p50']:.2f} ms, "
                   f"p99 {burst['latency_ms_p99']:.2f} ms")
-    print(f"ratio ranker/echo: p50 {results['ratio']['latency_p50']:.2f}, p99 {results['ratio']['latency_p99']:.2f}")
+    ratio = results['ratio']
+    print(f"ratio ranker/echo: p50 {ratio['latency_p50']:.2f}, p99 {ratio['latency_p99']:.2f}; "
+          f"paced p50 {ratio['paced_latency_p50']:.2f}, p99 {ratio['paced_latency_p99']:.2f}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2) + '\n')
     print(f'wrote {args.out}')

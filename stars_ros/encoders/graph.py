@@ -221,6 +221,8 @@ class GAT(GraphEncoder):
 
     def dense_weights(self, conv):
         heads, channels = conv.heads, conv.out_channels
+        if not 0 <= conv.negative_slope <= 1:
+            raise ValueError('the dense GAT form computes leaky ReLU as a maximum: slope must be in [0, 1]')
         weight = _linear(conv.lin)[0]  # [hidden, heads * channels]
         per_head = weight.reshape(-1, heads, channels)
         attention = np.concatenate([(per_head * _array(conv.att_src)).sum(-1),  # folded into one product:
@@ -239,7 +241,7 @@ class GAT(GraphEncoder):
         values = (h @ weights['weight']).reshape(g, n, heads, -1).transpose(0, 2, 1, 3)  # [G, heads, N, channels]
         scores = (h @ weights['attention']).transpose(0, 2, 1)  # [G, 2 heads, N]
         logits = scores[:, heads:, :, None] + scores[:, :heads, None, :]  # target + source: [G, heads, to, from]
-        logits = np.where(logits > 0, logits, weights['slope'] * logits) + structure
+        logits = np.maximum(logits, weights['slope'] * logits) + structure  # leaky ReLU (0 < slope < 1)
         logits = np.exp(logits - logits.max(-1, keepdims=True))
         attention = logits / logits.sum(-1, keepdims=True)
         return (attention @ values).transpose(0, 2, 1, 3).reshape(g, n, -1) + weights['bias']
