@@ -215,9 +215,11 @@ class RankerNode(Node):
         else:
             self.get_logger().info(text)
 
-    def _record(self, topic: str, text: str):
+    def _record(self, topic: str, text: str, log_time: int | None = None):
+        """Record ``text`` on ``topic`` at ``log_time`` (ns of ROS time; default: now)."""
         if self.recorder is not None:
-            self.recorder.write(self.topics[topic], text, self.get_clock().now().nanoseconds)
+            self.recorder.write(self.topics[topic], text,
+                                self.get_clock().now().nanoseconds if log_time is None else log_time)
 
     # -- errors and diagnostics ----------------------------------------------------------
     def report(self, kind: str, detail: str, topic: str = '', scene_id: str | None = None):
@@ -296,16 +298,17 @@ class RankerNode(Node):
         except messages.BadMessage as error:
             self.report(error.kind, str(error), self.topics['stars/scene'])
             return
-        self._record('stars/scene', text)
+        log_time = self.get_clock().now().nanoseconds
         self._scenes[request.scene_id] = text
         self._scenes.move_to_end(request.scene_id)
         if len(self._scenes) > SCENE_MEMORY:
             self._scenes.popitem(last=False)
         if len(self._queue) >= self.params['queue_depth']:
+            self._record('stars/scene', text, log_time)
             self.report('overload', f"{self.params['queue_depth']} requests already wait to be scored; "
                         'this one is dropped', self.topics['stars/scene'], request.scene_id)
             return
-        self._queue.append(Pending(request, request.user_id or self._user_id, arrived))
+        self._queue.append(Pending(request, request.user_id or self._user_id, arrived, text, log_time))
 
     def _on_user_id(self, msg: String):
         try:
@@ -522,6 +525,7 @@ class RankerNode(Node):
         for item, result in zip(batch, results):
             request = item.request
             if isinstance(result, Exception):
+                self._record('stars/scene', item.text, item.log_time)
                 self.report(error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
                 continue
             known = predictor.knows_user(item.user_id)
@@ -531,6 +535,7 @@ class RankerNode(Node):
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(elapsed_ms, 3),
                 result.action, personalised))
             self.ranking_pub.publish(String(data=payload))
+            self._record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
             self._record('stars/ranking', payload)
             with self._lock:
                 self._counts['ranking'] += 1
@@ -551,6 +556,8 @@ class RankerNode(Node):
     def close(self):
         """Finish the state file and the recording (clean shutdown)."""
         waiting = len(self._queue)
+        for item in self._queue:  # in the log even though they were never scored
+            self._record('stars/scene', item.text, item.log_time)
         wanted = self._save_wanted.is_set()
         self._closing.set()
         self._save_wanted.set()

@@ -22,12 +22,16 @@ class Pending:
     """A validated request waiting to be scored.
 
     ``user_id`` is the one it is served for (the message's own, else the latest on
-    /stars/user_id at arrival); ``arrived`` is ``time.perf_counter_ns()`` at reception.
+    /stars/user_id at arrival); ``arrived`` is ``time.perf_counter_ns()`` at reception;
+    ``text`` and ``log_time`` (ROS time, ns) are the message as received, which the node
+    records once the ranking is out.
     """
 
     request: SceneRequest
     user_id: str | None
     arrived: int
+    text: str = ''
+    log_time: int = 0
 
 
 @dataclass(frozen=True)
