@@ -4,8 +4,8 @@
         [--data-root ../shared/datasets/socnav1] [--out results/foldin_benchmark.json]
 
 1. ROS-free: users stream 50 SocNav1 ratings each; after each one the user is re-solved
-   with ``FoldIn.fit`` as the node does it (the rated scene's request text parsed again,
-   featurised and encoded; earlier scenes cached). p50 / p99 by number of ratings.
+   with ``FoldIn.fit`` as the node does it (the rated scene's request text parsed again, its
+   h the one its ranking computed). p50 / p99 by number of ratings.
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' gets scenes ranked at
    ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
@@ -51,17 +51,19 @@ def percentiles(values) -> dict:
 
 
 def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict:
-    """ms per update by rating count, as in the node: the newly rated scene is parsed from
-    its request text, featurised and encoded, the user's earlier scenes come from the cache,
-    and the user is re-solved from all their ratings so far."""
+    """ms per update by rating count, as in the node: the newly rated scene's request text is
+    parsed again, its h is the one its ranking computed (handed to the fold-in's cache), and
+    the user is re-solved from all their ratings so far."""
     times = {}
     for user, scenes in scenes_by_user.items():
         foldin = FoldIn(predictor)
         texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
         ratings = []
         for n, (scene, text) in enumerate(zip(scenes, texts), 1):
+            h = predictor.encode([scene])  # ranking the scene computed its h before the feedback came
             started = time.perf_counter()
             request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
+            foldin.remember([request.graphs[0]], h)
             ratings.append(Rating(request.graphs[0], 'navigate', scene['score'] / 100, request.scene_id))
             foldin.fit(ratings, user, regularisation)
             times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)

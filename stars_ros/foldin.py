@@ -15,9 +15,9 @@ ridge regression of z_j − c_j on x_j towards a prior θ₀:
 one (d+1)×(d+1) solve in float64. θ₀ is the user's own trained row when the checkpoint
 knows them (feedback refines it) and otherwise the population prior, the mean of the
 trained user rows (p, b_u). λ → ∞ returns θ₀; λ → 0 interpolates the ratings when they
-are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene object:
-re-solving a user after one more rating encodes that one scene and solves, about a
-millisecond.
+are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene object,
+and the ranker node hands over the h its ranking of the rated scene computed
+(``remember``): re-solving a user after one more rating is then one solve.
 
 ROS-free: the ranker node, the offline refit and the k-shot evaluation all use ``FoldIn``.
 """
@@ -140,6 +140,8 @@ class FoldIn:
         self._cache = collections.OrderedDict()
         self._cache_scenes = cache_scenes
         self._lock = threading.Lock()
+        solve_ridge(np.ones((1, self.dim + 1)), np.zeros(1), self.population, 1.0)  # a process's first
+        # LAPACK solve costs ~10 ms here: paid at load, not by the first feedback
 
     # -- pieces ------------------------------------------------------------------------
     def prior(self, user_id=None) -> np.ndarray:
@@ -172,9 +174,11 @@ class FoldIn:
         c = (h * r).sum(1) + scene_offset + self.bias
         return x, c
 
-    def _remember(self, scenes: Sequence, rows: np.ndarray) -> None:
-        """Cache h [len(scenes), dim] of ``scenes``. The key is the scene object, which the
+    def remember(self, scenes: Sequence, rows: np.ndarray) -> None:
+        """Cache h [len(scenes), dim] of ``scenes``, encoded by this FoldIn's predictor (the
+        node passes what ranking them computed). The key is the scene object, which the
         entry keeps alive so its id cannot be reused."""
+        rows = np.asarray(rows, dtype=np.float64)
         with self._lock:
             for scene, row in zip(scenes, rows):
                 self._cache[id(scene)] = (scene, row)
@@ -189,7 +193,7 @@ class FoldIn:
         missing = list({id(s): s for s in scenes if id(s) not in found}.values())
         if missing:
             h = self.predictor.encode(missing).astype(np.float64)
-            self._remember(missing, h)
+            self.remember(missing, h)
             found.update((id(s), row) for s, row in zip(missing, h))
         return np.stack([found[id(s)] for s in scenes])
 

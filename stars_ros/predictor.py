@@ -127,7 +127,10 @@ class Predictor:
         ``scene_ids`` optionally name training scenes so their q_i is used. ``validate=False``
         skips the schema check for scenes already validated against it (the node's requests).
         """
-        h = self.encode(scenes, validate)
+        return self.scores_from_h(user_id, self.encode(scenes, validate), scene_ids)
+
+    def scores_from_h(self, user_id, h: np.ndarray, scene_ids: Sequence | None = None) -> np.ndarray:
+        """``score`` for scenes already encoded as ``h`` [len(scenes), dim]."""
         scene_rows = self._scene_rows if scene_ids is None else self._scene_rows_of(scene_ids)
         return self._inference.scores(h, self._user_row(user_id), scene_rows)
 

@@ -16,9 +16,9 @@ ranking is scored by exactly one checkpoint, the one whose fingerprint it carrie
 callbacks share the node's default, mutually exclusive callback group, so a
 multi-threaded executor keeps this order too.
 
-Online fold-in: accepted feedback on a scene the node ranked (its request text remembered
-in a bounded LRU map: strings cost the garbage collector nothing, parsed JSON would) is
-added to that user's history (bounded: foldin.FeedbackHistories), and the executor
+Online fold-in: accepted feedback on a scene the node ranked (its request text and the h
+its ranking computed remembered in a bounded LRU map: strings and arrays cost the garbage
+collector little, parsed JSON would cost it much more) is added to that user's history (bounded: foldin.FeedbackHistories), and the executor
 re-solves the user's (p_u, b_u) (stars_ros.foldin) when no scene waits, one user per
 turn, so the ranking of others waits for at most one solve (~2 ms). The result goes into
 the predictor's overlay (swapped whole), on stars/user_model (recorded), and into
@@ -133,7 +133,8 @@ class RankerNode(Node):
         self._period = {}  # kind -> (count, last detail) since the last diagnostics
         self._last_log = {}
         self._queue = collections.deque()  # Pending requests (executor thread only)
-        self._scenes = collections.OrderedDict()  # scene_id -> request text (executor thread only)
+        # scene_id -> [request text, (predictor, h of its scenes) once ranked]; executor thread only
+        self._scenes = collections.OrderedDict()
         self._histories = FeedbackHistories(self.params['fold_in_max_ratings'], self.params['fold_in_max_users'])
         self._fold_pending = collections.OrderedDict()  # users to re-solve (executor thread only)
         self._foldin = self._fold_in_model(self.predictor)
@@ -299,7 +300,7 @@ class RankerNode(Node):
             self.report(error.kind, str(error), self.topics['stars/scene'])
             return
         log_time = self.get_clock().now().nanoseconds
-        self._scenes[request.scene_id] = text
+        self._scenes[request.scene_id] = [text, None]
         self._scenes.move_to_end(request.scene_id)
         if len(self._scenes) > SCENE_MEMORY:
             self._scenes.popitem(last=False)
@@ -341,7 +342,7 @@ class RankerNode(Node):
     # -- fold-in -------------------------------------------------------------------------
     def _rating(self, feedback) -> Rating | str:
         """The Rating ``feedback`` gives, or why it cannot be folded in."""
-        text = self._scenes.get(feedback.scene_id)
+        text, encoded = self._scenes.get(feedback.scene_id, (None, None))
         if text is None:
             return (f"feedback for scene '{feedback.scene_id}', which this node has not ranked (or no longer "
                     'remembers): recorded, not folded in')
@@ -349,7 +350,12 @@ class RankerNode(Node):
             request = messages.parse_scene_request(text, self.params['max_message_bytes'])
         except messages.BadMessage as error:
             return f"feedback for scene '{feedback.scene_id}' not folded in: its request no longer passes: {error}"
-        return rating_from_feedback(feedback, request, self.predictor.actions)
+        rating = rating_from_feedback(feedback, request, self.predictor.actions)
+        if not isinstance(rating, str) and encoded is not None and self._foldin is not None \
+                and encoded[0] is self._foldin.predictor:  # h from ranking it: the solve need not encode
+            index = request.labels.index(feedback.candidate) if request.ranks_scenes else 0
+            self._foldin.remember([rating.scene], encoded[1][index:index + 1])
+        return rating
 
     def _queue_fold_in(self, feedback, topic: str):
         rating = self._rating(feedback)
@@ -537,6 +543,9 @@ class RankerNode(Node):
             self.ranking_pub.publish(String(data=payload))
             self._record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
             self._record('stars/ranking', payload)
+            remembered = self._scenes.get(request.scene_id)
+            if remembered is not None and remembered[0] is item.text:
+                remembered[1] = (predictor, result.h)
             with self._lock:
                 self._counts['ranking'] += 1
             if item.user_id is not None and not known and not personalised:

@@ -1,8 +1,8 @@
 """Rank a batch of queued scene requests with one model snapshot: the ranker node's core.
 
-ROS-free. When scenes arrive faster than they are scored, the node hands over everything
-queued (up to ``max_batch``) and requests of the same user are encoded in one forward pass,
-which is what lets a single core keep up. Results are those of ``Predictor.rank`` and
+ROS-free. When scenes arrive faster than they are scored, the node scores everything
+queued (up to ``max_batch``) in one call, and requests of the same user are encoded in one
+forward pass, which is what lets a single core keep up. Results are those of ``Predictor.rank`` and
 ``Predictor.rank_scenes`` on the same input (same scores, ties kept in input order). A bad
 request only fails itself: a group that raises is scored again one request at a time.
 """
@@ -36,11 +36,13 @@ class Pending:
 
 @dataclass(frozen=True)
 class Scored:
-    """The ranking of one request (best first, cut to ``top_k``) and, for candidate
-    scenes, the action that ranked them."""
+    """The ranking of one request (best first, cut to ``top_k``), for candidate scenes the
+    action that ranked them, and h_i of the request's scenes [len(graphs), dim] (float32:
+    feedback on them is folded in without encoding them again)."""
 
     ranked: list
     action: str | None
+    h: np.ndarray
 
 
 def error_kind(error: Exception) -> str:
@@ -84,7 +86,8 @@ def _score_group(predictor, user_id, members, top_k) -> list:
     ranks_scenes = members[0][0].ranks_scenes
     graphs = [graph for request, _ in members for graph in request.graphs]
     scene_ids = None if ranks_scenes else [request.scene_id for request, _ in members]
-    scores = predictor.score(user_id, graphs, scene_ids, validate=False)  # parse_scene_request validated them
+    h = predictor.encode(graphs, validate=False)  # parse_scene_request validated them
+    scores = predictor.scores_from_h(user_id, h, scene_ids)
     if not np.isfinite(scores).all():
         raise StarsError('the model produced a non-finite score')
     column = {a: i for i, a in enumerate(predictor.actions)}
@@ -96,8 +99,8 @@ def _score_group(predictor, user_id, members, top_k) -> list:
         else:
             names = request.actions or predictor.actions
             ranked = _order(names, scores[row, [column[a] for a in names]])
+        results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + len(request.graphs)]))
         row += len(request.graphs)
-        results.append(Scored(ranked[:top_k] if top_k else ranked, action))
     return results
 
 

@@ -207,3 +207,13 @@ def test_histories_discard_and_restore_round_trip():
     assert restored.ratings('ann') == [ratings[2]] and restored.dropped('ann') == 2
     with pytest.raises(ValueError):
         FeedbackHistories(0, 1)
+
+
+def test_remembered_encodings_are_not_encoded_again(predictor, ratings, monkeypatch):
+    foldin = FoldIn(predictor)
+    scene = ratings[0].scene
+    h = predictor.encode([scene])  # what ranking the scene computed (float32)
+    monkeypatch.setattr(predictor, 'encode', lambda scenes: pytest.fail('encoded again'))
+    foldin.remember([scene], h)
+    assert np.array_equal(foldin.encode([scene]), h.astype(np.float64))
+    foldin.fit([ratings[0]], 'x')  # solves from the remembered h
