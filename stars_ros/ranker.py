@@ -31,6 +31,7 @@ import collections
 import gc
 import json
 import os
+import queue
 import threading
 import time
 from pathlib import Path
@@ -166,6 +167,9 @@ class RankerNode(Node):
         self._rating_texts = {}  # id(Rating) -> (Rating, its JSON); the state writer's cache
         self._saver = threading.Thread(target=self._save_loop, name='stars-ranker-state', daemon=True)
         self._saver.start()  # so an fsync never holds up serving
+        self._to_journal = queue.SimpleQueue()  # accepted feedback on its way to the recorder's journal
+        self._journal_thread = threading.Thread(target=self._journal_loop, name='stars-ranker-journal', daemon=True)
+        self._journal_thread.start()
 
     # -- parameters ----------------------------------------------------------------------
     def _on_set_parameters(self, changed) -> SetParametersResult:
@@ -259,7 +263,8 @@ class RankerNode(Node):
         values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
                   'rankings': counts.get('ranking', 0), 'queued': len(self._queue),
                   'recording': 'off' if recorder is None else (recorder.error or str(recorder.path)),
-                  'feedback_not_on_disk': 0 if recorder is None else recorder.pending_feedback,
+                  'feedback_not_on_disk': 0 if recorder is None else
+                  recorder.pending_feedback + self._to_journal.qsize(),
                   'folded_in_users': len(self.predictor.user_models)}
         values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
         statuses = [DiagnosticStatus(level=level, name=f'{name}: ranker', message=summary, hardware_id=name,
@@ -333,9 +338,8 @@ class RankerNode(Node):
         if self.recorder is None:
             self.report('recording', 'feedback accepted but record_folder is empty: it is not stored', topic,
                         feedback.scene_id)
-        elif not self.recorder.write_feedback(topic, msg.data, self.get_clock().now().nanoseconds):
-            self.report('recording', 'feedback could not be written yet; kept in memory and retried', topic,
-                        feedback.scene_id)
+        else:
+            self._to_journal.put((topic, msg.data, self.get_clock().now().nanoseconds, feedback.scene_id))
         if self.params['fold_in']:
             self._queue_fold_in(feedback, topic)
 
@@ -417,6 +421,16 @@ class RankerNode(Node):
                         'the MCAP log for the offline refit)')
         if evicted:
             self._save_wanted.set()
+
+    def _journal_loop(self):
+        """Feedback into the recorder's journal (written and fsync'd) from a thread of its own:
+        an fsync takes 0.4–6 ms on this machine's disk, and every ranking queued behind it in
+        the executor thread would wait that long."""
+        while (item := self._to_journal.get()) is not None:
+            topic, text, log_time, scene_id = item
+            if not self.recorder.write_feedback(topic, text, log_time):
+                self.report('recording', 'feedback could not be written yet; kept in memory and retried', topic,
+                            scene_id)
 
     def _save_loop(self):
         """Write the state file when asked, at most once per flush_interval: a hard kill loses
@@ -573,6 +587,8 @@ class RankerNode(Node):
         self._saver.join(timeout=10)
         if wanted:  # the last updates are on disk before the process ends
             self._save_user_models(self.predictor)
+        self._to_journal.put(None)
+        self._journal_thread.join(timeout=10)  # every accepted feedback reaches the recorder
         log = get_logger(self.get_name())  # not the node's: /rosout is gone by now
         if waiting:
             log.warning(f'{waiting} queued requests were not scored before shutdown')

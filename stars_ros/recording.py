@@ -206,6 +206,7 @@ class Recorder:
         self._file: _McapFile | None = None
         self._journal = None
         self._unjournaled: list = []  # accepted feedback not yet safe on disk
+        self._syncing: list = []  # feedback written to the journal, its fsync under way
         self._unrecorded: list = []  # journaled feedback not yet in an MCAP file
         self._closed = False
         self._damaged = False
@@ -219,7 +220,7 @@ class Recorder:
     @property
     def pending_feedback(self) -> int:
         """Accepted feedback that is not yet journaled on disk (kept in memory, retried)."""
-        return len(self._unjournaled)
+        return len(self._unjournaled) + len(self._syncing)
 
     @property
     def files(self) -> list:
@@ -283,12 +284,41 @@ class Recorder:
 
     def write_feedback(self, topic: str, text: str, log_time: int) -> bool:
         """Record feedback: journaled and fsync'd before returning True; kept in memory and
-        retried at each flush when the disk refuses it, so it is never silently lost."""
+        retried at each flush when the disk refuses it, so it is never silently lost. The
+        fsync runs outside the lock ``write`` takes, so other messages are recorded
+        meanwhile. Not to be called once ``close`` has begun."""
         entry = {'topic': topic, 'log_time': log_time, 'data': text}
         with self._lock:
             self._unjournaled.append(entry)
-            self._retry_feedback()
-            return not self._unjournaled
+            if self._journal is None or len(self._unjournaled) > 1:  # the disk is failing: retry all now
+                self._retry_feedback()
+                return entry not in self._unjournaled
+            try:
+                self._journal.write(json.dumps(entry) + '\n')
+                self._journal.flush()
+                descriptor = os.dup(self._journal.fileno())
+            except OSError as error:
+                self._journal = None  # reopened at the next flush
+                self._fail(error, 'journaling feedback', lose_file=False)
+                return False
+            self._unjournaled.remove(entry)
+            self._syncing.append(entry)
+        failure = None
+        try:
+            os.fsync(descriptor)
+        except OSError as error:
+            failure = error
+        finally:
+            os.close(descriptor)
+        with self._lock:
+            self._syncing.remove(entry)
+            if failure is not None:
+                self._unjournaled.insert(0, entry)
+                self._fail(failure, 'journaling feedback', lose_file=False)
+                return False
+            self._unrecorded.append(entry)
+            self._retry_feedback()  # into the MCAP file
+            return True
 
     def _retry_feedback(self):
         while self._unjournaled and self._journal is not None:

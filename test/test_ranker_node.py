@@ -59,6 +59,19 @@ def _probe(scenes):
     return {'scene_id': f'probe-{time.monotonic_ns()}', 'graph': scenes[0]}
 
 
+def _served_latched_user(client, scenes, timeout: float = 20.0) -> bool:
+    """Probe until a ranking is served for KNOWN_USER without naming them (the latched id)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        probe = _probe(scenes)
+        client.scene(probe)
+        if client.wait(lambda: client.ranking_for(probe['scene_id']) is not None, 5) and \
+                client.ranking_for(probe['scene_id'])['user_id'] == KNOWN_USER:
+            return True
+        time.sleep(0.1)
+    return False
+
+
 def _assert_same(reply, expected, key='action', tolerance=1e-5):
     assert [entry[key] for entry in reply['ranking']] == [r.name for r in expected]
     assert np.allclose([e['score'] for e in reply['ranking']], [r.score for r in expected], atol=tolerance)
@@ -307,6 +320,8 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
                          tmp_path / 'ranker.log')  # starts after the user id was published
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+        # the latched id comes over its own topic, whose endpoints may match after stars/scene's
+        assert _served_latched_user(client, scenes), 'the user id latched before the node started never arrived'
         for k in range(5):
             client.scene({'scene_id': f's{k}', 'graph': scenes[k]})
         feedback = {'user_id': KNOWN_USER, 'scene_id': 's1', 'action': 'navigate', 'score': 0.75}

@@ -152,8 +152,10 @@ def test_invalid_settings_refused(tmp_path):
         recording.Recorder(tmp_path, TOPICS, flush_interval=0)
 
 
-def test_flush_fsyncs_without_holding_up_writers(tmp_path, monkeypatch):
-    """The periodic flush waits for the disk outside the lock the ranker's threads write under."""
+@pytest.mark.parametrize('syncer', ['flush', 'feedback'])
+def test_fsyncs_do_not_hold_up_writers(tmp_path, monkeypatch, syncer):
+    """The periodic flush and the feedback journal wait for the disk outside the lock the
+    ranker records under."""
     import threading
     import time
     real_fsync = os.fsync
@@ -167,17 +169,20 @@ def test_flush_fsyncs_without_holding_up_writers(tmp_path, monkeypatch):
     with recording.Recorder(tmp_path, TOPICS, name='bag', flush_interval=3600) as recorder:
         recorder.write('/stars/scene', 'before', 1)
         monkeypatch.setattr(os, 'fsync', slow_fsync)
-        flusher = threading.Thread(target=recorder.flush)
-        flusher.start()
+        call = recorder.flush if syncer == 'flush' else lambda: recorder.write_feedback('/stars/feedback', 'fb', 2)
+        thread = threading.Thread(target=call)
+        thread.start()
         assert syncing.wait(10)
         started = time.monotonic()
-        assert recorder.write('/stars/scene', 'during', 2)  # would block until release with the fsync under the lock
+        assert recorder.write('/stars/scene', 'during', 3)  # would block until release with the fsync under the lock
         blocked = time.monotonic() - started
+        assert syncer == 'flush' or recorder.pending_feedback == 1  # not on disk yet
         release.set()
-        flusher.join(10)
+        thread.join(10)
         monkeypatch.setattr(os, 'fsync', real_fsync)
         assert blocked < 1.0
-        assert recorder.error is None
-    assert [m[1] for m in recording.read_messages(tmp_path / 'bag')] == ['before', 'during']
+        assert recorder.error is None and recorder.pending_feedback == 0
+    expected = ['before', 'during'] if syncer == 'flush' else ['before', 'fb', 'during']  # by log time
+    assert [m[1] for m in recording.read_messages(tmp_path / 'bag')] == expected
     assert yaml.safe_load((tmp_path / 'bag' / 'metadata.yaml').read_text())[
-        'rosbag2_bagfile_information']['message_count'] == 2
+        'rosbag2_bagfile_information']['message_count'] == len(expected)
