@@ -7,8 +7,8 @@
    with ``FoldIn.fit`` as the node does it (the rated scene's request text parsed again, its
    h the one its ranking computed). p50 / p99 by number of ratings.
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
-   'other', one request in flight at a time, while user 'streamer' gets scenes ranked at
-   ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
+   'other', one request in flight at a time, while user 'streamer' (another process, as
+   another person's device would be) gets scenes ranked at ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
    the streamer's rankings is followed by a feedback rating, with ``fold_in`` off (the
    feedback is validated and journaled with an fsync, as before this feature); phase C: the
    same with ``fold_in`` on, so the node also folds every rating in. Latency of 'other'
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -55,6 +56,7 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
     parsed again, its h is the one its ranking computed (handed to the fold-in's cache), and
     the user is re-solved from all their ratings so far."""
     times = {}
+    messages.validator('scene_request')  # compiled once per process: the node has done it before any feedback
     for user, scenes in scenes_by_user.items():
         foldin = FoldIn(predictor)
         texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
@@ -71,7 +73,7 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
             'update_ms_all': percentiles([x for v in times.values() for x in v])}
 
 
-def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
+def live(checkpoint: str, scenes: list, args) -> dict:
     from std_msgs.msg import String
     from ros_helpers import RELIABLE, RosClient, start_node, stop
 
@@ -102,7 +104,7 @@ def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
                                              ('feedback_fold_in_on', True, True)):
                 if not client.set_parameters('/ranker', {'fold_in': fold_in})[0].successful:
                     raise RuntimeError('could not set fold_in')
-                results[phase] = run_phase(client, arrived, models, scenes, stream_scenes, phase, feedback, args)
+                results[phase] = run_phase(client, domain, arrived, models, scenes, phase, feedback, args)
             results['folded_in_updates'] = len(models)
             stop(process, 2)
         finally:
@@ -112,30 +114,18 @@ def live(checkpoint: str, scenes: list, stream_scenes: list, args) -> dict:
     return results
 
 
-def run_phase(client, arrived, models, scenes, stream_scenes, phase: str, feedback: bool, args) -> dict:
-    stop_streaming = threading.Event()
-    streamed = []
+def run_phase(client, domain: int, arrived, models, scenes, phase: str, feedback: bool, args) -> dict:
+    from ros_helpers import ros_env
 
-    def stream():
-        period = 1.0 / args.stream_rate
-        k = 0
-        while not stop_streaming.is_set():
-            scene = stream_scenes[k % len(stream_scenes)]
-            scene_id = f'{phase}-stream-{k}'
-            client.scene({'scene_id': scene_id, 'user_id': 'streamer', 'graph': scene})
-            if client.wait(lambda: scene_id in arrived, 5) and feedback:
-                client.feedback({'user_id': 'streamer', 'scene_id': scene_id, 'action': 'navigate',
-                                 'score': scene['score'] / 100})
-            streamed.append(scene_id)
-            k += 1
-            time.sleep(period)
-
+    streamer = subprocess.Popen(
+        [sys.executable, __file__, '--streamer', '--data-root', args.data_root, '--stream-rate', str(args.stream_rate),
+         '--phase', phase] + (['--with-feedback'] if feedback else []),
+        env=ros_env(domain), stdout=subprocess.PIPE, text=True)
     before = len(models)
-    streamer = threading.Thread(target=stream)
-    streamer.start()
     latencies = []
     try:
-        time.sleep(0.5)
+        if streamer.stdout.readline().strip() != 'ready':
+            raise RuntimeError(f'the streamer did not start (exit code {streamer.poll()})')
         for k in range(args.requests):
             scene_id = f'{phase}-other-{k}'
             text = json.dumps({'scene_id': scene_id, 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
@@ -145,11 +135,73 @@ def run_phase(client, arrived, models, scenes, stream_scenes, phase: str, feedba
                 latencies.append((arrived[scene_id] - sent) * 1e3)
             time.sleep(args.gap)
     finally:
-        stop_streaming.set()
-        streamer.join()
+        streamer.send_signal(signal.SIGINT)
+        output, _ = streamer.communicate(timeout=30)
+    streamed = int(output.split()[-1]) if output.strip() else 0
     time.sleep(1.0)
     return {'other_latency_ms': percentiles(latencies), 'timeouts': args.requests - len(latencies),
-            'streamed_requests': len(streamed), 'fold_in_updates': len(models) - before}
+            'streamed_requests': streamed, 'fold_in_updates': len(models) - before}
+
+
+def streamer_main(args) -> int:
+    """The streamer user, a device of its own (own process): a SocNav1 scene ranked
+    ``--stream-rate`` times a second, each followed by a feedback rating with
+    ``--with-feedback``. Prints 'ready' after the first ranking and the number of requests
+    when interrupted."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    from ros_helpers import RELIABLE
+
+    scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
+    rclpy.init()
+    node = Node('streamer')
+    scene_pub = node.create_publisher(String, '/stars/scene', RELIABLE)
+    feedback_pub = node.create_publisher(String, '/stars/feedback', 100)
+    answered = threading.Condition()
+    replies = set()
+
+    def on_ranking(msg):
+        scene_id = json.loads(msg.data)['scene_id']
+        if scene_id.startswith(f'{args.phase}-stream-'):
+            with answered:
+                replies.add(scene_id)
+                answered.notify_all()
+
+    node.create_subscription(String, '/stars/ranking', on_ranking, RELIABLE)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    k, ready, deadline = 0, False, time.monotonic() + 60
+    try:
+        while True:
+            scene = scenes[k % len(scenes)]
+            scene_id = f'{args.phase}-stream-{k}'
+            scene_pub.publish(String(data=json.dumps({'scene_id': scene_id, 'user_id': 'streamer', 'graph': scene})))
+            with answered:
+                ok = answered.wait_for(lambda: scene_id in replies, 5 if ready else 0.5)
+            if not ready:  # until the ranker's endpoints and ours have matched
+                if not ok and time.monotonic() > deadline:
+                    print('no ranker answered', flush=True)
+                    return 1
+                if ok:
+                    ready = True
+                    print('ready', flush=True)
+            if ok and args.with_feedback:
+                feedback_pub.publish(String(data=json.dumps({'user_id': 'streamer', 'scene_id': scene_id,
+                                                             'action': 'navigate', 'score': scene['score'] / 100})))
+            k += 1
+            time.sleep(1.0 / args.stream_rate)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        print(f'streamed {k}', flush=True)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 def main(argv=None) -> int:
@@ -162,7 +214,12 @@ def main(argv=None) -> int:
     parser.add_argument('--gap', type=float, default=0.01, help="seconds between two of 'other's requests")
     parser.add_argument('--stream-rate', type=float, default=10.0, help="streamer's rankings (+ feedback) per s")
     parser.add_argument('--out', default=str(REPO / 'results' / 'foldin_benchmark.json'))
+    parser.add_argument('--streamer', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--phase', default='', help=argparse.SUPPRESS)
+    parser.add_argument('--with-feedback', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.streamer:
+        return streamer_main(args)
     torch.set_num_threads(1)
     predictor = Predictor.load(args.checkpoint)
     raw = Path(args.data_root) / 'raw'
@@ -172,7 +229,7 @@ def main(argv=None) -> int:
     for n in (1, 2, 5, 10, 20, 50):
         update = offline['update_ms'][n]
         print(f'{n:2d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms')
-    node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], read_scenes(raw / 'g.jsonl')[:200], args)
+    node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], args)
     for phase in ('without_feedback', 'feedback_fold_in_off', 'feedback_fold_in_on'):
         figures = node[phase]
         latency = figures['other_latency_ms']
