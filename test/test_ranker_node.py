@@ -415,3 +415,40 @@ def test_unwritable_record_folder_is_reported_and_ranking_goes_on(tiny_checkpoin
             process.kill()
         client.close()
     assert "feedback that could not be stored: {'topic': '/stars/feedback'" in (tmp_path / 'ranker.log').read_text()
+
+
+def test_a_flood_beyond_queue_depth_is_refused_as_overload_and_serving_goes_on(tiny_checkpoint, scenes, tmp_path):
+    """The scene callback drains what waits on stars/scene into a queue of at most
+    queue_depth requests; beyond that a request is refused with an overload error, never
+    both refused and ranked, and the node serves on."""
+    domain = domain_id(6)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
+                                                      'queue_depth': 20, 'max_batch': 1}, tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+        for k in range(1000):
+            client.scene(json.dumps({'scene_id': f'flood-{k}', 'user_id': KNOWN_USER, 'graph': scenes[k % len(scenes)]}))
+
+        def outcomes():
+            with client._changed:
+                ranked = {r['scene_id'] for r in client.rankings if r['scene_id'].startswith('flood-')}
+                refused = [e['scene_id'] for e in client.errors if e['kind'] == 'overload']
+            return ranked, refused
+        settled, last = time.monotonic() + 60, None
+        while time.monotonic() < settled:  # until nothing new arrives for 2 s
+            time.sleep(2.0)
+            now = tuple(len(part) for part in outcomes())
+            if now == last:
+                break
+            last = now
+        ranked, refused = outcomes()
+        assert ranked and refused, (len(ranked), len(refused))
+        assert len(set(refused)) == len(refused) and not ranked & set(refused)
+        assert process.poll() is None
+        client.scene({'scene_id': 'after-the-flood', 'user_id': KNOWN_USER, 'graph': scenes[3]})
+        assert client.wait(lambda: client.ranking_for('after-the-flood') is not None, 20)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
