@@ -16,14 +16,17 @@ ranking is scored by exactly one checkpoint, the one whose fingerprint it carrie
 callbacks share the node's default, mutually exclusive callback group, so a
 multi-threaded executor keeps this order too.
 
+Feedback is journaled (written and fsync'd) by a thread of its own, so the disk never
+holds up the rankings.
+
 Online fold-in: accepted feedback on a scene the node ranked (its request text and the h
 its ranking computed remembered in a bounded LRU map: strings and arrays cost the garbage
-collector little, parsed JSON would cost it much more) is added to that user's history (bounded: foldin.FeedbackHistories), and the executor
-re-solves the user's (p_u, b_u) (stars_ros.foldin) when no scene waits, one user per
-turn, so the ranking of others waits for at most one solve (~2 ms). The result goes into
-the predictor's overlay (swapped whole), on stars/user_model (recorded), and into
-``user_models.json`` in the record folder (written by its own thread, so an fsync never
-holds up serving), which a restart with the same checkpoint restores.
+collector little, parsed JSON would cost it much more) is added to that user's history
+(bounded: foldin.FeedbackHistories), and the executor re-solves the user's (p_u, b_u)
+(stars_ros.foldin) when no scene waits, one user per turn, so the ranking of others waits
+for at most one solve (~0.5 ms). The result goes into the predictor's overlay (swapped
+whole), on stars/user_model (recorded), and into ``user_models.json`` in the record
+folder (written by its own thread too), which a restart with the same checkpoint restores.
 """
 from __future__ import annotations
 
