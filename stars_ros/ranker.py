@@ -44,6 +44,7 @@ import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -611,6 +612,11 @@ def main(args=None):
         rclpy.spin(node)  # collections while serving then walk only what requests create
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except _rclpy.RCLError:
+        if rclpy.ok():
+            raise
+        # else SIGINT/SIGTERM shut the context down while the executor was building its wait
+        # set (rclpy checks the context, then builds): a clean shutdown all the same
     except CheckpointError as error:
         get_logger('ranker').fatal(str(error))
         raise SystemExit(1) from None
