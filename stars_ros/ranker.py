@@ -44,7 +44,6 @@ import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -57,6 +56,7 @@ from .foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_fe
 from .predictor import Predictor
 from .resources import share_path
 from .serving import Pending, error_kind, rank_batch
+from .spinning import spin_until_shutdown
 
 DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'
 WARNINGS = ('unknown_user', 'unknown_scene', 'user_models')
@@ -609,14 +609,9 @@ def main(args=None):
         node = RankerNode()
         gc.collect()
         gc.freeze()  # the model and imports leave the collector's generations: full
-        rclpy.spin(node)  # collections while serving then walk only what requests create
-    except (KeyboardInterrupt, ExternalShutdownException):
+        spin_until_shutdown(node)  # collections while serving then walk only what requests create
+    except (KeyboardInterrupt, ExternalShutdownException):  # before spinning
         pass
-    except _rclpy.RCLError:
-        if rclpy.ok():
-            raise
-        # else SIGINT/SIGTERM shut the context down while the executor was building its wait
-        # set (rclpy checks the context, then builds): a clean shutdown all the same
     except CheckpointError as error:
         get_logger('ranker').fatal(str(error))
         raise SystemExit(1) from None

@@ -23,6 +23,7 @@ from std_msgs.msg import String
 
 from .errors import DataError
 from .scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
+from .spinning import spin_until_shutdown
 
 
 class ScenePublisher(Node):
@@ -78,7 +79,7 @@ def main(args=None):
     node = None
     try:
         node = ScenePublisher()
-        rclpy.spin(node)
+        spin_until_shutdown(node)
     except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
         pass
     except (DataError, OSError, ValueError) as error:
