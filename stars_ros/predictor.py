@@ -36,7 +36,8 @@ class Ranked:
     rank: int
 
 
-def _ranked(names: Sequence[str], scores: np.ndarray) -> list:
+def rank_order(names: Sequence[str], scores) -> list:
+    """``Ranked`` entries of ``names`` by ``scores``, best first."""
     order = sorted(range(len(names)), key=lambda k: (-scores[k], k))  # ties keep input order
     return [Ranked(str(names[k]), float(scores[k]), rank) for rank, k in enumerate(order, 1)]
 
@@ -163,7 +164,7 @@ class Predictor:
         if not names:
             raise UnknownActionError('candidate list is empty')
         columns = self._action_columns(names)
-        return _ranked(names, self.score(user_id, [scene], [scene_id])[0, columns])
+        return rank_order(names, self.score(user_id, [scene], [scene_id])[0, columns])
 
     def rank_scenes(self, user_id, scenes: Sequence, labels: Sequence[str] | None = None,
                     action: str | None = None) -> list:
@@ -177,4 +178,4 @@ class Predictor:
         labels = [str(k) for k in range(len(scenes))] if labels is None else list(labels)
         if len(labels) != len(scenes):
             raise ValueError('one label per candidate scene')
-        return _ranked(labels, self.score(user_id, scenes)[:, column])
+        return rank_order(labels, self.score(user_id, scenes)[:, column])

@@ -14,7 +14,7 @@ import numpy as np
 
 from .errors import SceneGraphError, StarsError, UnknownActionError
 from .messages import BadMessage, SceneRequest
-from .predictor import Ranked
+from .predictor import rank_order
 
 
 @dataclass(frozen=True)
@@ -58,11 +58,6 @@ def error_kind(error: Exception) -> str:
     return 'internal'
 
 
-def _order(names, scores) -> list:
-    order = sorted(range(len(names)), key=lambda k: (-scores[k], k))
-    return [Ranked(str(names[k]), float(scores[k]), rank) for rank, k in enumerate(order, 1)]
-
-
 def _ranking_action(predictor, request: SceneRequest) -> str | None:
     """Check the request's action names against the model; the action that ranks candidate
     scenes (None for action ranking)."""
@@ -95,10 +90,10 @@ def _score_group(predictor, user_id, members, top_k) -> list:
     for request, action in members:
         if ranks_scenes:
             block = scores[row:row + len(request.graphs), column[action]]
-            ranked = _order(request.labels, block)
+            ranked = rank_order(request.labels, block)
         else:
             names = request.actions or predictor.actions
-            ranked = _order(names, scores[row, [column[a] for a in names]])
+            ranked = rank_order(names, scores[row, [column[a] for a in names]])
         results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + len(request.graphs)]))
         row += len(request.graphs)
     return results
