@@ -72,6 +72,21 @@ def test_dense_equals_sparse_on_socnav1_scenes(name, options, socnav1):
     assert np.allclose(dense, sparse, atol=1e-5, rtol=1e-4), np.abs(dense - sparse).max()
 
 
+def test_gat_attention_rows_far_apart_are_normalised_each_by_its_own_maximum():
+    """The dense GAT shifts all attention logits by one maximum; rows far below it would
+    underflow to 0/0, so it falls back to a maximum per row, as PyG's softmax does."""
+    encoder = _encoder('gat', {'heads': 4})
+    with torch.no_grad():
+        for conv in encoder.convs:
+            conv.att_dst.mul_(3000.0)  # targets' logits hundreds apart
+    graphs = [featurise(random_scene(np.random.default_rng(6))) for _ in range(8)]
+    with torch.no_grad():
+        sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
+    dense = encoder.dense_form()(_dense(encoder, graphs))
+    assert np.isfinite(sparse).all()
+    assert np.allclose(dense, sparse, atol=1e-4, rtol=1e-4), np.abs(dense - sparse).max()
+
+
 def test_dense_form_is_a_snapshot_of_the_weights():
     encoder = _encoder('gat', {'heads': 4})
     graphs = [featurise(random_scene(np.random.default_rng(5)))]

@@ -110,6 +110,10 @@ def _mean_operator(adjacency: np.ndarray) -> np.ndarray:
     return adjacency / np.maximum(adjacency.sum(-1, keepdims=True), 1.0)
 
 
+# a softmax normaliser below this has lost precision to underflow (float32 normals end at 1.2e-38)
+_SMALLEST_NORMALISER = 1e-30
+
+
 def _with_self_loops(adjacency: np.ndarray) -> np.ndarray:
     return adjacency + np.eye(adjacency.shape[-1], dtype=adjacency.dtype)
 
@@ -227,7 +231,14 @@ class GAT(GraphEncoder):
         per_head = weight.reshape(-1, heads, channels)
         attention = np.concatenate([(per_head * _array(conv.att_src)).sum(-1),  # folded into one product:
                                     (per_head * _array(conv.att_dst)).sum(-1)], axis=1)  # [hidden, 2 heads]
-        return {'weight': weight, 'attention': attention, 'bias': _array(conv.bias), 'heads': heads,
+        # each head's values get a column of ones (weight 0, bias 1): multiplying them by the
+        # unnormalised attention also sums each row, the softmax's normaliser
+        value_weight = np.zeros((weight.shape[0], heads, channels + 1), dtype=np.float32)
+        value_weight[:, :, :channels] = per_head
+        value_bias = np.zeros((heads, channels + 1), dtype=np.float32)
+        value_bias[:, channels] = 1.0
+        return {'value_weight': value_weight.reshape(weight.shape[0], -1), 'value_bias': value_bias.reshape(-1),
+                'attention': attention, 'bias': _array(conv.bias), 'heads': heads, 'channels': channels,
                 'slope': float(conv.negative_slope)}
 
     def dense_structure(self, graphs):
@@ -237,11 +248,17 @@ class GAT(GraphEncoder):
 
     def dense_conv(self, weights, h, structure):
         g, n, _ = h.shape
-        heads = weights['heads']
-        values = (h @ weights['weight']).reshape(g, n, heads, -1).transpose(0, 2, 1, 3)  # [G, heads, N, channels]
+        heads, channels = weights['heads'], weights['channels']
+        values = (h @ weights['value_weight'] + weights['value_bias'])  # [G, N, heads * (channels + 1)]
+        values = values.reshape(g, n, heads, channels + 1).transpose(0, 2, 1, 3)  # [G, heads, N, channels + 1]
         scores = (h @ weights['attention']).transpose(0, 2, 1)  # [G, 2 heads, N]
         logits = scores[:, heads:, :, None] + scores[:, :heads, None, :]  # target + source: [G, heads, to, from]
         logits = np.maximum(logits, weights['slope'] * logits) + structure  # leaky ReLU (0 < slope < 1)
-        logits = np.exp(logits - logits.max(-1, keepdims=True))
-        attention = logits / logits.sum(-1, keepdims=True)
-        return (attention @ values).transpose(0, 2, 1, 3).reshape(g, n, -1) + weights['bias']
+        # softmax over each row's sources: shifting every row by the one global maximum costs a
+        # fraction of a maximum per row, and is exact unless some row lies so far below it that
+        # its exponentials underflow; then each row is shifted by its own maximum
+        summed = np.exp(logits - logits.max()) @ values  # [G, heads, N, channels + normaliser]
+        if summed[..., channels].min() < _SMALLEST_NORMALISER:
+            summed = np.exp(logits - logits.max(-1, keepdims=True)) @ values
+        attended = summed[..., :channels] / summed[..., channels:]
+        return attended.transpose(0, 2, 1, 3).reshape(g, n, -1) + weights['bias']
