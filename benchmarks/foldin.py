@@ -8,13 +8,18 @@
    h the one its ranking computed). p50 / p99 by number of ratings.
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' (another process, as
-   another person's device would be) gets scenes ranked at ``--stream-rate`` per second. Phase A: the streamer gives no feedback; phase B: each of
-   the streamer's rankings is followed by a feedback rating, with ``fold_in`` off (the
-   feedback is validated and journaled with an fsync, as before this feature); phase C: the
-   same with ``fold_in`` on, so the node also folds every rating in. Latency of 'other'
-   (send -> the ranking reaches the client's subscription callback) in each phase, same run,
-   same node: C − B is what fold-in
-   adds, B − A what recording feedback adds.
+   another person's device would be) gets scenes ranked at ``--stream-rate`` per second.
+   Phase A: the streamer gives no feedback; phase B: each of the streamer's rankings is
+   followed by a feedback rating, with ``fold_in`` off (the feedback is validated and
+   journaled with an fsync, as before this feature); phase C: the same with ``fold_in`` on,
+   so the node also folds every rating in. B and C alternate in blocks under one streamer
+   (``--blocks`` pairs), so that the machine's drift during the run reaches both alike.
+   Latency of 'other' (send -> the ranking reaches the client's subscription callback) in
+   each phase, same run, same node: C − B is what fold-in adds, B − A what recording
+   feedback adds. The client subscribes to nothing else. The three phases run for each of
+   ``--gaps`` (seconds between a reply to 'other' and its next request): 0 keeps the node
+   busy, so every solve competes with a waiting request; 0.01 is a perception rate, where
+   the node idles between requests and waking it is part of each latency.
 """
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -78,9 +84,7 @@ def live(checkpoint: str, scenes: list, args) -> dict:
     from ros_helpers import RELIABLE, RosClient, start_node, stop
 
     domain = 150 + os.getpid() % 50
-    client = RosClient(domain)
-    models = []
-    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    client = RosClient(domain, listen=False)  # its only subscription: the rankings it times
     arrived = {}  # scene_id -> when its ranking reached the client's callback (perf_counter)
 
     def on_ranking(msg):
@@ -94,18 +98,15 @@ def live(checkpoint: str, scenes: list, args) -> dict:
         process = start_node('stars_ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': records},
                              Path(records) / 'ranker.log')
         try:
-            client.wait_ready(process, 120, {'scene_id': 'probe', 'graph': scenes[0]})
+            deadline = time.monotonic() + 120
+            while not client.wait(lambda: 'probe' in arrived, 1.0):  # until the endpoints have matched
+                if process.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError('the ranker did not answer')
+                client.scene({'scene_id': 'probe', 'graph': scenes[0]})
             for k in range(50):  # warm-up
                 client.scene({'scene_id': f'warm-{k}', 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
-            client.wait(lambda: client.ranking_for('warm-49') is not None, 30)
-            results = {}
-            for phase, feedback, fold_in in (('without_feedback', False, True),
-                                             ('feedback_fold_in_off', True, False),
-                                             ('feedback_fold_in_on', True, True)):
-                if not client.set_parameters('/ranker', {'fold_in': fold_in})[0].successful:
-                    raise RuntimeError('could not set fold_in')
-                results[phase] = run_phase(client, domain, arrived, models, scenes, phase, feedback, args)
-            results['folded_in_updates'] = len(models)
+            client.wait(lambda: 'warm-49' in arrived, 30)
+            results = {f'gap_{gap:g}': measure_gap(client, domain, arrived, scenes, gap, args) for gap in args.gaps}
             stop(process, 2)
         finally:
             if process.poll() is None:
@@ -114,46 +115,91 @@ def live(checkpoint: str, scenes: list, args) -> dict:
     return results
 
 
-def run_phase(client, domain: int, arrived, models, scenes, phase: str, feedback: bool, args) -> dict:
-    from ros_helpers import ros_env
+def measure_gap(client, domain: int, arrived, scenes, gap: float, args) -> dict:
+    """Phase A, then B and C alternating in ``--blocks`` pairs of blocks (B C, C B, ...) with
+    one streamer giving feedback throughout, so that the machine's drift over the run
+    reaches both alike; each condition's percentiles pool its blocks."""
+    def set_fold_in(on: bool):
+        if not client.set_parameters('/ranker', {'fold_in': on})[0].successful:
+            raise RuntimeError('could not set fold_in')
 
-    streamer = subprocess.Popen(
-        [sys.executable, __file__, '--streamer', '--data-root', args.data_root, '--stream-rate', str(args.stream_rate),
-         '--phase', phase] + (['--with-feedback'] if feedback else []),
-        env=ros_env(domain), stdout=subprocess.PIPE, text=True)
-    before = len(models)
+    tag = f'{gap:g}'
+    set_fold_in(True)
+    with Streamer(domain, args, f'a-{tag}', feedback=False) as streamer:
+        without = time_other(client, arrived, scenes, f'a-{tag}', args.requests, gap)
+    results = {'without_feedback': {**summary(without), **streamer.counts}}
+    pooled, block_p99 = {False: [], True: []}, {False: [], True: []}
+    per_block = max(1, args.requests // args.blocks)
+    with Streamer(domain, args, f'bc-{tag}', feedback=True) as streamer:
+        for pair in range(args.blocks):
+            for fold_in in ((False, True) if pair % 2 == 0 else (True, False)):
+                set_fold_in(fold_in)
+                latencies = time_other(client, arrived, scenes, f'{"c" if fold_in else "b"}{pair}-{tag}', per_block, gap)
+                pooled[fold_in] += latencies
+                block_p99[fold_in].append(float(np.percentile(latencies, 99)) if latencies else float('nan'))
+    for fold_in, name in ((False, 'feedback_fold_in_off'), (True, 'feedback_fold_in_on')):
+        results[name] = {**summary(pooled[fold_in], per_block * args.blocks), 'block_p99_ms': block_p99[fold_in]}
+    results['feedback_streamed'] = streamer.counts
+    return results
+
+
+def summary(latencies: list, sent: int | None = None) -> dict:
+    return {'other_latency_ms': percentiles(latencies), 'timeouts': (sent or len(latencies)) - len(latencies)}
+
+
+def time_other(client, arrived, scenes, tag: str, count: int, gap: float) -> list:
+    """ms from send to the ranking's arrival for ``count`` requests of 'other' (timeouts left out)."""
     latencies = []
-    try:
-        if streamer.stdout.readline().strip() != 'ready':
-            raise RuntimeError(f'the streamer did not start (exit code {streamer.poll()})')
-        for k in range(args.requests):
-            scene_id = f'{phase}-other-{k}'
-            text = json.dumps({'scene_id': scene_id, 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
-            sent = time.perf_counter()
-            client.scene(text)
-            if client.wait(lambda: scene_id in arrived, 5):
-                latencies.append((arrived[scene_id] - sent) * 1e3)
-            time.sleep(args.gap)
-    finally:
-        streamer.send_signal(signal.SIGINT)
-        output, _ = streamer.communicate(timeout=30)
-    streamed = int(output.split()[-1]) if output.strip() else 0
-    time.sleep(1.0)
-    return {'other_latency_ms': percentiles(latencies), 'timeouts': args.requests - len(latencies),
-            'streamed_requests': streamed, 'fold_in_updates': len(models) - before}
+    for k in range(count):
+        scene_id = f'{tag}-other-{k}'
+        text = json.dumps({'scene_id': scene_id, 'user_id': 'other', 'graph': scenes[k % len(scenes)]})
+        sent = time.perf_counter()
+        client.scene(text)
+        if client.wait(lambda: scene_id in arrived, 5):
+            latencies.append((arrived[scene_id] - sent) * 1e3)
+        if gap:
+            time.sleep(gap)
+    return latencies
+
+
+class Streamer:
+    """The streaming user's process for a ``with`` block; ``counts`` once it has ended."""
+
+    def __init__(self, domain: int, args, tag: str, feedback: bool):
+        from ros_helpers import ros_env
+        self.command = [sys.executable, __file__, '--streamer', '--data-root', args.data_root,
+                        '--stream-rate', str(args.stream_rate), '--phase', tag] + (['--with-feedback'] if feedback else [])
+        self.env = ros_env(domain)
+        self.counts = {}
+
+    def __enter__(self):
+        self.process = subprocess.Popen(self.command, env=self.env, stdout=subprocess.PIPE, text=True)
+        if self.process.stdout.readline().strip() != 'ready':
+            self.process.kill()
+            raise RuntimeError(f'the streamer did not start (exit code {self.process.wait()})')
+        return self
+
+    def __exit__(self, *exc):
+        self.process.send_signal(signal.SIGINT)
+        output, _ = self.process.communicate(timeout=30)
+        words = output.split()  # 'streamed N models M'
+        if len(words) >= 4:
+            self.counts = {'streamed_requests': int(words[-3]), 'fold_in_updates': int(words[-1])}
+        time.sleep(1.0)  # the node drains what the streamer left
+        return False
 
 
 def streamer_main(args) -> int:
     """The streamer user, a device of its own (own process): a SocNav1 scene ranked
     ``--stream-rate`` times a second, each followed by a feedback rating with
-    ``--with-feedback``. Prints 'ready' after the first ranking and the number of requests
-    when interrupted."""
+    ``--with-feedback``. Prints 'ready' after the first ranking, and when interrupted the
+    number of requests and of the user models the node folded in for it (stars/user_model)."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from std_msgs.msg import String
 
     from ros_helpers import RELIABLE
+    from stars_ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
     rclpy.init()
@@ -171,9 +217,9 @@ def streamer_main(args) -> int:
                 answered.notify_all()
 
     node.create_subscription(String, '/stars/ranking', on_ranking, RELIABLE)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    models = []
+    node.create_subscription(String, '/stars/user_model', lambda msg: models.append(len(msg.data)), RELIABLE)
+    threading.Thread(target=spin_until_shutdown, args=(node,), daemon=True).start()
     k, ready, deadline = 0, False, time.monotonic() + 60
     try:
         while True:
@@ -197,8 +243,7 @@ def streamer_main(args) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        print(f'streamed {k}', flush=True)
-        executor.shutdown()
+        print(f'streamed {k} models {len(models)}', flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
@@ -210,9 +255,12 @@ def main(argv=None) -> int:
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--users', type=int, default=10, help='users streaming 50 ratings each (part 1)')
     parser.add_argument('--regularisation', type=float, default=1.0)
-    parser.add_argument('--requests', type=int, default=400, help="rankings of 'other' per phase")
-    parser.add_argument('--gap', type=float, default=0.01, help="seconds between two of 'other's requests")
-    parser.add_argument('--stream-rate', type=float, default=10.0, help="streamer's rankings (+ feedback) per s")
+    parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per phase")
+    parser.add_argument('--blocks', type=int, default=6,
+                        help='pairs of blocks into which phases B and C are split, alternating')
+    parser.add_argument('--gaps', type=float, nargs='+', default=[0.0, 0.01],
+                        help="seconds between a reply to 'other' and its next request, one set of phases each")
+    parser.add_argument('--stream-rate', type=float, default=50.0, help="streamer's rankings (+ feedback) per s")
     parser.add_argument('--out', default=str(REPO / 'results' / 'foldin_benchmark.json'))
     parser.add_argument('--streamer', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--phase', default='', help=argparse.SUPPRESS)
@@ -221,6 +269,7 @@ def main(argv=None) -> int:
     if args.streamer:
         return streamer_main(args)
     torch.set_num_threads(1)
+    threadpool_limits(1, user_api='blas')  # as the node does
     predictor = Predictor.load(args.checkpoint)
     raw = Path(args.data_root) / 'raw'
     annotators = sorted(p.stem for p in raw.glob('*.jsonl'))
@@ -230,12 +279,18 @@ def main(argv=None) -> int:
         update = offline['update_ms'][n]
         print(f'{n:2d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms')
     node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], args)
-    for phase in ('without_feedback', 'feedback_fold_in_off', 'feedback_fold_in_on'):
-        figures = node[phase]
-        latency = figures['other_latency_ms']
-        print(f"other user's ranking latency {phase.replace('_', ' ')}: p50 {latency['p50']:.2f} ms, "
-              f"p99 {latency['p99']:.2f} ms, max {latency['max']:.2f} ms ({latency['count']} rankings, "
-              f"{figures['timeouts']} timeouts; {figures['fold_in_updates']} fold-in updates meanwhile)")
+    for gap in args.gaps:
+        figures = node[f'gap_{gap:g}']
+        for phase in ('without_feedback', 'feedback_fold_in_off', 'feedback_fold_in_on'):
+            latency = figures[phase]['other_latency_ms']
+            blocks = figures[phase].get('block_p99_ms')
+            print(f"gap {gap * 1e3:g} ms, other user's ranking latency {phase.replace('_', ' ')}: "
+                  f"p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms, max {latency['max']:.2f} ms "
+                  f"({latency['count']} rankings, {figures[phase]['timeouts']} timeouts)"
+                  + (f"; p99 per block {' '.join(f'{v:.1f}' for v in blocks)}" if blocks else ''))
+        print(f"  streamer: {figures['without_feedback'].get('streamed_requests')} requests in phase A; "
+              f"{figures['feedback_streamed'].get('streamed_requests')} requests with feedback and "
+              f"{figures['feedback_streamed'].get('fold_in_updates')} fold-in updates in B and C")
     results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
                'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
                'load_average': [round(v, 2) for v in os.getloadavg()]}

@@ -113,9 +113,13 @@ class FoldIn:
 
     Args:
         predictor (Predictor): the model to fold users into; its weights are only read.
-        cache_scenes (int, optional): most encoded scenes kept (least recently used go).
+        cache_scenes (int, optional): most encoded scenes, and most ratings' regression rows,
+            kept (least recently used go).
 
-    ``fit`` may be called from several threads; the cache is locked.
+    ``fit`` may be called from several threads; the caches are locked. A user is re-solved
+    from all their ratings at each new one: each rating's row of the regression is computed
+    once and kept, so a solve costs ~0.1 ms whether the history holds 5 ratings or 200
+    (building 200 rows each time took 1.1–1.6 ms, a wait for every request behind it).
     """
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES):
@@ -139,6 +143,7 @@ class FoldIn:
         self.dim = self.action_rows.shape[1]
         self._cache = collections.OrderedDict()
         self._cache_scenes = cache_scenes
+        self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
         self._lock = threading.Lock()
         solve_ridge(np.ones((1, self.dim + 1)), np.zeros(1), self.population, 1.0)  # a process's first
         # LAPACK solve costs ~10 ms here: paid at load, not by the first feedback
@@ -216,8 +221,30 @@ class FoldIn:
         prior = self.prior(user_id)
         if not ratings:
             return UserModel(prior[:-1], float(prior[-1]), 0, regularisation)
-        theta = self.solve(*self.design(ratings), prior, regularisation)
+        x, y = self.regression(ratings)
+        theta = solve_ridge(x, y, prior, regularisation)
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), regularisation)
+
+    def regression(self, ratings: Sequence[Rating]) -> tuple:
+        """(x [n, dim+1], y = z − c [n]) of ``ratings``, the rows ``design`` gives, each
+        computed once per rating and then kept (the entry keeps the rating alive, so its id
+        cannot be reused)."""
+        keys = [id(rating) for rating in ratings]
+        with self._lock:
+            rows = [self._rows.get(key) for key in keys]
+            for key, entry in zip(keys, rows):
+                if entry is not None:
+                    self._rows.move_to_end(key)
+        missing = list({key: r for key, r, entry in zip(keys, ratings, rows) if entry is None}.values())
+        if missing:
+            x, c, z = self.design(missing)
+            new = {id(rating): (rating, row, target) for rating, row, target in zip(missing, x, z - c)}
+            with self._lock:
+                self._rows.update(new)
+                while len(self._rows) > self._cache_scenes:
+                    self._rows.popitem(last=False)
+            rows = [new[key] if entry is None else entry for key, entry in zip(keys, rows)]
+        return np.array([row for _, row, _ in rows]), np.array([target for _, _, target in rows])
 
     def predict(self, user: UserModel, ratings: Sequence[Rating]) -> np.ndarray:
         """Rating-scale predictions of ``user`` for the (scene, action) of ``ratings``."""

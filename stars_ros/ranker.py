@@ -49,6 +49,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from threadpoolctl import threadpool_limits
 
 from . import messages, recording
 from .errors import CheckpointError, StarsError
@@ -125,6 +126,10 @@ class RankerNode(Node):
                        for name, spec in PARAMETERS.items()}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         torch.set_num_threads(1)
+        # numpy's OpenBLAS spreads products above ~0.26 M multiply-adds (a fold-in solve over
+        # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
+        # cores the executor, the DDS threads and the node's neighbours need
+        threadpool_limits(1, user_api='blas')
         path = resolve_checkpoint(self.params['checkpoint'])
         self.predictor = Predictor.load(path)
         self.checkpoint_path = path

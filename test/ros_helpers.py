@@ -48,7 +48,9 @@ def start_node(module: str, domain: int, params: dict, log_path: Path, args=()) 
 class RosClient:
     """A test-side node on its own context: publishes requests, collects replies."""
 
-    def __init__(self, domain: int):
+    def __init__(self, domain: int, listen: bool = True):
+        """``listen=False``: no subscriptions of its own (a benchmark adds just the ones it
+        times, so that collecting everything does not load the measuring process)."""
         os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
@@ -58,9 +60,10 @@ class RosClient:
         self.user_pub = self.node.create_publisher(String, '/stars/user_id', LATCHED)
         self.rankings, self.errors, self.diagnostics = [], [], []
         self._changed = threading.Condition()
-        self.node.create_subscription(String, '/stars/ranking', self._keep(self.rankings, json.loads), RELIABLE)
-        self.node.create_subscription(String, '/stars/errors', self._keep(self.errors, json.loads), RELIABLE)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._keep(self.diagnostics, None), 100)
+        if listen:
+            self.node.create_subscription(String, '/stars/ranking', self._keep(self.rankings, json.loads), RELIABLE)
+            self.node.create_subscription(String, '/stars/errors', self._keep(self.errors, json.loads), RELIABLE)
+            self.node.create_subscription(DiagnosticArray, '/diagnostics', self._keep(self.diagnostics, None), 100)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)

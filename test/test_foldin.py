@@ -217,3 +217,22 @@ def test_remembered_encodings_are_not_encoded_again(predictor, ratings, monkeypa
     foldin.remember([scene], h)
     assert np.array_equal(foldin.encode([scene]), h.astype(np.float64))
     foldin.fit([ratings[0]], 'x')  # solves from the remembered h
+
+
+def test_regression_rows_are_computed_once_per_rating(predictor, ratings, monkeypatch):
+    foldin = FoldIn(predictor, cache_scenes=16)
+    x, c, z = FoldIn(predictor).design(ratings[:30])
+    designed = []
+    design = foldin.design
+    monkeypatch.setattr(foldin, 'design', lambda rated: designed.append(len(rated)) or design(rated))
+    foldin.fit(ratings[:10], 'u', 1.0)
+    grown = foldin.fit(ratings[:11], 'u', 1.0)
+    assert designed == [10, 1]  # a user's next rating: only its row is built
+    rows, targets = foldin.regression(ratings[:11])
+    assert designed == [10, 1]
+    assert np.allclose(rows, x[:11], atol=1e-6) and np.allclose(targets, (z - c)[:11], atol=1e-6)
+    assert np.array_equal(np.append(grown.p, grown.b), solve_ridge(rows, targets, foldin.prior('u'), 1.0))
+    foldin.fit(ratings[:30], 'u', 1.0)
+    assert len(foldin._rows) == 16  # bounded: the least recently used rows go, and are rebuilt when needed
+    foldin.fit(ratings[:2], 'u', 1.0)
+    assert designed[-1] == 2
