@@ -3,9 +3,10 @@
     python benchmarks/foldin.py [--checkpoint models/socnav1_gat_stars.pt] \
         [--data-root ../shared/datasets/socnav1] [--out results/foldin_benchmark.json]
 
-1. ROS-free: users stream 50 SocNav1 ratings each; after each one the user is re-solved
-   with ``FoldIn.fit`` as the node does it (the rated scene's request text parsed again, its
-   h the one its ranking computed). p50 / p99 by number of ratings.
+1. ROS-free: SocNav1 annotators stream ``--ratings`` ratings each (default 200, the node's
+   ``fold_in_max_ratings``); after each one the user is re-solved with ``FoldIn.fit`` from
+   all their ratings so far, as the node does it (the rated scene's request text parsed
+   again, its h the one its ranking computed). p50 / p99 by number of ratings.
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' (another process, as
    another person's device would be) gets scenes ranked at ``--stream-rate`` per second.
@@ -60,8 +61,10 @@ def percentiles(values) -> dict:
 def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict:
     """ms per update by rating count, as in the node: the newly rated scene's request text is
     parsed again, its h is the one its ranking computed (handed to the fold-in's cache), and
-    the user is re-solved from all their ratings so far."""
-    times = {}
+    the user is re-solved from all their ratings so far. Reference, same run: the solve
+    building every rating's regression row again (``design`` + ``solve``, as ``fit`` did
+    before it kept the rows)."""
+    times, rebuilt = {}, {}
     messages.validator('scene_request')  # compiled once per process: the node has done it before any feedback
     for user, scenes in scenes_by_user.items():
         foldin = FoldIn(predictor)
@@ -73,10 +76,15 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
             request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
             foldin.remember([request.graphs[0]], h)
             ratings.append(Rating(request.graphs[0], 'navigate', scene['score'] / 100, request.scene_id))
-            foldin.fit(ratings, user, regularisation)
+            model = foldin.fit(ratings, user, regularisation)
             times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
+            started = time.perf_counter()
+            theta = foldin.solve(*foldin.design(ratings), foldin.prior(user), regularisation)
+            rebuilt.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
+            assert np.allclose(theta, np.append(model.p, model.b), atol=1e-8)
     return {'update_ms': {n: percentiles(v) for n, v in times.items()},
-            'update_ms_all': percentiles([x for v in times.values() for x in v])}
+            'update_ms_all': percentiles([x for v in times.values() for x in v]),
+            'reference_solve_rebuilding_rows_ms': {n: percentiles(v) for n, v in rebuilt.items()}}
 
 
 def live(checkpoint: str, scenes: list, args) -> dict:
@@ -253,7 +261,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', default=str(REPO / 'models' / 'socnav1_gat_stars.pt'))
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
-    parser.add_argument('--users', type=int, default=10, help='users streaming 50 ratings each (part 1)')
+    parser.add_argument('--users', type=int, default=10, help='most annotators streaming ratings (part 1)')
+    parser.add_argument('--ratings', type=int, default=200,
+                        help='ratings each streams (part 1; annotators with fewer are left out)')
     parser.add_argument('--regularisation', type=float, default=1.0)
     parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per phase")
     parser.add_argument('--blocks', type=int, default=6,
@@ -273,11 +283,15 @@ def main(argv=None) -> int:
     predictor = Predictor.load(args.checkpoint)
     raw = Path(args.data_root) / 'raw'
     annotators = sorted(p.stem for p in raw.glob('*.jsonl'))
-    scenes_by_user = {name: read_scenes(raw / f'{name}.jsonl')[:50] for name in annotators[:args.users]}
+    scenes_by_user = {name: scenes[:args.ratings] for name in annotators
+                      if len(scenes := read_scenes(raw / f'{name}.jsonl')) >= args.ratings}
+    scenes_by_user = dict(list(scenes_by_user.items())[:args.users])
     offline = time_updates(predictor, scenes_by_user, args.regularisation)
-    for n in (1, 2, 5, 10, 20, 50):
-        update = offline['update_ms'][n]
-        print(f'{n:2d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms')
+    print(f'{len(scenes_by_user)} annotators stream {args.ratings} ratings each')
+    for n in sorted({1, 2, 5, 10, 20, 50, 100, 200, args.ratings} & set(offline['update_ms'])):
+        update, reference = offline['update_ms'][n], offline['reference_solve_rebuilding_rows_ms'][n]
+        print(f'{n:3d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms; reference, the '
+              f'solve rebuilding every row: p50 {reference["p50"]:.3f} ms p99 {reference["p99"]:.3f} ms')
     node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], args)
     for gap in args.gaps:
         figures = node[f'gap_{gap:g}']

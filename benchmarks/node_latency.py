@@ -48,6 +48,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
 from stars_ros.scene_source import read_scenes  # noqa: E402
+from stars_ros.spinning import spin_until_shutdown  # noqa: E402
 
 QUEUE_DEPTH = 1000
 QOS = QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -60,9 +61,7 @@ def echo_main():
     publisher = node.create_publisher(String, 'stars/ranking', QOS)
     node.create_subscription(String, 'stars/scene', publisher.publish, QOS)
     try:
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
+        spin_until_shutdown(node)  # as the ranker spins
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
@@ -146,7 +145,12 @@ def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dic
     finally:
         client.close()
         process.terminate()
-        process.wait(timeout=30)
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:  # seen once, the echo node: rclpy's destroy_node spun
+            process.kill()                 # in Node.destroy_when_not_in_use after SIGTERM
+            process.wait()
+            print(f'{name} did not end within 30 s of SIGTERM: killed', file=sys.stderr)
     return {
         'latency_ms': summary(latencies, args.latency_count),
         'paced_latency_ms': summary(paced, args.paced_count),
