@@ -117,9 +117,9 @@ class FoldIn:
             kept (least recently used go).
 
     ``fit`` may be called from several threads; the caches are locked. A user is re-solved
-    from all their ratings at each new one: each rating's row of the regression is computed
-    once and kept, so a solve costs ~0.1 ms whether the history holds 5 ratings or 200
-    (building 200 rows each time took 1.1–1.6 ms, a wait for every request behind it).
+    from all their ratings at each new one, so each rating's row of the regression is built
+    once and kept rather than at every solve (``benchmarks/foldin.py`` times both ways in one
+    run; docs/personalisation.md).
     """
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES):
