@@ -3,16 +3,19 @@
     python benchmarks/node_latency.py [--checkpoint models/socnav1_gat_stars.pt] \
         [--data-root ../shared/datasets/socnav1] [--out results/node_latency.json]
 
-Starts two nodes in turn, each in its own process on loopback DDS: the ranker (packaged
-default checkpoint, recording on) and an echo node with the same QoS that republishes each
-scene request unchanged on stars/ranking (a trivial callback, replies at least as large as
-the ranker's). A client in this process sends real SocNav1 scenes (one request per scene,
-user id included) and times scene → ranking:
+Starts two nodes, each in its own process on loopback DDS and in a ROS domain of its own:
+the ranker (packaged default checkpoint, recording on) and an echo node with the same QoS
+that republishes each scene request unchanged on stars/ranking (a trivial callback, replies
+at least as large as the ranker's). A client in this process sends real SocNav1 scenes (one
+request per scene, user id included) and times scene → ranking:
   * latency: one request in flight at a time, each sent as soon as the previous one is
     answered; p50 / p99 / max over ``--latency-count``;
   * paced latency: the same, but one request every ``--paced-period`` seconds (100 Hz by
     default, a perception rate): between two requests every thread of both processes goes
     idle, and on this VM waking them is part of what a robot's request costs;
+  Both latencies are measured in ``--blocks`` blocks that alternate between the two nodes
+  (echo ranker, ranker echo, ...): this VM's speed drifts by tens of percent within minutes,
+  and measured one after the other the two nodes met different stretches of it;
   * throughput: for each of ``--rates`` (per second; 0: as fast as the client can), a burst
     of ``--burst`` requests; the sustained rate = replies per second between the first and
     the last reply, the number lost (no reply within 10 s of the last send) and the latency
@@ -70,10 +73,10 @@ def echo_main():
 class Client:
     """Publishes requests and timestamps the replies, matched by scene_id."""
 
-    def __init__(self, domain: int):
+    def __init__(self, domain: int, target: str):
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
-        self.node = Node('latency_client', context=self.context)
+        self.node = Node(f'latency_client_{target}', context=self.context)
         self.publisher = self.node.create_publisher(String, 'stars/scene', QOS)
         self.node.create_subscription(String, 'stars/ranking', self._on_reply, QOS)
         self.received = {}
@@ -118,45 +121,52 @@ def requests(scenes, prefix: str, count: int, users=('alice', 'bob')) -> list:
                                           'graph': scenes[k % len(scenes)]})) for k in range(count)]
 
 
-def measure(name: str, command: list, env: dict, scenes, args, log: Path) -> dict:
-    process = subprocess.Popen(command, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
-    client = Client(int(env['ROS_DOMAIN_ID']))
-    try:
+class Served:
+    """A node's process and the client that talks to it (in the node's own domain)."""
+
+    def __init__(self, name: str, command: list, env: dict, scenes, log: Path):
+        self.name, self.log = name, log
+        self.process = subprocess.Popen(command, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
+        self.client = Client(int(env['ROS_DOMAIN_ID']), name)
         for scene_id, text in requests(scenes, f'{name}-warm', 10 ** 6):  # until the node answers
-            if process.poll() is not None:
-                raise RuntimeError(f'{name} exited with {process.returncode}: {log.read_text()[-2000:]}')
-            if client.publisher.get_subscription_count():
-                client.send(text)
-                if client.wait_for(scene_id, 2.0):
+            if self.process.poll() is not None:
+                raise RuntimeError(f'{name} exited with {self.process.returncode}: {log.read_text()[-2000:]}')
+            if self.client.publisher.get_subscription_count():
+                self.client.send(text)
+                if self.client.wait_for(scene_id, 2.0):
                     break
             else:
                 time.sleep(0.2)
         for scene_id, text in requests(scenes, f'{name}-warmup', 100):
-            client.send(text)
-            client.wait_for(scene_id, 5.0)
-        client.processing_ms.clear()
+            self.client.send(text)
+            self.client.wait_for(scene_id, 5.0)
+        self.client.processing_ms.clear()
 
-        latencies = one_at_a_time(client, requests(scenes, f'{name}-lat', args.latency_count), 0.0)
-        processing = list(client.processing_ms)
-        paced = one_at_a_time(client, requests(scenes, f'{name}-paced', args.paced_count), args.paced_period)
-
-        bursts = [run_burst(client, requests(scenes, f'{name}-burst-{rate:g}', args.burst), rate)
-                  for rate in args.rates]
-    finally:
-        client.close()
-        process.terminate()
+    def stop(self):
+        self.client.close()
+        self.process.terminate()
         try:
-            process.wait(timeout=30)
+            self.process.wait(timeout=30)
         except subprocess.TimeoutExpired:  # seen once, the echo node: rclpy's destroy_node spun
-            process.kill()                 # in Node.destroy_when_not_in_use after SIGTERM
-            process.wait()
-            print(f'{name} did not end within 30 s of SIGTERM: killed', file=sys.stderr)
-    return {
-        'latency_ms': summary(latencies, args.latency_count),
-        'paced_latency_ms': summary(paced, args.paced_count),
-        'node_processing_ms_p50': float(np.percentile(processing, 50)) if processing else None,
-        'bursts': bursts,
-    }
+            self.process.kill()            # in Node.destroy_when_not_in_use after SIGTERM
+            self.process.wait()
+            print(f'{self.name} did not end within 30 s of SIGTERM: killed', file=sys.stderr)
+
+
+def alternating(served: dict, scenes, kind: str, count: int, blocks: int, period: float) -> tuple:
+    """Latencies (ms) per node of ``count`` requests each, one at a time, sent in ``blocks``
+    blocks per node that alternate between the nodes (A B, B A, ...); and each block's median."""
+    latencies = {name: [] for name in served}
+    medians = {name: [] for name in served}
+    names = list(served)
+    per_block = max(1, count // blocks)
+    for block in range(blocks):
+        for name in (names if block % 2 == 0 else names[::-1]):
+            batch = requests(scenes, f'{name}-{kind}-{block}', per_block)
+            measured = one_at_a_time(served[name].client, batch, period)
+            latencies[name] += measured
+            medians[name].append(float(np.median(measured)) if measured else float('nan'))
+    return latencies, medians
 
 
 def one_at_a_time(client, burst: list, period: float) -> list:
@@ -260,6 +270,8 @@ def main(argv=None) -> int:
     parser.add_argument('--latency-count', type=int, default=1000)
     parser.add_argument('--paced-count', type=int, default=500)
     parser.add_argument('--paced-period', type=float, default=0.01)
+    parser.add_argument('--blocks', type=int, default=10,
+                        help='blocks per node into which each latency measurement is split, alternating')
     parser.add_argument('--burst', type=int, default=3000)
     parser.add_argument('--rates', type=float, nargs='+', default=[300.0, 450.0],
                         help='offered loads of the bursts, one burst each (0: flat out)')
@@ -272,24 +284,42 @@ def main(argv=None) -> int:
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
     steps = in_process(args.checkpoint, scenes)
     print('in process, one thread (p50 ms): ' + ', '.join(f'{k[:-7]} {v:.3f}' for k, v in steps.items()))
-    domain = 150 + os.getpid() % 50
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    domain = 150 + 2 * (os.getpid() % 25)  # the echo node's; the ranker's is the next one
+    base_env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                    PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     with tempfile.TemporaryDirectory() as records:
         ranker = [sys.executable, '-m', 'stars_ros.ranker', '--ros-args', '-p', f'record_folder:={records}',
                   '-p', f'queue_depth:={QUEUE_DEPTH}']
         if args.checkpoint:
             ranker += ['-p', f'checkpoint:={args.checkpoint}']
         echo = [sys.executable, str(Path(__file__).resolve()), '--echo']
-        results = {name: measure(name, command, env, scenes, args, Path(records) / f'{name}.log')
-                   for name, command in (('echo', echo), ('ranker', ranker))}
+        served = {}
+        try:
+            for offset, (name, command) in enumerate((('echo', echo), ('ranker', ranker))):
+                env = dict(base_env, ROS_DOMAIN_ID=str(domain + offset))
+                served[name] = Served(name, command, env, scenes, Path(records) / f'{name}.log')
+            latency, latency_blocks = alternating(served, scenes, 'lat', args.latency_count, args.blocks, 0.0)
+            processing = list(served['ranker'].client.processing_ms)
+            paced, paced_blocks = alternating(served, scenes, 'paced', args.paced_count, args.blocks,
+                                              args.paced_period)
+            results = {name: {
+                'latency_ms': summary(latency[name], args.latency_count // args.blocks * args.blocks),
+                'latency_block_p50_ms': latency_blocks[name],
+                'paced_latency_ms': summary(paced[name], args.paced_count // args.blocks * args.blocks),
+                'paced_latency_block_p50_ms': paced_blocks[name],
+                'bursts': [run_burst(served[name].client, requests(scenes, f'{name}-burst-{rate:g}', args.burst), rate)
+                           for rate in args.rates]} for name in served}
+            results['ranker']['node_processing_ms_p50'] = float(np.percentile(processing, 50)) if processing else None
+        finally:
+            for node in served.values():
+                node.stop()
     results['in_process'] = steps
     results['ratio'] = {
         'latency_p50': results['ranker']['latency_ms']['p50'] / results['echo']['latency_ms']['p50'],
         'latency_p99': results['ranker']['latency_ms']['p99'] / results['echo']['latency_ms']['p99'],
         'paced_latency_p50': results['ranker']['paced_latency_ms']['p50'] / results['echo']['paced_latency_ms']['p50'],
         'paced_latency_p99': results['ranker']['paced_latency_ms']['p99'] / results['echo']['paced_latency_ms']['p99']}
-    results['settings'] = {'latency_count': args.latency_count, 'paced_count': args.paced_count,
+    results['settings'] = {'latency_count': args.latency_count, 'paced_count': args.paced_count, 'blocks': args.blocks,
                            'paced_period': args.paced_period, 'burst': args.burst, 'rates': args.rates,
                            'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
                            'machine': machine()}
@@ -303,8 +333,11 @@ def main(argv=None) -> int:
                   f"{burst['sustained_per_s']:.0f}/s, lost {burst['lost']}, p50 {burst['latency_ms_p50']:.2f} ms, "
                   f"p99 {burst['latency_ms_p99']:.2f} ms")
     ratio = results['ratio']
+    ratio['latency_p50_per_block'] = [r / e for r, e in zip(results['ranker']['latency_block_p50_ms'],
+                                                            results['echo']['latency_block_p50_ms'])]
     print(f"ratio ranker/echo: p50 {ratio['latency_p50']:.2f}, p99 {ratio['latency_p99']:.2f}; "
-          f"paced p50 {ratio['paced_latency_p50']:.2f}, p99 {ratio['paced_latency_p99']:.2f}")
+          f"paced p50 {ratio['paced_latency_p50']:.2f}, p99 {ratio['paced_latency_p99']:.2f}; p50 per block "
+          + ' '.join(f'{r:.2f}' for r in ratio['latency_p50_per_block']))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2) + '\n')
     print(f'wrote {args.out}')
