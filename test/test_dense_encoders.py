@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from stars_ros.encoders import ENCODERS, resolve_encoder
-from stars_ros.scene_graph import NODE_FEATURES, RELATIONS, featurise
+from stars_ros.scene_graph import NODE_FEATURES, RELATIONS, SceneGraph, featurise
 from stars_ros.scene_source import random_scene
 from stars_ros.scene_store import GraphStore, dense_graphs
 
@@ -119,3 +119,12 @@ def test_dense_graphs_layout():
     assert dense.adjacency[0].sum() == small.edge_index.shape[1]
     assert np.array_equal(dense.relation_adjacency.sum(1), dense.adjacency)
     assert dense_graphs([small]).relation_adjacency is None
+
+
+def test_dense_graphs_count_parallel_edges_per_relation():
+    graph = SceneGraph(x=np.zeros((3, len(NODE_FEATURES)), dtype=np.float32),
+                       edge_index=np.array([[1, 1, 1, 2], [0, 0, 0, 1]]), edge_type=np.array([0, 0, 2, 1]))
+    dense = dense_graphs([graph], len(RELATIONS))
+    assert dense.adjacency[0, 0, 1] == 3 and dense.adjacency[0, 1, 2] == 1 and dense.adjacency.sum() == 4
+    assert dense.relation_adjacency[0, 0, 0, 1] == 2 and dense.relation_adjacency[0, 2, 0, 1] == 1
+    assert dense.relation_adjacency[0, 1, 1, 2] == 1 and dense.relation_adjacency.sum() == 4
