@@ -18,7 +18,8 @@ Every model of a table is scored on the same folds: the chosen backbones in the 
 and ``stars`` variants, and two baselines: ``population_mean`` (the training mean of each
 action) and ``mf`` (biased matrix factorisation, no scene content). Fits are independent
 jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
-CPU pays better than threads inside one small-graph model.
+CPU pays better than threads inside one small-graph model. With ``training.device`` 'cuda'
+the workers share the one GPU, each with its own CUDA context.
 """
 from __future__ import annotations
 
@@ -319,7 +320,8 @@ class _InlineExecutor(futures.Executor):
 
 def fit_executor(data: RatingData, jobs: int, threads: int) -> futures.Executor:
     """Where ``run_fit`` tasks run: inline for one job, else ``jobs`` worker processes
-    holding ``data`` and using ``threads`` torch threads each."""
+    holding ``data`` and using ``threads`` torch threads each. Workers are spawned, not
+    forked: a forked child cannot use CUDA, a spawned one opens its own context."""
     if jobs == 1:
         return _InlineExecutor(data)
     return futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),

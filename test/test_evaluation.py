@@ -221,3 +221,26 @@ def test_learning_curve_cli_writes_its_results(socnav1_root, tmp_path):
                               '--data-root', str(socnav1_root)], cwd=REPO, capture_output=True, text=True,
                              env={**os.environ, 'PYTHONPATH': str(REPO)}, timeout=120)
     assert refused.returncode == 2 and 'exactly the keys' in refused.stderr
+
+
+def test_device_option_reaches_every_fit_and_the_results(socnav1_root, tmp_path, monkeypatch):
+    """``--device`` overrides the config for every fit (a fake fit: no GPU needed) and is
+    recorded in config.yaml, machine.json and tables.md."""
+    from offline_training import evaluate
+    devices = []
+
+    def fake_fit(task, data=None):
+        devices.append(ExperimentConfig.from_dict(task.experiment).training.device)
+        return {'mse': 0.02, 'rmse': 0.14, 'pearson_r': 0.9, 'ccc': 0.9, 'n': len(task.test), 'z_rmse': 0.5,
+                'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2}
+
+    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    out = tmp_path / 'device'
+    assert evaluate.main(['--quick', '--backbones', 'gat', '--device', 'cuda:1', '--data-root', str(socnav1_root),
+                          '--out', str(out)]) == 0
+    assert devices and set(devices) == {'cuda:1'}
+    written = yaml.safe_load((out / 'config.yaml').read_text())
+    assert written['device'] == 'cuda:1' and written['experiment']['training']['device'] == 'cuda:1'
+    assert json.loads((out / 'machine.json').read_text())['device'] == 'cuda:1'
+    assert 'training on cuda:1' in (out / 'tables.md').read_text()
+    assert evaluate.main(['--quick', '--device', 'gpu', '--data-root', str(socnav1_root), '--out', str(out)]) == 2
