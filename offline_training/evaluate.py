@@ -4,8 +4,9 @@
         --protocol rows --jobs 2 [--quick] [--backbones gcn,gat] [--device cuda] [--out results/socnav1-rows]
 
 Writes into ``--out`` (default ``results/<name>-<protocol>[-quick]``): ``command.txt``,
-``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each result
-as it arrives, so a long run that stops keeps what it finished), ``folds.csv`` (per model,
+``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each fit's
+result as it arrives, selection fits too, so a long run that stops keeps what it finished
+and ``--resume`` goes on from there), ``folds.csv`` (per model,
 fold and training fraction), ``selection.csv`` (inner validation of every (T1, T2)),
 ``tests.csv``, ``results.json`` (everything), ``tables.md`` (the paper's tables, the
 paired tests, the sparsity table and where the time went) and ``sparsity_<metric>.png``.
@@ -61,6 +62,9 @@ def parse_args(argv=None):
     parser.add_argument('--device', help="where every fit trains: 'cpu', 'cuda' or 'cuda:N' (default: the "
                                          "config's experiment.training.device, else cpu); jobs share the GPU")
     parser.add_argument('--out', help='results folder (default: results/<name>-<protocol>[-quick])')
+    parser.add_argument('--resume', action='store_true',
+                        help="reuse the fits in the folder's records.jsonl from an earlier run with the same "
+                             'config.yaml (jobs and threads may differ) and run only the rest')
     parser.add_argument('--verbose', action='store_true', help='log every fit')
     return parser.parse_args(argv)
 
@@ -79,6 +83,32 @@ def configure(args) -> ProtocolConfig:
     if args.device:
         config = ProtocolConfig.from_dict(config.to_dict(), {'experiment': {'training': {'device': args.device}}})
     return config
+
+
+RESUME_MAY_DIFFER = ('data_root', 'jobs', 'threads')
+
+
+def previous_entries(folder: Path, settings: dict) -> list:
+    """The entries of ``folder/records.jsonl`` written by an earlier run whose config.yaml
+    equals ``settings`` but for RESUME_MAY_DIFFER; [] when the folder has none."""
+    records = folder / 'records.jsonl'
+    if not records.exists():
+        return []
+    try:
+        earlier = yaml.safe_load((folder / 'config.yaml').read_text()) or {}
+    except (OSError, yaml.YAMLError) as error:
+        raise StarsError(f'--resume: cannot read the earlier run\'s config.yaml: {error}') from error
+    keys = (earlier.keys() | settings.keys()) - set(RESUME_MAY_DIFFER)
+    differ = sorted(k for k in keys if earlier.get(k) != settings.get(k))
+    if differ:
+        raise StarsError(f'--resume: {folder} holds a run with other settings ({", ".join(differ)} differ)')
+    entries = []
+    for line in records.read_text().splitlines():
+        try:
+            entries.append(json.loads(line))
+        except json.JSONDecodeError:  # the last line, cut short when the run was stopped
+            break
+    return entries
 
 
 def git_state() -> dict:
@@ -310,12 +340,17 @@ def main(argv=None) -> int:
               'load_start': [round(v, 2) for v in os.getloadavg()],
               'data': f'{data.source} ({len(data)} ratings, {len(set(data.users.tolist()))} users, '
                       f'{len(data.scene_keys)} scenes, fingerprint {data.fingerprint[:12]})'}
-    (folder / 'command.txt').write_text(command + '\n')
-    (folder / 'config.yaml').write_text(yaml.safe_dump(
+    settings = yaml.safe_load(yaml.safe_dump(  # as config.yaml reads back
         {'protocol': args.protocol, 'quick': args.quick, 'data_root': str(args.data_root),
          'data_fingerprint': data.fingerprint, 'jobs': args.jobs, 'threads': threads, 'device': device,
-         **config.to_dict()},
-        sort_keys=False))
+         **config.to_dict()}, sort_keys=False))
+    try:
+        previous = previous_entries(folder, settings) if args.resume else []
+    except StarsError as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
+    (folder / 'command.txt').write_text(command + '\n')
+    (folder / 'config.yaml').write_text(yaml.safe_dump(settings, sort_keys=False))
 
     def write_machine():
         (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git'],
@@ -323,12 +358,15 @@ def main(argv=None) -> int:
     write_machine()
     print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
           f'{args.jobs} job(s) × {threads} thread(s) on {device}; writing {folder}', flush=True)
+    if previous:
+        print(f'resuming: {len(previous)} entries of the earlier records.jsonl are reused, not run again', flush=True)
     with (folder / 'records.jsonl').open('w') as stream:
         def keep(entry):
             stream.write(json.dumps(entry, default=_json_default) + '\n')
             stream.flush()
         try:
-            result = run_protocol(data, config, args.protocol, jobs=args.jobs, threads=threads, on_record=keep)
+            result = run_protocol(data, config, args.protocol, jobs=args.jobs, threads=threads, on_record=keep,
+                                  resume=previous)
         except (StarsError, ValueError) as error:
             print(f'error: {error}', file=sys.stderr)
             return 1
