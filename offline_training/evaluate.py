@@ -359,7 +359,7 @@ def main(argv=None) -> int:
     print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
           f'{args.jobs} job(s) × {threads} thread(s) on {device}; writing {folder}', flush=True)
     if previous:
-        print(f'resuming: {len(previous)} entries of the earlier records.jsonl are reused, not run again', flush=True)
+        print(f'resuming: {len(previous)} entries in the earlier records.jsonl; their fits are not run again', flush=True)
     with (folder / 'records.jsonl').open('w') as stream:
         def keep(entry):
             stream.write(json.dumps(entry, default=_json_default) + '\n')
