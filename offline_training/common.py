@@ -23,6 +23,14 @@ def machine() -> dict:
             'processor': platform.processor() or platform.machine()}
 
 
+def cuda_info(device: str) -> dict:
+    """The GPU behind a training ``device`` ({} for the CPU). It initialises CUDA in this
+    process, so the evaluation asks only once its worker processes are done."""
+    if not device.startswith('cuda') or not torch.cuda.is_available():
+        return {}
+    return {'cuda_device': torch.cuda.get_device_name(device), 'cuda_version': torch.version.cuda}
+
+
 def format_metrics(metrics: dict) -> str:
     return (f"MSE {metrics['mse']:.4f}  RMSE {metrics['rmse']:.4f}  "
             f"Pearson r {metrics['pearson_r']:.4f}  CCC {metrics['ccc']:.4f}  (n={metrics['n']})")

@@ -1,11 +1,12 @@
 """Run the evaluation protocol (cross-validation, paired tests, sparsity sweep) and write a results folder.
 
     python -m offline_training.evaluate --config config/eval_socnav1.yaml \
-        --protocol rows --jobs 2 [--quick] [--backbones gcn,gat] [--out results/socnav1-rows]
+        --protocol rows --jobs 2 [--quick] [--backbones gcn,gat] [--device cuda] [--out results/socnav1-rows]
 
 Writes into ``--out`` (default ``results/<name>-<protocol>[-quick]``): ``command.txt``,
-``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each result
-as it arrives, so a long run that stops keeps what it finished), ``folds.csv`` (per model,
+``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each fit's
+result as it arrives, selection fits too, so a long run that stops keeps what it finished
+and ``--resume`` goes on from there), ``folds.csv`` (per model,
 fold and training fraction), ``selection.csv`` (inner validation of every (T1, T2)),
 ``tests.csv``, ``results.json`` (everything), ``tables.md`` (the paper's tables, the
 paired tests, the sparsity table and where the time went) and ``sparsity_<metric>.png``.
@@ -27,13 +28,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from stars_ros.config import ExperimentConfig
 from stars_ros.data import load_dataset
 from stars_ros.errors import StarsError
 from stars_ros.evaluation import (DISPLAY, PROTOCOLS, ProtocolConfig, by_model, model_specs, paired_tests,
                                   run_protocol, sparsity_summary, time_accounting)
 from stars_ros.stats import format_mean_sd, mean_sd
 
-from .common import DEFAULT_SOCNAV1, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, cuda_info, machine, setup_logging
 
 REPO = Path(__file__).resolve().parents[1]
 METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
@@ -57,7 +59,12 @@ def parse_args(argv=None):
     parser.add_argument('--backbones', help='comma-separated subset of the config\'s backbones')
     parser.add_argument('--jobs', type=int, default=1, help='worker processes (default: %(default)s)')
     parser.add_argument('--threads', type=int, help='torch threads per job (default: cores // jobs)')
+    parser.add_argument('--device', help="where every fit trains: 'cpu', 'cuda' or 'cuda:N' (default: the "
+                                         "config's experiment.training.device, else cpu); jobs share the GPU")
     parser.add_argument('--out', help='results folder (default: results/<name>-<protocol>[-quick])')
+    parser.add_argument('--resume', action='store_true',
+                        help="reuse the fits in the folder's records.jsonl from an earlier run with the same "
+                             'config.yaml (jobs and threads may differ) and run only the rest')
     parser.add_argument('--verbose', action='store_true', help='log every fit')
     return parser.parse_args(argv)
 
@@ -73,7 +80,35 @@ def configure(args) -> ProtocolConfig:
         values['backbones'] = {b: config.backbones[b] for b in chosen}
         values['sweep_backbones'] = [b for b in config.sweep_backbones if b in chosen]
         config = ProtocolConfig.from_dict(values)
+    if args.device:
+        config = ProtocolConfig.from_dict(config.to_dict(), {'experiment': {'training': {'device': args.device}}})
     return config
+
+
+RESUME_MAY_DIFFER = ('data_root', 'jobs', 'threads')
+
+
+def previous_entries(folder: Path, settings: dict) -> list:
+    """The entries of ``folder/records.jsonl`` written by an earlier run whose config.yaml
+    equals ``settings`` but for RESUME_MAY_DIFFER; [] when the folder has none."""
+    records = folder / 'records.jsonl'
+    if not records.exists():
+        return []
+    try:
+        earlier = yaml.safe_load((folder / 'config.yaml').read_text()) or {}
+    except (OSError, yaml.YAMLError) as error:
+        raise StarsError(f'--resume: cannot read the earlier run\'s config.yaml: {error}') from error
+    keys = (earlier.keys() | settings.keys()) - set(RESUME_MAY_DIFFER)
+    differ = sorted(k for k in keys if earlier.get(k) != settings.get(k))
+    if differ:
+        raise StarsError(f'--resume: {folder} holds a run with other settings ({", ".join(differ)} differ)')
+    entries = []
+    for line in records.read_text().splitlines():
+        try:
+            entries.append(json.loads(line))
+        except json.JSONDecodeError:  # the last line, cut short when the run was stopped
+            break
+    return entries
 
 
 def git_state() -> dict:
@@ -199,7 +234,9 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
              f"Command: `{header['command']}`  ", f"Data: {header['data']}  ",
              f"Commit: {header['git']['commit']}{' (uncommitted changes)' if header['git']['dirty'] else ''}  ",
              f"Machine: {header['machine']['processor']}, {header['machine']['cpus']} CPUs, "
-             f"torch {header['machine']['torch']}; load average at start {header['load_start']}", '',
+             f"torch {header['machine']['torch']}; training on {header['machine']['device']}"
+             f"{' (' + header['machine']['cuda_device'] + ')' if 'cuda_device' in header['machine'] else ''}; "
+             f"load average at start {header['load_start']}", '',
              f'## Results ({k} outer folds; mean ± sd over folds)', '',
              *results_table(result, error), '',
              f"Metrics macro-averaged over actions on the rating scale; (T1, T2) chosen per fold by "
@@ -285,6 +322,7 @@ def main(argv=None) -> int:
     logging.getLogger('stars_ros.evaluation').setLevel(logging.INFO)
     try:
         config = configure(args)
+        device = ExperimentConfig.from_dict(config.experiment).training.device
         if args.jobs < 1 or (args.threads is not None and args.threads < 1):
             raise StarsError('--jobs and --threads must be positive')
         started = time.perf_counter()
@@ -298,28 +336,42 @@ def main(argv=None) -> int:
     folder = Path(args.out) if args.out else REPO / 'results' / name
     folder.mkdir(parents=True, exist_ok=True)
     command = shlex.join(['python', '-m', 'offline_training.evaluate', *(sys.argv[1:] if argv is None else argv)])
-    header = {'command': command, 'git': git_state(), 'machine': machine(),
+    header = {'command': command, 'git': git_state(), 'machine': {**machine(), 'device': device},
               'load_start': [round(v, 2) for v in os.getloadavg()],
               'data': f'{data.source} ({len(data)} ratings, {len(set(data.users.tolist()))} users, '
                       f'{len(data.scene_keys)} scenes, fingerprint {data.fingerprint[:12]})'}
-    (folder / 'command.txt').write_text(command + '\n')
-    (folder / 'config.yaml').write_text(yaml.safe_dump(
+    settings = yaml.safe_load(yaml.safe_dump(  # as config.yaml reads back
         {'protocol': args.protocol, 'quick': args.quick, 'data_root': str(args.data_root),
-         'data_fingerprint': data.fingerprint, 'jobs': args.jobs, 'threads': threads, **config.to_dict()},
-        sort_keys=False))
-    (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git'],
-                                                     'load_average_start': header['load_start']}, indent=2))
+         'data_fingerprint': data.fingerprint, 'jobs': args.jobs, 'threads': threads, 'device': device,
+         **config.to_dict()}, sort_keys=False))
+    try:
+        previous = previous_entries(folder, settings) if args.resume else []
+    except StarsError as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
+    (folder / 'command.txt').write_text(command + '\n')
+    (folder / 'config.yaml').write_text(yaml.safe_dump(settings, sort_keys=False))
+
+    def write_machine():
+        (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git'],
+                                                         'load_average_start': header['load_start']}, indent=2))
+    write_machine()
     print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
-          f'{args.jobs} job(s) × {threads} thread(s); writing {folder}', flush=True)
+          f'{args.jobs} job(s) × {threads} thread(s) on {device}; writing {folder}', flush=True)
+    if previous:
+        print(f'resuming: {len(previous)} entries in the earlier records.jsonl; their fits are not run again', flush=True)
     with (folder / 'records.jsonl').open('w') as stream:
         def keep(entry):
             stream.write(json.dumps(entry, default=_json_default) + '\n')
             stream.flush()
         try:
-            result = run_protocol(data, config, args.protocol, jobs=args.jobs, threads=threads, on_record=keep)
+            result = run_protocol(data, config, args.protocol, jobs=args.jobs, threads=threads, on_record=keep,
+                                  resume=previous)
         except (StarsError, ValueError) as error:
             print(f'error: {error}', file=sys.stderr)
             return 1
+    header['machine'].update(cuda_info(device))  # the GPU's name, now that the workers are done with it
+    write_machine()
 
     tests = paired_tests(result, (config.error, 'pearson_r', 'ccc'))
     timing = {**time_accounting(result), 'load_seconds': load_seconds,

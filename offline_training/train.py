@@ -24,7 +24,7 @@ from stars_ros.errors import StarsError
 from stars_ros.metrics import regression_report
 from stars_ros.training import StarsRecommender, split_rows
 
-from .common import DEFAULT_SOCNAV1, format_metrics, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, cuda_info, format_metrics, machine, setup_logging
 
 
 def parse_args(argv=None):
@@ -37,6 +37,7 @@ def parse_args(argv=None):
     parser.add_argument('--epochs', type=int, nargs=2, metavar=('T1', 'T2'),
                         help='override pretrain and joint epochs')
     parser.add_argument('--seed', type=int, help='override training seed')
+    parser.add_argument('--device', help="override training.device: 'cpu', 'cuda' or 'cuda:N'")
     parser.add_argument('--all-rows', action='store_true', help='train on every rating (no held-out test)')
     parser.add_argument('--verbose', action='store_true', help='log every epoch')
     return parser.parse_args(argv)
@@ -49,6 +50,8 @@ def configure(args) -> ExperimentConfig:
         training.update(pretrain_epochs=args.epochs[0], joint_epochs=args.epochs[1])
     if args.seed is not None:
         training['seed'] = args.seed
+    if args.device:
+        training['device'] = args.device
     return config.replace(training=training, **({'model': {'variant': args.variant}} if args.variant else {}))
 
 
@@ -92,7 +95,9 @@ def main(argv=None) -> int:
               'n_train': len(train), 'n_test': len(test), 'split': 'all rows' if args.all_rows else dataclasses.asdict(config.split)},
         metrics=metrics,
         provenance={'command': ' '.join(['python -m offline_training.train'] + (argv or sys.argv[1:])),
-                    'train_seconds': round(seconds, 1), 'machine': machine(), 'notes': data.notes})
+                    'train_seconds': round(seconds, 1),
+                    'machine': {**machine(), 'device': config.training.device, **cuda_info(config.training.device)},
+                    'notes': data.notes})
     print(f'wrote {args.out} (digest {digest[:12]})')
     return 0
 

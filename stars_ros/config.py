@@ -6,6 +6,7 @@ default.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,7 +66,9 @@ class TrainConfig:
     """Two-step training: ``pretrain_epochs`` (T1) of encoder + temporary head, then
     ``joint_epochs`` (T2) of the whole model. AdamW defaults are the published ones.
     ``embedding_l2`` weighs the L2 penalty on the user and scene rows of each batch during
-    joint training (0 leaves only AdamW's weight decay)."""
+    joint training (0 leaves only AdamW's weight decay). ``device`` is where ``fit`` trains
+    ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
+    fold-in and serving never see a GPU tensor."""
 
     pretrain_epochs: int = 10
     joint_epochs: int = 100
@@ -76,6 +79,7 @@ class TrainConfig:
     embedding_l2: float = 0.0
     seed: int = 0
     threads: int = 2
+    device: str = 'cpu'
 
     def __post_init__(self):
         if self.pretrain_epochs < 0 or self.joint_epochs < 0:
@@ -84,6 +88,8 @@ class TrainConfig:
             raise ConfigError('embedding_l2 must be non-negative')
         if self.batch_size < 1 or self.lr <= 0 or self.threads < 1:
             raise ConfigError('batch_size, lr and threads must be positive')
+        if not isinstance(self.device, str) or not re.fullmatch(r'cpu|cuda(:\d+)?', self.device):
+            raise ConfigError(f"training.device must be 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,8 @@ Every model of a table is scored on the same folds: the chosen backbones in the 
 and ``stars`` variants, and two baselines: ``population_mean`` (the training mean of each
 action) and ``mf`` (biased matrix factorisation, no scene content). Fits are independent
 jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
-CPU pays better than threads inside one small-graph model.
+CPU pays better than threads inside one small-graph model. With ``training.device`` 'cuda'
+the workers share the one GPU, each with its own CUDA context.
 """
 from __future__ import annotations
 
@@ -319,23 +320,32 @@ class _InlineExecutor(futures.Executor):
 
 def fit_executor(data: RatingData, jobs: int, threads: int) -> futures.Executor:
     """Where ``run_fit`` tasks run: inline for one job, else ``jobs`` worker processes
-    holding ``data`` and using ``threads`` torch threads each."""
+    holding ``data`` and using ``threads`` torch threads each. Workers are spawned, not
+    forked: a forked child cannot use CUDA, a spawned one opens its own context."""
     if jobs == 1:
         return _InlineExecutor(data)
     return futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),
                                        initializer=_init_worker, initargs=(pickle.dumps(data), threads))
 
 
-def run_fits(executor: futures.Executor, waiting: list, jobs: int):
+def run_fits(executor: futures.Executor, waiting: list, jobs: int,
+             cached: Callable[[FitTask], dict | None] | None = None):
     """Run the ``(FitTask, *context)`` items of ``waiting`` with at most ``jobs`` in flight,
     yielding ``(item, scores)`` as each fit finishes. ``waiting`` is read as the run goes, so
-    the caller may put new items in front of it between two results."""
+    the caller may put new items in front of it between two results. A task for which
+    ``cached`` returns scores (an earlier run's) is yielded without being run."""
     in_flight = {}
     try:
         while waiting or in_flight:
             while waiting and len(in_flight) < jobs:
                 item = waiting.pop(0)
+                scores = cached(item[0]) if cached else None
+                if scores is not None:
+                    yield item, scores
+                    continue
                 in_flight[executor.submit(run_fit, item[0])] = item
+            if not in_flight:
+                continue
             finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
             for future in finished:
                 yield in_flight.pop(future), future.result()
@@ -386,9 +396,17 @@ class EvaluationResult:
         return [r for r in self.records if r['fraction'] == 1.0]
 
 
+def _fit_key(model, fold, stage, fraction, inner_fold, t1, t2) -> tuple:
+    return (model, fold, stage, float(fraction), int(inner_fold), int(t1), int(t2))
+
+
 def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
-                 threads: int = 1, on_record: Callable[[dict], None] | None = None) -> EvaluationResult:
-    """Run the whole protocol on ``data``; ``on_record`` sees each result as it arrives."""
+                 threads: int = 1, on_record: Callable[[dict], None] | None = None,
+                 resume: Sequence[dict] = ()) -> EvaluationResult:
+    """Run the whole protocol on ``data``; ``on_record`` sees each entry as it arrives: the
+    records, and the selection fits with ``stage`` 'inner'. ``resume`` takes such entries of
+    an earlier run of the same config: their fits are not run again. Fits are seeded, so on
+    the CPU a resumed run gives the results of an uninterrupted one."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
     if jobs < 1 or threads < 1:
@@ -436,6 +454,16 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
     # jump ahead of further selection fits, so complete results appear early.
     waiting = []
     inner_scores = {}
+    earlier = {}
+    for entry in resume:
+        if entry.get('variant') != 'population_mean':  # recomputed: it takes no time
+            earlier[_fit_key(entry['model'], entry['fold'], entry['stage'], entry.get('fraction', 1.0),
+                          entry.get('inner_fold', -1), entry['T1'], entry['T2'])] = entry
+
+    def cached(task):
+        training = task.experiment['training']
+        return earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
+                                 training['pretrain_epochs'], training['joint_epochs']))
 
     def final_tasks(spec, fold_id, pair):
         fold, _, samples = outer[fold_id]
@@ -457,7 +485,8 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
                     waiting.append((FitTask(spec.label, fold_id, 'inner', experiment(spec, pair),
                                             train, validation, inner_fold=i), spec, pair))
     total = len(waiting)
-    for done, ((task, spec, pair), scores) in enumerate(run_fits(fit_executor(data, jobs, threads), waiting, jobs), 1):
+    fits = run_fits(fit_executor(data, jobs, threads), waiting, jobs, cached if earlier else None)
+    for done, ((task, spec, pair), scores) in enumerate(fits, 1):
         if task.stage != 'inner':
             record(spec, task.fold, task.fraction, pair, len(task.train), len(task.test), scores, task.stage)
             log.info('[%d/%d] %s fold %s fraction %g (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
@@ -468,6 +497,8 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
                                  'n_train': len(task.train), 'n_test': len(task.test),
                                  'fit_seconds': scores['fit_seconds'],
                                  'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']})
+        if on_record:
+            on_record({'stage': 'inner', **result.selection[-1]})
         table = inner_scores[spec.label, task.fold]
         table[pair].append(scores['z_rmse'])
         if all(len(v) == config.inner_folds for v in table.values()):

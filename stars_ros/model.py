@@ -78,11 +78,16 @@ class StarsModel(nn.Module):
             nn.init.normal_(self.action_embedding, std=self.encoder.out_dim ** -0.5)
             nn.init.zeros_(self.bias)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are (every model has the ``target_mean`` buffer)."""
+        return self.target_mean.device
+
     def encode(self, scene_input) -> torch.Tensor:
         """h_i for a batch of scenes (tabular inputs are standardised first; zeros for ``mf``)."""
         if not self.uses_content:
             count = scene_input.num_graphs if hasattr(scene_input, 'num_graphs') else len(scene_input)
-            return torch.zeros(count, self.encoder.out_dim)
+            return torch.zeros(count, self.encoder.out_dim, device=self.device)
         if hasattr(self, 'feature_mean'):
             scene_input = (scene_input - self.feature_mean) / self.feature_std
         return self.encoder(scene_input)
@@ -104,7 +109,7 @@ class StarsModel(nn.Module):
         classic matrix-factorisation L2, which keeps q_i from memorising the one or two
         ratings most scenes have."""
         if not self.personalised:
-            return torch.zeros(())
+            return torch.zeros((), device=self.device)
         rows = (_lookup(self.user_embedding, users), _lookup(self.scene_embedding, scenes),
                 _lookup(self.user_bias, users), _lookup(self.scene_bias, scenes))
         return sum(row.pow(2).sum(1).mean() for row in rows)

@@ -26,6 +26,11 @@ class GraphBatch(NamedTuple):
     root: torch.Tensor
     num_graphs: int
 
+    def to(self, device) -> 'GraphBatch':
+        """The batch on ``device`` (the store stays on the CPU; training moves each batch)."""
+        return GraphBatch(self.x.to(device), self.edge_index.to(device), self.edge_type.to(device),
+                          self.batch.to(device), self.root.to(device), self.num_graphs)
+
 
 def _ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
     """Concatenate ``arange(s, s + c)`` for every (s, c) pair without a Python loop."""

@@ -5,6 +5,10 @@ temporary linear head on per-action z-scored targets, the head then discarded; (
 ``joint_epochs`` of the whole model. For the ``base`` variant the linear head is the
 model's own head, so both steps train the same network. AdamW with gradient clipping;
 seeds fixed; each distinct scene of a batch is encoded once.
+
+``training.device`` may put the training on a GPU: the scene store stays on the CPU and
+each batch is moved, and the model is moved back to the CPU when ``fit`` ends, so
+everything after training (checkpoints, fold-in, serving) is the same as for a CPU fit.
 """
 from __future__ import annotations
 
@@ -84,6 +88,9 @@ class StarsRecommender:
         counted from 1), e.g. to score a learning curve; it must not train the model.
         """
         cfg = self.config.training
+        device = torch.device(cfg.device)
+        if device.type == 'cuda' and not torch.cuda.is_available():
+            raise ConfigError(f"training.device is '{cfg.device}', but torch sees no CUDA GPU")
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
         rng = np.random.default_rng(cfg.seed)
@@ -103,9 +110,13 @@ class StarsRecommender:
         store_rows = torch.from_numpy(data.scenes[rows])
         actions = torch.from_numpy(data.actions[rows])
         targets = model.to_z(torch.from_numpy(data.scores[rows]).float(), actions)
-        batch = (users, scene_rows, store_rows, actions, targets)
+        # store_rows stays on the CPU: it indexes the CPU scene store
+        batch = (users.to(device), scene_rows.to(device), store_rows, actions.to(device), targets.to(device))
+        model.to(device)
 
+        # the temporary head is made on the CPU, as before, so a seed gives the same weights anywhere
         head = model.head if not model.personalised else nn.Linear(model.encoder.out_dim, model.n_actions)
+        head.to(device)
         joint_parameters = [p for n, p in model.named_parameters() if model.uses_content or not n.startswith('encoder.')]
         stages = [('pretrain', cfg.pretrain_epochs if model.uses_content else 0,
                    list(model.encoder.parameters()) + list(head.parameters()), lambda u, s, h: head(h), 0.0),
@@ -120,6 +131,7 @@ class StarsRecommender:
                 log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
                 if on_epoch is not None:
                     on_epoch(stage, epoch + 1)
+        model.cpu()
         model.eval()
         return self
 
@@ -137,16 +149,20 @@ class StarsRecommender:
             model.feature_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)))
 
     def _epoch(self, data, batch, score, parameters, optimiser, rng, l2: float) -> float:
-        """One pass over the training ratings; returns the mean squared error (z-scale)."""
+        """One pass over the training ratings; returns the mean squared error (z-scale).
+
+        ``store_rows`` is on the CPU; the other tensors of ``batch`` are on the model's device."""
         users, scene_rows, store_rows, actions, targets = batch
         cfg = self.config.training
+        device = self.model.device
         self.model.train()
         order = torch.from_numpy(rng.permutation(len(targets)))
         total, count = 0.0, 0
         for start in range(0, len(order), cfg.batch_size):
             pick = order[start:start + cfg.batch_size]
             distinct, inverse = torch.unique(store_rows[pick], return_inverse=True)
-            h = self.model.encode(data.store.batch(distinct))[inverse]
+            h = self.model.encode(data.store.batch(distinct).to(device))[inverse.to(device)]
+            pick = pick.to(device)
             z = score(users[pick], scene_rows[pick], h).gather(1, actions[pick, None]).squeeze(1)
             loss = nn.functional.mse_loss(z, targets[pick])
             objective = loss
@@ -184,14 +200,16 @@ class StarsRecommender:
 
     @torch.no_grad()
     def predict_rows(self, data: RatingData, rows: np.ndarray) -> np.ndarray:
-        """Rating-scale prediction for each (user, scene, action) row of ``data``."""
+        """Rating-scale prediction for each (user, scene, action) row of ``data``; runs on
+        the model's device (a GPU inside ``fit``'s ``on_epoch``)."""
         model = self._require_model()
         model.eval()
         predictions = []
         for start in range(0, len(rows), EVAL_BATCH):
             part = rows[start:start + EVAL_BATCH]
             distinct, inverse = np.unique(data.scenes[part], return_inverse=True)
-            h = model.encode(data.store.batch(torch.from_numpy(distinct)))[torch.from_numpy(inverse)]
+            scenes = data.store.batch(torch.from_numpy(distinct)).to(model.device)
+            h = model.encode(scenes)[torch.from_numpy(inverse).to(model.device)]
             keys = [data.scene_keys[s] for s in data.scenes[part]]
             scores = self.predict_scores_from_h(data.users[part], keys, h)
             predictions.append(scores[np.arange(len(part)), data.actions[part]])
@@ -202,8 +220,9 @@ class StarsRecommender:
         """Like ``predict_scores`` for already encoded scenes ``h`` [len(users), dim];
         ``user_rows`` (p, b_u) overrides the user table (see ``StarsModel.forward``)."""
         model = self._require_model()
-        z = model(self.user_index(users), self.scene_index(scene_keys), h, user_rows)
-        return model.to_rating_scale(z).numpy().astype(np.float64)
+        users, scenes = self.user_index(users).to(model.device), self.scene_index(scene_keys).to(model.device)
+        z = model(users, scenes, h, user_rows)
+        return model.to_rating_scale(z).cpu().numpy().astype(np.float64)
 
     def evaluate(self, data: RatingData, rows: np.ndarray) -> dict:
         """Macro-averaged MSE, RMSE, Pearson r and CCC on ``rows``, on the rating scale."""

@@ -26,10 +26,22 @@ def test_defaults_are_the_published_optimiser():
     ({'split': {'test_fraction': 1.5}}, 'test_fraction'),
     ({'training': {'lr': -1}}, 'positive'),
     ({'model': 3}, 'expected a mapping'),
+    ({'training': {'device': 'gpu'}}, 'training.device must be'),
+    ({'training': {'device': 'cuda:x'}}, 'training.device must be'),
+    ({'training': {'device': 'CUDA'}}, 'training.device must be'),
 ])
 def test_bad_values_refused(values, message):
     with pytest.raises(ConfigError, match=message):
         ExperimentConfig.from_dict(values)
+
+
+@pytest.mark.parametrize('device', ['cpu', 'cuda', 'cuda:1'])
+def test_training_device_accepted(device):
+    assert ExperimentConfig.from_dict({'training': {'device': device}}).training.device == device
+
+
+def test_training_device_defaults_to_cpu():
+    assert ExperimentConfig().training.device == 'cpu'
 
 
 def test_replace_switches_variant_only():

@@ -171,7 +171,7 @@ def test_quick_cli_end_to_end(socnav1_root, tmp_path):
     for metric in ('mse', 'pearson_r', 'ccc'):
         assert (out / f'sparsity_{metric}.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     assert 'offline_training.evaluate' in (out / 'command.txt').read_text()
-    assert len((out / 'records.jsonl').read_text().splitlines()) == len(results['records'])
+    assert len((out / 'records.jsonl').read_text().splitlines()) == len(results['records']) + len(results['selection'])
 
 
 def test_learning_curve_point_is_the_fit_with_that_many_epochs(socnav1):
@@ -221,3 +221,65 @@ def test_learning_curve_cli_writes_its_results(socnav1_root, tmp_path):
                               '--data-root', str(socnav1_root)], cwd=REPO, capture_output=True, text=True,
                              env={**os.environ, 'PYTHONPATH': str(REPO)}, timeout=120)
     assert refused.returncode == 2 and 'exactly the keys' in refused.stderr
+
+
+def test_device_option_reaches_every_fit_and_the_results(socnav1_root, tmp_path, monkeypatch):
+    """``--device`` overrides the config for every fit (a fake fit: no GPU needed) and is
+    recorded in config.yaml, machine.json and tables.md."""
+    from offline_training import evaluate
+    devices = []
+
+    def fake_fit(task, data=None):
+        devices.append(ExperimentConfig.from_dict(task.experiment).training.device)
+        return {'mse': 0.02, 'rmse': 0.14, 'pearson_r': 0.9, 'ccc': 0.9, 'n': len(task.test), 'z_rmse': 0.5,
+                'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2}
+
+    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    out = tmp_path / 'device'
+    assert evaluate.main(['--quick', '--backbones', 'gat', '--device', 'cuda:1', '--data-root', str(socnav1_root),
+                          '--out', str(out)]) == 0
+    assert devices and set(devices) == {'cuda:1'}
+    written = yaml.safe_load((out / 'config.yaml').read_text())
+    assert written['device'] == 'cuda:1' and written['experiment']['training']['device'] == 'cuda:1'
+    assert json.loads((out / 'machine.json').read_text())['device'] == 'cuda:1'
+    assert 'training on cuda:1' in (out / 'tables.md').read_text()
+    assert evaluate.main(['--quick', '--device', 'gpu', '--data-root', str(socnav1_root), '--out', str(out)]) == 2
+
+
+def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(socnav1_root, tmp_path, monkeypatch):
+    """A run stopped after some fits (records.jsonl cut short), resumed: only the missing
+    fits run, and the results equal an uninterrupted run's."""
+    from offline_training import evaluate
+    ran = []
+
+    def fake_fit(task, data=None):
+        training = task.experiment['training']
+        pair = (training['pretrain_epochs'], training['joint_epochs'])
+        ran.append((task.model, task.fold, task.stage, task.fraction, task.inner_fold, pair))
+        score = (sum(pair) * 7 + len(task.train) + 3 * task.inner_fold) % 11 / 100 + 0.01
+        return {'mse': score, 'rmse': score ** 0.5, 'pearson_r': 0.9, 'ccc': 0.8, 'n': len(task.test),
+                'z_rmse': score, 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': sum(pair)}
+
+    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    args = ['--quick', '--backbones', 'gat', '--data-root', str(socnav1_root)]
+    whole, part = tmp_path / 'whole', tmp_path / 'part'
+    assert evaluate.main([*args, '--out', str(whole)]) == 0
+    all_fits = list(ran)
+    lines = (whole / 'records.jsonl').read_text().splitlines()
+    assert len(lines) == len(json.loads((whole / 'results.json').read_text())['records']) + \
+        sum(1 for fit in all_fits if fit[2] == 'inner')
+    part.mkdir()
+    (part / 'config.yaml').write_text((whole / 'config.yaml').read_text())
+    kept = lines[:len(lines) // 2]
+    (part / 'records.jsonl').write_text('\n'.join(kept) + '\n{"model": "cut sho')
+    ran.clear()
+    assert evaluate.main([*args, '--out', str(part), '--resume', '--jobs', '1']) == 0
+    reused = sum(1 for line in kept if json.loads(line).get('variant') != 'population_mean')  # recomputed
+    assert 0 < reused and len(ran) == len(all_fits) - reused and set(ran) <= set(all_fits)
+
+    def results(folder):  # the population mean's fit time is measured; NaN (its r) != NaN
+        values = json.loads((folder / 'results.json').read_text())
+        return json.dumps([[{k: v for k, v in entry.items() if k != 'fit_seconds'} for entry in values[name]]
+                           for name in ('records', 'selection', 'tests')])
+    assert results(part) == results(whole)
+    assert evaluate.main([*args, '--out', str(part), '--resume', '--device', 'cuda']) == 2  # other settings

@@ -1,9 +1,10 @@
 """Short real training runs on SocNav1 (seconds each)."""
 import numpy as np
 import pytest
+import torch
 
 from stars_ros.config import ExperimentConfig
-from stars_ros.errors import TrainingDivergedError
+from stars_ros.errors import ConfigError, TrainingDivergedError
 from stars_ros.training import NotFittedError, StarsRecommender, split_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
@@ -64,3 +65,39 @@ def test_divergence_is_reported(socnav1, rows):
 def test_predict_before_fit():
     with pytest.raises(NotFittedError, match='not fitted'):
         StarsRecommender(ExperimentConfig()).predict_scores(['a'], [None], None)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason='checks the message torch gives without a GPU')
+def test_cuda_device_without_a_gpu_is_a_config_error(socnav1, rows):
+    config = ExperimentConfig.from_dict(SMALL).replace(training={'device': 'cuda'})
+    with pytest.raises(ConfigError, match='torch sees no CUDA GPU'):
+        StarsRecommender(config).fit(socnav1, rows[0][:100])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason='needs a CUDA GPU')
+@pytest.mark.parametrize('encoder, variant', [('gcn', 'stars'), ('gat', 'base'), ('gat', 'mf'),
+                                              ('rgcn', 'stars'), ('ggnn', 'stars')])
+def test_cuda_fit_matches_the_cpu_fit(socnav1, rows, encoder, variant):
+    """The same seeded fit on the GPU and the CPU: mid-training predictions (made on the GPU
+    through on_epoch) and final ones agree to 1e-4, and the model comes back on the CPU.
+    Two optimiser steps only (one batch per epoch), so rounding differences between the
+    devices have little room to grow."""
+    train, test = rows[0][:400], rows[1][:200]
+    config = ExperimentConfig.from_dict(SMALL).replace(
+        encoder={'name': encoder}, model={'variant': variant},
+        training={'pretrain_epochs': 1, 'joint_epochs': 1, 'batch_size': 512, 'lr': 1e-3, 'embedding_l2': 0.01})
+    fitted = {}
+    for device in ('cpu', 'cuda'):
+        recommender = StarsRecommender(config.replace(training={'device': device}))
+        seen = []
+        recommender.fit(socnav1, train, on_epoch=lambda stage, epoch: seen.append(
+            (next(recommender.model.parameters()).device.type, recommender.predict_rows(socnav1, test))))
+        assert {t.device.type for t in recommender.model.state_dict().values()} == {'cpu'}
+        fitted[device] = (seen, recommender.predict_rows(socnav1, test), recommender.history)
+    (cpu_seen, cpu_final, cpu_history), (gpu_seen, gpu_final, gpu_history) = fitted['cpu'], fitted['cuda']
+    assert {d for d, _ in gpu_seen} == {'cuda'} and len(gpu_seen) == len(cpu_seen)
+    for (_, on_cpu), (_, on_gpu) in zip(cpu_seen, gpu_seen):
+        np.testing.assert_allclose(on_gpu, on_cpu, atol=1e-4)
+    np.testing.assert_allclose(gpu_final, cpu_final, atol=1e-4)
+    for stage in ('pretrain', 'joint'):
+        np.testing.assert_allclose(gpu_history[stage], cpu_history[stage], rtol=1e-4)

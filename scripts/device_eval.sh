@@ -1,0 +1,83 @@
+#!/usr/bin/env bash
+# The published SocNav1 grid (config/eval_socnav1.yaml, rows protocol) on a CUDA GPU, run
+# from the repository root of a machine with python3, torch and torch-geometric but no
+# network and no checkout of the data: the data is expected at .device_data/socnav1.
+# Prints the machine, times training batches on the GPU and the CPU, runs the CUDA tests,
+# then the evaluation under a time limit. Writes to $OUT (at most 8 files, 2 folders down):
+# log.txt, socnav1-rows.tar.gz (the whole results folder) and, in socnav1-rows/, the
+# records.jsonl, config.yaml, machine.json and (when the run finished) tables.md.
+#
+# Settings (environment): JOBS (12) worker processes sharing the GPU; BACKBONES (gat);
+# DEVICE (cuda; cpu runs the same steps on the CPU, for a dry run or a comparison);
+# EVAL_SECONDS (480) limit of the evaluation (not SECONDS: bash's own counter);
+# DATA (.device_data/socnav1); RESUME_FROM: a folder with an earlier run's config.yaml and
+# records.jsonl (e.g. a returned socnav1-rows/) whose fits are reused (--resume).
+# Missing pure-Python packages (fastjsonschema) are installed from .whl/*.whl if present.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+: "${OUT:?set OUT to the folder that collects the results}"
+JOBS=${JOBS:-12}
+DEVICE=${DEVICE:-cuda}
+BACKBONES=${BACKBONES:-gat}
+EVAL_SECONDS=${EVAL_SECONDS:-480}
+DATA=${DATA:-.device_data/socnav1}
+RESULTS=$OUT/socnav1-rows
+export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+export STARS_SOCNAV1_ROOT=$PWD/$DATA
+mkdir -p "$OUT"
+
+run() {
+echo "== machine $(date -u +%FT%TZ)"
+nvidia-smi || echo "(no nvidia-smi)"
+if ! python3 -c 'import fastjsonschema' 2>/dev/null; then
+  if compgen -G '.whl/*.whl' >/dev/null; then
+    echo "installing .whl/*.whl into /tmp/site"
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+    export PYTHONPATH=$PYTHONPATH:/tmp/site
+  fi
+fi
+python3 - <<'EOF' || { echo "error: a package is missing (see above)"; return 2; }
+import platform, torch, torch_geometric, numpy, scipy, yaml, matplotlib, fastjsonschema
+print(f'python {platform.python_version()}, torch {torch.__version__} (CUDA {torch.version.cuda}), '
+      f'torch_geometric {torch_geometric.__version__}, numpy {numpy.__version__}, '
+      f'fastjsonschema {fastjsonschema.VERSION}')
+print('GPU:', torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'none visible to torch')
+EOF
+[ -d "$DATA/raw" ] || { echo "error: no SocNav1 at $DATA (expected $DATA/raw)"; return 2; }
+
+echo "== timing probe: GAT StARS training batches"
+devices=cpu; [ "$DEVICE" = cpu ] || devices=$DEVICE,cpu
+timeout 180 python3 benchmarks/train_step.py --data-root "$DATA" --backbone gat --devices "$devices" --batches 20
+
+echo "== CUDA tests"
+timeout 300 python3 -m pytest -q -p no:cacheprovider test/test_training.py -k cuda
+tests=$?
+
+echo "== evaluation: $BACKBONES on $DEVICE, $JOBS jobs, limit $EVAL_SECONDS s"
+resume=()
+if [ -n "${RESUME_FROM:-}" ]; then
+  mkdir -p "$RESULTS"
+  cp "$RESUME_FROM/config.yaml" "$RESUME_FROM/records.jsonl" "$RESULTS/"
+  resume=(--resume)
+fi
+nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 30 > "$OUT/gpu.csv" 2>/dev/null &
+sampler=$!
+timeout "$EVAL_SECONDS" python3 -m offline_training.evaluate --config config/eval_socnav1.yaml --protocol rows \
+  --device "$DEVICE" --jobs "$JOBS" --data-root "$DATA" --out "$RESULTS" --backbones "$BACKBONES" "${resume[@]}"
+status=$?
+kill "$sampler" 2>/dev/null
+echo "== evaluation exit status $status (124: stopped at the limit; records.jsonl keeps the finished fits)"
+echo "GPU use while it ran (every 30 s):"; cat "$OUT/gpu.csv"; rm -f "$OUT/gpu.csv"
+wc -l "$RESULTS/records.jsonl" 2>/dev/null
+
+# pack everything, then keep only the small files beside the tarball (8 files at most)
+tar czf "$OUT/socnav1-rows.tar.gz" -C "$OUT" socnav1-rows
+find "$RESULTS" -type f ! -name records.jsonl ! -name config.yaml ! -name machine.json ! -name tables.md -delete
+ls -la "$OUT" "$RESULTS"
+echo "== CUDA tests exit status $tests, evaluation exit status $status"
+# stopping at the limit is planned (and rc 124 would read as the whole command timing out)
+[ "$tests" -eq 0 ] && { [ "$status" -eq 0 ] || [ "$status" -eq 124 ]; }
+}
+
+run 2>&1 | tee "$OUT/log.txt"
+exit "${PIPESTATUS[0]}"
