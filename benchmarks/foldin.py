@@ -10,14 +10,15 @@
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' (another process, as
    another person's device would be) gets scenes ranked at ``--stream-rate`` per second.
-   Phase A: the streamer gives no feedback; phase B: each of the streamer's rankings is
+   Condition A: the streamer gives no feedback; B: each of the streamer's rankings is
    followed by a feedback rating, with ``fold_in`` off (the feedback is validated and
-   journaled with an fsync, as before this feature); phase C: the same with ``fold_in`` on,
-   so the node also folds every rating in. B and C alternate in blocks under one streamer
-   (``--blocks`` pairs), so that the machine's drift during the run reaches both alike.
+   journaled with an fsync, as before this feature); C: the same with ``fold_in`` on, so
+   the node also folds every rating in. The three take turns in ``--blocks`` rounds of
+   blocks (A B C, B C A, C A B, ...) under one streamer process whose feedback is switched
+   on and off, so that the machine's drift during the run reaches all three alike.
    Latency of 'other' (send -> the ranking reaches the client's subscription callback) in
-   each phase, same run, same node: C − B is what fold-in adds, B − A what recording
-   feedback adds. The client subscribes to nothing else. The three phases run for each of
+   each condition, same run, same node: C − B is what fold-in adds, B − A what recording
+   feedback adds. The client subscribes to nothing else. The three conditions run for each of
    ``--gaps`` (seconds between a reply to 'other' and its next request): 0 keeps the node
    busy, so every solve competes with a waiting request; 0.01 is a perception rate, where
    the node idles between requests and waking it is part of each latency.
@@ -123,31 +124,31 @@ def live(checkpoint: str, scenes: list, args) -> dict:
     return results
 
 
-def measure_gap(client, domain: int, arrived, scenes, gap: float, args) -> dict:
-    """Phase A, then B and C alternating in ``--blocks`` pairs of blocks (B C, C B, ...) with
-    one streamer giving feedback throughout, so that the machine's drift over the run
-    reaches both alike; each condition's percentiles pool its blocks."""
-    def set_fold_in(on: bool):
-        if not client.set_parameters('/ranker', {'fold_in': on})[0].successful:
-            raise RuntimeError('could not set fold_in')
+CONDITIONS = {'without_feedback': (False, False), 'feedback_fold_in_off': (True, False),
+              'feedback_fold_in_on': (True, True)}  # name: (streamer gives feedback, node's fold_in)
 
+
+def measure_gap(client, domain: int, arrived, scenes, gap: float, args) -> dict:
+    """Conditions A, B and C in ``--blocks`` rounds of blocks (A B C, B C A, ...) under one
+    streamer, so that the machine's drift over the run reaches all alike; each condition's
+    percentiles pool its blocks."""
     tag = f'{gap:g}'
-    set_fold_in(True)
-    with Streamer(domain, args, f'a-{tag}', feedback=False) as streamer:
-        without = time_other(client, arrived, scenes, f'a-{tag}', args.requests, gap)
-    results = {'without_feedback': {**summary(without), **streamer.counts}}
-    pooled, block_p99 = {False: [], True: []}, {False: [], True: []}
+    names = list(CONDITIONS)
+    pooled, block_p99 = {name: [] for name in names}, {name: [] for name in names}
     per_block = max(1, args.requests // args.blocks)
-    with Streamer(domain, args, f'bc-{tag}', feedback=True) as streamer:
-        for pair in range(args.blocks):
-            for fold_in in ((False, True) if pair % 2 == 0 else (True, False)):
-                set_fold_in(fold_in)
-                latencies = time_other(client, arrived, scenes, f'{"c" if fold_in else "b"}{pair}-{tag}', per_block, gap)
-                pooled[fold_in] += latencies
-                block_p99[fold_in].append(float(np.percentile(latencies, 99)) if latencies else float('nan'))
-    for fold_in, name in ((False, 'feedback_fold_in_off'), (True, 'feedback_fold_in_on')):
-        results[name] = {**summary(pooled[fold_in], per_block * args.blocks), 'block_p99_ms': block_p99[fold_in]}
-    results['feedback_streamed'] = streamer.counts
+    with Streamer(domain, args, tag) as streamer:
+        for round_ in range(args.blocks):
+            for name in names[round_ % 3:] + names[:round_ % 3]:
+                feedback, fold_in = CONDITIONS[name]
+                if not client.set_parameters('/ranker', {'fold_in': fold_in})[0].successful:
+                    raise RuntimeError('could not set fold_in')
+                streamer.give_feedback(feedback)
+                latencies = time_other(client, arrived, scenes, f'{name}{round_}-{tag}', per_block, gap)
+                pooled[name] += latencies
+                block_p99[name].append(float(np.percentile(latencies, 99)) if latencies else float('nan'))
+    results = {name: {**summary(pooled[name], per_block * args.blocks), 'block_p99_ms': block_p99[name]}
+               for name in names}
+    results['streamed'] = streamer.counts
     return results
 
 
@@ -173,15 +174,22 @@ def time_other(client, arrived, scenes, tag: str, count: int, gap: float) -> lis
 class Streamer:
     """The streaming user's process for a ``with`` block; ``counts`` once it has ended."""
 
-    def __init__(self, domain: int, args, tag: str, feedback: bool):
+    def __init__(self, domain: int, args, tag: str):
         from ros_helpers import ros_env
         self.command = [sys.executable, __file__, '--streamer', '--data-root', args.data_root,
-                        '--stream-rate', str(args.stream_rate), '--phase', tag] + (['--with-feedback'] if feedback else [])
+                        '--stream-rate', str(args.stream_rate), '--phase', tag]
         self.env = ros_env(domain)
         self.counts = {}
 
+    def give_feedback(self, on: bool):
+        """From the streamer's next ranking on, follow each with a rating (or not)."""
+        self.process.stdin.write('feedback on\n' if on else 'feedback off\n')
+        self.process.stdin.flush()
+        time.sleep(0.5)  # ratings already sent reach the node and its journal
+
     def __enter__(self):
-        self.process = subprocess.Popen(self.command, env=self.env, stdout=subprocess.PIPE, text=True)
+        self.process = subprocess.Popen(self.command, env=self.env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        text=True)
         if self.process.stdout.readline().strip() != 'ready':
             self.process.kill()
             raise RuntimeError(f'the streamer did not start (exit code {self.process.wait()})')
@@ -190,18 +198,20 @@ class Streamer:
     def __exit__(self, *exc):
         self.process.send_signal(signal.SIGINT)
         output, _ = self.process.communicate(timeout=30)
-        words = output.split()  # 'streamed N models M'
-        if len(words) >= 4:
-            self.counts = {'streamed_requests': int(words[-3]), 'fold_in_updates': int(words[-1])}
+        words = output.split()  # 'streamed N feedback F models M'
+        if len(words) >= 6:
+            self.counts = {'streamed_requests': int(words[-5]), 'feedback_ratings': int(words[-3]),
+                           'fold_in_updates': int(words[-1])}
         time.sleep(1.0)  # the node drains what the streamer left
         return False
 
 
 def streamer_main(args) -> int:
     """The streamer user, a device of its own (own process): a SocNav1 scene ranked
-    ``--stream-rate`` times a second, each followed by a feedback rating with
-    ``--with-feedback``. Prints 'ready' after the first ranking, and when interrupted the
-    number of requests and of the user models the node folded in for it (stars/user_model)."""
+    ``--stream-rate`` times a second, each followed by a feedback rating while the last line
+    on its stdin was 'feedback on'. Prints 'ready' after the first ranking, and when
+    interrupted the number of requests, of ratings and of the user models the node folded in
+    for it (stars/user_model)."""
     import rclpy
     from rclpy.node import Node
     from std_msgs.msg import String
@@ -228,7 +238,14 @@ def streamer_main(args) -> int:
     models = []
     node.create_subscription(String, '/stars/user_model', lambda msg: models.append(len(msg.data)), RELIABLE)
     threading.Thread(target=spin_until_shutdown, args=(node,), daemon=True).start()
-    k, ready, deadline = 0, False, time.monotonic() + 60
+    feedback = threading.Event()
+
+    def follow_stdin():
+        for line in sys.stdin:
+            (feedback.set if line.strip() == 'feedback on' else feedback.clear)()
+
+    threading.Thread(target=follow_stdin, daemon=True).start()
+    k, rated, ready, deadline = 0, 0, False, time.monotonic() + 60
     try:
         while True:
             scene = scenes[k % len(scenes)]
@@ -243,7 +260,8 @@ def streamer_main(args) -> int:
                 if ok:
                     ready = True
                     print('ready', flush=True)
-            if ok and args.with_feedback:
+            if ok and feedback.is_set():
+                rated += 1
                 feedback_pub.publish(String(data=json.dumps({'user_id': 'streamer', 'scene_id': scene_id,
                                                              'action': 'navigate', 'score': scene['score'] / 100})))
             k += 1
@@ -251,7 +269,7 @@ def streamer_main(args) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        print(f'streamed {k} models {len(models)}', flush=True)
+        print(f'streamed {k} feedback {rated} models {len(models)}', flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
@@ -265,16 +283,15 @@ def main(argv=None) -> int:
     parser.add_argument('--ratings', type=int, default=200,
                         help='ratings each streams (part 1; annotators with fewer are left out)')
     parser.add_argument('--regularisation', type=float, default=1.0)
-    parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per phase")
+    parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per condition")
     parser.add_argument('--blocks', type=int, default=6,
-                        help='pairs of blocks into which phases B and C are split, alternating')
+                        help='rounds of blocks (one block of each condition per round) into which they are split')
     parser.add_argument('--gaps', type=float, nargs='+', default=[0.0, 0.01],
-                        help="seconds between a reply to 'other' and its next request, one set of phases each")
+                        help="seconds between a reply to 'other' and its next request, one set of conditions each")
     parser.add_argument('--stream-rate', type=float, default=50.0, help="streamer's rankings (+ feedback) per s")
     parser.add_argument('--out', default=str(REPO / 'results' / 'foldin_benchmark.json'))
     parser.add_argument('--streamer', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--phase', default='', help=argparse.SUPPRESS)
-    parser.add_argument('--with-feedback', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.streamer:
         return streamer_main(args)
@@ -295,16 +312,16 @@ def main(argv=None) -> int:
     node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], args)
     for gap in args.gaps:
         figures = node[f'gap_{gap:g}']
-        for phase in ('without_feedback', 'feedback_fold_in_off', 'feedback_fold_in_on'):
+        for phase in CONDITIONS:
             latency = figures[phase]['other_latency_ms']
             blocks = figures[phase].get('block_p99_ms')
             print(f"gap {gap * 1e3:g} ms, other user's ranking latency {phase.replace('_', ' ')}: "
                   f"p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms, max {latency['max']:.2f} ms "
                   f"({latency['count']} rankings, {figures[phase]['timeouts']} timeouts)"
                   + (f"; p99 per block {' '.join(f'{v:.1f}' for v in blocks)}" if blocks else ''))
-        print(f"  streamer: {figures['without_feedback'].get('streamed_requests')} requests in phase A; "
-              f"{figures['feedback_streamed'].get('streamed_requests')} requests with feedback and "
-              f"{figures['feedback_streamed'].get('fold_in_updates')} fold-in updates in B and C")
+        streamed = figures['streamed']
+        print(f"  streamer: {streamed.get('streamed_requests')} requests, {streamed.get('feedback_ratings')} of them "
+              f"rated, {streamed.get('fold_in_updates')} fold-in updates")
     results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
                'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
                'load_average': [round(v, 2) for v in os.getloadavg()]}
