@@ -152,7 +152,8 @@ class Predictor:
             return self._stranger
         return inference.user_rows[row], inference.user_offsets[row]
 
-    def _action_columns(self, actions: Sequence[str]) -> list:
+    def action_columns(self, actions: Sequence[str]) -> list:
+        """The score columns of ``actions`` (UnknownActionError names any the model lacks)."""
         unknown = [a for a in actions if a not in self._action_index]
         if unknown:
             raise UnknownActionError(f'unknown actions {unknown}; this model knows {list(self.actions)}')
@@ -163,7 +164,7 @@ class Predictor:
         names = list(self.actions if candidates is None else candidates)
         if not names:
             raise UnknownActionError('candidate list is empty')
-        columns = self._action_columns(names)
+        columns = self.action_columns(names)
         return rank_order(names, self.score(user_id, [scene], [scene_id])[0, columns])
 
     def rank_scenes(self, user_id, scenes: Sequence, labels: Sequence[str] | None = None,
@@ -174,7 +175,7 @@ class Predictor:
             if len(self.actions) != 1:
                 raise UnknownActionError(f'say which action ranks the scenes; this model knows {list(self.actions)}')
             action = self.actions[0]
-        column = self._action_columns([action])[0]
+        column = self.action_columns([action])[0]
         labels = [str(k) for k in range(len(scenes))] if labels is None else list(labels)
         if len(labels) != len(scenes):
             raise ValueError('one label per candidate scene')

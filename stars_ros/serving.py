@@ -85,15 +85,14 @@ def _score_group(predictor, user_id, members, top_k) -> list:
     scores = predictor.scores_from_h(user_id, h, scene_ids)
     if not np.isfinite(scores).all():
         raise StarsError('the model produced a non-finite score')
-    column = {a: i for i, a in enumerate(predictor.actions)}
     results, row = [], 0
     for request, action in members:
         if ranks_scenes:
-            block = scores[row:row + len(request.graphs), column[action]]
+            block = scores[row:row + len(request.graphs), predictor.action_columns([action])[0]]
             ranked = rank_order(request.labels, block)
         else:
             names = request.actions or predictor.actions
-            ranked = rank_order(names, scores[row, [column[a] for a in names]])
+            ranked = rank_order(names, scores[row, predictor.action_columns(names)])
         results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + len(request.graphs)]))
         row += len(request.graphs)
     return results
