@@ -3,8 +3,8 @@
 A request scores one or a few scenes. At that size each tensor operation's fixed cost is
 the whole cost (torch's dispatch ~3–6 µs an operation on this machine, nn.Module calls
 more, numpy 1–5 µs), so serving and the fold-in do not go through torch: graph encoders
-run their dense form (``GraphEncoder.dense_form``) and the StARS scoring is two array
-products. Tabular encoders keep their torch forward: one row through a few layers has no
+run their serving form (``GraphEncoder.serving_form``: GAT compiled, the others their
+dense numpy form) and the StARS scoring is two array products. Tabular encoders keep their torch forward: one row through a few layers has no
 graph bookkeeping to save. ``test/test_inference.py`` checks that the result equals
 ``StarsModel`` within float32 rounding.
 """
@@ -40,7 +40,7 @@ class InferenceModel:
         else:
             self._head = (_array(model.head.weight).T.copy(), _array(model.head.bias))
         if model.encoder.input_kind == 'graph':
-            self._encode = model.encoder.dense_form()
+            self._encode = model.encoder.serving_form()
         else:
             self._encode = self._torch_encoder(model)
 
@@ -52,7 +52,7 @@ class InferenceModel:
         return encode
 
     def encode(self, scene_input, count: int) -> np.ndarray:
-        """h [count, dim] (float32) of a DenseGraphs batch or a [count, features] array."""
+        """h [count, dim] (float32) of a list of SceneGraph or a [count, features] array."""
         if not self.uses_content:
             return np.zeros((count, self.dim), dtype=np.float32)
         return np.asarray(self._encode(scene_input), dtype=np.float32)

@@ -22,8 +22,7 @@ from .checkpoint import load_checkpoint
 from .errors import SceneGraphError, UnknownActionError
 from .inference import InferenceModel
 from .model import UNKNOWN
-from .scene_graph import RELATIONS, featurise
-from .scene_store import dense_graphs
+from .scene_graph import featurise
 
 
 @dataclass(frozen=True)
@@ -107,8 +106,7 @@ class Predictor:
 
     def _scene_input(self, scenes: Sequence, validate: bool):
         if self.input_kind == 'graph':
-            graphs = [featurise(scene, validate=validate) for scene in scenes]
-            return dense_graphs(graphs, len(RELATIONS) if self.recommender.model.encoder.uses_edge_type else None)
+            return [featurise(scene, validate=validate) for scene in scenes]
         features = np.asarray(scenes, dtype=np.float32)
         if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
             raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')

@@ -1,5 +1,5 @@
-"""The dense numpy form of every graph backbone (what serving runs) computes what its PyG
-form (what training runs) computes."""
+"""The dense numpy form and the serving form (GAT's compiled kernel, the dense form for the
+others) of every graph backbone compute what its PyG form (what training runs) computes."""
 import numpy as np
 import pytest
 import torch
@@ -52,6 +52,11 @@ def test_dense_equals_sparse_on_random_scenes(name, options):
     assert sparse.shape == padded.shape == (40, 16) and padded.dtype == np.float32
     assert np.allclose(padded, sparse, atol=1e-5, rtol=1e-4), np.abs(padded - sparse).max()
     assert np.allclose(one_by_one, sparse, atol=1e-5, rtol=1e-4)
+    serving = encoder.serving_form()
+    together, alone = serving(graphs), np.concatenate([serving([g]) for g in graphs])
+    assert together.shape == (40, 16) and together.dtype == np.float32
+    assert np.allclose(together, sparse, atol=1e-5, rtol=1e-4), np.abs(together - sparse).max()
+    assert np.allclose(alone, sparse, atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize('name, options', CASES)
@@ -70,6 +75,23 @@ def test_dense_equals_sparse_on_socnav1_scenes(name, options, socnav1):
         sparse = encoder(batch).numpy()
     dense = encoder.dense_form()(_dense(encoder, graphs))
     assert np.allclose(dense, sparse, atol=1e-5, rtol=1e-4), np.abs(dense - sparse).max()
+    serving = encoder.serving_form()(graphs)
+    assert np.allclose(serving, sparse, atol=1e-5, rtol=1e-4), np.abs(serving - sparse).max()
+
+
+@pytest.mark.parametrize('name, options', CASES)
+def test_serving_form_counts_parallel_edges_and_serves_a_lone_robot(name, options):
+    rng = np.random.default_rng(7)
+    features = rng.normal(size=(3, len(NODE_FEATURES))).astype(np.float32)
+    parallel = SceneGraph(x=features, edge_index=np.array([[1, 1, 1, 2, 0], [0, 0, 0, 1, 2]]),
+                          edge_type=np.array([0, 0, 2, 1, 4]))
+    lone = SceneGraph(x=features[:1], edge_index=np.zeros((2, 0), dtype=np.int64), edge_type=np.zeros(0, dtype=np.int64))
+    encoder = _encoder(name, options, seed=4)
+    for graphs in ([parallel], [lone], [parallel, lone]):
+        with torch.no_grad():
+            sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
+        serving = encoder.serving_form()(graphs)
+        assert np.allclose(serving, sparse, atol=1e-5, rtol=1e-4), np.abs(serving - sparse).max()
 
 
 def test_gat_attention_rows_far_apart_are_normalised_each_by_its_own_maximum():
@@ -85,17 +107,22 @@ def test_gat_attention_rows_far_apart_are_normalised_each_by_its_own_maximum():
     dense = encoder.dense_form()(_dense(encoder, graphs))
     assert np.isfinite(sparse).all()
     assert np.allclose(dense, sparse, atol=1e-4, rtol=1e-4), np.abs(dense - sparse).max()
+    serving = encoder.serving_form()(graphs)  # the kernel shifts each row by its own maximum
+    assert np.allclose(serving, sparse, atol=1e-4, rtol=1e-4), np.abs(serving - sparse).max()
 
 
-def test_dense_form_is_a_snapshot_of_the_weights():
-    encoder = _encoder('gat', {'heads': 4})
+@pytest.mark.parametrize('name', ['gat', 'gcn'])
+def test_dense_and_serving_forms_are_snapshots_of_the_weights(name):
+    encoder = _encoder(name, {})
     graphs = [featurise(random_scene(np.random.default_rng(5)))]
-    dense = encoder.dense_form()
+    dense, serving = encoder.dense_form(), encoder.serving_form()
     before = dense(_dense(encoder, graphs))
     with torch.no_grad():
         encoder.project.weight.add_(1.0)
     assert np.array_equal(dense(_dense(encoder, graphs)), before)
+    assert np.allclose(serving(graphs), before, atol=1e-5, rtol=1e-4)
     assert not np.allclose(encoder.dense_form()(_dense(encoder, graphs)), before)
+    assert not np.allclose(encoder.serving_form()(graphs), before)
 
 
 def _graph(batch, start, count, edge_start, edge_count):

@@ -11,22 +11,24 @@ So every backbone also says how its convolution reads a padded dense numpy batch
 ``dense_weights`` (the convolution's own parameters as float32 arrays, in the layout the
 dense form multiplies by), ``dense_structure`` (the matrix its layers multiply by,
 computed once per batch) and ``dense_conv``. ``GraphEncoder.dense_form`` assembles them
-into a function over a snapshot of the weights (README, "Benchmarks").
-``test/test_dense_encoders.py`` checks that both forms agree for every backbone. The dense
+into a function over a snapshot of the weights (README, "Benchmarks"). What serving calls
+is ``serving_form``: the dense form, or, for GAT, the whole encoder compiled into one call
+(``compiled_gat``). ``test/test_dense_encoders.py`` checks that all forms agree for every backbone. The dense
 forms rely on what ``featurise`` guarantees: no self loops.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 from torch_geometric import nn as gnn
 
-from ..scene_graph import RELATIONS
-from ..scene_store import DenseGraphs, GraphBatch
+from ..scene_graph import RELATIONS, SceneGraph
+from ..scene_store import DenseGraphs, GraphBatch, dense_graphs
 from .base import Encoder, register
+from .compiled_gat import GATKernel
 
 
 def _array(tensor: torch.Tensor | None) -> np.ndarray | float:
@@ -83,6 +85,13 @@ class GraphEncoder(Encoder):
             h = h + self.drop(torch.relu(update))
         pooled = gnn.global_mean_pool(h, graphs.batch, size=graphs.num_graphs)
         return self.readout(torch.cat([h[graphs.root], pooled], dim=1))
+
+    def serving_form(self) -> Callable[[Sequence[SceneGraph]], np.ndarray]:
+        """This encoder (in eval mode) as a numpy function of a list of scene graphs, over a
+        copy of the current weights: the dense form, or a compiled one where a backbone has it."""
+        dense = self.dense_form()
+        relations = len(RELATIONS) if self.uses_edge_type else None
+        return lambda graphs: dense(dense_graphs(graphs, relations))
 
     def dense_form(self) -> Callable[[DenseGraphs], np.ndarray]:
         """This encoder (in eval mode) as a numpy function of a DenseGraphs batch, over a
@@ -222,6 +231,15 @@ class GAT(GraphEncoder):
         if hidden % heads:
             raise ValueError(f'hidden ({hidden}) must be divisible by heads ({heads})')
         return gnn.GATConv(hidden, hidden // heads, heads=heads)
+
+    def serving_form(self):
+        """The compiled kernel (``compiled_gat``): one call instead of ~90 numpy calls."""
+        heads, channels = self.convs[0].heads, self.convs[0].out_channels
+        return GATKernel(_linear(self.project), [_linear(conv.lin)[0] for conv in self.convs],
+                         [_array(conv.att_src).reshape(heads, channels) for conv in self.convs],
+                         [_array(conv.att_dst).reshape(heads, channels) for conv in self.convs],
+                         [_array(conv.bias) for conv in self.convs], self.convs[0].negative_slope,
+                         _linear(self.readout[0]), _linear(self.readout[2]))
 
     def dense_weights(self, conv):
         heads, channels = conv.heads, conv.out_channels
