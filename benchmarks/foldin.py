@@ -214,13 +214,15 @@ def streamer_main(args) -> int:
     for it (stars/user_model)."""
     import rclpy
     from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
     from std_msgs.msg import String
 
     from ros_helpers import RELIABLE
     from stars_ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
-    rclpy.init()
+    # SIGINT, which ends the run, must interrupt the loop below, not shut rclpy down under it
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = Node('streamer')
     scene_pub = node.create_publisher(String, '/stars/scene', RELIABLE)
     feedback_pub = node.create_publisher(String, '/stars/feedback', 100)

@@ -88,6 +88,24 @@ KILLED_WRITER = textwrap.dedent('''
 ''')
 
 
+def test_metadata_while_recording_is_one_json_line_with_what_close_writes_as_block_yaml(tmp_path):
+    recorder = recording.Recorder(tmp_path, TOPICS, name='bag', flush_interval=3600, custom={'fingerprint': 'f00'})
+    recorder.write('/stars/user_id', 'g', 10)
+    recorder.write('/stars/scene', 'a', 20)
+    recorder.flush()
+    interim = (tmp_path / 'bag' / 'metadata.yaml').read_text()
+    assert interim.count('\n') == 1 and json.loads(interim) == yaml.safe_load(interim)
+    recorder.close()
+    final = (tmp_path / 'bag' / 'metadata.yaml').read_text()
+    assert final.startswith('rosbag2_bagfile_information:\n  version: 9\n')
+    assert yaml.safe_load(interim) == yaml.safe_load(final)
+    info = yaml.safe_load(final)['rosbag2_bagfile_information']
+    assert info['message_count'] == 2 and info['custom_data'] == {'fingerprint': 'f00'}
+    (tmp_path / 'bag' / 'metadata.yaml').write_text(interim)  # rosbags reads the interim form too
+    assert [(topic, text) for topic, text, _ in _rosbags_messages(tmp_path / 'bag')] == [
+        ('/stars/user_id', 'g'), ('/stars/scene', 'a')]
+
+
 def test_hard_kill_loses_at_most_the_last_interval_and_no_feedback(tmp_path):
     run = subprocess.run([sys.executable, '-c', KILLED_WRITER, str(tmp_path)], env=dict(os.environ, PYTHONPATH=REPO),
                          timeout=60, capture_output=True)
