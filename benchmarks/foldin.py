@@ -214,15 +214,14 @@ def streamer_main(args) -> int:
     for it (stars/user_model)."""
     import rclpy
     from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
+    from rclpy.impl.implementation_singleton import rclpy_implementation
     from std_msgs.msg import String
 
     from ros_helpers import RELIABLE
     from stars_ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
-    # SIGINT, which ends the run, must interrupt the loop below, not shut rclpy down under it
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.init()
     node = Node('streamer')
     scene_pub = node.create_publisher(String, '/stars/scene', RELIABLE)
     feedback_pub = node.create_publisher(String, '/stars/feedback', 100)
@@ -270,6 +269,9 @@ def streamer_main(args) -> int:
             time.sleep(1.0 / args.stream_rate)
     except KeyboardInterrupt:
         pass
+    except rclpy_implementation.RCLError:  # rclpy's SIGINT handler shut the context down mid-publish
+        if rclpy.ok():
+            raise
     finally:
         print(f'streamed {k} feedback {rated} models {len(models)}', flush=True)
         node.destroy_node()
