@@ -94,6 +94,20 @@ def test_serving_form_counts_parallel_edges_and_serves_a_lone_robot(name, option
         assert np.allclose(serving, sparse, atol=1e-5, rtol=1e-4), np.abs(serving - sparse).max()
 
 
+def test_the_gat_kernel_warm_up_compiles_what_every_request_uses():
+    """A batch, a lone robot or float64 features must not compile a new signature on a request."""
+    from stars_ros.encoders.compiled_gat import _gat_encode
+    serving = _encoder('gat', {'heads': 4}).serving_form()  # compiles (or loads) at construction
+    signatures = list(_gat_encode.signatures)
+    rng = np.random.default_rng(8)
+    graphs = [featurise(random_scene(rng)) for _ in range(3)]
+    lone = SceneGraph(x=np.zeros((1, len(NODE_FEATURES))), edge_index=np.zeros((2, 0), dtype=np.int32),
+                      edge_type=np.zeros(0, dtype=np.int64))
+    for batch in (graphs[:1], graphs, [lone], [lone, graphs[0]]):
+        serving(batch)
+    assert list(_gat_encode.signatures) == signatures
+
+
 def test_gat_attention_rows_far_apart_are_normalised_each_by_its_own_maximum():
     """The dense GAT shifts all attention logits by one maximum; rows far below it would
     underflow to 0/0, so it falls back to a maximum per row, as PyG's softmax does."""

@@ -81,6 +81,8 @@ KILLED_WRITER = textwrap.dedent('''
     for k in range(400):
         recorder.write('/stars/scene', f'{k:04d}' + os.urandom(30).hex(), k)
     time.sleep(0.5)  # several flush intervals: all of the above is on disk
+    recorder.flush_interval = 3600  # after the flush under way, no more: none may catch what follows
+    time.sleep(0.3)
     recorder.write_feedback('/stars/feedback', '{"score": 1}', 10_000)
     for k in range(5):
         recorder.write('/stars/scene', 'after the last flush', 20_000 + k)

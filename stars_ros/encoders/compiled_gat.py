@@ -94,15 +94,18 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
 
 
 def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
-    """(x, node_starts, edge_source, edge_target) of ``graphs`` as one disjoint graph."""
+    """(x, node_starts, edge_source, edge_target) of ``graphs`` as one disjoint graph, always
+    as contiguous float32 / int64 arrays: numba compiles once per layout, and the warm-up in
+    ``GATKernel`` must have compiled the one every request uses."""
     if len(graphs) == 1:  # the serving case: no copies
         graph = graphs[0]
-        return (np.ascontiguousarray(graph.x), np.array([0, graph.num_nodes], dtype=np.int64),
-                np.ascontiguousarray(graph.edge_index[0]), np.ascontiguousarray(graph.edge_index[1]))
-    counts = np.array([g.num_nodes for g in graphs], dtype=np.int64)
-    node_starts = np.concatenate([[0], np.cumsum(counts)])
-    edges = np.concatenate([g.edge_index + start for g, start in zip(graphs, node_starts)], axis=1)
-    return np.concatenate([g.x for g in graphs]), node_starts, edges[0], edges[1]
+        x, node_starts, edges = graph.x, np.array([0, graph.num_nodes]), graph.edge_index
+    else:
+        node_starts = np.concatenate([[0], np.cumsum([g.num_nodes for g in graphs])])
+        edges = np.concatenate([g.edge_index + start for g, start in zip(graphs, node_starts)], axis=1)
+        x = np.concatenate([g.x for g in graphs])
+    return (np.ascontiguousarray(x, dtype=np.float32), np.ascontiguousarray(node_starts, dtype=np.int64),
+            np.ascontiguousarray(edges[0], dtype=np.int64), np.ascontiguousarray(edges[1], dtype=np.int64))
 
 
 class GATKernel:
