@@ -4,9 +4,10 @@ A request scores one or a few scenes. At that size each tensor operation's fixed
 the whole cost (torch's dispatch ~3–6 µs an operation on this machine, nn.Module calls
 more, numpy 1–5 µs), so serving and the fold-in do not go through torch: graph encoders
 run their serving form (``GraphEncoder.serving_form``: GAT compiled, the others their
-dense numpy form) and the StARS scoring is two array products. Tabular encoders keep their torch forward: one row through a few layers has no
-graph bookkeeping to save. ``test/test_inference.py`` checks that the result equals
-``StarsModel`` within float32 rounding.
+dense numpy form) and the StARS scoring is two array products. Tabular encoders keep
+their torch forward: one row through a few layers has no graph bookkeeping to save.
+``test/test_inference.py`` checks that the result equals ``StarsModel`` within float32
+rounding.
 """
 from __future__ import annotations
 

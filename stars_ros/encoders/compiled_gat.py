@@ -3,7 +3,7 @@
 The numpy dense form of a 3-layer GAT makes ~90 array calls for one scene; on this
 machine, between the node's other work, each costs 3–5 µs, so the encoder took ~0.4 ms
 of a ~0.9 ms request. Compiled, the same arithmetic over the scene's edge list (no
-padding) runs in one call: ~0.05 ms (README, "Benchmarks"). Training keeps PyG's sparse
+padding) runs in one call: ~0.1 ms (README, "Benchmarks"). Training keeps PyG's sparse
 form; ``test/test_dense_encoders.py`` checks all forms agree.
 
 numba caches the machine code beside this file (or in its user cache where that is not
@@ -111,7 +111,7 @@ def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
 class GATKernel:
     """``GAT``'s encoder over a snapshot of its weights: a function of a list of
     ``SceneGraph`` returning h [graphs, out_dim] (float32). Built from arrays laid out as
-    ``x @ w + b`` multiplies them (see ``GAT.compiled_form``)."""
+    ``x @ w + b`` multiplies them (see ``GAT.serving_form``)."""
 
     def __init__(self, project: tuple, layer_weights: list, attention_source: list, attention_target: list,
                  layer_biases: list, slope: float, hidden_layer: tuple, output_layer: tuple):

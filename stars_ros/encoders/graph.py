@@ -13,8 +13,8 @@ dense form multiplies by), ``dense_structure`` (the matrix its layers multiply b
 computed once per batch) and ``dense_conv``. ``GraphEncoder.dense_form`` assembles them
 into a function over a snapshot of the weights (README, "Benchmarks"). What serving calls
 is ``serving_form``: the dense form, or, for GAT, the whole encoder compiled into one call
-(``compiled_gat``). ``test/test_dense_encoders.py`` checks that all forms agree for every backbone. The dense
-forms rely on what ``featurise`` guarantees: no self loops.
+(``compiled_gat``). ``test/test_dense_encoders.py`` checks that all forms agree for every
+backbone. The dense and compiled forms rely on what ``featurise`` guarantees: no self loops.
 """
 from __future__ import annotations
 
