@@ -49,6 +49,7 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
     score_source = np.empty((nodes, heads), dtype=np.float32)
     score_target = np.empty((nodes, heads), dtype=np.float32)
     attended = np.empty(channels, dtype=np.float32)
+    logits = np.empty(edge_source.shape[0], dtype=np.float32)  # of the incoming edges of one target
     for layer in range(layers):
         values = h @ layer_w[layer]  # [nodes, heads * channels]
         for n in range(nodes):
@@ -63,19 +64,20 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
             for k in range(heads):
                 # softmax over the sources of i: its own self loop (GATConv adds one), then its
                 # incoming edges, each parallel edge a term of its own
-                largest = _leaky_relu(score_target[i, k] + score_source[i, k], slope)
+                own = _leaky_relu(score_target[i, k] + score_source[i, k], slope)
+                largest = own
                 for e in range(first[i], first[i + 1]):
-                    largest = max(largest, _leaky_relu(score_target[i, k] + score_source[sources[e], k], slope))
-                weight = np.exp(_leaky_relu(score_target[i, k] + score_source[i, k], slope) - largest)
+                    logits[e] = _leaky_relu(score_target[i, k] + score_source[sources[e], k], slope)
+                    largest = max(largest, logits[e])
+                weight = np.exp(own - largest)
                 normaliser = weight
                 for c in range(channels):
                     attended[c] = weight * values[i, k * channels + c]
                 for e in range(first[i], first[i + 1]):
-                    j = sources[e]
-                    weight = np.exp(_leaky_relu(score_target[i, k] + score_source[j, k], slope) - largest)
+                    weight = np.exp(logits[e] - largest)
                     normaliser += weight
                     for c in range(channels):
-                        attended[c] += weight * values[j, k * channels + c]
+                        attended[c] += weight * values[sources[e], k * channels + c]
                 for c in range(channels):
                     update[i, k * channels + c] = attended[c] / normaliser + layer_b[layer, k * channels + c]
         h += np.maximum(update, np.float32(0.0))  # residual, as GraphEncoder.forward
