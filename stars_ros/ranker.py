@@ -28,6 +28,11 @@ for at most one solve (0.6–1.4 ms with up to 200 ratings, docs/personalisation
 result goes into the predictor's overlay (swapped whole), on stars/user_model (recorded),
 and into ``user_models.json`` in the record folder (written by its own thread too), which a
 restart with the same checkpoint restores.
+
+A ranking's ``processing_ms`` counts from the middleware's reception of the request (its
+message info), so a wait behind other callbacks is in it. The executor notes when it does
+fold-in work; a ranking whose wait overlapped such work is counted, with that overlap, in
+the next /diagnostics (``period.*``): the node itself shows what fold-in costs others.
 """
 from __future__ import annotations
 
@@ -57,7 +62,7 @@ from .errors import CheckpointError, StarsError
 from .foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
 from .predictor import Predictor
 from .resources import share_path
-from .serving import Pending, error_kind, rank_batch
+from .serving import BusySpans, Pending, PeriodStats, error_kind, rank_batch
 from .spinning import spin_until_shutdown
 
 DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'
@@ -149,6 +154,8 @@ class RankerNode(Node):
         self._histories = FeedbackHistories(self.params['fold_in_max_ratings'], self.params['fold_in_max_users'])
         self._fold_pending = collections.OrderedDict()  # users to re-solve (executor thread only)
         self._foldin = self._fold_in_model(self.predictor)
+        self._fold_in_spans = BusySpans()  # when the executor did fold-in work (time.time_ns; executor thread only)
+        self._period_stats = PeriodStats()  # for the next /diagnostics (executor thread only)
 
         depth = self.params['queue_depth']
         reliable = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
@@ -276,6 +283,8 @@ class RankerNode(Node):
                   'feedback_not_on_disk': 0 if recorder is None else
                   recorder.pending_feedback + self._to_journal.qsize(),
                   'folded_in_users': len(self.predictor.user_models)}
+        values.update(self._period_stats.values())
+        self._period_stats = PeriodStats()
         values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
         statuses = [DiagnosticStatus(level=level, name=f'{name}: ranker', message=summary, hardware_id=name,
                                      values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
@@ -289,26 +298,26 @@ class RankerNode(Node):
         self.diagnostics_pub.publish(array)
 
     # -- callbacks (executor thread) -----------------------------------------------------
-    def _on_scene(self, msg: String):
+    def _on_scene(self, msg: String, info: dict):
         """Queue this request and those already waiting behind it (at most queue_depth per
         call, so a flood cannot keep the executor from serving), then serve a batch."""
-        self._accept_scene(msg.data)
+        self._accept_scene(msg.data, info)
         for _ in range(self.params['queue_depth']):
-            msg = self._take_waiting_scene()
-            if msg is None:
+            taken = self._take_waiting_scene()
+            if taken is None:
                 break
-            self._accept_scene(msg.data)
+            self._accept_scene(taken[0].data, taken[1])
         self._work()
 
-    def _take_waiting_scene(self) -> String | None:
-        """The next message waiting on stars/scene, taken as the executor takes it (None: none)."""
+    def _take_waiting_scene(self) -> tuple | None:
+        """The next message waiting on stars/scene and its message info, taken as the
+        executor takes them (None: none)."""
         subscription = self._scene_subscription
         with subscription.handle:
-            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-        return None if taken is None else taken[0]
+            return subscription.handle.take_message(subscription.msg_type, subscription.raw)
 
-    def _accept_scene(self, text: str):
-        arrived = time.perf_counter_ns()
+    def _accept_scene(self, text: str, info: dict):
+        received = info.get('received_timestamp') or time.time_ns()  # 0: the middleware does not stamp
         try:
             request = messages.parse_scene_request(text, self.params['max_message_bytes'])
         except messages.BadMessage as error:
@@ -324,7 +333,7 @@ class RankerNode(Node):
             self.report('overload', f"{self.params['queue_depth']} requests already wait to be scored; "
                         'this one is dropped', self.topics['stars/scene'], request.scene_id)
             return
-        self._queue.append(Pending(request, request.user_id or self._user_id, arrived, text, log_time))
+        self._queue.append(Pending(request, request.user_id or self._user_id, received, text, log_time))
 
     def _on_user_id(self, msg: String):
         try:
@@ -351,7 +360,9 @@ class RankerNode(Node):
         else:
             self._to_journal.put((topic, msg.data, self.get_clock().now().nanoseconds, feedback.scene_id))
         if self.params['fold_in']:
+            started = time.time_ns()
             self._queue_fold_in(feedback, topic)
+            self._fold_in_spans.add(started, time.time_ns())
 
     # -- fold-in -------------------------------------------------------------------------
     def _rating(self, feedback) -> Rating | str:
@@ -543,7 +554,13 @@ class RankerNode(Node):
             if self._queue:
                 self._serve([self._queue.popleft() for _ in range(min(len(self._queue), self.params['max_batch']))])
             elif self._fold_pending:
-                self._fold_in(self._fold_pending.popitem(last=False)[0])
+                started = time.time_ns()
+                try:
+                    self._fold_in(self._fold_pending.popitem(last=False)[0])
+                finally:
+                    ended = time.time_ns()
+                    self._fold_in_spans.add(started, ended)
+                    self._period_stats.fold_in_ms.append((ended - started) / 1e6)
         except Exception as error:  # noqa: BLE001 - the node must keep serving
             self.report('internal', f'{type(error).__name__}: {error}')
         if self._queue or self._fold_pending:
@@ -551,6 +568,7 @@ class RankerNode(Node):
 
     def _serve(self, batch):
         predictor, top_k = self.predictor, self.params['top_k']
+        started = time.time_ns()
         results = rank_batch(predictor, batch, top_k)
         for item, result in zip(batch, results):
             request = item.request
@@ -560,11 +578,12 @@ class RankerNode(Node):
                 continue
             known = predictor.knows_user(item.user_id)
             personalised = predictor.personalised_from(item.user_id)
-            elapsed_ms = (time.perf_counter_ns() - item.arrived) / 1e6
+            processing_ms = max(0, time.time_ns() - item.received) / 1e6
             payload = messages.dumps(messages.ranking_payload(
-                request, item.user_id, known, result.ranked, predictor.fingerprint, round(elapsed_ms, 3),
+                request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
                 result.action, personalised))
             self.ranking_pub.publish(String(data=payload))
+            self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
             self._record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
             self._record('stars/ranking', payload)
             remembered = self._scenes.get(request.scene_id)

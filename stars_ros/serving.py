@@ -8,6 +8,7 @@ request only fails itself: a group that raises is scored again one request at a 
 """
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,14 +23,15 @@ class Pending:
     """A validated request waiting to be scored.
 
     ``user_id`` is the one it is served for (the message's own, else the latest on
-    /stars/user_id at arrival); ``arrived`` is ``time.perf_counter_ns()`` at reception;
-    ``text`` and ``log_time`` (ROS time, ns) are the message as received, which the node
-    records once the ranking is out.
+    /stars/user_id at arrival); ``received`` is when the middleware received it (system
+    clock, ns, as ``time.time_ns()``), so a ranking's processing time includes any wait
+    behind other callbacks; ``text`` and ``log_time`` (ROS time, ns) are the message as
+    received, which the node records once the ranking is out.
     """
 
     request: SceneRequest
     user_id: str | None
-    arrived: int
+    received: int
     text: str = ''
     log_time: int = 0
 
@@ -122,3 +124,59 @@ def rank_batch(predictor, batch, top_k: int = 0) -> list:
         for (k, _, _), result in zip(members, scored):
             results[k] = result
     return results
+
+
+class BusySpans:
+    """The latest spans (start, end; ns of one clock) in which the executor did one kind of
+    work, fold-in say: a request's wait runs from its reception to the batch that serves
+    it, and only the part of the spans inside that window held it up."""
+
+    def __init__(self, keep: int = 64):
+        self._spans = collections.deque(maxlen=keep)
+
+    def add(self, start: int, end: int):
+        """Spans come in time order and do not overlap (one executor thread does the work)."""
+        self._spans.append((start, end))
+
+    def overlap(self, since: int, until: int) -> int:
+        """ns of the kept spans inside [since, until]."""
+        total = 0
+        for start, end in reversed(self._spans):
+            if end <= since:
+                break
+            total += max(0, min(end, until) - max(start, since))
+        return total
+
+
+def _percentile_ms(values: list, q: float) -> float:
+    return round(float(np.percentile(values, q)), 3)
+
+
+class PeriodStats:
+    """What /diagnostics reports of one period: every ranking's processing time (reception
+    to publication), how long the rankings that waited behind fold-in work waited for it,
+    and the fold-in updates' durations (all ms)."""
+
+    def __init__(self):
+        self.processing_ms, self.fold_in_ms = [], []
+        self.delayed = []  # (ms waited for fold-in work, processing ms) of the rankings that did
+
+    def ranking(self, processing_ms: float, fold_in_delay_ms: float):
+        self.processing_ms.append(processing_ms)
+        if fold_in_delay_ms > 0:
+            self.delayed.append((fold_in_delay_ms, processing_ms))
+
+    def values(self) -> dict:
+        """Diagnostic key-values; percentiles and maxima only where the period had any."""
+        values = {'period.rankings': len(self.processing_ms), 'period.fold_in_updates': len(self.fold_in_ms),
+                  'period.rankings_delayed_by_fold_in': len(self.delayed)}
+        if self.processing_ms:
+            values.update({'period.processing_ms.p50': _percentile_ms(self.processing_ms, 50),
+                           'period.processing_ms.p99': _percentile_ms(self.processing_ms, 99),
+                           'period.processing_ms.max': round(max(self.processing_ms), 3)})
+        if self.fold_in_ms:
+            values['period.fold_in_update_ms.max'] = round(max(self.fold_in_ms), 3)
+        if self.delayed:
+            values['period.fold_in_delay_ms.max'] = round(max(d for d, _ in self.delayed), 3)
+            values['period.delayed_processing_ms.max'] = round(max(p for _, p in self.delayed), 3)
+        return values

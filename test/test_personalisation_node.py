@@ -185,3 +185,37 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
         client.close()
     state = json.loads((tmp_path / 'user_models.json').read_text())
     assert list(state['users']) == ['other'] and state['users']['other']['ratings_dropped'] == 0
+
+
+def test_diagnostics_count_the_rankings_that_waited_behind_fold_in(tiny_checkpoint, scenes, tmp_path):
+    """A burst of feedback, then at once another user's scene requests: they reach the node
+    while its executor folds the feedback in, and /diagnostics says how many waited for it,
+    how long, and their processing time from reception."""
+    domain = domain_id(10)
+    client = RosClient(domain)
+    process = start_node('stars_ros.ranker', domain, {
+        'checkpoint': tiny_checkpoint, 'record_folder': tmp_path, 'diagnostics_period': 0.2}, tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': scenes[19]})
+        _rank(client, scenes, 'rated scenes')
+        for k in range(60):
+            client.feedback({'user_id': f'rater-{k % 3}', 'scene_id': scenes[k % 6]['identifier'],
+                             'action': 'navigate', 'score': float(k % 2)})
+        for k in range(20):
+            client.scene({'scene_id': f'other-{k}', 'user_id': 'other', 'graph': scenes[6 + k % 10]})
+        assert client.wait(lambda: all(client.ranking_for(f'other-{k}') for k in range(20)), 30)
+        assert all(client.ranking_for(f'other-{k}')['processing_ms'] > 0 for k in range(20))
+        time.sleep(0.6)  # the periods with the burst are reported
+        periods = [{v.key: v.value for v in s.values} for d in client.diagnostics for s in d.status
+                   if s.name.endswith(': ranker')]
+        assert sum(int(p['period.fold_in_updates']) for p in periods) >= 3  # one user per solve at least
+        delayed = [p for p in periods if int(p['period.rankings_delayed_by_fold_in'])]
+        assert delayed, periods
+        for p in delayed:
+            assert 0 < float(p['period.fold_in_delay_ms.max']) <= float(p['period.delayed_processing_ms.max'])
+            assert float(p['period.delayed_processing_ms.max']) <= float(p['period.processing_ms.max'])
+        assert stop(process, signal.SIGINT) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
