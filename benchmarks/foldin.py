@@ -22,6 +22,9 @@
    ``--gaps`` (seconds between a reply to 'other' and its next request): 0 keeps the node
    busy, so every solve competes with a waiting request; 0.01 is a perception rate, where
    the node idles between requests and waking it is part of each latency.
+   The node's own account, from /diagnostics (collected by the streamer): how many rankings
+   waited behind fold-in work, the longest such wait, and the longest processing time
+   (reception to publication) of those rankings.
 """
 from __future__ import annotations
 
@@ -94,12 +97,13 @@ def live(checkpoint: str, scenes: list, args) -> dict:
 
     domain = 150 + os.getpid() % 50
     client = RosClient(domain, listen=False)  # its only subscription: the rankings it times
-    arrived = {}  # scene_id -> when its ranking reached the client's callback (perf_counter)
+    arrived = {}  # scene_id -> (when its ranking reached the client's callback (perf_counter), its processing_ms)
 
     def on_ranking(msg):
         now = time.perf_counter()
         with client._changed:
-            arrived[json.loads(msg.data)['scene_id']] = now
+            reply = json.loads(msg.data)
+            arrived[reply['scene_id']] = (now, reply['processing_ms'])
             client._changed.notify_all()
 
     client.node.create_subscription(String, '/stars/ranking', on_ranking, RELIABLE)
@@ -134,7 +138,8 @@ def measure_gap(client, domain: int, arrived, scenes, gap: float, args) -> dict:
     percentiles pool its blocks."""
     tag = f'{gap:g}'
     names = list(CONDITIONS)
-    pooled, block_p99 = {name: [] for name in names}, {name: [] for name in names}
+    pooled, processing = {name: [] for name in names}, {name: [] for name in names}
+    block_p99 = {name: [] for name in names}
     per_block = max(1, args.requests // args.blocks)
     with Streamer(domain, args, tag) as streamer:
         for round_ in range(args.blocks):
@@ -143,11 +148,13 @@ def measure_gap(client, domain: int, arrived, scenes, gap: float, args) -> dict:
                 if not client.set_parameters('/ranker', {'fold_in': fold_in})[0].successful:
                     raise RuntimeError('could not set fold_in')
                 streamer.give_feedback(feedback)
-                latencies = time_other(client, arrived, scenes, f'{name}{round_}-{tag}', per_block, gap)
+                timed = time_other(client, arrived, scenes, f'{name}{round_}-{tag}', per_block, gap)
+                latencies = [latency for latency, _ in timed]
                 pooled[name] += latencies
+                processing[name] += [node_ms for _, node_ms in timed]
                 block_p99[name].append(float(np.percentile(latencies, 99)) if latencies else float('nan'))
-    results = {name: {**summary(pooled[name], per_block * args.blocks), 'block_p99_ms': block_p99[name]}
-               for name in names}
+    results = {name: {**summary(pooled[name], per_block * args.blocks), 'block_p99_ms': block_p99[name],
+                      'other_processing_ms': percentiles(processing[name])} for name in names}
     results['streamed'] = streamer.counts
     return results
 
@@ -157,7 +164,8 @@ def summary(latencies: list, sent: int | None = None) -> dict:
 
 
 def time_other(client, arrived, scenes, tag: str, count: int, gap: float) -> list:
-    """ms from send to the ranking's arrival for ``count`` requests of 'other' (timeouts left out)."""
+    """(ms from send to the ranking's arrival, the node's processing_ms) for ``count``
+    requests of 'other' (timeouts left out)."""
     latencies = []
     for k in range(count):
         scene_id = f'{tag}-other-{k}'
@@ -165,7 +173,8 @@ def time_other(client, arrived, scenes, tag: str, count: int, gap: float) -> lis
         sent = time.perf_counter()
         client.scene(text)
         if client.wait(lambda: scene_id in arrived, 5):
-            latencies.append((arrived[scene_id] - sent) * 1e3)
+            received, node_ms = arrived[scene_id]
+            latencies.append(((received - sent) * 1e3, node_ms))
         if gap:
             time.sleep(gap)
     return latencies
@@ -198,10 +207,9 @@ class Streamer:
     def __exit__(self, *exc):
         self.process.send_signal(signal.SIGINT)
         output, _ = self.process.communicate(timeout=30)
-        words = output.split()  # 'streamed N feedback F models M'
-        if len(words) >= 6:
-            self.counts = {'streamed_requests': int(words[-5]), 'feedback_ratings': int(words[-3]),
-                           'fold_in_updates': int(words[-1])}
+        lines = output.strip().splitlines()
+        if lines and lines[-1].startswith('{'):
+            self.counts = json.loads(lines[-1])
         time.sleep(1.0)  # the node drains what the streamer left
         return False
 
@@ -210,11 +218,12 @@ def streamer_main(args) -> int:
     """The streamer user, a device of its own (own process): a SocNav1 scene ranked
     ``--stream-rate`` times a second, each followed by a feedback rating while the last line
     on its stdin was 'feedback on'. Prints 'ready' after the first ranking, and when
-    interrupted the number of requests, of ratings and of the user models the node folded in
-    for it (stars/user_model)."""
+    interrupted a line of JSON: the number of requests, of ratings, of the user models the
+    node folded in for it (stars/user_model), and the node's /diagnostics summed over the run."""
     import rclpy
     from rclpy.node import Node
     from rclpy.impl.implementation_singleton import rclpy_implementation
+    from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String
 
     from ros_helpers import RELIABLE
@@ -238,6 +247,9 @@ def streamer_main(args) -> int:
     node.create_subscription(String, '/stars/ranking', on_ranking, RELIABLE)
     models = []
     node.create_subscription(String, '/stars/user_model', lambda msg: models.append(len(msg.data)), RELIABLE)
+    periods = []  # the ranker's per-period diagnostic values
+    node.create_subscription(DiagnosticArray, '/diagnostics', lambda msg: periods.extend(
+        {v.key: v.value for v in s.values} for s in msg.status if s.name.endswith(': ranker')), 100)
     threading.Thread(target=spin_until_shutdown, args=(node,), daemon=True).start()
     feedback = threading.Event()
 
@@ -273,10 +285,31 @@ def streamer_main(args) -> int:
         if rclpy.ok():
             raise
     finally:
-        print(f'streamed {k} feedback {rated} models {len(models)}', flush=True)
+        print(json.dumps({'streamed_requests': k, 'feedback_ratings': rated, 'fold_in_updates': len(models),
+                          'node_diagnostics': node_account(periods)}), flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def node_account(periods: list) -> dict:
+    """The ranker's /diagnostics periods summed: rankings, fold-in updates, rankings that waited
+    behind fold-in work, and the longest of the waits, of those rankings' processing and of
+    any ranking's processing (ms, reception to publication)."""
+    def total(key):
+        return sum(int(p.get(key, 0)) for p in periods)
+
+    def longest(key):
+        return max((float(p[key]) for p in periods if key in p), default=None)
+    return {'periods': len(periods), 'rankings': total('period.rankings'),
+            'fold_in_updates': total('period.fold_in_updates'),
+            'fold_in_update_ms_max': longest('period.fold_in_update_ms.max'),
+            'rankings_delayed_by_fold_in': total('period.rankings_delayed_by_fold_in'),
+            'fold_in_delay_ms_max': longest('period.fold_in_delay_ms.max'),
+            'delayed_processing_ms_max': longest('period.delayed_processing_ms.max'),
+            'processing_ms_max': longest('period.processing_ms.max'),
+            'fold_in_update_ms_max_by_period': [float(p['period.fold_in_update_ms.max']) for p in periods
+                                                if 'period.fold_in_update_ms.max' in p]}
 
 
 def main(argv=None) -> int:
@@ -319,13 +352,21 @@ def main(argv=None) -> int:
         for phase in CONDITIONS:
             latency = figures[phase]['other_latency_ms']
             blocks = figures[phase].get('block_p99_ms')
+            node_ms = figures[phase]['other_processing_ms']
             print(f"gap {gap * 1e3:g} ms, other user's ranking latency {phase.replace('_', ' ')}: "
                   f"p50 {latency['p50']:.2f} ms, p99 {latency['p99']:.2f} ms, max {latency['max']:.2f} ms "
-                  f"({latency['count']} rankings, {figures[phase]['timeouts']} timeouts)"
+                  f"({latency['count']} rankings, {figures[phase]['timeouts']} timeouts); in the node p50 "
+                  f"{node_ms['p50']:.2f} ms, p99 {node_ms['p99']:.2f} ms, max {node_ms['max']:.2f} ms"
                   + (f"; p99 per block {' '.join(f'{v:.1f}' for v in blocks)}" if blocks else ''))
         streamed = figures['streamed']
         print(f"  streamer: {streamed.get('streamed_requests')} requests, {streamed.get('feedback_ratings')} of them "
               f"rated, {streamed.get('fold_in_updates')} fold-in updates")
+        account = streamed.get('node_diagnostics', {})
+        print(f"  node's account: {account.get('rankings')} rankings, {account.get('fold_in_updates')} fold-in updates "
+              f"(longest {account.get('fold_in_update_ms_max')} ms); {account.get('rankings_delayed_by_fold_in')} "
+              f"rankings waited behind fold-in work, at most {account.get('fold_in_delay_ms_max')} ms, and took at "
+              f"most {account.get('delayed_processing_ms_max')} ms from reception to publication (any ranking: "
+              f"{account.get('processing_ms_max')} ms)")
     results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
                'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
                'load_average': [round(v, 2) for v in os.getloadavg()]}
