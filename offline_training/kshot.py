@@ -3,8 +3,9 @@
     python -m offline_training.kshot --config config/socnav1_gat.yaml \
         --data-root ../shared/datasets/socnav1 --out results/kshot_socnav1 [--quick]
 
-Leave-annotators-out folds (annotators shuffled with ``--seed`` and dealt into ``--folds``
-groups). Per fold a model is trained on the other annotators. For every held-out annotator a
+Leave-annotators-out folds (annotators shuffled with each of ``--seeds`` and dealt into
+``--folds`` groups; several seeds give several such partitions). Per fold a model is trained
+on the other annotators. For every held-out annotator a
 seeded pool of ``--pool`` ratings is set aside as "revealable", revealed in a fixed order;
 the remaining ratings are the test rows, the same for every k, so the curves compare across
 k. For each k the held-out annotators are scored three ways:
@@ -17,7 +18,7 @@ k. For each k the held-out annotators are scored three ways:
 - ``retrained``: the whole model trained again from scratch on the fold's training rows plus
   the first k revealed ratings of each held-out annotator (k = 0 is the fold's model).
 
-λ: one value per prior for the whole run, chosen on the first fold's held-out annotators
+λ: one value per prior and seed, chosen on the seed's first fold's held-out annotators
 using their revealable pools only (fold in from the first k of the pool, score the rest of
 the pool; mean MSE over the k of ``--ks`` with 0 < k < pool); no test row takes part. (The
 training annotators are no use for this: the model fitted their ratings, which favours a
@@ -25,7 +26,9 @@ tiny λ.) As a check, not used for any choice, the fold-in MSE of every λ of th
 test rows is reported too.
 
 Metrics (MSE, r, CCC on the rating scale) are pooled over the fold's held-out test rows,
-then given as mean ± sd over folds. Writes results.json, results.md and kshot.png.
+then given as mean ± sd over folds (of all seeds). Writes results.json, results.md and
+kshot.png. The fits are independent of each other: ``--jobs`` runs them in worker
+processes (one torch thread each, sharing the GPU with ``--device cuda``).
 """
 from __future__ import annotations
 
@@ -42,6 +45,7 @@ import torch
 from stars_ros.config import ExperimentConfig
 from stars_ros.data import load_dataset
 from stars_ros.errors import StarsError
+from stars_ros.evaluation import fit_executor, worker_data
 from stars_ros.foldin import FoldIn
 from stars_ros.metrics import regression_report
 from stars_ros.predictor import Predictor
@@ -66,12 +70,15 @@ def parse_args(argv=None):
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1), help='SocNav1 root (default: %(default)s)')
     parser.add_argument('--out', required=True, help='results folder')
     parser.add_argument('--folds', type=int, default=4, help='annotator folds (default: %(default)s)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of folds and revealed pools (default: %(default)s)')
+    parser.add_argument('--seeds', type=int, nargs='+', default=[0],
+                        help='seeds of folds and revealed pools, one partition of the annotators each (default: 0)')
     parser.add_argument('--pool', type=int, default=20, help='revealable ratings per held-out annotator')
     parser.add_argument('--ks', type=int, nargs='+', default=[0, 1, 2, 5, 10, 20], help='revealed ratings')
     parser.add_argument('--epochs', type=int, nargs=2, metavar=('T1', 'T2'), help='override the config epochs')
     parser.add_argument('--regularisation', type=float, help='fold-in λ (default: chosen on fold 0, see above)')
     parser.add_argument('--max-train-rows', type=int, help='subsample each fold\'s training rows (seeded)')
+    parser.add_argument('--jobs', type=int, default=1, help='worker processes for the fits (default: %(default)s)')
+    parser.add_argument('--device', help="train on this device ('cpu', 'cuda'; default: the config's)")
     parser.add_argument('--quick', action='store_true',
                         help='pipeline check: 2 folds, k in {0,2,5}, tiny model and epochs, 1,500 training rows')
     parser.add_argument('--verbose', action='store_true')
@@ -85,11 +92,11 @@ def configure(args) -> ExperimentConfig:
         args.folds, args.ks = QUICK['folds'], QUICK['ks']
         args.epochs = args.epochs or QUICK['epochs']
         args.max_train_rows = args.max_train_rows or QUICK['max_train_rows']
-    training = {'threads': 1}
+    training = {'threads': 1, **({'device': args.device} if args.device else {})}
     if args.epochs:
         training.update(pretrain_epochs=args.epochs[0], joint_epochs=args.epochs[1])
-    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2:
-        raise StarsError(f'ks must lie in 0..{args.pool} and folds must be at least 2')
+    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2 or args.jobs < 1:
+        raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2 and jobs at least 1')
     return config.replace(training=training)
 
 
@@ -165,62 +172,111 @@ def choose_regularisation(design: Design, pools: dict, ks, prior: str) -> tuple:
     return min(scores, key=scores.get), scores
 
 
-def fit(config, data, rows) -> tuple:
+def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, data=None) -> dict:
+    """One fit (in a ``fit_executor`` worker, or inline with ``data``): seconds, predictions
+    on ``test``, and with ``keep`` the fitted recommender itself, its model on the CPU, where
+    the fold-in designs are computed."""
+    data = worker_data() if data is None else data
     started = time.perf_counter()
-    recommender = StarsRecommender(config).fit(data, rows)
-    return recommender, time.perf_counter() - started
+    recommender = StarsRecommender(ExperimentConfig.from_dict(experiment)).fit(data, train)
+    seconds = time.perf_counter() - started
+    predictions = recommender.predict_rows(data, test)
+    if keep:
+        recommender.model.cpu()
+    return {'seconds': seconds, 'predictions': predictions, 'recommender': recommender if keep else None}
 
 
 def report(data, rows, predictions) -> dict:
     return regression_report(data.scores[rows], predictions, data.actions[rows])
 
 
+def plan_folds(args, data) -> list:
+    """(seed, fold id, held-out annotators, training rows, reveal pools, test rows) of every
+    fold of every seed."""
+    plan = []
+    for seed in args.seeds:
+        for fold_id, held in enumerate(annotator_folds(data.users, args.folds, seed)):
+            train = np.flatnonzero(~np.isin(data.users, held))
+            if args.max_train_rows and len(train) > args.max_train_rows:
+                train = np.sort(np.random.default_rng([seed, fold_id]).choice(train, args.max_train_rows,
+                                                                              replace=False))
+            pools = reveal_pools(data, held, args.pool, seed)
+            test = np.sort(np.concatenate([pools[name][1] for name in held]))
+            plan.append((seed, fold_id, held, train, pools, test))
+    return plan
+
+
+def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
+    """The training rows at ``k``: the fold's, plus the first k revealed of each held-out annotator."""
+    _, _, held, train, pools, _ = fold
+    if k == 0:
+        return train
+    return np.sort(np.concatenate([train, *(pools[name][0][:k] for name in held)]))
+
+
 def run(args, config, data, log=print) -> dict:
-    folds = annotator_folds(data.users, args.folds, args.seed)
-    regularisation = {m: args.regularisation for m in PRIORS} if args.regularisation else None
-    selection = None
-    records, fits = [], []
-    for fold_id, held in enumerate(folds):
-        train = np.flatnonzero(~np.isin(data.users, held))
-        if args.max_train_rows and len(train) > args.max_train_rows:
-            train = np.sort(np.random.default_rng([args.seed, fold_id]).choice(train, args.max_train_rows,
-                                                                                 replace=False))
-        pools = reveal_pools(data, held, args.pool, args.seed)
-        test = np.sort(np.concatenate([pools[name][1] for name in held]))
-        recommender, seconds = fit(config, data, train)
-        fits.append({'fold': fold_id, 'k': 0, 'seconds': round(seconds, 1), 'n_train': len(train)})
-        log(f'fold {fold_id} (held out {held}): base model on {len(train)} ratings in {seconds:.0f} s')
-        design = Design(recommender, data)
-        if regularisation is None:
-            regularisation, selection = {}, {}
-            for method, prior in PRIORS.items():
-                regularisation[method], selection[method] = choose_regularisation(design, pools, args.ks, prior)
-            log(f'fold-in λ {regularisation} (chosen on the revealable pools of fold {fold_id}: {selection})')
-        unpersonalised = report(data, test, design.predict(test, None))
-        for k in sorted(args.ks):
-            entry = {'fold': fold_id, 'k': k, 'held_out': held, 'n_test': len(test), 'unpersonalised': unpersonalised,
-                     'mse_by_lambda': {}}
-            for method, prior in PRIORS.items():
-                by_lambda = {}
-                for candidate in sorted({regularisation[method], *LAMBDA_GRID}):
-                    predictions = np.zeros(len(data))
-                    for name in held:
-                        revealed, rows = pools[name]
-                        predictions[rows] = design.predict(rows, design.fold_in(revealed[:k], candidate, prior))
-                    by_lambda[candidate] = report(data, test, predictions[test])
-                entry[method] = by_lambda[regularisation[method]]
-                entry['mse_by_lambda'][method] = {str(lam): r['mse'] for lam, r in by_lambda.items()}
-            if k == 0:
-                entry['retrained'] = report(data, test, recommender.predict_rows(data, test))
-            else:
-                extra = np.concatenate([pools[name][0][:k] for name in held])
-                retrained, seconds = fit(config, data, np.sort(np.concatenate([train, extra])))
-                fits.append({'fold': fold_id, 'k': k, 'seconds': round(seconds, 1), 'n_train': len(train) + len(extra)})
-                entry['retrained'] = report(data, test, retrained.predict_rows(data, test))
-            records.append(entry)
-            log(f'fold {fold_id} k={k}: MSE ' + '  '.join(f"{m} {entry[m]['mse']:.4f}" for m in METHODS))
-        if args.on_fold:
-            args.on_fold(records, fits, regularisation, selection, folds[:fold_id + 1])
+    plan = plan_folds(args, data)
+    experiment = config.to_dict()
+    executor = fit_executor(data, args.jobs, 1)
+    submitted = {}
+
+    def submit(folds):  # the largest fits first, so that the last wave is short
+        fits = sorted(((fold, k) for fold in folds for k in sorted(args.ks)), key=lambda f: -len(fit_rows_of(*f)))
+        for fold, k in fits:
+            submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold[5], k == 0)
+
+    if args.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
+        submit(plan)
+    records, fits, regularisation, selection, folds = [], [], {}, {}, {}
+    try:
+        for fold in plan:
+            seed, fold_id, held, train, pools, test = fold
+            folds.setdefault(str(seed), []).append(held)
+            if args.jobs == 1:
+                submit([fold])
+            base = submitted.pop((seed, fold_id, 0)).result()
+            fits.append({'seed': seed, 'fold': fold_id, 'k': 0, 'seconds': round(base['seconds'], 1),
+                         'n_train': len(train)})
+            log(f'seed {seed} fold {fold_id} (held out {held}): base model on {len(train)} ratings in '
+                f"{base['seconds']:.0f} s")
+            design = Design(base['recommender'], data)
+            if str(seed) not in regularisation:
+                if args.regularisation:
+                    regularisation[str(seed)] = {method: args.regularisation for method in PRIORS}
+                else:
+                    chosen = {method: choose_regularisation(design, pools, args.ks, prior)
+                              for method, prior in PRIORS.items()}
+                    regularisation[str(seed)] = {method: lam for method, (lam, _) in chosen.items()}
+                    selection[str(seed)] = {method: scores for method, (_, scores) in chosen.items()}
+                    log(f'seed {seed}: fold-in λ {regularisation[str(seed)]} (chosen on the revealable pools of '
+                        f'fold {fold_id}: {selection[str(seed)]})')
+            lambdas = regularisation[str(seed)]
+            unpersonalised = report(data, test, design.predict(test, None))
+            for k in sorted(args.ks):
+                entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'n_test': len(test),
+                         'unpersonalised': unpersonalised, 'mse_by_lambda': {}}
+                for method, prior in PRIORS.items():
+                    by_lambda = {}
+                    for candidate in sorted({lambdas[method], *LAMBDA_GRID}):
+                        predictions = np.zeros(len(data))
+                        for name in held:
+                            revealed, rows = pools[name]
+                            predictions[rows] = design.predict(rows, design.fold_in(revealed[:k], candidate, prior))
+                        by_lambda[candidate] = report(data, test, predictions[test])
+                    entry[method] = by_lambda[lambdas[method]]
+                    entry['mse_by_lambda'][method] = {str(lam): r['mse'] for lam, r in by_lambda.items()}
+                retrained = base if k == 0 else submitted.pop((seed, fold_id, k)).result()
+                if k:
+                    fits.append({'seed': seed, 'fold': fold_id, 'k': k, 'seconds': round(retrained['seconds'], 1),
+                                 'n_train': len(fit_rows_of(fold, k))})
+                entry['retrained'] = report(data, test, retrained['predictions'])
+                records.append(entry)
+                log(f'seed {seed} fold {fold_id} k={k}: MSE ' + '  '.join(f"{m} {entry[m]['mse']:.4f}"
+                                                                         for m in METHODS))
+            if args.on_fold:
+                args.on_fold(records, fits, regularisation, selection, folds)
+    finally:
+        executor.shutdown(cancel_futures=True)
     return {'records': records, 'fits': fits, 'regularisation': regularisation, 'selection': selection,
             'folds': folds}
 
@@ -255,10 +311,12 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
                'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()},
                'gap_share': {'k': top, **shares}}
     (folder / 'results.json').write_text(json.dumps(payload, indent=1))
+    partitions = '; '.join(f'seed {seed}: {folds}' for seed, folds in result['folds'].items())
     lines = [f"# k-shot personalisation on held-out annotators", '', f"`{header['command']}`", '',
-             f"{len(result['folds'])} folds of held-out annotators {result['folds']}; "
-             f"{header['pool']} revealable ratings per held-out annotator; fold-in λ {result['regularisation']}; "
-             f"epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. Mean ± sd over folds.", '',
+             f"{len(result['records']) // max(1, len(header['ks']))} folds of held-out annotators ({partitions}); "
+             f"{header['pool']} revealable ratings per held-out annotator; fold-in λ by seed "
+             f"{result['regularisation']}; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "
+             'Mean ± sd over folds.', '',
              '| k | method | MSE | Pearson r | CCC |', '| --- | --- | --- | --- | --- |']
     for k in sorted(summary['fold-in']):
         for method in METHODS:
@@ -280,7 +338,8 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
             lines.append(f'| {lam:g} | ' + ' | '.join(f'{v:.4f}' for v in cells) + ' |')
     fit_seconds = [f['seconds'] for f in result['fits']]
     lines += ['', f"{len(fit_seconds)} fits, {np.mean(fit_seconds):.0f} s each on average, "
-                  f"{header.get('seconds', 0):.0f} s in all (one torch thread)."]
+                  f"{header.get('seconds', 0):.0f} s in all (one torch thread each, {header['jobs']} at a time, "
+                  f"on {header['config']['training']['device']})."]
     (folder / 'results.md').write_text('\n'.join(lines) + '\n')
     plot(folder / 'kshot.png', summary)
     return payload
@@ -323,7 +382,7 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
-              'pool': args.pool, 'ks': sorted(args.ks), 'seed': args.seed, 'quick': args.quick,
+              'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': args.jobs, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),
               'epochs': [config.training.pretrain_epochs, config.training.joint_epochs]}
 

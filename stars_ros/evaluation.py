@@ -260,6 +260,13 @@ def normalised_rmse(y, p, actions, target_mean, target_std) -> float:
     return float(np.mean([np.sqrt(np.mean(errors[actions == a] ** 2)) for a in np.unique(actions)]))
 
 
+def worker_data() -> RatingData:
+    """The data a ``fit_executor`` worker process holds (for tasks other than ``run_fit``)."""
+    if _WORKER_DATA is None:
+        raise RuntimeError('not in a fit_executor worker')
+    return _WORKER_DATA
+
+
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     """Fit ``task``'s model and return its test metrics, z-RMSE and seconds."""
     from .training import StarsRecommender

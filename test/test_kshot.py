@@ -24,7 +24,7 @@ def test_quick_run_writes_tables_plot_and_comparable_curves(socnav1_root, tmp_pa
                        '--quick']) == 0
     assert {'results.json', 'results.md', 'kshot.png'} <= {p.name for p in out.iterdir()}
     results = json.loads((out / 'results.json').read_text())
-    assert results['complete'] and results['ks'] == [0, 2, 5] and len(results['folds']) == 2
+    assert results['complete'] and results['ks'] == [0, 2, 5] and len(results['folds']['0']) == 2
     for fold in (0, 1):
         records = [r for r in results['records'] if r['fold'] == fold]
         assert len({r['n_test'] for r in records}) == 1  # the same test rows for every k
@@ -33,6 +33,22 @@ def test_quick_run_writes_tables_plot_and_comparable_curves(socnav1_root, tmp_pa
         assert abs(zero['fold-in (zero prior)']['mse'] - zero['unpersonalised']['mse']) < 1e-9
         assert abs(zero['retrained']['mse'] - zero['unpersonalised']['mse']) < 1e-6  # k = 0 is the fold's model
         assert len({json.dumps(r['unpersonalised']) for r in records}) == 1
-    assert set(results['regularisation']) == {'fold-in', 'fold-in (zero prior)'}
+    assert set(results['regularisation']['0']) == {'fold-in', 'fold-in (zero prior)'}
     assert '| 5 | retrained |' in (out / 'results.md').read_text()
     assert 'of the k=0 -> full retraining MSE gap' in capsys.readouterr().out
+
+
+def test_fits_in_worker_processes_give_what_inline_fits_give(socnav1_root, tmp_path):
+    """Two seeds' folds with their fits in 2 worker processes, then all inline: same records."""
+    runs = {}
+    for jobs in (2, 1):
+        out = tmp_path / f'jobs{jobs}'
+        assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(socnav1_root), '--out', str(out),
+                           '--quick', '--seeds', '0', '1', '--jobs', str(jobs)]) == 0
+        runs[jobs] = json.loads((out / 'results.json').read_text())
+    assert set(runs[2]['folds']) == {'0', '1'}
+    assert [(r['seed'], r['fold'], r['k']) for r in runs[2]['records']] == \
+        [(seed, fold, k) for seed in (0, 1) for fold in (0, 1) for k in (0, 2, 5)]  # --quick's ks
+    for parallel, inline in zip(runs[2]['records'], runs[1]['records']):
+        assert parallel['retrained'] == inline['retrained'] and parallel['fold-in'] == inline['fold-in']
+    assert runs[2]['jobs'] == 2 and runs[2]['seeds'] == [0, 1]
