@@ -560,7 +560,7 @@ class RankerNode(Node):
                 finally:
                     ended = time.time_ns()
                     self._fold_in_spans.add(started, ended)
-                    self._period_stats.fold_in_ms.append((ended - started) / 1e6)
+                    self._period_stats.fold_in_update((ended - started) / 1e6)
         except Exception as error:  # noqa: BLE001 - the node must keep serving
             self.report('internal', f'{type(error).__name__}: {error}')
         if self._queue or self._fold_pending:

@@ -166,6 +166,9 @@ class PeriodStats:
         if fold_in_delay_ms > 0:
             self.delayed.append((fold_in_delay_ms, processing_ms))
 
+    def fold_in_update(self, ms: float):
+        self.fold_in_ms.append(ms)
+
     def values(self) -> dict:
         """Diagnostic key-values; percentiles and maxima only where the period had any."""
         values = {'period.rankings': len(self.processing_ms), 'period.fold_in_updates': len(self.fold_in_ms),

@@ -30,7 +30,8 @@ def test_period_stats_report_the_delayed_rankings_apart():
         stats.ranking(processing, 0.0)
     stats.ranking(6.0, 0.5)
     stats.ranking(2.5, 0.75)
-    stats.fold_in_ms += [0.4, 0.9]
+    stats.fold_in_update(0.4)
+    stats.fold_in_update(0.9)
     values = stats.values()
     assert values['period.rankings'] == 6 and values['period.fold_in_updates'] == 2
     assert values['period.rankings_delayed_by_fold_in'] == 2
