@@ -148,38 +148,42 @@ class BusySpans:
         return total
 
 
-def _percentile_ms(values: list, q: float) -> float:
-    return round(float(np.percentile(values, q)), 3)
-
-
 class PeriodStats:
-    """What /diagnostics reports of one period: every ranking's processing time (reception
-    to publication), how long the rankings that waited behind fold-in work waited for it,
-    and the fold-in updates' durations (all ms)."""
+    """What /diagnostics reports of one period: the rankings' processing time (reception to
+    publication; percentiles over the latest ``keep``, so a long period at a high rate
+    stays bounded), the rankings that waited behind fold-in work and how long, and the
+    fold-in updates (all ms)."""
 
-    def __init__(self):
-        self.processing_ms, self.fold_in_ms = [], []
-        self.delayed = []  # (ms waited for fold-in work, processing ms) of the rankings that did
+    def __init__(self, keep: int = 10000):
+        self.rankings, self.processing_max, self.latest = 0, 0.0, collections.deque(maxlen=keep)
+        self.fold_in_updates, self.fold_in_max = 0, 0.0
+        self.delayed, self.delay_max, self.delayed_processing_max = 0, 0.0, 0.0
 
     def ranking(self, processing_ms: float, fold_in_delay_ms: float):
-        self.processing_ms.append(processing_ms)
+        self.rankings += 1
+        self.processing_max = max(self.processing_max, processing_ms)
+        self.latest.append(processing_ms)
         if fold_in_delay_ms > 0:
-            self.delayed.append((fold_in_delay_ms, processing_ms))
+            self.delayed += 1
+            self.delay_max = max(self.delay_max, fold_in_delay_ms)
+            self.delayed_processing_max = max(self.delayed_processing_max, processing_ms)
 
     def fold_in_update(self, ms: float):
-        self.fold_in_ms.append(ms)
+        self.fold_in_updates += 1
+        self.fold_in_max = max(self.fold_in_max, ms)
 
     def values(self) -> dict:
         """Diagnostic key-values; percentiles and maxima only where the period had any."""
-        values = {'period.rankings': len(self.processing_ms), 'period.fold_in_updates': len(self.fold_in_ms),
-                  'period.rankings_delayed_by_fold_in': len(self.delayed)}
-        if self.processing_ms:
-            values.update({'period.processing_ms.p50': _percentile_ms(self.processing_ms, 50),
-                           'period.processing_ms.p99': _percentile_ms(self.processing_ms, 99),
-                           'period.processing_ms.max': round(max(self.processing_ms), 3)})
-        if self.fold_in_ms:
-            values['period.fold_in_update_ms.max'] = round(max(self.fold_in_ms), 3)
+        values = {'period.rankings': self.rankings, 'period.fold_in_updates': self.fold_in_updates,
+                  'period.rankings_delayed_by_fold_in': self.delayed}
+        if self.rankings:
+            p50, p99 = np.percentile(self.latest, [50, 99])
+            values.update({'period.processing_ms.p50': round(float(p50), 3),
+                           'period.processing_ms.p99': round(float(p99), 3),
+                           'period.processing_ms.max': round(self.processing_max, 3)})
+        if self.fold_in_updates:
+            values['period.fold_in_update_ms.max'] = round(self.fold_in_max, 3)
         if self.delayed:
-            values['period.fold_in_delay_ms.max'] = round(max(d for d, _ in self.delayed), 3)
-            values['period.delayed_processing_ms.max'] = round(max(p for _, p in self.delayed), 3)
+            values['period.fold_in_delay_ms.max'] = round(self.delay_max, 3)
+            values['period.delayed_processing_ms.max'] = round(self.delayed_processing_max, 3)
         return values

@@ -41,3 +41,12 @@ def test_period_stats_report_the_delayed_rankings_apart():
     assert values['period.fold_in_update_ms.max'] == 0.9
     assert values['period.fold_in_delay_ms.max'] == 0.75
     assert values['period.delayed_processing_ms.max'] == 6.0
+
+
+def test_period_stats_stay_bounded_in_a_long_period():
+    stats = PeriodStats(keep=3)
+    for processing in (50.0, 1.0, 2.0, 3.0):
+        stats.ranking(processing, 0.0)
+    values = stats.values()
+    assert values['period.rankings'] == 4 and values['period.processing_ms.max'] == 50.0
+    assert values['period.processing_ms.p50'] == 2.0  # over the latest three
