@@ -14,6 +14,7 @@ paired tests, the sparsity table and where the time went) and ``sparsity_<metric
 from __future__ import annotations
 
 import argparse
+import collections
 import csv
 import json
 import logging
@@ -31,19 +32,18 @@ import yaml
 from stars_ros.config import ExperimentConfig
 from stars_ros.data import load_dataset
 from stars_ros.errors import StarsError
-from stars_ros.evaluation import (DISPLAY, PROTOCOLS, ProtocolConfig, by_model, model_specs, paired_tests,
-                                  run_protocol, sparsity_summary, time_accounting)
+from stars_ros.evaluation import (DISPLAY, PROTOCOLS, ProtocolConfig, ablation_tests, by_model, model_specs,
+                                  paired_tests, run_protocol, settings_key, sparsity_summary, time_accounting)
 from stars_ros.stats import format_mean_sd, mean_sd
 
 from .common import DEFAULT_SOCNAV1, cuda_info, machine, setup_logging
 
 REPO = Path(__file__).resolve().parents[1]
 METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
-RECORD_COLUMNS = ('protocol', 'model', 'backbone', 'variant', 'fold', 'fraction', 'stage', 'T1', 'T2',
+RECORD_COLUMNS = ('protocol', 'model', 'backbone', 'variant', 'fold', 'fraction', 'stage', 'settings', 'T1', 'T2',
                   'n_train', 'n_test', 'mse', 'rmse', 'pearson_r', 'ccc', 'epochs', 'fit_seconds',
                   'predict_seconds', 'error')
-SELECTION_COLUMNS = ('model', 'fold', 'T1', 'T2', 'inner_fold', 'n_train', 'n_test', 'z_rmse', 'epochs',
-                     'fit_seconds', 'predict_seconds')
+SELECTION_COLUMNS = ('model', 'fold', 'settings', 'T1', 'T2', 'inner_fold', 'n_train', 'n_test', 'z_rmse')
 
 
 def parse_args(argv=None):
@@ -58,7 +58,8 @@ def parse_args(argv=None):
                         help='merge config/eval_quick.yaml (fewer folds and epochs, tiny model)')
     parser.add_argument('--backbones', help='comma-separated subset of the config\'s backbones')
     parser.add_argument('--jobs', type=int, default=1, help='worker processes (default: %(default)s)')
-    parser.add_argument('--threads', type=int, help='torch threads per job (default: cores // jobs)')
+    parser.add_argument('--threads', type=int, default=1,
+                        help='torch threads per job (default: %(default)s; more busy-wait and collapse on a shared machine)')
     parser.add_argument('--device', help="where every fit trains: 'cpu', 'cuda' or 'cuda:N' (default: the "
                                          "config's experiment.training.device, else cpu); jobs share the GPU")
     parser.add_argument('--out', help='results folder (default: results/<name>-<protocol>[-quick])')
@@ -142,19 +143,68 @@ def _digits(metric: str) -> int:
     return 4 if metric in ('mse', 'rmse') else 3
 
 
-def results_table(result, error: str) -> list[str]:
+def _chosen(entries: list) -> str:
+    """The candidates a model took over the folds, most frequent first: '(10, 40) lr 0.001 ×3'."""
+    counts = collections.Counter((settings_key(e.get('settings', {})), e['T1'], e['T2']) for e in entries)
+    parts = []
+    for (settings, t1, t2), count in counts.most_common():
+        values = ' '.join(f'{k} {v:g}' if isinstance(v, float) else f'{k} {v}' for k, v in json.loads(settings).items())
+        parts.append(f"({t1}, {t2}){' ' + values if values else ''}{f' ×{count}' if len(counts) > 1 else ''}")
+    return '; '.join(parts)
+
+
+def results_table(result, error: str, labels=None, extra=None) -> list[str]:
+    """Mean ± sd per model (those in ``labels``, default all); ``extra`` is (headings,
+    label -> cells) for the last columns, default the settings each model took."""
     metrics = (error, 'pearson_r', 'ccc')
-    lines = ['| Model | ' + ' | '.join(METRIC_NAMES[m] for m in metrics) + ' | (T1, T2) chosen |',
-             '| --- | ' + ' | '.join('---' for _ in metrics) + ' | --- |']
     final = by_model(result.final())
-    for spec in model_specs(result.config):
-        entries = final.get(spec.label, [])
-        if not entries:
+    specs = {spec.label: spec for spec in model_specs(result.config)}
+
+    def chosen(label):
+        spec = specs[label]
+        if spec.variant == 'population_mean':
+            return ['—']
+        return [f'as {spec.follows}' if spec.follows else _chosen(final[label])]
+    headings, cells = extra or (['settings (per fold)'], chosen)
+    lines = ['| Model | ' + ' | '.join([METRIC_NAMES[m] for m in metrics] + headings) + ' |',
+             '|' + ' --- |' * (1 + len(metrics) + len(headings))]
+    for label in specs:
+        entries = final.get(label, [])
+        if not entries or (labels is not None and label not in labels):
             continue
-        pairs = sorted({(e['T1'], e['T2']) for e in entries})
-        chosen = ', '.join(f'({t1}, {t2})' for t1, t2 in pairs) if spec.variant != 'population_mean' else '—'
-        lines.append(f'| {spec.label} | ' + ' | '.join(format_mean_sd([e[m] for e in entries], _digits(m))
-                                                        for m in metrics) + f' | {chosen} |')
+        lines.append(f'| {label} | ' + ' | '.join([format_mean_sd([e[m] for e in entries], _digits(m))
+                                                    for m in metrics] + cells(label)) + ' |')
+    return lines
+
+
+def selection_sentence(config) -> str:
+    """How the settings were chosen, said only as far as a choice was made."""
+    searched = {family: space for family, space in config.search.items() if any(len(v) > 1 for v in space.values())}
+    if len(config.grid) == 1 and not searched:
+        fixed = ', '.join(f'{family}: {space}' for family, space in config.search.items())
+        return (f'No setting was chosen: every model trained with (T1, T2) = {tuple(config.grid[0])}'
+                f"{' and ' + fixed if fixed else ''} and the experiment's other settings.")
+    spaces = '; '.join(f'{family}: {space}' for family, space in searched.items())
+    return (f'Settings chosen per outer fold by {config.inner_folds}-fold inner validation on that fold\'s '
+            f'training rows (lowest z-RMSE), from (T1, T2) in {[list(p) for p in config.grid]}'
+            f"{' and ' + spaces if spaces else ''}; ablations take their StARS model's choice.")
+
+
+def ablation_table(result, tests: list, error: str) -> list[str]:
+    """Per ablation backbone: the baselines, base, StARS and each ablation, with the
+    corrected test of each against that backbone's base."""
+    metrics = (error, 'pearson_r', 'ccc')
+    lines = []
+    for backbone in result.config.ablation_backbones:
+        found = {(t['model'], t['metric']): t for t in tests if t['backbone'] == backbone}
+
+        def against_base(label):
+            return ['—' if (t := found.get((label, m))) is None else f"{t['delta']:+.{_digits(m)}f}, {_p(t['p_holm'])}"
+                    for m in metrics]
+        labels = [s.label for s in model_specs(result.config) if s.backbone in (backbone, None)]
+        headings = [f'Δ{METRIC_NAMES[m]} vs base, Holm p' for m in metrics]
+        lines += [f'### {DISPLAY.get(backbone, backbone)}', '',
+                  *results_table(result, error, labels, (headings, against_base)), '']
     return lines
 
 
@@ -214,7 +264,7 @@ def timing_table(timing: dict, load_seconds: float) -> list[str]:
              f"of the wall time ({busy:.0f} worker-seconds); the rest is process start-up, fold "
              'set-up and the tail where fewer fits than workers remain.', '',
              '| Stage | worker-seconds | share |', '| --- | --- | --- |']
-    names = {'inner': 'inner (T1, T2) selection', 'final': 'final fit on the outer-train pool',
+    names = {'inner': 'inner selection', 'final': 'final fit on the outer-train pool',
              'sweep': 'sparsity sweep (fractions < 1)'}
     for stage, seconds in timing['by_stage'].items():
         lines.append(f'| {names.get(stage, stage)} | {seconds:.0f} | {seconds / busy:.0%} |')
@@ -239,8 +289,9 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
              f"load average at start {header['load_start']}", '',
              f'## Results ({k} outer folds; mean ± sd over folds)', '',
              *results_table(result, error), '',
-             f"Metrics macro-averaged over actions on the rating scale; (T1, T2) chosen per fold by "
-             f"{config.inner_folds}-fold inner validation from {[list(p) for p in config.grid]}.", '',
+             'Metrics macro-averaged over actions on the rating scale, predictions clipped to it; a row '
+             'of the protocol is an example (one user\'s ratings of one scene, every action). '
+             + selection_sentence(config), '',
              '## Paired tests, StARS − base', '',
              *tests_table(tests, error), '',
              'Bouckaert–Frank corrected resampled t-test (variance × (1/k + n_test/n_train)), two-sided; '
@@ -249,6 +300,12 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
     comparison = comparison_table(result, error, config.name)
     if comparison:
         lines += ['## Beside the published table', '', *comparison, '']
+    if config.ablation_backbones:
+        lines += ['## Ablation: the parts of StARS', '', *ablation_table(result, header['ablation_tests'], error),
+                  'Each ablation is StARS with the named part held at zero (or items keyed by the numeric '
+                  'identifier prefix), trained with the full StARS model\'s choice of settings in each fold. '
+                  'Δ against the backbone\'s base, corrected resampled t-test, Holm over the models of one '
+                  'backbone and metric.', '']
     summary = sparsity_summary(result)
     if summary:
         lines += [f'## Sparsity: {METRIC_NAMES[error]} against the training fraction', '',
@@ -323,7 +380,7 @@ def main(argv=None) -> int:
     try:
         config = configure(args)
         device = ExperimentConfig.from_dict(config.experiment).training.device
-        if args.jobs < 1 or (args.threads is not None and args.threads < 1):
+        if args.jobs < 1 or args.threads < 1:
             raise StarsError('--jobs and --threads must be positive')
         started = time.perf_counter()
         data = load_dataset(args.data_root)
@@ -331,7 +388,7 @@ def main(argv=None) -> int:
     except (StarsError, OSError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
-    threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
+    threads = args.threads
     name = f"{config.name}-{args.protocol}{'-quick' if args.quick else ''}"
     folder = Path(args.out) if args.out else REPO / 'results' / name
     folder.mkdir(parents=True, exist_ok=True)
@@ -374,9 +431,11 @@ def main(argv=None) -> int:
     write_machine()
 
     tests = paired_tests(result, (config.error, 'pearson_r', 'ccc'))
+    header['ablation_tests'] = ablation_tests(result, (config.error, 'pearson_r', 'ccc'))
     timing = {**time_accounting(result), 'load_seconds': load_seconds,
               'load_average_end': [round(v, 2) for v in os.getloadavg()]}
-    write_csv(folder / 'folds.csv', result.records, RECORD_COLUMNS)
+    write_csv(folder / 'folds.csv', [{**r, 'settings': settings_key(r['settings'])} for r in result.records],
+              RECORD_COLUMNS)
     write_csv(folder / 'selection.csv', result.selection, SELECTION_COLUMNS)
     write_csv(folder / 'tests.csv', tests, ('backbone', 'metric', 'delta', 't', 'df', 'p', 'p_holm'))
     summary = sparsity_summary(result)
@@ -384,7 +443,8 @@ def main(argv=None) -> int:
     write_tables(folder / 'tables.md', result, tests, timing, load_seconds, header)
     (folder / 'results.json').write_text(json.dumps(
         {'command': command, 'protocol': args.protocol, 'config': config.to_dict(), 'folds': result.folds,
-         'records': result.records, 'selection': result.selection, 'tests': tests, 'timing': timing,
+         'records': result.records, 'inner': result.inner, 'selection': result.selection,
+         'choices': result.choices, 'tests': tests, 'ablation_tests': header['ablation_tests'], 'timing': timing,
          'plots': plots, 'git': header['git'], 'machine': header['machine']},
         indent=1, default=_json_default))
     print((folder / 'tables.md').read_text())

@@ -66,7 +66,8 @@ def build_tasks(data, values: dict) -> list[tuple[str, str, FitTask]]:
                 for f, fold in enumerate(make_folds(data, 'rows', protocol.folds, seed)):
                     tasks.append((setting, variant, FitTask(f'{setting} {variant}', f'{seed}:{f}', 'curve',
                                                             config.to_dict(), fold.train, fold.test,
-                                                            curve_every=values['every'])))
+                                                            curve_at=tuple(range(values['every'], values['joint_epochs'] + 1,
+                                                                                 values['every'])))))
     return tasks
 
 

@@ -189,6 +189,7 @@ def extended(parent: StarsRecommender, users, scene_keys=()) -> StarsRecommender
     new_users = [u for u in users if u not in parent._user_rows]
     new_scenes = [k for k in scene_keys if k not in parent._scene_rows]
     child = StarsRecommender(parent.config)
+    child.rating_scale = parent.rating_scale
     child._set_vocabularies(list(parent.users) + new_users, list(parent.scene_keys) + new_scenes,
                             parent.action_names)
     model = build_model(parent.config, old.encoder.in_dim, old.encoder.input_kind, len(child.users),
@@ -265,23 +266,8 @@ def feedback_data(recommender: StarsRecommender, ratings: dict, original: Rating
 
 def fine_tune(recommender: StarsRecommender, data: RatingData, epochs: int) -> list:
     """``epochs`` joint epochs over every row of ``data``, from the current weights, with the
-    checkpoint's optimiser settings and rating normalisation (the trainer's ``_epoch``)."""
-    cfg = recommender.config.training
-    torch.manual_seed(cfg.seed)
-    torch.set_num_threads(cfg.threads)
-    rng = np.random.default_rng(cfg.seed)
-    model = recommender.model
-    users = recommender.user_index(data.users)
-    scene_rows = recommender.scene_index(list(data.scene_keys[s] for s in data.scenes))
-    actions = torch.from_numpy(data.actions)
-    targets = model.to_z(torch.from_numpy(data.scores).float(), actions)
-    batch = (users, scene_rows, torch.from_numpy(data.scenes), actions, targets)
-    parameters = [p for n, p in model.named_parameters() if model.uses_content or not n.startswith('encoder.')]
-    optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    losses = [recommender._epoch(data, batch, model, parameters, optimiser, rng, cfg.embedding_l2)
-              for _ in range(epochs)]
-    model.eval()
-    return losses
+    checkpoint's optimiser settings and rating normalisation."""
+    return recommender.fine_tune(data, epochs)
 
 
 def print_report(found: LogRatings, solved: dict, out=None) -> None:

@@ -57,6 +57,7 @@ def save_checkpoint(recommender: StarsRecommender, path, *, data: dict, metrics:
         'scene_keys': list(recommender.scene_keys),
         'actions': list(recommender.action_names),
         'normalisation': {'mean': model.target_mean.tolist(), 'std': model.target_std.tolist()},
+        'rating_scale': list(recommender.rating_scale) if recommender.rating_scale is not None else None,
         'data': dict(data),
         'metrics': dict(metrics or {}),
         'provenance': dict(provenance or {}),
@@ -116,6 +117,8 @@ def load_checkpoint(path, with_digest: bool = False):
         raise CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}') from error
     model.eval()
     recommender.model = model
+    scale = metadata.get('rating_scale')  # absent from checkpoints written before it was kept
+    recommender.rating_scale = tuple(scale) if scale is not None else None
     if with_digest:
         return recommender, metadata, content['digest']
     return recommender, metadata

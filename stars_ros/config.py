@@ -14,7 +14,19 @@ import yaml
 
 from .errors import ConfigError
 
-VARIANTS = ('base', 'stars', 'mf')
+#: The parts of each personalised variant: ``content`` (h_i), ``p`` (p_u), ``q`` (q_i), the
+#: offsets ``b_u`` and ``b_i``, and ``residual`` (the h_i added inside the final product).
+#: ``base`` is the encoder with a linear head and has none of them.
+PARTS = {
+    'stars': frozenset({'content', 'p', 'q', 'b_u', 'b_i', 'residual'}),
+    'mf': frozenset({'p', 'q', 'b_u', 'b_i'}),
+    'user_bias': frozenset({'b_u'}),
+    'base_user_bias': frozenset({'content', 'b_u', 'residual'}),
+    'stars_no_q': frozenset({'content', 'p', 'b_u', 'b_i', 'residual'}),
+    'stars_no_residual': frozenset({'content', 'p', 'q', 'b_u', 'b_i'}),
+}
+VARIANTS = ('base', *PARTS)
+ITEM_KEYINGS = ('identifier', 'prefix')
 
 
 def _build(cls, values, where):
@@ -48,17 +60,22 @@ class ModelConfig:
     """``variant``: ``base`` (encoder + linear head), ``stars`` (encoder fused with MF) or
     ``mf`` (biased matrix factorisation alone: StARS with h_i = 0, a content-free baseline).
 
-    ``dim`` is the size of h_i and of the user, scene and action embeddings.
+    The other variants are ablations of StARS (``stars_ros.model.PARTS``), for evaluation.
+    ``dim`` is the size of h_i and of the user, scene and action embeddings. ``item_key``
+    names the data's keying of items for q_i and b_i (``RatingData.item_keys``).
     """
 
     variant: str = 'stars'
     dim: int = 64
+    item_key: str = 'identifier'
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ConfigError(f"model.variant must be one of {list(VARIANTS)}, got '{self.variant}'")
         if self.dim < 1:
             raise ConfigError('model.dim must be positive')
+        if self.item_key not in ITEM_KEYINGS:
+            raise ConfigError(f"model.item_key must be one of {list(ITEM_KEYINGS)}, got '{self.item_key}'")
 
 
 @dataclass(frozen=True)
@@ -78,7 +95,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     embedding_l2: float = 0.0
     seed: int = 0
-    threads: int = 2
+    threads: int = 1
     device: str = 'cpu'
 
     def __post_init__(self):

@@ -3,7 +3,11 @@
 SocNav1 root (``raw/a.jsonl`` … or the ``raw`` folder itself): one file per annotator,
 annotator = file name without extension; one JSON scene per line with ``identifier`` and a
 0–100 ``score``, used on [0, 1] (score / 100). The single action is ``navigate``.
-Scene identity is the full ``identifier``. When one identifier carries two different
+Scene identity is the full ``identifier``: "01998 A" and "01998 B" are different scenes
+(different content and scores). The published StARS paper's 1.89 ratings per scene
+(9,280 / 4,904) implies that it keyed items by the numeric prefix instead, merging such
+pairs; ``item_keys('prefix')`` gives that keying for q_i and b_i (each rating is still
+encoded from its own scene graph). When one identifier carries two different
 scene contents (SocNav1 has one such case, ``01998 A``), each content becomes its own scene
 keyed ``<identifier>#<first 8 hex digits of its content digest>``: both ratings are kept,
 and no rating is attached to a scene its annotator did not see.
@@ -11,6 +15,11 @@ and no rating is attached to a scene its annotator did not see.
 Generic root: ``annotations.csv`` with header ``user,scene,action,score`` and either
 ``scenes.csv`` (header ``scene`` then numeric feature columns; tabular encoders) or
 ``scenes.jsonl`` (one scene graph per line with a ``scene`` key; graph encoders).
+Scores are on the scale the data declares (SocNav1: [0, 1]; generic: the lowest and
+highest score in annotations.csv); predictions are clipped to it. A row of the evaluation
+protocol is an *example*: one user's ratings of one scene, every action rated in it
+(``RatingData.examples``), as in the paper, where each row is an annotator's rating of a
+scene with all actions as targets.
 Rules: every file must be non-empty; every score numeric and finite; every annotation's
 scene listed in the scene file; a (user, scene, action) triple appears once; scene keys
 are unique. Breaking a rule raises DataError naming the file and line. Scenes without
@@ -53,9 +62,33 @@ class RatingData:
     fingerprint: str
     source: str
     notes: list = field(default_factory=list)
+    scale: tuple | None = None  # (lowest, highest) score a rating can take; None: unbounded
+    keyings: dict = field(default_factory=dict)  # keying name -> item key per scene (see item_keys)
 
     def __len__(self) -> int:
         return len(self.scores)
+
+    @property
+    def examples(self) -> np.ndarray:
+        """Example id per rating: ratings of one user on one scene (every action) share it.
+
+        Folds, inner folds and sparsity samples are drawn over examples, never over single
+        ratings: a test rating's siblings (the same person's other actions on the same scene)
+        in the training rows would let a model memorise a per-(user, scene) mood.
+        """
+        pairs = np.stack([np.unique(self.users, return_inverse=True)[1].ravel(), self.scenes], axis=1)
+        return np.unique(pairs, axis=0, return_inverse=True)[1].ravel()
+
+    def item_keys(self, keying: str = 'identifier') -> list:
+        """The item key of every scene row: ``identifier`` (the scene key itself) or another
+        keying the loader provides (SocNav1: ``prefix``). Scenes sharing an item key share
+        q_i and b_i."""
+        if keying == 'identifier':
+            return list(self.scene_keys)
+        if keying not in self.keyings:
+            raise DataError(f"item keying '{keying}' is not available for {self.source}; "
+                            f"choices: {['identifier', *self.keyings]}")
+        return list(self.keyings[keying])
 
     @property
     def kind(self) -> str:
@@ -203,7 +236,8 @@ def load_socnav1(root) -> RatingData:
         actions=np.zeros(len(records), dtype=np.int64),
         scores=np.array([r[3] for r in records]),
         scene_keys=scene_keys, store=store, action_names=(SOCNAV_ACTION,),
-        fingerprint=fingerprint, source=str(folder), notes=notes)
+        fingerprint=fingerprint, source=str(folder), notes=notes, scale=(0.0, 1.0),
+        keyings={'prefix': [key.split(' ')[0] for key in scene_keys]})
 
 
 def _read_csv(path, required_first):
@@ -303,4 +337,4 @@ def load_generic(root) -> RatingData:
         users=np.array(users), scenes=np.array(scenes, dtype=np.int64),
         actions=np.array([action_index[a] for a in actions], dtype=np.int64),
         scores=np.array(scores), scene_keys=keys, store=store, action_names=action_names,
-        fingerprint=_digest([path, scene_file]), source=str(root))
+        fingerprint=_digest([path, scene_file]), source=str(root), scale=(min(scores), max(scores)))

@@ -1,22 +1,30 @@
-"""The evaluation protocol: outer cross-validation, inner (T1, T2) selection, sparsity sweep.
+"""The evaluation protocol: outer cross-validation, nested selection of settings, sparsity sweep.
 
 For every outer fold and model, a ``inner_folds``-fold cross-validation inside the
-outer-train pool picks the epoch pair (T1, T2) of ``grid`` with the lowest validation RMSE
-on normalised scores (z-scores under the training split's per-action mean and standard
-deviation, so actions weigh the same); the model is then retrained on the whole pool with
-that pair and scored on the outer test rows. The sparsity sweep retrains with the chosen
-pair on nested random subsets (``fractions`` of the pool, without replacement) and scores
-them on the same outer test rows; fraction 1.0 is the main result.
+outer-train pool picks the candidate with the lowest validation RMSE on normalised scores
+(z-scores under the training split's per-action mean and standard deviation, so actions
+weigh the same). A candidate is a combination of the model family's ``search`` space (e.g.
+learning rate, weight decay, embedding penalty, dim) and an epoch pair (T1, T2) of ``grid``;
+pairs sharing T1 are scored in one inner fit, at each T2 along the way (the same seeds give
+the same first epochs, so a point at T2 is the fit with T2 epochs). The model is then
+retrained on the whole pool with the chosen candidate and scored on the outer test rows.
+Nothing is chosen on rows that are test rows of the outer fold. The sparsity sweep retrains
+with the chosen candidate on nested random subsets (``fractions`` of the pool, without
+replacement) and scores them on the same outer test rows; fraction 1.0 is the main result.
 
-Three protocols share this machinery and differ only in how rows are grouped into folds:
-``rows`` (random annotation rows, as published), ``cold-scene`` (grouped by scene, so no
-test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds are
-grouped the same way, so the selection sees the situation it is selecting for. The model
-needs no special case: unseen scenes and users get zero embeddings and offsets.
+A row of the protocol is an *example*: one user's ratings of one scene, every action
+(``RatingData.examples``). Three protocols differ only in how examples are grouped into
+folds: ``rows`` (random examples, as published), ``cold-scene`` (grouped by scene, so no
+test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds and
+sweep samples are grouped the same way, so the selection sees the situation it is selecting
+for and an example's actions never straddle a split. The model needs no special case:
+unseen scenes and users get zero embeddings and offsets.
 
 Every model of a table is scored on the same folds: the chosen backbones in the ``base``
-and ``stars`` variants, and two baselines: ``population_mean`` (the training mean of each
-action) and ``mf`` (biased matrix factorisation, no scene content). Fits are independent
+and ``stars`` variants, two baselines: ``population_mean`` (the training mean of each
+action) and ``mf`` (biased matrix factorisation, no scene content), and for
+``ablation_backbones`` the ``ablations`` of StARS, which take the full StARS model's choice
+in each fold so that each differs from it in one part only. Fits are independent
 jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
 CPU pays better than threads inside one small-graph model. With ``training.device`` 'cuda'
 the workers share the one GPU, each with its own CUDA context.
@@ -25,6 +33,8 @@ from __future__ import annotations
 
 import concurrent.futures as futures
 import dataclasses
+import itertools
+import json
 import logging
 import math
 import multiprocessing
@@ -66,6 +76,20 @@ def _merge(base: dict, changes: dict) -> dict:
     return merged
 
 
+#: Settings a protocol's ``search`` may vary, and the config section each belongs to.
+SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'dim': 'model'}
+#: Model families with a search space of their own; ablations follow StARS's choice.
+FAMILIES = ('base', 'stars', 'mf')
+#: StARS ablations: label suffix and the model settings that differ from full StARS.
+ABLATIONS = {
+    'user_bias': ('user offsets only', {'variant': 'user_bias'}),
+    'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
+    'stars_no_q': ('StARS without q_i', {'variant': 'stars_no_q'}),
+    'stars_no_residual': ('StARS without the h_i residual', {'variant': 'stars_no_residual'}),
+    'stars_prefix': ('StARS, items keyed by prefix', {'item_key': 'prefix'}),
+}
+
+
 @dataclass(frozen=True)
 class ProtocolConfig:
     """What one evaluation run trains and how (read from ``config/eval_*.yaml``).
@@ -73,13 +97,17 @@ class ProtocolConfig:
     Args:
         name (str): run name, the default results folder.
         folds (int): outer folds k (the t-test has k·len(seeds) − 1 degrees of freedom).
-        inner_folds (int): folds of the (T1, T2) selection inside each outer-train pool.
+        inner_folds (int): folds of the selection inside each outer-train pool.
         seeds (tuple of int): fold-assignment seeds; more than one repeats the whole CV.
-        grid (tuple of (T1, T2)): candidate epoch pairs; one pair skips the selection.
+        grid (tuple of (T1, T2)): candidate epoch pairs (T2 >= 1).
+        search (dict): family (``base``, ``stars``, ``mf``) -> {setting: [values]}, a product
+            of candidate values of SEARCHABLE settings; a family without one uses ``experiment``'s.
         fractions (tuple of float): training fractions of the sparsity sweep.
         backbones (dict): encoder name -> encoder settings that differ from ``experiment``.
         variants (tuple of str): ``base`` and/or ``stars``, trained for every backbone.
         baselines (tuple of str): ``population_mean`` and/or ``mf``.
+        ablations (tuple of str): keys of ABLATIONS, run for ``ablation_backbones``.
+        ablation_backbones (tuple of str): backbones that get the ablations.
         sweep_backbones (tuple of str): backbones that get the sparsity sweep (with the
             baselines); empty for none.
         error (str): error column of the tables: ``mse`` ([0, 1] scales) or ``rmse``.
@@ -91,24 +119,35 @@ class ProtocolConfig:
     inner_folds: int = 2
     seeds: tuple = (0,)
     grid: tuple = ((10, 100), (50, 100), (100, 100))
+    search: dict = field(default_factory=dict)
     fractions: tuple = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
     backbones: dict = field(default_factory=lambda: {'gat': {}})
     variants: tuple = ('base', 'stars')
     baselines: tuple = BASELINES
+    ablations: tuple = ()
+    ablation_backbones: tuple = ()
     sweep_backbones: tuple = ()
     error: str = 'mse'
     experiment: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        for name in ('seeds', 'variants', 'baselines', 'sweep_backbones', 'fractions'):
+        for name in ('seeds', 'variants', 'baselines', 'ablations', 'ablation_backbones', 'sweep_backbones',
+                     'fractions'):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         object.__setattr__(self, 'grid', tuple(tuple(int(t) for t in pair) for pair in self.grid))
         if self.folds < 2 or self.inner_folds < 2:
             raise ConfigError('folds and inner_folds must be at least 2')
         if not self.seeds:
             raise ConfigError('seeds must not be empty')
-        if not self.grid or any(len(pair) != 2 or min(pair) < 0 for pair in self.grid):
-            raise ConfigError(f'grid must be a non-empty list of [T1, T2] pairs >= 0, got {self.grid}')
+        if not self.grid or any(len(pair) != 2 or pair[0] < 0 or pair[1] < 1 for pair in self.grid):
+            raise ConfigError(f'grid must be a non-empty list of [T1, T2] pairs, T1 >= 0 and T2 >= 1, got {self.grid}')
+        if not isinstance(self.search, dict) or set(self.search) - set(FAMILIES):
+            raise ConfigError(f'search must map model families {list(FAMILIES)} to settings, got {self.search}')
+        for family, space in self.search.items():
+            if not isinstance(space, dict) or set(space) - set(SEARCHABLE):
+                raise ConfigError(f'search.{family} may vary {list(SEARCHABLE)}, got {space}')
+            if any(not isinstance(v, list) or not v for v in space.values()):
+                raise ConfigError(f'search.{family}: every setting needs a non-empty list of values')
         if any(not 0.0 < f <= 1.0 for f in self.fractions):
             raise ConfigError(f'fractions must lie in (0, 1], got {self.fractions}')
         unknown = set(self.variants) - {'base', 'stars'}
@@ -116,31 +155,43 @@ class ProtocolConfig:
             raise ConfigError(f"variants must be a non-empty subset of ['base', 'stars'], got {list(self.variants)}")
         if set(self.baselines) - set(BASELINES):
             raise ConfigError(f'baselines must be a subset of {list(BASELINES)}, got {list(self.baselines)}')
+        if set(self.ablations) - set(ABLATIONS):
+            raise ConfigError(f'ablations must be a subset of {list(ABLATIONS)}, got {list(self.ablations)}')
         if not isinstance(self.backbones, dict) or not (self.backbones or self.baselines):
             raise ConfigError('backbones must be a mapping, and there must be a backbone or a baseline')
-        if set(self.sweep_backbones) - set(self.backbones):
-            raise ConfigError(f'sweep_backbones {list(self.sweep_backbones)} must be among backbones {list(self.backbones)}')
+        for name in ('sweep_backbones', 'ablation_backbones'):
+            if set(getattr(self, name)) - set(self.backbones):
+                raise ConfigError(f'{name} {list(getattr(self, name))} must be among backbones {list(self.backbones)}')
+        if self.ablation_backbones and 'stars' not in self.variants:
+            raise ConfigError('ablations follow the StARS variant: variants must include stars')
         if self.error not in ('mse', 'rmse'):
             raise ConfigError(f"error must be 'mse' or 'rmse', got '{self.error}'")
         if 'mf' in self.baselines and not self.backbones and 'name' not in self.experiment.get('encoder', {}):
             raise ConfigError('the mf baseline needs a backbone or experiment.encoder.name matching the data')
-        for backbone in self.backbones:
-            self.experiment_config(backbone, 'base')  # refuses unknown keys early
+        for spec in model_specs(self):  # refuses unknown keys and values early
+            if spec.variant == 'population_mean':
+                continue
+            for settings in _settings_candidates(self, spec):
+                self.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
 
-    def experiment_config(self, backbone: str | None, variant: str) -> ExperimentConfig:
-        """The ExperimentConfig of one model (``backbone`` None: the experiment's encoder)."""
+    def experiment_config(self, backbone: str | None, variant: str, settings: dict | None = None) -> ExperimentConfig:
+        """The ExperimentConfig of one model (``backbone`` None: the experiment's encoder);
+        ``settings`` (SEARCHABLE names, or ``item_key``) override the experiment's."""
         values = _merge(self.experiment, {'model': {'variant': variant}})
         if backbone is not None:
-            settings = self.backbones[backbone] or {}
-            unknown = set(settings) - {f.name for f in dataclasses.fields(EncoderConfig)} - {'name'}
+            settings_of_backbone = self.backbones[backbone] or {}
+            unknown = set(settings_of_backbone) - {f.name for f in dataclasses.fields(EncoderConfig)} - {'name'}
             if unknown:
                 raise ConfigError(f'backbones.{backbone}: unknown keys {sorted(unknown)}')
-            values = _merge(values, {'encoder': {**settings, 'name': backbone}})
+            values = _merge(values, {'encoder': {**settings_of_backbone, 'name': backbone}})
+        for key, value in (settings or {}).items():
+            values = _merge(values, {SEARCHABLE.get(key, 'model'): {key: value}})
         return ExperimentConfig.from_dict(values)
 
     def to_dict(self) -> dict:
         values = dataclasses.asdict(self)
-        for name in ('seeds', 'variants', 'baselines', 'sweep_backbones', 'fractions'):
+        for name in ('seeds', 'variants', 'baselines', 'ablations', 'ablation_backbones', 'sweep_backbones',
+                     'fractions'):
             values[name] = list(values[name])
         values['grid'] = [list(pair) for pair in self.grid]
         return values
@@ -178,15 +229,6 @@ class Fold(NamedTuple):
     test: np.ndarray
 
 
-def row_folds(rows: np.ndarray, k: int, seed) -> list[Fold]:
-    """k folds of ``rows`` (indices into a dataset): a seeded permutation cut into k parts."""
-    rows = np.asarray(rows)
-    if not 2 <= k <= len(rows):
-        raise ValueError(f'cannot cut {len(rows)} rows into {k} folds')
-    parts = np.array_split(np.random.default_rng(seed).permutation(rows), k)
-    return [Fold(np.sort(np.concatenate(parts[:f] + parts[f + 1:])), np.sort(parts[f])) for f in range(k)]
-
-
 def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed) -> list[Fold]:
     """k folds of ``rows`` such that the rows of one group (``groups[row]``) share a fold.
 
@@ -209,22 +251,34 @@ def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed) -> list[Fo
     return [Fold(np.sort(rows[fold_of_row != f]), np.sort(rows[fold_of_row == f])) for f in range(k)]
 
 
-def make_folds(data: RatingData, protocol: str, k: int, seed, rows: np.ndarray | None = None) -> list[Fold]:
-    """Folds of ``rows`` (all rows by default) for ``protocol`` (see PROTOCOLS)."""
-    rows = np.arange(len(data)) if rows is None else np.asarray(rows)
+def fold_groups(data: RatingData, protocol: str) -> np.ndarray:
+    """The group of every rating that a fold of ``protocol`` keeps together (see PROTOCOLS)."""
     if protocol == 'rows':
-        return row_folds(rows, k, seed)
+        return data.examples
     if protocol == 'cold-scene':
-        return grouped_folds(rows, data.scenes, k, seed)
+        return data.scenes
     if protocol == 'cold-user':
-        return grouped_folds(rows, data.users, k, seed)
+        return data.users
     raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
 
 
-def sweep_samples(pool: np.ndarray, fractions: Sequence[float], seed) -> dict:
-    """Nested random subsets of ``pool`` (without replacement), sorted; fraction 1.0 is the pool."""
-    order = np.random.default_rng(seed).permutation(np.asarray(pool))
-    return {f: np.sort(order[:max(1, int(round(f * len(order))))]) for f in fractions}
+def make_folds(data: RatingData, protocol: str, k: int, seed, rows: np.ndarray | None = None) -> list[Fold]:
+    """Folds of ``rows`` (all rows by default) for ``protocol``: examples, scenes or users
+    never straddle a fold."""
+    rows = np.arange(len(data)) if rows is None else np.asarray(rows)
+    return grouped_folds(rows, fold_groups(data, protocol), k, seed)
+
+
+def sweep_samples(pool: np.ndarray, fractions: Sequence[float], seed, groups: np.ndarray | None = None) -> dict:
+    """Nested random subsets of ``pool`` (without replacement), sorted; fraction 1.0 is the
+    pool. With ``groups`` (per rating, e.g. ``data.examples``) whole groups are sampled."""
+    pool = np.asarray(pool)
+    keys = pool if groups is None else np.asarray(groups)[pool]
+    labels, inverse = np.unique(keys, return_inverse=True)
+    rank = np.empty(len(labels), dtype=np.int64)
+    rank[np.random.default_rng(seed).permutation(len(labels))] = np.arange(len(labels))
+    rank_of_row = rank[inverse.ravel()]
+    return {f: np.sort(pool[rank_of_row < max(1, int(round(f * len(labels))))]) for f in fractions}
 
 
 # -- one fit, run in a worker -------------------------------------------------------------
@@ -240,7 +294,8 @@ class FitTask:
     test: np.ndarray
     fraction: float = 1.0
     inner_fold: int = -1
-    curve_every: int = 0  # > 0: also score the test rows every this many joint epochs
+    curve_at: tuple = ()  # joint epochs at which the test rows are also scored
+    settings: str = '{}'  # the searched settings in the experiment, as settings_key text
 
 
 _WORKER_DATA: RatingData | None = None
@@ -268,35 +323,39 @@ def worker_data() -> RatingData:
 
 
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
-    """Fit ``task``'s model and return its test metrics, z-RMSE and seconds."""
+    """Fit ``task``'s model and return its test metrics, z-RMSE and seconds (and, with
+    ``curve_at``, the same at those joint epochs under ``curve``)."""
     from .training import StarsRecommender
     data = _WORKER_DATA if data is None else data
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()
     recommender = StarsRecommender(config)
+    y, actions = data.scores[task.test], data.actions[task.test]
     curve = []
 
+    def scores():
+        predictions = recommender.predict_rows(data, task.test)
+        model = recommender.model
+        return {**regression_report(y, predictions, actions),
+                'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.cpu().numpy(),
+                                          model.target_std.cpu().numpy())}
+
     def score_curve(stage, epoch):
-        if stage == 'joint' and epoch % task.curve_every == 0:
-            predictions = recommender.predict_rows(data, task.test)
-            curve.append({'epoch': epoch, **regression_report(data.scores[task.test], predictions,
-                                                              data.actions[task.test])})
+        if stage == 'joint' and epoch in task.curve_at:
+            curve.append({'epoch': epoch, **scores()})
     try:
-        recommender.fit(data, task.train, on_epoch=score_curve if task.curve_every > 0 else None)
+        recommender.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
     except TrainingDivergedError as error:  # one diverged fit must not end a long run
         return {**{m: math.nan for m in METRICS}, 'n': len(task.test), 'z_rmse': math.inf,
                 'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
-                'error': str(error)}
+                'error': str(error), **({'curve': []} if task.curve_at else {})}
     fitted = time.perf_counter()
-    predictions = recommender.predict_rows(data, task.test)
+    result = scores()
     predicted = time.perf_counter()
     model = recommender.model
-    y, actions = data.scores[task.test], data.actions[task.test]
-    return {**regression_report(y, predictions, actions),
-            'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.numpy(), model.target_std.numpy()),
-            'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
+    return {**result, 'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
             'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs,
-            **({'curve': curve} if task.curve_every > 0 else {})}
+            **({'curve': curve} if task.curve_at else {})}
 
 
 def population_mean(data: RatingData, train: np.ndarray, test: np.ndarray) -> dict:
@@ -365,35 +424,66 @@ def run_fits(executor: futures.Executor, waiting: list, jobs: int,
 class ModelSpec:
     label: str
     backbone: str | None
-    variant: str            # 'base', 'stars', 'mf' or 'population_mean'
+    variant: str            # 'base', 'stars', 'mf', 'population_mean' or an ablation's variant
+    family: str = ''        # whose search space: FAMILIES, or '' for a follower / the mean
+    model: dict = field(default_factory=dict)  # model settings that differ (an ablation's)
+    follows: str | None = None  # label of the spec whose per-fold choice this one takes
+    ablation: str | None = None
 
 
 def model_specs(config: ProtocolConfig) -> list[ModelSpec]:
-    """Baselines first, then each backbone in its variants (the paper's row order)."""
-    specs = [ModelSpec(BASELINE_LABELS[b], None, b) for b in BASELINES if b in config.baselines]
+    """Baselines first, then each backbone in its variants (the paper's row order) and its
+    ablations."""
+    specs = [ModelSpec(BASELINE_LABELS[b], None, b, 'mf' if b == 'mf' else '') for b in BASELINES
+             if b in config.baselines]
     for backbone in config.backbones:
+        name = DISPLAY.get(backbone, backbone)
         for variant in ('base', 'stars'):
             if variant in config.variants:
-                name = DISPLAY.get(backbone, backbone)
-                specs.append(ModelSpec(f"{name} {'StARS' if variant == 'stars' else 'base'}", backbone, variant))
+                specs.append(ModelSpec(f"{name} {'StARS' if variant == 'stars' else 'base'}", backbone, variant,
+                                       variant))
+        if backbone in config.ablation_backbones:
+            for ablation in config.ablations:
+                suffix, model = ABLATIONS[ablation]
+                specs.append(ModelSpec(f'{name} {suffix}', backbone, model.get('variant', 'stars'), '',
+                                       {k: v for k, v in model.items() if k != 'variant'}, f'{name} StARS',
+                                       ablation))
     return specs
 
 
-def _candidates(spec: ModelSpec, grid) -> list[tuple[int, int]]:
-    """Epoch pairs worth trying: mf skips pre-training, so only distinct T2 matter."""
-    if spec.variant == 'mf':
-        return list(dict.fromkeys((0, t2) for _, t2 in grid))
-    return list(dict.fromkeys(grid))
+def _settings_candidates(config: ProtocolConfig, spec: ModelSpec) -> list[dict]:
+    """The search space of ``spec``'s family as a list of settings (one empty: no search)."""
+    space = config.search.get(spec.family, {}) if spec.family else {}
+    return [dict(zip(space, values)) for values in itertools.product(*space.values())]
+
+
+def _candidates(config: ProtocolConfig, spec: ModelSpec) -> list[tuple[dict, tuple[int, int]]]:
+    """(settings, (T1, T2)) worth trying; a content-free model skips pre-training, so only
+    distinct T2 matter to it."""
+    if spec.variant in ('mf', 'user_bias'):
+        pairs = list(dict.fromkeys((0, t2) for _, t2 in config.grid))
+    else:
+        pairs = list(dict.fromkeys(config.grid))
+    return [(settings, pair) for settings in _settings_candidates(config, spec) for pair in pairs]
+
+
+def settings_key(settings: dict) -> str:
+    """A candidate's settings as canonical text (records, resume keys, tables)."""
+    return json.dumps(settings, sort_keys=True)
 
 
 @dataclass
 class EvaluationResult:
-    """Everything a run measured; ``records`` has one entry per (model, fold, fraction)."""
+    """Everything a run measured: ``records`` one entry per (model, fold, fraction);
+    ``inner`` one per selection fit; ``selection`` one per (candidate, fold, inner fold);
+    ``choices`` the candidate each model took in each fold."""
 
     protocol: str
     config: ProtocolConfig
     records: list = field(default_factory=list)
+    inner: list = field(default_factory=list)
     selection: list = field(default_factory=list)
+    choices: list = field(default_factory=list)
     folds: list = field(default_factory=list)     # per outer fold: id, n_train, n_test
     wall_seconds: float = 0.0
     jobs: int = 1
@@ -403,8 +493,8 @@ class EvaluationResult:
         return [r for r in self.records if r['fraction'] == 1.0]
 
 
-def _fit_key(model, fold, stage, fraction, inner_fold, t1, t2) -> tuple:
-    return (model, fold, stage, float(fraction), int(inner_fold), int(t1), int(t2))
+def _fit_key(model, fold, stage, fraction, inner_fold, t1, t2, settings) -> tuple:
+    return (model, fold, stage, float(fraction), int(inner_fold), int(t1), int(t2), settings)
 
 
 def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
@@ -421,22 +511,27 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
     started = time.perf_counter()
     result = EvaluationResult(protocol, config, jobs=jobs, threads=threads)
     specs = model_specs(config)
-    swept = {s.label for s in specs if s.backbone in config.sweep_backbones
+    followers = {}
+    for spec in specs:
+        if spec.follows:
+            followers.setdefault(spec.follows, []).append(spec)
+    swept = {s.label for s in specs if (s.backbone in config.sweep_backbones and not s.follows)
              or (s.backbone is None and config.sweep_backbones)}
     fractions = sorted(set(config.fractions) | {1.0})
+    groups = fold_groups(data, protocol)
 
     outer = {}
     for seed in config.seeds:
         for f, fold in enumerate(make_folds(data, protocol, config.folds, seed)):
             fold_id = f'{seed}:{f}'
             outer[fold_id] = (fold, make_folds(data, protocol, config.inner_folds, [seed, f, 1], fold.train),
-                              sweep_samples(fold.train, fractions, [seed, f, 2]))
+                              sweep_samples(fold.train, fractions, [seed, f, 2], groups))
             result.folds.append({'fold': fold_id, 'n_train': len(fold.train), 'n_test': len(fold.test)})
 
-    def record(spec, fold_id, fraction, pair, n_train, n_test, scores, stage):
+    def record(spec, fold_id, fraction, settings, pair, n_train, n_test, scores, stage):
         entry = {'protocol': protocol, 'model': spec.label, 'backbone': spec.backbone, 'variant': spec.variant,
-                 'fold': fold_id, 'fraction': fraction, 'stage': stage, 'T1': pair[0], 'T2': pair[1],
-                 'n_train': n_train, 'n_test': n_test,
+                 'fold': fold_id, 'fraction': fraction, 'stage': stage, 'settings': settings,
+                 'T1': pair[0], 'T2': pair[1], 'n_train': n_train, 'n_test': n_test,
                  **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
         if 'error' in scores:
             entry['error'] = scores['error']
@@ -450,11 +545,11 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
             for fold_id, (fold, _, samples) in outer.items():
                 for fraction in (fractions if spec.label in swept else [1.0]):
                     train = samples[fraction]
-                    record(spec, fold_id, fraction, (0, 0), len(train), len(fold.test),
+                    record(spec, fold_id, fraction, {}, (0, 0), len(train), len(fold.test),
                            population_mean(data, train, fold.test), 'final' if fraction == 1.0 else 'sweep')
 
-    def experiment(spec, pair):
-        base = config.experiment_config(spec.backbone, spec.variant)
+    def experiment(spec, settings, pair):
+        base = config.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
         return base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1], 'threads': threads}).to_dict()
 
     # Own queue, at most `jobs` tasks in flight: fits unlocked by a finished selection
@@ -463,56 +558,92 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
     inner_scores = {}
     earlier = {}
     for entry in resume:
-        if entry.get('variant') != 'population_mean':  # recomputed: it takes no time
-            earlier[_fit_key(entry['model'], entry['fold'], entry['stage'], entry.get('fraction', 1.0),
-                          entry.get('inner_fold', -1), entry['T1'], entry['T2'])] = entry
+        if entry.get('variant') == 'population_mean':  # recomputed: it takes no time
+            continue
+        if entry['stage'] == 'inner' and 'curve' not in entry:  # written before curves: one point, at T2
+            entry = {**entry, 'curve': [{'epoch': entry['T2'], 'z_rmse': entry['z_rmse']}]}
+        earlier[_fit_key(entry['model'], entry['fold'], entry['stage'], entry.get('fraction', 1.0),
+                         entry.get('inner_fold', -1), entry['T1'], entry['T2'],
+                         settings_key(entry.get('settings', {})))] = entry
 
     def cached(task):
         training = task.experiment['training']
         return earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
-                                 training['pretrain_epochs'], training['joint_epochs']))
+                                    training['pretrain_epochs'], training['joint_epochs'], task.settings))
 
-    def final_tasks(spec, fold_id, pair):
+    def task(spec, fold_id, stage, settings, pair, train, test, **extra):
+        return FitTask(spec.label, fold_id, stage, experiment(spec, settings, pair), train, test,
+                       settings=settings_key(settings), **extra)
+
+    def final_tasks(spec, fold_id, settings, pair):
+        """The final fit (and sweep) of ``spec`` and of the specs that follow its choice."""
         fold, _, samples = outer[fold_id]
-        chosen = fractions if spec.label in swept else [1.0]
-        return [(FitTask(spec.label, fold_id, 'final' if f == 1.0 else 'sweep', experiment(spec, pair),
-                         samples[f], fold.test, fraction=f), spec, pair) for f in chosen]
+        items = []
+        for chosen_by in [spec, *followers.get(spec.label, [])]:
+            chosen = fractions if chosen_by.label in swept else [1.0]
+            items += [(task(chosen_by, fold_id, 'final' if f == 1.0 else 'sweep', settings, pair, samples[f],
+                            fold.test, fraction=f), chosen_by, settings, pair) for f in chosen]
+        return items
+
+    def choose(spec, fold_id, settings, pair, z_rmse):
+        result.choices.append({'model': spec.label, 'fold': fold_id, 'settings': settings, 'T1': pair[0],
+                               'T2': pair[1], 'inner_z_rmse': z_rmse})
+        result.choices.extend({**result.choices[-1], 'model': follower.label, 'follows': spec.label}
+                              for follower in followers.get(spec.label, []))
+        return final_tasks(spec, fold_id, settings, pair)
 
     for spec in specs:
-        if spec.variant == 'population_mean':
+        if spec.variant == 'population_mean' or spec.follows:
             continue
-        candidates = _candidates(spec, config.grid)
+        candidates = _candidates(config, spec)
         for fold_id, (_, inner, _) in outer.items():
             if len(candidates) == 1:
-                waiting.extend(final_tasks(spec, fold_id, candidates[0]))
+                waiting.extend(choose(spec, fold_id, *candidates[0], math.nan))
                 continue
-            inner_scores[spec.label, fold_id] = {pair: [] for pair in candidates}
-            for pair in candidates:
+            inner_scores[spec.label, fold_id] = {(settings_key(s), p): [] for s, p in candidates}
+            by_start = {}
+            for settings, (t1, t2) in candidates:
+                by_start.setdefault((settings_key(settings), t1), (settings, []))[1].append(t2)
+            for (_, t1), (settings, ends) in by_start.items():
+                pair = (t1, max(ends))  # one fit per start, scored at every T2 of the grid
                 for i, (train, validation) in enumerate(inner):
-                    waiting.append((FitTask(spec.label, fold_id, 'inner', experiment(spec, pair),
-                                            train, validation, inner_fold=i), spec, pair))
+                    waiting.append((task(spec, fold_id, 'inner', settings, pair, train, validation, inner_fold=i,
+                                         curve_at=tuple(sorted(ends))), spec, settings, pair))
     total = len(waiting)
     fits = run_fits(fit_executor(data, jobs, threads), waiting, jobs, cached if earlier else None)
-    for done, ((task, spec, pair), scores) in enumerate(fits, 1):
-        if task.stage != 'inner':
-            record(spec, task.fold, task.fraction, pair, len(task.train), len(task.test), scores, task.stage)
-            log.info('[%d/%d] %s fold %s fraction %g (T1, T2) = %s: MSE %.4f (%.1f s)', done, total,
-                     spec.label, task.fold, task.fraction, pair, scores['mse'], scores['fit_seconds'])
+    for done, ((fit, spec, settings, pair), scores) in enumerate(fits, 1):
+        if fit.stage != 'inner':
+            record(spec, fit.fold, fit.fraction, settings, pair, len(fit.train), len(fit.test), scores, fit.stage)
+            log.info('[%d/%d] %s fold %s fraction %g %s (T1, T2) = %s: %s %.4f (%.1f s)', done, total,
+                     spec.label, fit.fold, fit.fraction, settings_key(settings), pair, config.error.upper(),
+                     scores[config.error], scores['fit_seconds'])
             continue
-        result.selection.append({'model': spec.label, 'fold': task.fold, 'T1': pair[0], 'T2': pair[1],
-                                 'inner_fold': task.inner_fold, 'z_rmse': scores['z_rmse'],
-                                 'n_train': len(task.train), 'n_test': len(task.test),
-                                 'fit_seconds': scores['fit_seconds'],
-                                 'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']})
+        entry = {'stage': 'inner', 'model': spec.label, 'variant': spec.variant, 'fold': fit.fold,
+                 'settings': settings, 'T1': pair[0], 'T2': pair[1], 'inner_fold': fit.inner_fold,
+                 'z_rmse': scores['z_rmse'], 'curve': [{'epoch': c['epoch'], 'z_rmse': c['z_rmse']}
+                                                      for c in scores['curve']],
+                 'n_train': len(fit.train), 'n_test': len(fit.test), 'fit_seconds': scores['fit_seconds'],
+                 'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']}
+        result.inner.append(entry)
         if on_record:
-            on_record({'stage': 'inner', **result.selection[-1]})
-        table = inner_scores[spec.label, task.fold]
-        table[pair].append(scores['z_rmse'])
+            on_record(entry)
+        table = inner_scores[spec.label, fit.fold]
+        reached = {c['epoch']: c['z_rmse'] for c in entry['curve']}
+        for t2 in fit.curve_at:  # a diverged fit has no curve: every point it owed is lost
+            z_rmse = reached.get(t2, math.inf)
+            table[settings_key(settings), (pair[0], t2)].append(z_rmse)
+            result.selection.append({'model': spec.label, 'fold': fit.fold, 'settings': settings_key(settings),
+                                     'T1': pair[0], 'T2': t2, 'inner_fold': fit.inner_fold, 'z_rmse': z_rmse,
+                                     'n_train': len(fit.train), 'n_test': len(fit.test)})
+        log.info('[%d/%d] %s fold %s inner %d %s T1 %d: z-RMSE %s', done, total, spec.label, fit.fold,
+                 fit.inner_fold, settings_key(settings), pair[0], {t: round(v, 4) for t, v in reached.items()})
         if all(len(v) == config.inner_folds for v in table.values()):
-            chosen = min(table, key=lambda p: np.mean(table[p]))  # ties: first in the grid
-            log.info('%s fold %s: chose (T1, T2) = %s by inner z-RMSE %s', spec.label, task.fold, chosen,
-                     {p: round(float(np.mean(v)), 4) for p, v in table.items()})
-            unlocked = final_tasks(spec, task.fold, chosen)
+            means = {candidate: float(np.mean(v)) for candidate, v in table.items()}
+            best = min(means, key=means.get)  # ties: first candidate
+            chosen_settings = json.loads(best[0])
+            log.info('%s fold %s: chose %s (T1, T2) = %s by inner z-RMSE %.4f', spec.label, fit.fold, best[0],
+                     best[1], means[best])
+            unlocked = choose(spec, fit.fold, chosen_settings, best[1], means[best])
             waiting[:0] = unlocked
             total += len(unlocked)
     result.wall_seconds = time.perf_counter() - started
@@ -532,28 +663,54 @@ def by_model(records: list) -> dict:
     return {label: sorted(entries, key=_fold_order) for label, entries in grouped.items()}
 
 
+def corrected_test(result: EvaluationResult, label: str, reference: str, metric: str) -> dict | None:
+    """``label`` − ``reference`` on ``metric`` over the outer folds (corrected resampled
+    t-test); None when either lacks finite scores."""
+    final = by_model(result.final())
+    if label not in final or reference not in final:
+        return None
+    one, other = final[label], final[reference]
+    if [e['fold'] for e in one] != [e['fold'] for e in other]:
+        raise ValueError(f'{label} and {reference} were scored on different folds')
+    values = ([e[metric] for e in one], [e[metric] for e in other])
+    if not all(math.isfinite(v) for side in values for v in side):
+        return None
+    test = corrected_resampled_ttest(*values, [e['n_train'] for e in one], [e['n_test'] for e in one])
+    return {'metric': metric, 'delta': test.delta, 't': test.t, 'df': test.df, 'p': test.p}
+
+
 def paired_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
     """StARS − base per backbone and metric; Holm within each metric over the backbones."""
-    final = {(entries[0]['backbone'], entries[0]['variant']): entries
-             for entries in by_model(result.final()).values()}
     tests = []
     for metric in metrics:
         family = []
         for backbone in result.config.backbones:
-            if (backbone, 'stars') not in final or (backbone, 'base') not in final:
-                continue
-            stars, base = final[backbone, 'stars'], final[backbone, 'base']
-            if [e['fold'] for e in stars] != [e['fold'] for e in base]:
-                raise ValueError(f'{backbone}: base and StARS were scored on different folds')
-            values = ([e[metric] for e in stars], [e[metric] for e in base])
-            if not all(math.isfinite(v) for side in values for v in side):
-                continue
-            test = corrected_resampled_ttest(*values, [e['n_train'] for e in stars], [e['n_test'] for e in stars])
-            family.append({'backbone': backbone, 'metric': metric, 'delta': test.delta, 't': test.t,
-                           'df': test.df, 'p': test.p})
+            name = DISPLAY.get(backbone, backbone)
+            test = corrected_test(result, f'{name} StARS', f'{name} base', metric)
+            if test is not None:
+                family.append({'backbone': backbone, **test})
         for entry, adjusted in zip(family, holm([e['p'] for e in family])):
             entry['p_holm'] = float(adjusted)
         tests.extend(family)
+    return tests
+
+
+def ablation_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
+    """Every model of an ablation backbone (MF, StARS and its ablations) against that
+    backbone's base, per metric; Holm within each (backbone, metric) over the models."""
+    tests = []
+    labels = [spec.label for spec in model_specs(result.config)]
+    for backbone in result.config.ablation_backbones:
+        name = DISPLAY.get(backbone, backbone)
+        compared = [BASELINE_LABELS['mf'], *(label for label in labels
+                                              if label.startswith(f'{name} ') and label != f'{name} base')]
+        for metric in metrics:
+            family = [{'backbone': backbone, 'model': label, 'reference': f'{name} base', **test}
+                      for label in compared
+                      if (test := corrected_test(result, label, f'{name} base', metric)) is not None]
+            for entry, adjusted in zip(family, holm([e['p'] for e in family])):
+                entry['p_holm'] = float(adjusted)
+            tests.extend(family)
     return tests
 
 
@@ -571,7 +728,7 @@ def sparsity_summary(result: EvaluationResult) -> dict:
 def time_accounting(result: EvaluationResult) -> dict:
     """Worker seconds by stage and by model, s/epoch on full pools, and the wall time."""
     stages, models = {}, {}
-    for entry in result.selection + result.records:
+    for entry in result.inner + result.records:
         stage = entry.get('stage', 'inner')
         seconds = entry['fit_seconds'] + entry['predict_seconds']
         stages[stage] = stages.get(stage, 0.0) + seconds

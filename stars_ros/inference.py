@@ -29,6 +29,7 @@ class InferenceModel:
         self.dim = model.encoder.out_dim
         self.uses_content = model.uses_content
         self.personalised = model.personalised
+        self.residual = model.residual
         self._target_mean = _array(model.target_mean).astype(np.float64)
         self._target_std = _array(model.target_std).astype(np.float64)
         if self.personalised:
@@ -74,7 +75,8 @@ class InferenceModel:
             else:  # the serving case: new scenes
                 q, scene_offset = 0.0, 0.0
             offsets = np.reshape(user_offset + scene_offset + self._bias, (-1, 1))  # [R, 1] or [1, 1]
-            z = ((p * (q + h)) + h) @ self._actions_t + offsets
+            interaction = p * (q + h) + h if self.residual else p * (q + h)
+            z = interaction @ self._actions_t + offsets
         else:
             z = h @ self._head[0] + self._head[1]
         return z.astype(np.float64) * self._target_std + self._target_mean

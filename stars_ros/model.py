@@ -4,7 +4,10 @@
 
 The ``base`` variant is the same encoder with a linear head over the actions,
 ŷ(i, a) = w_aᵀ h_i + c_a; the ``mf`` variant is StARS with h_i = 0 (biased matrix
-factorisation, no scene content), a baseline that shows what the content adds. Both predict per-action z-scores; ``target_mean`` and
+factorisation, no scene content), a baseline that shows what the content adds. The other
+variants of ``PARTS`` are ablations: StARS with some of its parts held at zero (frozen), so
+each differs from the full model in the parts named and nothing else. All predict
+per-action z-scores; ``target_mean`` and
 ``target_std`` (training-split statistics, kept as buffers so they travel with the weights)
 map them back to the rating scale.
 
@@ -17,6 +20,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .config import PARTS, VARIANTS
 from .encoders import Encoder
 
 UNKNOWN = -1
@@ -36,7 +40,7 @@ class StarsModel(nn.Module):
         n_users (int): users seen in training (rows of p and b_u).
         n_scenes (int): scenes seen in training (rows of q and b_i).
         n_actions (int): actions (targets).
-        variant (str): ``'stars'``, ``'base'`` or ``'mf'``.
+        variant (str): ``'base'`` or a key of ``PARTS`` (``'stars'``, ``'mf'``, ablations).
         feature_dim (int, optional): for tabular encoders, the size of the input
             standardisation buffers. (default: ``None``, no standardisation)
 
@@ -50,8 +54,12 @@ class StarsModel(nn.Module):
         dim = encoder.out_dim
         self.encoder = encoder
         self.variant = variant
+        if variant not in VARIANTS:
+            raise ValueError(f"Could not resolve variant '{variant}' among choices {list(VARIANTS)}")
         self.personalised = variant != 'base'
-        self.uses_content = variant != 'mf'
+        self.parts = PARTS.get(variant, frozenset({'content'}))
+        self.uses_content = 'content' in self.parts
+        self.residual = 'residual' in self.parts
         self.n_actions = n_actions
         self.register_buffer('target_mean', torch.zeros(n_actions))
         self.register_buffer('target_std', torch.ones(n_actions))
@@ -71,12 +79,34 @@ class StarsModel(nn.Module):
 
     def reset_parameters(self):
         if self.personalised:
-            nn.init.normal_(self.user_embedding.weight, std=0.01)
+            # With content, p_u starts at zero: the model starts as the scene-only model and p_u
+            # still learns (its gradient carries h_i). Without content p = q = 0 would be a saddle.
+            if self.uses_content:
+                nn.init.zeros_(self.user_embedding.weight)
+            else:
+                nn.init.normal_(self.user_embedding.weight, std=0.01)
             nn.init.zeros_(self.scene_embedding.weight)
             nn.init.zeros_(self.user_bias.weight)
             nn.init.zeros_(self.scene_bias.weight)
             nn.init.normal_(self.action_embedding, std=self.encoder.out_dim ** -0.5)
             nn.init.zeros_(self.bias)
+            for part, table in (('p', self.user_embedding), ('q', self.scene_embedding),
+                                ('b_u', self.user_bias), ('b_i', self.scene_bias)):
+                if part not in self.parts:  # held at zero: an ablation without this part
+                    nn.init.zeros_(table.weight)
+                    table.weight.requires_grad_(False)
+
+    @torch.no_grad()
+    def start_from_head(self, head: nn.Linear) -> None:
+        """Hand over from pre-training: r_a = w_a and b = mean c_a of the pre-trained head.
+
+        With p_u = q_i = 0 and b_u = b_i = 0 (their initial values) the personalised model then
+        starts where the scene-only model ended (exactly, for one action; for several, up to
+        the spread of the head's per-action intercepts around their mean, ~0 on z-scored
+        targets), so joint training adds the collaborative part to a working content model
+        instead of re-learning the head."""
+        self.action_embedding.copy_(head.weight)
+        self.bias.fill_(float(head.bias.mean()))
 
     @property
     def device(self) -> torch.device:
@@ -102,7 +132,8 @@ class StarsModel(nn.Module):
             _lookup(self.user_embedding, users), _lookup(self.user_bias, users))
         q = _lookup(self.scene_embedding, scenes)
         offsets = user_bias + _lookup(self.scene_bias, scenes) + self.bias
-        return ((p * (q + h)) + h) @ self.action_embedding.T + offsets
+        interaction = p * (q + h) + h if self.residual else p * (q + h)
+        return interaction @ self.action_embedding.T + offsets
 
     def embedding_penalty(self, users: torch.Tensor, scenes: torch.Tensor) -> torch.Tensor:
         """Mean squared norm of the user and scene rows (and offsets) a batch touches: the

@@ -129,9 +129,10 @@ class Predictor:
         return self.scores_from_h(user_id, self.encode(scenes, validate), scene_ids)
 
     def scores_from_h(self, user_id, h: np.ndarray, scene_ids: Sequence | None = None) -> np.ndarray:
-        """``score`` for scenes already encoded as ``h`` [len(scenes), dim]."""
+        """``score`` for scenes already encoded as ``h`` [len(scenes), dim], clipped to the
+        rating scale the checkpoint was trained on."""
         scene_rows = self._scene_rows if scene_ids is None else self._scene_rows_of(scene_ids)
-        return self._inference.scores(h, self._user_row(user_id), scene_rows)
+        return self.recommender.clip(self._inference.scores(h, self._user_row(user_id), scene_rows))
 
     def _scene_rows_of(self, scene_ids: Sequence) -> np.ndarray:
         index = self.recommender._scene_rows

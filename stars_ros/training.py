@@ -1,10 +1,13 @@
 """Fit and apply a StARS (or base) model on rating data: ``StarsRecommender``.
 
 Training is two-step, as published: (1) ``pretrain_epochs`` of the encoder with a
-temporary linear head on per-action z-scored targets, the head then discarded; (2)
-``joint_epochs`` of the whole model. For the ``base`` variant the linear head is the
-model's own head, so both steps train the same network. AdamW with gradient clipping;
-seeds fixed; each distinct scene of a batch is encoded once.
+temporary linear head on per-action z-scored targets; (2) ``joint_epochs`` of the whole
+model. For the ``base`` variant the linear head is the model's own head, so both steps
+train the same network. A personalised model takes over the pre-trained head as its action
+embeddings (``StarsModel.start_from_head``), so joint training starts from the scene-only
+model rather than from a random head. A batch holds examples (one user's ratings of one
+scene, every action a target), as in the paper. AdamW with gradient clipping; seeds fixed;
+each distinct scene of a batch is encoded once.
 
 ``training.device`` may put the training on a GPU: the scene store stays on the CPU and
 each batch is moved, and the model is moved back to the CPU when ``fit`` ends, so
@@ -14,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -29,6 +32,21 @@ from .model import UNKNOWN, StarsModel
 
 log = logging.getLogger(__name__)
 EVAL_BATCH = 2048
+
+
+class TrainingSet(NamedTuple):
+    """Training examples: user and item rows [E], store rows of their scenes [E] (CPU),
+    z-scored targets [E, actions] and which of them are rated [E, actions]."""
+
+    users: torch.Tensor
+    items: torch.Tensor
+    scenes: torch.Tensor
+    targets: torch.Tensor
+    rated: torch.Tensor
+
+    def to(self, device) -> 'TrainingSet':
+        return TrainingSet(self.users.to(device), self.items.to(device), self.scenes,
+                           self.targets.to(device), self.rated.to(device))
 
 
 class NotFittedError(StarsError):
@@ -63,6 +81,7 @@ class StarsRecommender:
         self.users: tuple = ()
         self.scene_keys: tuple = ()
         self.action_names: tuple = ()
+        self.rating_scale: tuple | None = None
         self.history: dict = {'pretrain': [], 'joint': []}
 
     # -- vocabularies -------------------------------------------------------------------
@@ -98,42 +117,84 @@ class StarsRecommender:
         if len(rows) == 0:
             raise ValueError('no training rows')
 
+        items = data.item_keys(self.config.model.item_key)
         train_scenes = np.unique(data.scenes[rows])
         self._set_vocabularies(sorted(set(data.users[rows].tolist())),
-                               [data.scene_keys[s] for s in train_scenes], data.action_names)
+                               list(dict.fromkeys(items[s] for s in train_scenes)), data.action_names)
+        self.rating_scale = data.scale
         self.model = model = build_model(self.config, data.store.feature_dim, data.kind,
                                          len(self.users), len(self.scene_keys), len(self.action_names))
         self._set_statistics(data, rows, train_scenes)
-
-        users = self.user_index(data.users[rows])
-        scene_rows = self.scene_index([data.scene_keys[s] for s in data.scenes[rows]])
-        store_rows = torch.from_numpy(data.scenes[rows])
-        actions = torch.from_numpy(data.actions[rows])
-        targets = model.to_z(torch.from_numpy(data.scores[rows]).float(), actions)
-        # store_rows stays on the CPU: it indexes the CPU scene store
-        batch = (users.to(device), scene_rows.to(device), store_rows, actions.to(device), targets.to(device))
+        examples = self.training_set(data, rows).to(device)
         model.to(device)
 
-        # the temporary head is made on the CPU, as before, so a seed gives the same weights anywhere
+        # The pre-training head is made on the CPU under a fresh seed, so a seed gives the same
+        # weights anywhere and every variant with content pre-trains exactly as base does.
         head = model.head if not model.personalised else nn.Linear(model.encoder.out_dim, model.n_actions)
+        torch.manual_seed(cfg.seed)
+        head.reset_parameters()
         head.to(device)
-        joint_parameters = [p for n, p in model.named_parameters() if model.uses_content or not n.startswith('encoder.')]
-        stages = [('pretrain', cfg.pretrain_epochs if model.uses_content else 0,
-                   list(model.encoder.parameters()) + list(head.parameters()), lambda u, s, h: head(h), 0.0),
-                  ('joint', cfg.joint_epochs, joint_parameters, model, cfg.embedding_l2)]
-        for stage, epochs, parameters, score, l2 in stages:
-            if epochs == 0:
-                continue
-            optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
-            for epoch in range(epochs):
-                loss = self._epoch(data, batch, score, parameters, optimiser, rng, l2)
-                self.history[stage].append(loss)
-                log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
-                if on_epoch is not None:
-                    on_epoch(stage, epoch + 1)
+        if model.uses_content and cfg.pretrain_epochs:
+            parameters = list(model.encoder.parameters()) + list(head.parameters())
+            self._run_epochs('pretrain', cfg.pretrain_epochs, data, examples, lambda u, s, h: head(h),
+                             parameters, rng, 0.0, on_epoch)
+            if model.personalised:
+                model.start_from_head(head)
+        self._run_epochs('joint', cfg.joint_epochs, data, examples, model, self.trainable_parameters(), rng,
+                         cfg.embedding_l2, on_epoch)
         model.cpu()
         model.eval()
         return self
+
+    def fine_tune(self, data: RatingData, epochs: int, rows: np.ndarray | None = None) -> list:
+        """``epochs`` joint epochs on ``rows`` of ``data`` from the current weights (a refit
+        after new users or scenes were added with ``extend``); returns the epoch losses."""
+        model = self._require_model()
+        cfg = self.config.training
+        torch.manual_seed(cfg.seed)
+        torch.set_num_threads(cfg.threads)
+        rows = np.arange(len(data)) if rows is None else np.asarray(rows)
+        losses = self._run_epochs('joint', epochs, data, self.training_set(data, rows), model,
+                                  self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2)
+        model.eval()
+        return losses
+
+    def trainable_parameters(self) -> list:
+        """What joint training updates: everything but the parts a variant holds at zero
+        (and the unused encoder of a content-free model)."""
+        model = self._require_model()
+        return [p for n, p in model.named_parameters()
+                if p.requires_grad and (model.uses_content or not n.startswith('encoder.'))]
+
+    def training_set(self, data: RatingData, rows: np.ndarray) -> 'TrainingSet':
+        """``rows`` grouped into examples: one user's ratings of one scene, all actions as
+        targets (z-scores under the model's normalisation) with a mask of those rated."""
+        model = self._require_model()
+        rows = np.asarray(rows)
+        _, first, inverse = np.unique(data.examples[rows], return_index=True, return_inverse=True)
+        inverse = inverse.ravel()
+        items = data.item_keys(self.config.model.item_key)
+        scenes = data.scenes[rows[first]]
+        actions = torch.from_numpy(data.actions[rows])
+        targets = torch.zeros(len(first), model.n_actions)
+        rated = torch.zeros(len(first), model.n_actions, dtype=torch.bool)
+        targets[inverse, actions] = model.to_z(torch.from_numpy(data.scores[rows]).float(), actions)
+        rated[inverse, actions] = True
+        return TrainingSet(self.user_index(data.users[rows[first]]), self.scene_index([items[s] for s in scenes]),
+                           torch.from_numpy(scenes), targets, rated)
+
+    def _run_epochs(self, stage, epochs, data, examples, score, parameters, rng, l2, on_epoch=None) -> list:
+        cfg = self.config.training
+        optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        losses = []
+        for epoch in range(epochs):
+            loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2)
+            losses.append(loss)
+            self.history[stage].append(loss)
+            log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
+            if on_epoch is not None:
+                on_epoch(stage, epoch + 1)
+        return losses
 
     def _set_statistics(self, data, rows, train_scenes):
         model = self.model
@@ -148,35 +209,35 @@ class StarsRecommender:
             std = features.std(0, unbiased=False)
             model.feature_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)))
 
-    def _epoch(self, data, batch, score, parameters, optimiser, rng, l2: float) -> float:
-        """One pass over the training ratings; returns the mean squared error (z-scale).
-
-        ``store_rows`` is on the CPU; the other tensors of ``batch`` are on the model's device."""
-        users, scene_rows, store_rows, actions, targets = batch
+    def _epoch(self, data, examples, score, parameters, optimiser, rng, l2: float) -> float:
+        """One pass over the training examples; returns the mean squared error over the
+        rated targets (z-scale). ``examples.scenes`` stays on the CPU (it indexes the store)."""
         cfg = self.config.training
         device = self.model.device
         self.model.train()
-        order = torch.from_numpy(rng.permutation(len(targets)))
+        order = torch.from_numpy(rng.permutation(len(examples.users)))
         total, count = 0.0, 0
         for start in range(0, len(order), cfg.batch_size):
             pick = order[start:start + cfg.batch_size]
-            distinct, inverse = torch.unique(store_rows[pick], return_inverse=True)
+            distinct, inverse = torch.unique(examples.scenes[pick], return_inverse=True)
             h = self.model.encode(data.store.batch(distinct).to(device))[inverse.to(device)]
             pick = pick.to(device)
-            z = score(users[pick], scene_rows[pick], h).gather(1, actions[pick, None]).squeeze(1)
-            loss = nn.functional.mse_loss(z, targets[pick])
+            users, items, rated = examples.users[pick], examples.items[pick], examples.rated[pick]
+            squared = (score(users, items, h) - examples.targets[pick]).pow(2)
+            n_rated = int(rated.sum())
+            loss = squared[rated].sum() / n_rated
             objective = loss
             auxiliary = self.model.encoder.auxiliary_loss()
             if auxiliary is not None:
                 objective = objective + auxiliary
             if l2:
-                objective = objective + l2 * self.model.embedding_penalty(users[pick], scene_rows[pick])
+                objective = objective + l2 * self.model.embedding_penalty(users, items)
             optimiser.zero_grad()
             objective.backward()
             nn.utils.clip_grad_norm_(parameters, cfg.grad_clip)
             optimiser.step()
-            total += loss.item() * len(pick)
-            count += len(pick)
+            total += loss.item() * n_rated
+            count += n_rated
         mean_loss = total / count
         if not math.isfinite(mean_loss) or not all(torch.isfinite(p).all() for p in parameters):
             raise TrainingDivergedError('training diverged (non-finite loss or parameters): lower the learning rate')
@@ -204,13 +265,14 @@ class StarsRecommender:
         the model's device (a GPU inside ``fit``'s ``on_epoch``)."""
         model = self._require_model()
         model.eval()
+        items = data.item_keys(self.config.model.item_key)
         predictions = []
         for start in range(0, len(rows), EVAL_BATCH):
             part = rows[start:start + EVAL_BATCH]
             distinct, inverse = np.unique(data.scenes[part], return_inverse=True)
             scenes = data.store.batch(torch.from_numpy(distinct)).to(model.device)
             h = model.encode(scenes)[torch.from_numpy(inverse).to(model.device)]
-            keys = [data.scene_keys[s] for s in data.scenes[part]]
+            keys = [items[s] for s in data.scenes[part]]
             scores = self.predict_scores_from_h(data.users[part], keys, h)
             predictions.append(scores[np.arange(len(part)), data.actions[part]])
         return np.concatenate(predictions) if predictions else np.zeros(0)
@@ -218,11 +280,16 @@ class StarsRecommender:
     @torch.no_grad()
     def predict_scores_from_h(self, users, scene_keys, h, user_rows: tuple | None = None) -> np.ndarray:
         """Like ``predict_scores`` for already encoded scenes ``h`` [len(users), dim];
-        ``user_rows`` (p, b_u) overrides the user table (see ``StarsModel.forward``)."""
+        ``user_rows`` (p, b_u) overrides the user table (see ``StarsModel.forward``).
+        Scores are clipped to the training data's rating scale."""
         model = self._require_model()
         users, scenes = self.user_index(users).to(model.device), self.scene_index(scene_keys).to(model.device)
         z = model(users, scenes, h, user_rows)
-        return model.to_rating_scale(z).cpu().numpy().astype(np.float64)
+        return self.clip(model.to_rating_scale(z).cpu().numpy().astype(np.float64))
+
+    def clip(self, scores: np.ndarray) -> np.ndarray:
+        """``scores`` limited to the rating scale of the training data (when it has one)."""
+        return scores if self.rating_scale is None else np.clip(scores, *self.rating_scale)
 
     def evaluate(self, data: RatingData, rows: np.ndarray) -> dict:
         """Macro-averaged MSE, RMSE, Pearson r and CCC on ``rows``, on the rating scale."""

@@ -181,7 +181,7 @@ def test_learning_curve_point_is_the_fit_with_that_many_epochs(socnav1):
     experiment = ExperimentConfig.from_dict({
         'encoder': {'name': 'gcn', 'hidden': 8, 'layers': 1}, 'model': {'dim': 8, 'variant': 'stars'},
         'training': {'pretrain_epochs': 1, 'joint_epochs': 4, 'lr': 3e-3, 'threads': 1, 'seed': 0}})
-    curve = run_fit(FitTask('m', '0:0', 'curve', experiment.to_dict(), fold.train, fold.test, curve_every=2),
+    curve = run_fit(FitTask('m', '0:0', 'curve', experiment.to_dict(), fold.train, fold.test, curve_at=(2, 4)),
                     socnav1)['curve']
     assert [point['epoch'] for point in curve] == [2, 4]
     shorter = experiment.replace(training={'joint_epochs': 2})
