@@ -31,7 +31,7 @@ def _run(job):
         _data[data_root] = load_dataset(data_root)
     data = _data[data_root]
     config = ExperimentConfig.from_dict(config_dict)
-    train, test = split_rows(len(data), config.split.test_fraction, config.split.seed)
+    train, test = split_rows(data, config.split.test_fraction, config.split.seed)
     started = time.perf_counter()
     recommender = StarsRecommender(config).fit(data, train)
     seconds = time.perf_counter() - started

@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     if args.all_rows:
         train, test = np.arange(len(data)), np.zeros(0, dtype=np.int64)
     else:
-        train, test = split_rows(len(data), config.split.test_fraction, config.split.seed)
+        train, test = split_rows(data, config.split.test_fraction, config.split.seed)
     print(f'data: {data.source}: {len(data)} ratings, {len(set(data.users.tolist()))} users, '
           f'{len(data.scene_keys)} scenes, actions {list(data.action_names)}; train {len(train)}, test {len(test)}')
     label = f'{config.encoder.name}-{config.model.variant}'

@@ -296,8 +296,12 @@ class StarsRecommender:
         return regression_report(data.scores[rows], self.predict_rows(data, rows), data.actions[rows])
 
 
-def split_rows(n: int, test_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded random split of ``n`` annotation rows into (train, test) index arrays."""
-    order = np.random.default_rng(seed).permutation(n)
-    n_test = int(round(n * test_fraction))
-    return np.sort(order[n_test:]), np.sort(order[:n_test])
+def split_rows(data: RatingData, test_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded random split of ``data``'s rating rows into (train, test) index arrays, by
+    example: one user's ratings of one scene (every action) land on the same side."""
+    examples = data.examples
+    order = np.random.default_rng(seed).permutation(examples.max() + 1 if len(examples) else 0)
+    tested = np.zeros(len(order), dtype=bool)
+    tested[order[:int(round(len(order) * test_fraction))]] = True
+    test = tested[examples]
+    return np.flatnonzero(~test), np.flatnonzero(test)

@@ -37,7 +37,7 @@ def socnav1(socnav1_root):
 @pytest.fixture(scope='session')
 def tiny_checkpoint(socnav1, tmp_path_factory):
     """A small StARS-GCN trained on 1,500 SocNav1 ratings (a few seconds), saved to disk."""
-    train, _ = split_rows(len(socnav1), 0.2, 0)
+    train, _ = split_rows(socnav1, 0.2, 0)
     recommender = StarsRecommender(ExperimentConfig.from_dict(TINY_CONFIG)).fit(socnav1, train[:1500])
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
     save_checkpoint(recommender, path, data={'fingerprint': socnav1.fingerprint, 'source': 'socnav1'})

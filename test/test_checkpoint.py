@@ -15,6 +15,7 @@ def test_round_trip_predicts_the_same(tiny_checkpoint, socnav1, tmp_path):
     assert np.array_equal(recommender.predict_rows(socnav1, rows), again.predict_rows(socnav1, rows))
     assert again_metadata['metrics'] == {'mse': 0.1}
     assert again.users == recommender.users and again.action_names == ('navigate',)
+    assert again.rating_scale == recommender.rating_scale == (0.0, 1.0)
 
 
 def test_metadata_carries_everything_needed(tiny_checkpoint, socnav1):
@@ -22,6 +23,7 @@ def test_metadata_carries_everything_needed(tiny_checkpoint, socnav1):
     assert metadata['data']['fingerprint'] == socnav1.fingerprint
     assert metadata['config']['encoder']['name'] == 'gcn'
     assert len(metadata['normalisation']['mean']) == 1
+    assert metadata['rating_scale'] == [0.0, 1.0]
     assert {'package_version', 'torch_version', 'created_utc', 'users', 'actions'} <= set(metadata)
 
 

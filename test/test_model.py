@@ -72,3 +72,37 @@ def test_rating_scale_round_trip():
     z = model.to_z(scores, torch.tensor([0, 1]))
     assert z.tolist() == pytest.approx([1.0, 2.0])
     assert model.to_rating_scale(torch.tensor([[1.0, 2.0]])).tolist() == [pytest.approx([5.0, 0.7])]
+
+
+def test_without_the_residual_h_enters_only_through_p():
+    model = small_model('stars_no_residual')
+    h = torch.tensor([[0.5, 1.0]])
+    # user 0, scene 1: p ⊙ (q + h) = (0.5, 8), no + h; action 0: 0.5, action 1: 1 - 8; offsets 0.8
+    z = model(torch.tensor([0]), torch.tensor([1]), h)
+    assert z.tolist() == [pytest.approx([1.3, -6.2])]
+
+
+def test_hand_over_from_the_pretrained_head_reproduces_it():
+    """r_a = w_a and b = mean c_a: with p_u = 0 (its initial value with content) StARS
+    scores as the head does, up to each action's intercept minus their mean."""
+    model = StarsModel(resolve_encoder('mlp', 3, 2, hidden=4, layers=1), n_users=2, n_scenes=2, n_actions=2,
+                       variant='stars')
+    assert model.user_embedding.weight.abs().sum() == 0
+    head = torch.nn.Linear(2, 2)
+    h = torch.randn(4, 2)
+    model.start_from_head(head)
+    z = model(torch.tensor([0, 1, 0, 1]), torch.tensor([0, 0, 1, 1]), h)
+    intercepts = head.bias - head.bias.mean()
+    assert torch.allclose(z, head(h) - intercepts, atol=1e-6)
+
+
+@pytest.mark.parametrize('variant, frozen', [('user_bias', {'user_embedding', 'scene_embedding', 'scene_bias'}),
+                                             ('stars_no_q', {'scene_embedding'}), ('stars', set())])
+def test_ablation_parts_are_zero_and_frozen(variant, frozen):
+    model = StarsModel(resolve_encoder('mlp', 3, 2, hidden=4, layers=1), 2, 2, 2, variant=variant)
+    for name in ('user_embedding', 'scene_embedding', 'user_bias', 'scene_bias'):
+        weight = getattr(model, name).weight
+        assert weight.requires_grad == (name not in frozen)
+        if name in frozen:
+            assert weight.abs().sum() == 0
+    assert model.uses_content == (variant != 'user_bias')

@@ -48,7 +48,7 @@ def other_checkpoint(socnav1, tmp_path_factory):
     config = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'variant': 'stars', 'dim': 16},
               'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'lr': 3e-3, 'batch_size': 128, 'threads': 1,
                            'seed': 5}}
-    train, _ = split_rows(len(socnav1), 0.2, 5)
+    train, _ = split_rows(socnav1, 0.2, 5)
     recommender = StarsRecommender(ExperimentConfig.from_dict(config)).fit(socnav1, train[:800])
     path = tmp_path_factory.mktemp('other') / 'other.pt'
     save_checkpoint(recommender, path, data={'fingerprint': socnav1.fingerprint, 'source': 'socnav1'})

@@ -63,7 +63,7 @@ def test_stars_recovers_what_base_cannot_through_the_protocol(planted):
 
 @pytest.mark.parametrize('backbone', ['resmlp', 'dcnv2', 'graceae', 'fttransformer'])
 def test_every_tabular_backbone_recovers_it(planted, backbone):
-    train, test = split_rows(len(planted), 0.2, 0)
+    train, test = split_rows(planted, 0.2, 0)
     rmse = {}
     for variant in ('base', 'stars'):
         config = ExperimentConfig.from_dict({**EXPERIMENT, 'encoder': {**EXPERIMENT['encoder'], 'name': backbone},

@@ -1,10 +1,12 @@
 """Short real training runs on SocNav1 (seconds each)."""
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from stars_ros.config import ExperimentConfig
-from stars_ros.errors import ConfigError, TrainingDivergedError
+from stars_ros.errors import ConfigError, DataError, TrainingDivergedError
 from stars_ros.training import NotFittedError, StarsRecommender, split_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
@@ -13,15 +15,68 @@ SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim':
 
 @pytest.fixture(scope='module')
 def rows(socnav1):
-    train, test = split_rows(len(socnav1), 0.2, 0)
+    train, test = split_rows(socnav1, 0.2, 0)
     return train[:2000], test[:500]
 
 
-def test_split_is_seeded_and_disjoint():
-    train, test = split_rows(100, 0.2, 7)
-    assert len(test) == 20 and not set(train) & set(test) and len(train) + len(test) == 100
-    assert np.array_equal(test, split_rows(100, 0.2, 7)[1])
-    assert not np.array_equal(test, split_rows(100, 0.2, 8)[1])
+def test_split_is_seeded_disjoint_and_by_example(socnav1):
+    train, test = split_rows(socnav1, 0.2, 7)
+    assert not set(train) & set(test) and len(train) + len(test) == len(socnav1)
+    assert len(test) == round(0.2 * len(socnav1))  # SocNav1: one rating per example
+    assert np.array_equal(test, split_rows(socnav1, 0.2, 7)[1])
+    assert not np.array_equal(test, split_rows(socnav1, 0.2, 8)[1])
+    three = dataclasses.replace(socnav1, actions=np.arange(len(socnav1)) % 3, action_names=('a', 'b', 'c'),
+                                users=np.repeat(socnav1.users[::3], 3)[:len(socnav1)],
+                                scenes=np.repeat(socnav1.scenes[::3], 3)[:len(socnav1)])
+    train, test = split_rows(three, 0.2, 7)
+    assert not set(three.examples[train].tolist()) & set(three.examples[test].tolist())
+
+
+def test_stars_and_its_ablations_start_exactly_where_base_ends(socnav1, rows):
+    """The hand-over: after the same pre-training, a personalised model with no joint epoch
+    yet predicts what the scene-only model predicts."""
+    train, test = rows
+    config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 2, 'joint_epochs': 0})
+    base = StarsRecommender(config.replace(model={'variant': 'base'})).fit(socnav1, train).predict_rows(socnav1, test)
+    for variant in ('stars', 'base_user_bias', 'stars_no_q'):
+        started = StarsRecommender(config.replace(model={'variant': variant})).fit(socnav1, train)
+        np.testing.assert_allclose(started.predict_rows(socnav1, test), base, atol=1e-6)
+
+
+def test_ablations_keep_their_missing_parts_at_zero(socnav1, rows):
+    train, _ = rows
+    config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 1, 'joint_epochs': 2})
+    for variant, absent in (('base_user_bias', ('user_embedding', 'scene_embedding', 'scene_bias')),
+                            ('stars_no_q', ('scene_embedding',)),
+                            ('user_bias', ('user_embedding', 'scene_embedding', 'scene_bias'))):
+        model = StarsRecommender(config.replace(model={'variant': variant})).fit(socnav1, train[:600]).model
+        for name in absent:
+            assert getattr(model, name).weight.abs().sum() == 0, (variant, name)
+        assert model.user_bias.weight.abs().sum() > 0
+
+
+def test_predictions_stay_on_the_rating_scale(socnav1, rows):
+    train, test = rows
+    recommender = StarsRecommender(ExperimentConfig.from_dict(SMALL).replace(
+        training={'pretrain_epochs': 1, 'joint_epochs': 1})).fit(socnav1, train[:500])
+    assert recommender.rating_scale == (0.0, 1.0)
+    with torch.no_grad():
+        recommender.model.bias.fill_(40.0)  # far above the scale
+    assert np.all(recommender.predict_rows(socnav1, test) == 1.0)
+
+
+def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(socnav1):
+    prefixes = socnav1.item_keys('prefix')
+    assert len(set(prefixes)) == 4904  # the paper's count of SocNav1 scenes
+    merged = [prefixes[i] for i, key in enumerate(socnav1.scene_keys) if key.startswith('01892 ')]
+    assert merged == ['01892', '01892']  # "01892 A" and "01892 B": different scenes, one prefix
+    config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 0, 'joint_epochs': 1})
+    rows = np.arange(len(socnav1))
+    by_identifier = StarsRecommender(config).fit(socnav1, rows)
+    by_prefix = StarsRecommender(config.replace(model={'item_key': 'prefix'})).fit(socnav1, rows)
+    assert len(by_identifier.scene_keys) == len(socnav1.scene_keys) and len(by_prefix.scene_keys) == 4904
+    with pytest.raises(DataError, match="item keying 'room'"):
+        socnav1.item_keys('room')
 
 
 @pytest.mark.parametrize('variant', ['stars', 'base', 'mf'])
