@@ -1,9 +1,9 @@
 """Run the evaluation protocol (cross-validation, paired tests, sparsity sweep) and write a results folder.
 
     python -m offline_training.evaluate --config config/eval_socnav1.yaml \
-        --protocol rows --jobs 2 [--quick] [--backbones gcn,gat] [--device cuda] [--out results/socnav1-rows]
+        --protocol rows --jobs 2 --out OUT [--quick] [--backbones gcn,gat] [--device cuda]
 
-Writes into ``--out`` (default ``results/<name>-<protocol>[-quick]``): ``command.txt``,
+Writes into ``--out`` (required: a run never writes into the repository unasked): ``command.txt``,
 ``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each fit's
 result as it arrives, selection fits too, so a long run that stops keeps what it finished
 and ``--resume`` goes on from there), ``folds.csv`` (per model,
@@ -62,7 +62,7 @@ def parse_args(argv=None):
                         help='torch threads per job (default: %(default)s; more busy-wait and collapse on a shared machine)')
     parser.add_argument('--device', help="where every fit trains: 'cpu', 'cuda' or 'cuda:N' (default: the "
                                          "config's experiment.training.device, else cpu); jobs share the GPU")
-    parser.add_argument('--out', help='results folder (default: results/<name>-<protocol>[-quick])')
+    parser.add_argument('--out', required=True, help='results folder (created; the run name is the config\'s)')
     parser.add_argument('--resume', action='store_true',
                         help="reuse the fits in the folder's records.jsonl from an earlier run with the same "
                              'config.yaml (jobs and threads may differ) and run only the rest')
@@ -390,7 +390,7 @@ def main(argv=None) -> int:
         return 2
     threads = args.threads
     name = f"{config.name}-{args.protocol}{'-quick' if args.quick else ''}"
-    folder = Path(args.out) if args.out else REPO / 'results' / name
+    folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
     command = shlex.join(['python', '-m', 'offline_training.evaluate', *(sys.argv[1:] if argv is None else argv)])
     header = {'command': command, 'git': git_state(), 'machine': {**machine(), 'device': device},

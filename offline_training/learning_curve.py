@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     parser.add_argument('--config', default=str(REPO / 'config' / 'learning_curve_socnav1.yaml'))
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--jobs', type=int, default=1, help='worker processes, one torch thread each')
-    parser.add_argument('--out', default=str(REPO / 'results' / 'learning_curve_socnav1'))
+    parser.add_argument('--out', required=True, help='results folder')
     parser.add_argument('--verbose', action='store_true')
     args = parser.parse_args(argv)
     setup_logging(args.verbose)

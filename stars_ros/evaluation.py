@@ -15,9 +15,10 @@ replacement) and scores them on the same outer test rows; fraction 1.0 is the ma
 A row of the protocol is an *example*: one user's ratings of one scene, every action
 (``RatingData.examples``). Three protocols differ only in how examples are grouped into
 folds: ``rows`` (random examples, as published), ``cold-scene`` (grouped by scene, so no
-test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds and
-sweep samples are grouped the same way, so the selection sees the situation it is selecting
-for and an example's actions never straddle a split. The model needs no special case:
+test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds are
+grouped the same way, so the selection sees the situation it is selecting for; sweep samples
+are drawn over whole examples, so an example's actions never straddle a split. The model
+needs no special case:
 unseen scenes and users get zero embeddings and offsets.
 
 Every model of a table is scored on the same folds: the chosen backbones in the ``base``
@@ -518,14 +519,14 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
     swept = {s.label for s in specs if (s.backbone in config.sweep_backbones and not s.follows)
              or (s.backbone is None and config.sweep_backbones)}
     fractions = sorted(set(config.fractions) | {1.0})
-    groups = fold_groups(data, protocol)
+    examples = data.examples
 
     outer = {}
     for seed in config.seeds:
         for f, fold in enumerate(make_folds(data, protocol, config.folds, seed)):
             fold_id = f'{seed}:{f}'
             outer[fold_id] = (fold, make_folds(data, protocol, config.inner_folds, [seed, f, 1], fold.train),
-                              sweep_samples(fold.train, fractions, [seed, f, 2], groups))
+                              sweep_samples(fold.train, fractions, [seed, f, 2], examples))
             result.folds.append({'fold': fold_id, 'n_train': len(fold.train), 'n_test': len(fold.test)})
 
     def record(spec, fold_id, fraction, settings, pair, n_train, n_test, scores, stage):
