@@ -44,7 +44,7 @@ from stars_ros.foldin import DEFAULT_REGULARISATION, FoldIn, rating_from_feedbac
 from stars_ros.predictor import Predictor
 from stars_ros.scene_graph import featurise
 from stars_ros.scene_store import GraphStore, TabularStore
-from stars_ros.training import StarsRecommender, build_model
+from stars_ros.training import StarsRecommender
 
 from .common import setup_logging
 
@@ -182,37 +182,11 @@ def join_feedback(text: str, scenes: dict, actions, found: LogRatings, log) -> N
     found.ratings.setdefault(feedback.user_id, []).append(rating)
 
 
-def extended(parent: StarsRecommender, users, scene_keys=()) -> StarsRecommender:
-    """A copy of ``parent`` whose vocabularies also hold ``users`` and ``scene_keys`` (new
-    rows: zero offsets; user rows are then set by the caller, scene rows stay zero)."""
-    old = parent.model
-    new_users = [u for u in users if u not in parent._user_rows]
-    new_scenes = [k for k in scene_keys if k not in parent._scene_rows]
-    child = StarsRecommender(parent.config)
-    child.rating_scale = parent.rating_scale
-    child._set_vocabularies(list(parent.users) + new_users, list(parent.scene_keys) + new_scenes,
-                            parent.action_names)
-    model = build_model(parent.config, old.encoder.in_dim, old.encoder.input_kind, len(child.users),
-                        len(child.scene_keys), len(child.action_names))
-    state = old.state_dict()
-    grown = model.state_dict()
-    for name, value in state.items():
-        if grown[name].shape == value.shape:
-            grown[name] = value.clone()
-        else:  # an embedding table that gained rows
-            grown[name] = torch.zeros_like(grown[name])
-            grown[name][:len(value)] = value
-    model.load_state_dict(grown)
-    model.eval()
-    child.model = model
-    return child
-
-
 def set_user_rows(recommender: StarsRecommender, solved: dict) -> None:
     model = recommender.model
     with torch.no_grad():
         for user, user_model in solved.items():
-            row = recommender._user_rows[user]
+            row = recommender.user_vocabulary.row(user)
             model.user_embedding.weight[row] = torch.as_tensor(user_model.p, dtype=torch.float32)
             model.user_bias.weight[row, 0] = float(user_model.b)
 
@@ -241,7 +215,7 @@ def feedback_data(recommender: StarsRecommender, ratings: dict, original: Rating
     index = {}
     for user, user_ratings in ratings.items():
         for rating in user_ratings:
-            key = rating.scene_id if rating.scene_id in recommender._scene_rows else f'feedback:{scene_digest(rating.scene)}'
+            key = rating.scene_id if rating.scene_id in recommender.scene_vocabulary else f'feedback:{scene_digest(rating.scene)}'
             if key not in index:
                 index[key] = len(keys)
                 keys.append(key)
@@ -332,7 +306,7 @@ def main(argv=None) -> int:
     if not solved:
         print('error: no usable feedback in the logs; no checkpoint written', file=sys.stderr)
         return 1
-    recommender = extended(predictor.recommender, list(solved))
+    recommender = predictor.recommender.extended(users=list(solved))
     set_user_rows(recommender, solved)
     losses = []
     if args.mode == 'full':
@@ -341,7 +315,7 @@ def main(argv=None) -> int:
         except StarsError as error:
             print(f'error: {error}', file=sys.stderr)
             return 2
-        recommender = extended(recommender, [], data.scene_keys)
+        recommender = recommender.extended(scene_keys=data.scene_keys)
         losses = fine_tune(recommender, data, args.epochs)
         print(f'full fine-tune: {args.epochs} joint epochs on {len(data)} ratings, loss {[round(v, 4) for v in losses]}')
     parent = predictor.metadata

@@ -124,7 +124,7 @@ class FoldIn:
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES):
         recommender = predictor.recommender
-        model = recommender._require_model()
+        model = recommender.require_model()
         if not model.personalised:
             raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
         self.predictor = predictor
@@ -152,8 +152,8 @@ class FoldIn:
     def prior(self, user_id=None) -> np.ndarray:
         """θ₀ = (p, b_u): the user's trained row if the checkpoint knows them, else the
         population mean."""
-        row = self.recommender._user_rows.get(str(user_id)) if user_id is not None else None
-        return self.population.copy() if row is None else self.user_rows[row].copy()
+        row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        return self.population.copy() if row == UNKNOWN else self.user_rows[row].copy()
 
     def action_index(self, actions: Sequence[str]) -> np.ndarray:
         unknown = sorted({a for a in actions if a not in self._action_index})
@@ -165,7 +165,8 @@ class FoldIn:
         return (np.asarray(scores, dtype=np.float64) - self.target_mean[actions]) / self.target_std[actions]
 
     def to_rating_scale(self, z, actions: np.ndarray) -> np.ndarray:
-        return np.asarray(z) * self.target_std[actions] + self.target_mean[actions]
+        """Scores of normalised predictions, clipped to the checkpoint's rating scale."""
+        return self.recommender.clip(np.asarray(z) * self.target_std[actions] + self.target_mean[actions])
 
     def design_from_h(self, h, scene_keys: Sequence, actions: np.ndarray) -> tuple:
         """(x [n, dim+1], c [n]) for ratings whose scenes are encoded as ``h`` [n, dim]."""

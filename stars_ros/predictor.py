@@ -58,7 +58,7 @@ class Predictor:
         self._action_index = {a: i for i, a in enumerate(self.actions)}
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
-        self._inference = InferenceModel(recommender._require_model())
+        self._inference = InferenceModel(recommender.require_model())
         self._stranger = (np.zeros(self._inference.dim, dtype=np.float32), np.float32(0.0))
         self._scene_rows = np.array([UNKNOWN], dtype=np.int64)  # broadcasts: no scene id, no q_i
 
@@ -73,7 +73,7 @@ class Predictor:
         return self.recommender.model.encoder.input_kind
 
     def knows_user(self, user_id) -> bool:
-        return user_id is not None and str(user_id) in self.recommender._user_rows
+        return user_id is not None and str(user_id) in self.recommender.user_vocabulary
 
     @property
     def user_models(self) -> dict:
@@ -135,8 +135,7 @@ class Predictor:
         return self.recommender.clip(self._inference.scores(h, self._user_row(user_id), scene_rows))
 
     def _scene_rows_of(self, scene_ids: Sequence) -> np.ndarray:
-        index = self.recommender._scene_rows
-        return np.array([UNKNOWN if k is None else index.get(k, UNKNOWN) for k in scene_ids], dtype=np.int64)
+        return self.recommender.scene_vocabulary.rows(scene_ids)
 
     def _user_row(self, user_id) -> tuple:
         """(p_u, b_u) that scores ``user_id``: folded in, trained, or zero for a stranger."""
@@ -146,8 +145,8 @@ class Predictor:
         folded = self.user_model(user_id)
         if folded is not None:
             return folded.p.astype(np.float32), np.float32(folded.b)
-        row = self.recommender._user_rows.get(str(user_id)) if user_id is not None else None
-        if row is None:
+        row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        if row == UNKNOWN:
             return self._stranger
         return inference.user_rows[row], inference.user_offsets[row]
 

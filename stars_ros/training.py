@@ -68,6 +68,33 @@ def build_model(config: ExperimentConfig, feature_dim: int, input_kind: str,
                       feature_dim=feature_dim if input_kind == 'tabular' else None)
 
 
+class Vocabulary:
+    """Ids in row order: the rows of one embedding table (users, or scene items).
+
+    ``row(key)`` and ``rows(keys)`` give UNKNOWN (-1) for an id the table lacks (and for
+    None), which the model scores with zero rows; ``extended`` appends new ids after the
+    old ones, so existing rows keep their index."""
+
+    def __init__(self, keys=()):
+        self.keys = tuple(keys)
+        self._rows = {key: row for row, key in enumerate(self.keys)}
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def __contains__(self, key) -> bool:
+        return key in self._rows
+
+    def row(self, key) -> int:
+        return self._rows.get(key, UNKNOWN) if key is not None else UNKNOWN
+
+    def rows(self, keys: Sequence) -> np.ndarray:
+        return np.array([self.row(key) for key in keys], dtype=np.int64)
+
+    def extended(self, keys: Sequence) -> 'Vocabulary':
+        return Vocabulary(self.keys + tuple(k for k in dict.fromkeys(keys) if k not in self._rows))
+
+
 class StarsRecommender:
     """A model plus the vocabularies that map ids to its rows (LightFM/Surprise shape).
 
@@ -78,25 +105,49 @@ class StarsRecommender:
     def __init__(self, config: ExperimentConfig):
         self.config = config
         self.model: StarsModel | None = None
-        self.users: tuple = ()
-        self.scene_keys: tuple = ()
+        self.user_vocabulary = Vocabulary()
+        self.scene_vocabulary = Vocabulary()
         self.action_names: tuple = ()
         self.rating_scale: tuple | None = None
         self.history: dict = {'pretrain': [], 'joint': []}
 
     # -- vocabularies -------------------------------------------------------------------
+    @property
+    def users(self) -> tuple:
+        return self.user_vocabulary.keys
+
+    @property
+    def scene_keys(self) -> tuple:
+        return self.scene_vocabulary.keys
+
     def user_index(self, users: Sequence[str]) -> torch.Tensor:
-        index = self._user_rows
-        return torch.tensor([index.get(str(u), UNKNOWN) for u in users], dtype=torch.long)
+        return torch.from_numpy(self.user_vocabulary.rows([str(u) for u in users]))
 
     def scene_index(self, keys: Sequence) -> torch.Tensor:
-        index = self._scene_rows
-        return torch.tensor([index.get(k, UNKNOWN) if k is not None else UNKNOWN for k in keys], dtype=torch.long)
+        return torch.from_numpy(self.scene_vocabulary.rows(keys))
 
-    def _set_vocabularies(self, users, scene_keys, action_names):
-        self.users, self.scene_keys, self.action_names = tuple(users), tuple(scene_keys), tuple(action_names)
-        self._user_rows = {u: i for i, u in enumerate(self.users)}
-        self._scene_rows = {k: i for i, k in enumerate(self.scene_keys)}
+    def set_vocabularies(self, users, scene_keys, action_names) -> None:
+        """The ids behind the model's rows (a checkpoint's, or the training data's)."""
+        self.user_vocabulary, self.scene_vocabulary = Vocabulary(users), Vocabulary(scene_keys)
+        self.action_names = tuple(action_names)
+
+    def extended(self, users: Sequence[str] = (), scene_keys: Sequence = ()) -> 'StarsRecommender':
+        """A copy whose vocabularies also hold ``users`` and ``scene_keys``: the same weights,
+        new rows zero (a stranger's), to be set or fine-tuned (``fine_tune``)."""
+        model = self.require_model()
+        child = StarsRecommender(self.config)
+        child.rating_scale = self.rating_scale
+        child.set_vocabularies(self.user_vocabulary.extended([str(u) for u in users]).keys,
+                               self.scene_vocabulary.extended(scene_keys).keys, self.action_names)
+        child.model = build_model(self.config, model.encoder.in_dim, model.encoder.input_kind, len(child.users),
+                                  len(child.scene_keys), len(child.action_names))
+        grown = child.model.state_dict()
+        for name, value in model.state_dict().items():
+            grown[name] = torch.zeros_like(grown[name])  # new rows of a grown table stay zero
+            grown[name][:len(value)] = value
+        child.model.load_state_dict(grown)
+        child.model.eval()
+        return child
 
     # -- training -----------------------------------------------------------------------
     def fit(self, data: RatingData, rows: np.ndarray | None = None,
@@ -119,8 +170,8 @@ class StarsRecommender:
 
         items = data.item_keys(self.config.model.item_key)
         train_scenes = np.unique(data.scenes[rows])
-        self._set_vocabularies(sorted(set(data.users[rows].tolist())),
-                               list(dict.fromkeys(items[s] for s in train_scenes)), data.action_names)
+        self.set_vocabularies(sorted(set(data.users[rows].tolist())),
+                              list(dict.fromkeys(items[s] for s in train_scenes)), data.action_names)
         self.rating_scale = data.scale
         self.model = model = build_model(self.config, data.store.feature_dim, data.kind,
                                          len(self.users), len(self.scene_keys), len(self.action_names))
@@ -149,7 +200,7 @@ class StarsRecommender:
     def fine_tune(self, data: RatingData, epochs: int, rows: np.ndarray | None = None) -> list:
         """``epochs`` joint epochs on ``rows`` of ``data`` from the current weights (a refit
         after new users or scenes were added with ``extend``); returns the epoch losses."""
-        model = self._require_model()
+        model = self.require_model()
         cfg = self.config.training
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
@@ -162,14 +213,14 @@ class StarsRecommender:
     def trainable_parameters(self) -> list:
         """What joint training updates: everything but the parts a variant holds at zero
         (and the unused encoder of a content-free model)."""
-        model = self._require_model()
+        model = self.require_model()
         return [p for n, p in model.named_parameters()
                 if p.requires_grad and (model.uses_content or not n.startswith('encoder.'))]
 
     def training_set(self, data: RatingData, rows: np.ndarray) -> 'TrainingSet':
         """``rows`` grouped into examples: one user's ratings of one scene, all actions as
         targets (z-scores under the model's normalisation) with a mask of those rated."""
-        model = self._require_model()
+        model = self.require_model()
         rows = np.asarray(rows)
         _, first, inverse = np.unique(data.examples[rows], return_index=True, return_inverse=True)
         inverse = inverse.ravel()
@@ -244,7 +295,7 @@ class StarsRecommender:
         return mean_loss
 
     # -- prediction ---------------------------------------------------------------------
-    def _require_model(self) -> StarsModel:
+    def require_model(self) -> StarsModel:
         if self.model is None:
             raise NotFittedError('this recommender is not fitted: call fit() or load a checkpoint first')
         return self.model
@@ -255,7 +306,7 @@ class StarsRecommender:
 
         ``scene_keys[k]`` may be None (a scene never seen: q_i = 0, b_i = 0).
         """
-        model = self._require_model()
+        model = self.require_model()
         model.eval()
         return self.predict_scores_from_h(users, scene_keys, model.encode(scene_input))
 
@@ -263,7 +314,7 @@ class StarsRecommender:
     def predict_rows(self, data: RatingData, rows: np.ndarray) -> np.ndarray:
         """Rating-scale prediction for each (user, scene, action) row of ``data``; runs on
         the model's device (a GPU inside ``fit``'s ``on_epoch``)."""
-        model = self._require_model()
+        model = self.require_model()
         model.eval()
         items = data.item_keys(self.config.model.item_key)
         predictions = []
@@ -282,7 +333,7 @@ class StarsRecommender:
         """Like ``predict_scores`` for already encoded scenes ``h`` [len(users), dim];
         ``user_rows`` (p, b_u) overrides the user table (see ``StarsModel.forward``).
         Scores are clipped to the training data's rating scale."""
-        model = self._require_model()
+        model = self.require_model()
         users, scenes = self.user_index(users).to(model.device), self.scene_index(scene_keys).to(model.device)
         z = model(users, scenes, h, user_rows)
         return self.clip(model.to_rating_scale(z).cpu().numpy().astype(np.float64))

@@ -70,7 +70,7 @@ def test_regularisation_limits(predictor, ratings):
 def test_prior_is_the_trained_row_or_the_population_mean(predictor):
     foldin = FoldIn(predictor)
     model = predictor.recommender.model
-    row = predictor.recommender._user_rows['a']
+    row = predictor.recommender.user_vocabulary.row('a')
     trained = np.append(model.user_embedding.weight[row].detach().numpy(), model.user_bias.weight[row, 0].item())
     assert np.allclose(foldin.prior('a'), trained, atol=1e-6)
     population = np.concatenate([model.user_embedding.weight.detach().numpy(),

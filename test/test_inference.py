@@ -56,7 +56,7 @@ def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoin
     recommender = predictor.recommender
     scenes = read_scenes(socnav1_root / 'raw' / 'b.jsonl')[:60]
     keys = [s['identifier'] for s in scenes]  # training scenes: their q_i and b_i apply
-    assert sum(k in recommender._scene_rows for k in keys) > 10
+    assert sum(k in recommender.scene_vocabulary for k in keys) > 10
     batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
     for user in (recommender.users[0], 'nobody'):
         expected = recommender.predict_scores([user] * len(scenes), keys, batch)
