@@ -1,33 +1,44 @@
 """Launch the ranker with the packaged defaults (config/ranker.yaml).
 
     ros2 launch stars_ros ranker.launch.py checkpoint:=/path/to/model.pt record_folder:=/tmp/stars
+    ros2 launch stars_ros ranker.launch.py record:=false
 
-Leave ``checkpoint`` empty to serve the packaged SocNav1 GAT-StARS model.
+Leave ``checkpoint`` empty to serve the packaged SocNav1 GAT-StARS model and
+``record_folder`` empty for the node's default, ``$ROS_HOME/stars_ros/records``. An empty
+launch argument is refused on the command line (``record_folder:=''``), so recording is
+turned off with ``record:=false``. ``ros2 launch stars_ros ranker.launch.py --show-args``
+lists the arguments.
 """
 from pathlib import Path
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+OPTIONAL = {  # launch argument = node parameter; empty (the default): the node's own default
+    'checkpoint': 'checkpoint file; empty: the packaged default model',
+    'record_folder': 'folder for the MCAP recordings; empty: the node default $ROS_HOME/stars_ros/records',
+    'top_k': 'publish only the best k entries of each ranking; empty: the node default (0: all)',
+}
+
+
+def _ranker(context):
+    """The node, given only the arguments that were set: launch_ros reads an empty
+    substitution as YAML null and refuses it, and left out, the node's own default holds."""
+    parameters = {name: LaunchConfiguration(name) for name in OPTIONAL if LaunchConfiguration(name).perform(context)}
+    if LaunchConfiguration('record').perform(context) == 'false':
+        parameters['record_folder'] = ''  # a plain '' stays a string
+    defaults = Path(get_package_share_directory('stars_ros')) / 'config' / 'ranker.yaml'
+    return [Node(package='stars_ros', executable='ranker', name='ranker', output='screen',
+                 parameters=[str(defaults), parameters])]
+
 
 def generate_launch_description():
-    defaults = Path(get_package_share_directory('stars_ros')) / 'config' / 'ranker.yaml'
-    arguments = {
-        'checkpoint': ('', 'checkpoint file; empty: the packaged default model'),
-        'record_folder': ('stars_records', 'folder for the MCAP recordings; empty: do not record'),
-        'top_k': ('0', 'publish only the best k entries of each ranking; 0: all'),
-    }
     return LaunchDescription([
-        *[DeclareLaunchArgument(name, default_value=default, description=text)
-          for name, (default, text) in arguments.items()],
-        Node(
-            package='stars_ros',
-            executable='ranker',
-            name='ranker',
-            output='screen',
-            parameters=[str(defaults), {name: LaunchConfiguration(name) for name in arguments}],
-        ),
+        *[DeclareLaunchArgument(name, default_value='', description=text) for name, text in OPTIONAL.items()],
+        DeclareLaunchArgument('record', default_value='true', choices=['true', 'false'],
+                              description='false: do not record (record_folder is ignored)'),
+        OpaqueFunction(function=_ranker),
     ])

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The main job: set up the environment, then run the demo — the ranker serving two people
 # with the packaged SocNav1 model, their rankings side by side, feedback recorded to MCAP
-# under stars_records/, and a summary. Ends by itself. Extra arguments go to the demo
+# in a new temporary folder (named in the summary), and a summary. Ends by itself. Extra arguments go to the demo
 # (see `python -m stars_ros.demo --help`).
 set -euo pipefail
 cd "$(dirname "$0")/.."

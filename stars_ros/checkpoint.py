@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import pickle
+import re
 import tempfile
 import zipfile
 from pathlib import Path
@@ -24,6 +25,8 @@ from .training import StarsRecommender, build_model
 
 FORMAT = 'stars_ros.checkpoint'
 FORMAT_VERSION = 1
+_ZIP_MAGIC = b'PK\x03\x04'  # torch.save's format since torch 1.6
+_PICKLE_PROTOCOL = b'\x80'  # the legacy format: a pickle, protocol 2 or later
 
 
 def _digest(metadata: dict, state: dict) -> str:
@@ -43,7 +46,7 @@ def save_checkpoint(recommender: StarsRecommender, path, *, data: dict, metrics:
         metrics (dict, optional): held-out figures to keep with the weights.
         provenance (dict, optional): anything else worth keeping (command line, logs used).
     """
-    model = recommender._require_model()
+    model = recommender.require_model()
     metadata = {
         'format': FORMAT,
         'format_version': FORMAT_VERSION,
@@ -74,6 +77,15 @@ def save_checkpoint(recommender: StarsRecommender, path, *, data: dict, metrics:
     return digest
 
 
+def _torch_reason(error: Exception) -> str:
+    """What torch found wrong with the file, without its advice on loading it anyway
+    (``weights_only=False``, allow-listing globals): that would run the file's pickled code."""
+    text = str(error)
+    found = re.search(r'WeightsUnpickler error:\s*(.+?)(?:\. Please use|\n\n|$)', text, re.S)
+    reason = found.group(1) if found else text.split('. ')[0]
+    return ' '.join(reason.split()) or type(error).__name__
+
+
 def read_checkpoint(path) -> dict:
     """The checkpoint's raw content (``metadata``, ``state_dict``, ``digest``), verified."""
     path = Path(path)
@@ -83,7 +95,19 @@ def read_checkpoint(path) -> dict:
         raise CheckpointError(f'{path}: no such checkpoint file') from None
     except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError,
             KeyError, AttributeError, IndexError) as error:
-        raise CheckpointError(f'{path}: not a readable checkpoint (truncated or corrupted?): {error}') from error
+        try:
+            with open(path, 'rb') as handle:
+                head = handle.read(4)
+        except OSError as unreadable:
+            raise CheckpointError(f'{path}: cannot read the checkpoint: {unreadable}') from None
+        if not head.startswith((_ZIP_MAGIC, _PICKLE_PROTOCOL)):
+            what = 'an empty file' if not head else 'not a torch zip/pickle file'
+            raise CheckpointError(f'{path}: not a stars_ros checkpoint ({what})') from None
+        reason = _torch_reason(error)
+        if reason.startswith('Unsupported global'):
+            raise CheckpointError(f'{path}: not a stars_ros checkpoint: it holds Python objects besides tensors and '
+                                  f'plain values ({reason}), and loading those would run code') from None
+        raise CheckpointError(f'{path}: not a readable checkpoint (truncated or corrupted?): {reason}') from None
     if not isinstance(content, dict) or not {'metadata', 'state_dict', 'digest'} <= set(content):
         raise CheckpointError(f'{path}: not a stars_ros checkpoint')
     metadata = content['metadata']
@@ -105,7 +129,7 @@ def load_checkpoint(path, with_digest: bool = False):
     try:
         config = ExperimentConfig.from_dict(metadata['config'])
         recommender = StarsRecommender(config)
-        recommender._set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
+        recommender.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
         model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
                             len(metadata['scene_keys']), len(metadata['actions']))
         model.load_state_dict(content['state_dict'])

@@ -7,9 +7,15 @@ Set-up loads the checkpoint (the packaged default unless one is given) and picks
 annotators it knows, the two whose rankings of alternative robot placements differ most on
 SocNav1 scenes both of them rated. Then it starts the ranker and one scene_publisher per
 person (separate processes, as ``ros2 launch`` would), prints each pair of rankings as it
-arrives, sends each person's real SocNav1 rating of the scene as it was (placement ``stay``)
-as feedback, stops the ranker with SIGINT and reads the feedback back from the MCAP bag.
-Runs on the current ROS_DOMAIN_ID unless ``--domain-id`` is given.
+arrives, then sends each person's real SocNav1 rating of each scene as it was (placement
+``stay``) as feedback, stops the ranker with SIGINT and reads the feedback back from the
+MCAP bag. Runs on the current ROS_DOMAIN_ID unless ``--domain-id`` is given.
+
+Every run starts from a clean state: the ranker records into a new temporary folder unless
+``--record-folder`` is given, so no earlier run's folded-in users are restored, and the
+feedback goes out once every ranking is in, so no ranking depends on how fast a fold-in
+overtook the other person's scenes: the scores printed come from the checkpoint alone and a
+second run prints the same rankings.
 """
 from __future__ import annotations
 
@@ -44,9 +50,11 @@ def parse_args(argv=None):
     parser.add_argument('--placements', type=int, default=6, choices=range(2, len(PLACEMENTS) + 1),
                         metavar=f'2..{len(PLACEMENTS)}', help='robot placements ranked per scene (default: %(default)s)')
     parser.add_argument('--rate', type=float, default=4.0, help='scenes per second per person (default: %(default)s)')
-    parser.add_argument('--record-folder', type=Path, default=Path('stars_records'), help='default: %(default)s')
+    parser.add_argument('--record-folder', type=Path, help="where the ranker records (default: a new temporary "
+                        "folder, so that no earlier run's folded-in users are restored)")
     parser.add_argument('--domain-id', type=int, help='ROS domain for the demo (default: ROS_DOMAIN_ID)')
-    parser.add_argument('--timeout', type=float, default=180.0, help='give up after this many seconds')
+    parser.add_argument('--timeout', type=float, default=180.0,
+                        help='give up after this many seconds (default: %(default)s)')
     return parser.parse_args(argv)
 
 
@@ -82,8 +90,31 @@ def choose_people(predictor, root: Path, n_scenes: int, placements: int):
     return a, b, [(rated[a][k], rated[a][k]['score'] / 100, rated[b][k]['score'] / 100) for k in shared]
 
 
-def _line(user, reply) -> str:
-    return f'  {user:>3}: ' + ' > '.join(f"{e['candidate']} {e['score']:.2f}" for e in reply['ranking'])
+def score_decimals(*replies, least: int = 3, most: int = 5) -> int:
+    """The fewest decimals (``least`` to ``most``) at which the different scores within each
+    ranking print differently, so that an order the demo calls different shows in the numbers."""
+    scores = [[e['score'] for e in reply['ranking']] for reply in replies]
+    for decimals in range(least, most):
+        if all(len({f'{score:.{decimals}f}' for score in ranking}) == len(set(ranking)) for ranking in scores):
+            return decimals
+    return most
+
+
+def record_folder(given: Path | None, work: Path) -> Path:
+    """Where the demo's ranker records: ``work``/records, a folder of this run's own, unless a
+    folder is ``given``; one given that holds folded-in users of an earlier run is said to,
+    since the ranker restores them and their scores then differ from a fresh start."""
+    from .ranker import STATE_FILE
+    if given is None:
+        return work / 'records'
+    if (given / STATE_FILE).exists():
+        print(f'Note: {given / STATE_FILE} holds folded-in users of an earlier run: the ranker restores them, so '
+              'their scores differ from a fresh start')
+    return given
+
+
+def _line(user, reply, decimals: int) -> str:
+    return f'  {user:>3}: ' + ' > '.join(f"{e['candidate']} {e['score']:.{decimals}f}" for e in reply['ranking'])
 
 
 def run(args) -> int:
@@ -112,11 +143,12 @@ def run(args) -> int:
     work = Path(tempfile.mkdtemp(prefix='stars_demo_'))
     scene_file = work / 'scenes.jsonl'
     scene_file.write_text(''.join(json.dumps(scene) + '\n' for scene, _, _ in chosen))
-    args.record_folder.mkdir(parents=True, exist_ok=True)
-    before = set(args.record_folder.glob('stars_*'))
+    records = record_folder(args.record_folder, work)
+    records.mkdir(parents=True, exist_ok=True)
+    before = set(records.glob('stars_*'))
     ranker = subprocess.Popen(
         [sys.executable, '-m', 'stars_ros.ranker', '--ros-args', '-p', f'checkpoint:={checkpoint}',
-         '-p', f'record_folder:={args.record_folder}', '-p', 'flush_interval:=0.5', '--log-level', 'warn'], env=env)
+         '-p', f'record_folder:={records}', '-p', 'flush_interval:=0.5', '--log-level', 'warn'], env=env)
     publishers = []
     rclpy.init(domain_id=args.domain_id)
     node = Node('stars_demo')
@@ -141,22 +173,24 @@ def run(args) -> int:
         shown, differ, sent = set(), 0, 0
         while len(shown) < len(chosen) and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.1)
-            for n, (scene, rating_a, rating_b) in enumerate(chosen):
+            for n, (scene, _, _) in enumerate(chosen):
                 a, b = replies.get(f'{user_a}/{n}'), replies.get(f'{user_b}/{n}')
                 if n in shown or a is None or b is None:
                     continue
                 shown.add(n)
                 same = [e['candidate'] for e in a['ranking']] == [e['candidate'] for e in b['ranking']]
                 differ += not same
+                decimals = score_decimals(a, b)
                 print(f"scene {scene['identifier']}: {'same order' if same else 'ORDERS DIFFER'}")
-                print(_line(user_a, a))
-                print(_line(user_b, b))
-                for user, rating in ((user_a, rating_a), (user_b, rating_b)):
-                    feedback.publish(String(data=json.dumps({'user_id': user, 'scene_id': f'{user}/{n}',
-                                                             'candidate': 'stay', 'score': rating})))
-                    sent += 1
+                print(_line(user_a, a, decimals))
+                print(_line(user_b, b, decimals))
         if len(shown) < len(chosen):
             raise StarsError(f'timed out: {len(shown)} of {len(chosen)} scenes ranked for both people')
+        for n, (_, rating_a, rating_b) in enumerate(chosen):
+            for user, rating in ((user_a, rating_a), (user_b, rating_b)):
+                feedback.publish(String(data=json.dumps({'user_id': user, 'scene_id': f'{user}/{n}',
+                                                         'candidate': 'stay', 'score': rating})))
+                sent += 1
         feedback.wait_for_all_acked(Duration(seconds=5))
         time.sleep(1.0)  # let the ranker journal the last feedback before it is stopped
     finally:
@@ -167,7 +201,7 @@ def run(args) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
 
-    bags = sorted(set(args.record_folder.glob('stars_*')) - before)
+    bags = sorted(set(records.glob('stars_*')) - before)
     recorded = list(read_messages(bags[-1])) if bags else []
     count = {topic: sum(t == topic for t, _, _ in recorded) for topic in ('/stars/ranking', '/stars/feedback')}
     times = [replies[k]['processing_ms'] for k in replies]

@@ -29,11 +29,14 @@ _UNSUPPORTED = ('$dynamicRef', '$dynamicAnchor', '$anchor', 'unevaluatedItems', 
 
 
 class BadMessage(MessageError):
-    """A message the ranker refuses; ``kind`` is a short machine-readable category."""
+    """A message the ranker refuses; ``kind`` is a short machine-readable category and
+    ``scene_id`` the message's own scene id, when it has a usable one, so that the report
+    on stars/errors can be matched to the request."""
 
-    def __init__(self, kind: str, detail: str):
+    def __init__(self, kind: str, detail: str, scene_id: str | None = None):
         super().__init__(detail)
         self.kind = kind
+        self.scene_id = scene_id
 
 
 @dataclass(frozen=True)
@@ -154,6 +157,42 @@ def load_json(text, max_bytes: int = DEFAULT_MAX_BYTES):
         raise BadMessage('malformed_json', 'not valid JSON: nested too deeply') from None
 
 
+def _scene_id(payload) -> str | None:
+    """The scene id of a refused message, if it has one that follows the schema."""
+    value = payload.get('scene_id') if isinstance(payload, dict) else None
+    return value if isinstance(value, str) and 0 < len(value) <= MAX_ID_CHARS else None
+
+
+def _explain(name: str, error) -> str:
+    """fastjsonschema's complaint in a user's words: the field by its place in the message
+    (``graph.humans[0].xPos``, not ``data.graph.humans[0].xPos``), missing and unknown fields
+    by name, and the choices the schemas' ``oneOf``/``not`` rules stand for."""
+    where = error.name.removeprefix('data').lstrip('.')
+    subject = f"'{where}'" if where else _SUBJECTS[name]
+    if error.rule == 'oneOf' and name == 'feedback' and not where:
+        return ("feedback needs either 'action' (the action rated) or 'candidate' (the candidate scene rated), "
+                'exactly one of them')
+    if error.rule == 'oneOf' and where == 'candidates':
+        return ("'candidates' must be a list of action names or a list of candidate scenes "
+                "({'candidate': label, 'graph': scene})")
+    if error.rule == 'not' and name == 'scene_request':
+        return "'graph' goes with action candidates, 'action' with candidate scenes, not the other way round"
+    if error.rule == 'required':
+        missing = [key for key in error.rule_definition if key not in error.value]
+        if name == 'scene_request' and missing == ['graph'] and not where:
+            return "a scene request needs 'graph' (the scene to rank actions in) or 'candidates' that are scenes"
+        return f"{subject} needs {' and '.join(repr(key) for key in missing)}"
+    if error.rule == 'additionalProperties':
+        known = error.definition.get('properties', {})
+        unknown = ', '.join(repr(key) for key in sorted(error.value) if key not in known)
+        return f"{unknown}: not a field of {subject}" + (f" (its fields: {', '.join(known)})" if known else '')
+    return subject + error.message[len(error.name):]
+
+
+_SUBJECTS = {'feedback': 'feedback', 'scene_request': 'a scene request', 'scene_graph': 'a scene graph',
+             'ranking': 'a ranking', 'user_model': 'a user model'}
+
+
 def check(name: str, payload) -> None:
     """Raise ``BadMessage('schema', ...)`` naming where ``payload`` breaks ``name``'s schema."""
     import fastjsonschema
@@ -161,10 +200,7 @@ def check(name: str, payload) -> None:
     try:
         validator(name)(payload)
     except fastjsonschema.JsonSchemaValueException as error:
-        detail = error.message
-        if error.rule == 'not' and name == 'scene_request':
-            detail = "'graph' goes with action candidates, 'action' with candidate scenes, not the other way round"
-        raise BadMessage('schema', f'{name} message invalid: {detail}') from None
+        raise BadMessage('schema', f'{name} message invalid: {_explain(name, error)}', _scene_id(payload)) from None
 
 
 def parse_scene_request(text, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneRequest:
@@ -176,7 +212,7 @@ def parse_scene_request(text, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneReques
     if candidates is not None and isinstance(candidates[0], dict):
         labels = tuple(c['candidate'] for c in candidates)
         if len(set(labels)) != len(labels):
-            raise BadMessage('schema', 'scene_request message invalid: candidate labels repeat')
+            raise BadMessage('schema', 'scene_request message invalid: candidate labels repeat', payload['scene_id'])
         return SceneRequest(payload['scene_id'], user_id, tuple(c['graph'] for c in candidates), labels,
                             action=payload.get('action'))
     return SceneRequest(payload['scene_id'], user_id, (payload['graph'],),
@@ -192,7 +228,8 @@ def parse_feedback(text, max_bytes: int = DEFAULT_MAX_BYTES) -> Feedback:
     except OverflowError:
         score = math.inf
     if not math.isfinite(score):
-        raise BadMessage('non_finite', f"feedback score {payload['score']} is not a finite number")
+        raise BadMessage('non_finite', f"feedback score {payload['score']} is not a finite number",
+                         payload['scene_id'])
     return Feedback(payload['user_id'], payload['scene_id'], score, payload.get('action'), payload.get('candidate'))
 
 

@@ -49,7 +49,9 @@ import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -57,7 +59,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 
-from . import messages, recording
+from . import messages, recording, usage
 from .errors import CheckpointError, StarsError
 from .foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
 from .predictor import Predictor
@@ -77,7 +79,8 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'checkpoint': ('', f'checkpoint file; empty: the packaged {DEFAULT_CHECKPOINT}. Read again by ~/reload',
                    False, None),
     'top_k': (0, 'publish only the best k entries of each ranking; 0: all', False, (0, _INT_MAX)),
-    'record_folder': ('stars_records', 'folder for the MCAP bags; empty: do not record', True, None),
+    'record_folder': (str(recording.default_folder()), 'folder for the MCAP bags and user_models.json; default '
+                      '$ROS_HOME/stars_ros/records (ROS_HOME: ~/.ros unless set); empty: do not record', True, None),
     'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
                        (4096, _INT_MAX)),
     'flush_interval': (1.0, 'seconds between flushes of the recording; a hard kill loses at most this',
@@ -256,7 +259,10 @@ class RankerNode(Node):
                 self._last_log[kind] = now
         payload = messages.dumps({'kind': kind, 'message': detail, 'topic': topic, 'scene_id': scene_id,
                                   'level': 'warning' if kind in WARNINGS else 'error'})
-        self.error_pub.publish(String(data=payload))
+        try:
+            self.error_pub.publish(String(data=payload))
+        except (InvalidHandle, _rclpy.RCLError):  # shutting down (a thread of close()): logged and recorded
+            pass
         self._record('stars/errors', payload)
         if log:
             line = (f'[{kind}] {detail} (total {self._counts[kind]}; repeats are logged at most every '
@@ -321,7 +327,7 @@ class RankerNode(Node):
         try:
             request = messages.parse_scene_request(text, self.params['max_message_bytes'])
         except messages.BadMessage as error:
-            self.report(error.kind, str(error), self.topics['stars/scene'])
+            self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
             return
         log_time = self.get_clock().now().nanoseconds
         self._scenes[request.scene_id] = [text, None]
@@ -348,7 +354,7 @@ class RankerNode(Node):
         try:
             feedback = messages.parse_feedback(msg.data, self.params['max_message_bytes'])
         except messages.BadMessage as error:
-            self.report(error.kind, str(error), topic)
+            self.report(error.kind, str(error), topic, error.scene_id)
             return
         if feedback.action is not None and feedback.action not in self.predictor.actions:
             self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
@@ -606,7 +612,10 @@ class RankerNode(Node):
                     'population offsets (reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
 
     def close(self):
-        """Finish the state file and the recording (clean shutdown)."""
+        """Finish the state file and the recording (clean shutdown). Called after
+        ``destroy_node``, which takes the node's /rosout publisher with it: a signal has shut
+        the context down by then, and each line logged while that publisher still existed
+        would end in "Failed to publish log message to rosout: publisher's context is invalid"."""
         waiting = len(self._queue)
         for item in self._queue:  # in the log even though they were never scored
             self._record('stars/scene', item.text, item.log_time)
@@ -618,16 +627,18 @@ class RankerNode(Node):
             self._save_user_models(self.predictor)
         self._to_journal.put(None)
         self._journal_thread.join(timeout=10)  # every accepted feedback reaches the recorder
-        log = get_logger(self.get_name())  # not the node's: /rosout is gone by now
         if waiting:
-            log.warning(f'{waiting} queued requests were not scored before shutdown')
+            self.get_logger().warning(f'{waiting} queued requests were not scored before shutdown')
         if self.recorder is not None:
             for entry in self.recorder.close():
-                log.error(f'feedback that could not be stored: {entry}')
-            log.info(f'recording closed: {self.recorder.path}')
+                self.get_logger().error(f'feedback that could not be stored: {entry}')
+            self.get_logger().info(f'recording closed: {self.recorder.path}')
 
 
 def main(args=None):
+    if usage.print_help_if_asked('ranker', __doc__, PARAMETERS,
+                                 'ros2 run stars_ros ranker --ros-args -p checkpoint:=model.pt -p top_k:=3', args):
+        return
     rclpy.init(args=args)
     node = None
     try:
@@ -642,8 +653,8 @@ def main(args=None):
         raise SystemExit(1) from None
     finally:
         if node is not None:
-            node.close()
             node.destroy_node()
+            node.close()
         rclpy.try_shutdown()
 
 

@@ -51,6 +51,13 @@ _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 _MAGIC = b'\x89MCAP0\r\n'
 
 
+def default_folder() -> Path:
+    """Where bags go unless told: ``$ROS_HOME/stars_ros/records`` (ROS_HOME unset or empty:
+    ``~/.ros``), where ROS keeps what nodes write (rcl's logs go to ``$ROS_HOME/log``), so a
+    node started from any folder, or by ``ros2 launch``, records to the same place."""
+    return Path(os.environ.get('ROS_HOME') or '~/.ros').expanduser() / 'stars_ros' / 'records'
+
+
 def qos_profile(depth: int = 10, transient_local: bool = False) -> dict:
     """A reliable publisher's QoS as rosbag2 stores it (``offered_qos_profiles`` entry), so
     ``ros2 bag play`` offers the same durability again (latched user ids stay latched)."""

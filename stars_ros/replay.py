@@ -5,7 +5,7 @@ then replay the old bag's ``/stars/scene`` and ``/stars/user_id``; the new ranki
 recorded by the ranker as usual. Each topic is published with the QoS it was recorded
 with (so user ids stay latched) and can be remapped like any topic.
 
-    ros2 run stars_ros replay --ros-args -p bag:=stars_records/stars_2026_01_01-12_00_00 -p rate:=2.0
+    ros2 run stars_ros replay --ros-args -p bag:=$HOME/.ros/stars_ros/records/stars_2026_01_01-12_00_00 -p rate:=2.0
 """
 from __future__ import annotations
 
@@ -21,9 +21,15 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from . import usage
 from .recording import bag_topics, read_messages
 
-DEFAULT_TOPICS = ['/stars/scene', '/stars/user_id']
+PARAMETERS = {  # name: (default, description)
+    'bag': ('', 'bag folder or MCAP file to play'),
+    'topics': (['/stars/scene', '/stars/user_id'], 'recorded topics to play; [""] plays them all'),
+    'rate': (1.0, 'speed factor: 1 recorded speed, 2 twice as fast, 0 as fast as possible'),
+    'wait_for_subscribers': (30.0, 'seconds to wait for a subscriber on every played topic'),
+}
 
 
 def _qos(profile: dict) -> QoSProfile:
@@ -39,14 +45,10 @@ class Replay(Node):
 
     def __init__(self, **kwargs):
         super().__init__('replay', **kwargs)
-        declare = self.declare_parameter
-        self.bag = declare('bag', '', ParameterDescriptor(description='bag folder or MCAP file to play')).value
-        self.wanted = list(declare('topics', DEFAULT_TOPICS, ParameterDescriptor(
-            description='recorded topics to play; [""] plays them all')).value)
-        self.rate = declare('rate', 1.0, ParameterDescriptor(
-            description='speed factor: 1 recorded speed, 2 twice as fast, 0 as fast as possible')).value
-        self.wait = declare('wait_for_subscribers', 30.0, ParameterDescriptor(
-            description='seconds to wait for a subscriber on every played topic')).value
+        value = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+                 for name, (default, text) in PARAMETERS.items()}
+        self.bag, self.wanted = value['bag'], list(value['topics'])
+        self.rate, self.wait = value['rate'], value['wait_for_subscribers']
         if not self.bag:
             raise ValueError('set the bag parameter: -p bag:=PATH')
         if self.rate < 0:
@@ -79,6 +81,9 @@ class Replay(Node):
 
 
 def main(args=None):
+    if usage.print_help_if_asked('replay', __doc__, PARAMETERS, 'ros2 run stars_ros replay --ros-args '
+                                 '-p bag:=$HOME/.ros/stars_ros/records/stars_2026_01_01-12_00_00 -p rate:=2.0', args):
+        return
     rclpy.init(args=args)
     node = None
     try:

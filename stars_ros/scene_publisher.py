@@ -21,9 +21,21 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from . import usage
 from .errors import DataError
 from .scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
 from .spinning import spin_until_shutdown
+
+PARAMETERS = {  # name: (default, description)
+    'source': ('', 'JSONL file of scenes; empty: random scenes'),
+    'user_id': ('', 'user id put in every request; empty: none'),
+    'rate': (2.0, 'requests per second'),
+    'count': (0, 'requests to publish before exiting; 0: no end'),
+    'placements': (0, f'0: rank the actions; 1..{len(PLACEMENTS)}: rank that many robot placements'),
+    'scene_id_prefix': ('scene-', 'scene ids are this prefix + a counter'),
+    'seed': (0, 'seed of the random scenes and of the file order'),
+    'wait_for_subscribers': (30.0, 'seconds to wait for a subscriber first'),
+}
 
 
 class ScenePublisher(Node):
@@ -31,16 +43,11 @@ class ScenePublisher(Node):
 
     def __init__(self, **kwargs):
         super().__init__('scene_publisher', **kwargs)
-        declare = self.declare_parameter
-        self.source = declare('source', '', _text('JSONL file of scenes; empty: random scenes')).value
-        self.user_id = declare('user_id', '', _text('user id put in every request; empty: none')).value
-        rate = declare('rate', 2.0, _text('requests per second')).value
-        self.count = declare('count', 0, _text('requests to publish before exiting; 0: no end')).value
-        self.placements = declare('placements', 0, _text(
-            f'0: rank the actions; 1..{len(PLACEMENTS)}: rank that many robot placements')).value
-        self.prefix = declare('scene_id_prefix', 'scene-', _text('scene ids are this prefix + a counter')).value
-        seed = declare('seed', 0, _text('seed of the random scenes and of the file order')).value
-        wait = declare('wait_for_subscribers', 30.0, _text('seconds to wait for a subscriber first')).value
+        value = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+                 for name, (default, text) in PARAMETERS.items()}
+        self.source, self.user_id, rate = value['source'], value['user_id'], value['rate']
+        self.count, self.placements, self.prefix = value['count'], value['placements'], value['scene_id_prefix']
+        seed, wait = value['seed'], value['wait_for_subscribers']
         if not rate > 0 or self.count < 0 or not 0 <= self.placements <= len(PLACEMENTS):
             raise ValueError(f'need rate > 0, count >= 0 and placements in 0..{len(PLACEMENTS)}')
         self.rng = np.random.default_rng(seed)
@@ -70,11 +77,10 @@ class ScenePublisher(Node):
         self.sent += 1
 
 
-def _text(description: str) -> ParameterDescriptor:
-    return ParameterDescriptor(description=description)
-
-
 def main(args=None):
+    if usage.print_help_if_asked('scene_publisher', __doc__, PARAMETERS, 'ros2 run stars_ros scene_publisher '
+                                 '--ros-args -p source:=raw/a.jsonl -p user_id:=a -p rate:=5.0 -p count:=10', args):
+        return
     rclpy.init(args=args)
     node = None
     try:

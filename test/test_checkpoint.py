@@ -79,6 +79,31 @@ def test_pickled_code_is_never_run(tmp_path, capsys):
     assert 'code ran' not in capsys.readouterr().out
 
 
+@pytest.mark.parametrize('content', [b'\x80\x02' + bytes(range(3, 256)) * 8, Payload()], ids=['garbled', 'code'])
+def test_refusal_gives_no_advice_to_load_unsafely(content, tmp_path):
+    """torch's own message advises weights_only=False or allow-listing globals, which would
+    run the file's pickled code: that advice must not reach users of this package."""
+    path = tmp_path / 'bad.pt'
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        torch.save({'metadata': content, 'state_dict': {}, 'digest': ''}, path)
+    with pytest.raises(CheckpointError) as caught:
+        load_checkpoint(path)
+    message = str(caught.value)
+    assert 'weights_only' not in message and 'safe_globals' not in message and 'trust' not in message
+    assert message.startswith(f'{path}: not a')
+
+
+@pytest.mark.parametrize('content, what', [(b'hello, this is text\n', 'not a torch zip/pickle file'),
+                                           (b'', 'an empty file')], ids=['text', 'empty'])
+def test_a_file_that_is_no_torch_file_is_named_as_such(content, what, tmp_path):
+    (tmp_path / 'model.pt').write_bytes(content)
+    with pytest.raises(CheckpointError) as caught:
+        load_checkpoint(tmp_path / 'model.pt')
+    assert str(caught.value) == f"{tmp_path / 'model.pt'}: not a stars_ros checkpoint ({what})"
+
+
 def test_incompatible_weights(tiny_checkpoint, tmp_path):
     content = torch.load(tiny_checkpoint, weights_only=True)
     content['metadata']['config']['model']['dim'] = 32

@@ -23,9 +23,12 @@ def workspace(tmp_path_factory):
 
 
 def colcon(workspace, *args):
-    env = dict(os.environ, PATH=f'{BIN}{os.pathsep}{os.environ["PATH"]}')
-    return subprocess.run([str(BIN / 'colcon'), *args], cwd=workspace, env=env, capture_output=True, text=True,
+    return subprocess.run([str(BIN / 'colcon'), *args], cwd=workspace, env=_env(), capture_output=True, text=True,
                           timeout=300)
+
+
+def _env():
+    return dict(os.environ, PATH=f'{BIN}{os.pathsep}{os.environ["PATH"]}')
 
 
 def test_colcon_sees_an_ament_python_package(workspace):
@@ -51,6 +54,22 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
         assert (share / 'stars_ros' / relative).is_file(), relative
     python_dirs = list((prefix / 'lib').glob('python3*/site-packages/stars_ros'))
     assert python_dirs and (python_dirs[0] / 'ranker.py').is_file()
+
+
+def test_source_install_setup_bash_finds_the_built_package(workspace):
+    """README: `source install/setup.bash` after `colcon build`; colcon writes setup.bash only
+    with colcon-bash installed (requirements.txt), else sourcing fails: no such file."""
+    prefix = workspace / 'install' / 'stars_ros'
+    code = 'import stars_ros.resources as r; print(r.__file__); print(r.share_path("launch/ranker.launch.py"))'
+    env = _env()
+    env.pop('STARS_ROS_SHARE', None)
+    sourced = subprocess.run(['bash', '-c', f'source install/setup.bash && echo "$AMENT_PREFIX_PATH" && '
+                              f"python -c '{code}'"], cwd=workspace, env=env, capture_output=True, text=True,
+                             timeout=120)
+    assert sourced.returncode == 0, sourced.stderr
+    ament_prefix_path, module, launch_file = sourced.stdout.split()
+    assert str(prefix) in ament_prefix_path.split(os.pathsep)
+    assert module.startswith(str(prefix)) and launch_file.startswith(str(prefix / 'share' / 'stars_ros'))
 
 
 def test_installed_ranker_finds_its_packaged_files(workspace):

@@ -107,6 +107,50 @@ def test_feedback():
         assert caught.value.kind == kind, text
 
 
+GRAPH = {'humans': [], 'room': [[0, 0], [1, 1], [2, 3]]}
+
+
+@pytest.mark.parametrize('parse, payload, words', [
+    (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'score': 1},
+     "feedback needs either 'action' (the action rated) or 'candidate'"),
+    (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'action': 'a', 'candidate': 'b', 'score': 1},
+     "either 'action' (the action rated) or 'candidate' (the candidate scene rated), exactly one of them"),
+    (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'action': 'a'}, "feedback needs 'score'"),
+    (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'action': 'a', 'score': 'high'},
+     "'score' must be number"),
+    (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'action': 'a', 'score': 1, 'rating': 1},
+     "'rating': not a field of feedback (its fields: user_id, scene_id, action, candidate, score)"),
+    (messages.parse_scene_request, {'scene_id': 's'}, "a scene request needs 'graph'"),
+    (messages.parse_scene_request, {'scene_id': 's', 'graph': {}}, "'graph' needs 'humans' and 'room'"),
+    (messages.parse_scene_request, {'scene_id': 's', 'graph': dict(GRAPH, humans=[
+        {'id': 1, 'xPos': 'near', 'yPos': 0, 'orientation': 0}])}, "'graph.humans[0].xPos' must be number"),
+    (messages.parse_scene_request, {'scene_id': 's', 'graph': GRAPH, 'candidates': [1]},
+     "'candidates' must be a list of action names or a list of candidate scenes"),
+])
+def test_schema_errors_name_the_field_in_words(parse, payload, words):
+    with pytest.raises(messages.BadMessage) as caught:
+        parse(json.dumps(payload))
+    assert caught.value.kind == 'schema' and words in str(caught.value)
+    assert 'data' not in str(caught.value) and 'definition' not in str(caught.value)
+    assert caught.value.scene_id == 's'
+
+
+@pytest.mark.parametrize('parse, text, scene_id', [
+    (messages.parse_feedback, '{"user_id": "g", "scene_id": "s7", "score": 1}', 's7'),
+    (messages.parse_feedback, '{"user_id": "g", "scene_id": "s7", "action": "a", "score": 1' + '0' * 400 + '}', 's7'),
+    (messages.parse_scene_request, '{"scene_id": "s7", "graph": {"humans": []}}', 's7'),
+    (messages.parse_scene_request, json.dumps({'scene_id': 's7', 'candidates': [
+        {'candidate': 'a', 'graph': GRAPH}, {'candidate': 'a', 'graph': GRAPH}]}), 's7'),
+    (messages.parse_scene_request, '{"scene_id": 7, "graph": {"humans": []}}', None),
+    (messages.parse_scene_request, '{"scene_id": "s7", "graph": ', None),
+])
+def test_refused_messages_carry_their_scene_id(parse, text, scene_id):
+    """stars/errors reports carry the request's scene id whenever the message had a usable one."""
+    with pytest.raises(messages.BadMessage) as caught:
+        parse(text)
+    assert caught.value.scene_id == scene_id
+
+
 def test_user_id():
     assert messages.parse_user_id('  g \n') == 'g'
     assert messages.parse_user_id('') is None

@@ -157,13 +157,17 @@ def test_bad_input_is_reported_on_both_topics_and_serving_goes_on(node, scenes):
     client.scene({'scene_id': 'fly', 'graph': scenes[0], 'candidates': ['fly']})
     client.scene({'scene_id': 'twin-ids', 'graph': dict(scenes[0], objects=[dict(scenes[0]['humans'][0])])})
     client.scene({'scene_id': 'after-the-bad-ones', 'graph': scenes[1]})
+    client.feedback({'user_id': KNOWN_USER, 'scene_id': 'no-action', 'score': 0.5})
     kinds = set(BAD_INPUTS) | {'unknown_action', 'scene_graph'}
     assert client.wait(lambda: kinds <= {e['kind'] for e in client.errors}, 20)
     assert client.wait(lambda: client.ranking_for('after-the-bad-ones') is not None, 20)
+    assert client.wait(lambda: 'no-action' in {e['scene_id'] for e in client.errors}, 20)
     by_scene = {e['scene_id']: e for e in client.errors}
     assert by_scene['fly']['kind'] == 'unknown_action' and 'fly' in by_scene['fly']['message']
     assert by_scene['twin-ids']['kind'] == 'scene_graph'
-    assert any(e['kind'] == 'schema' and 'humans' in e['message'] for e in client.errors)
+    assert by_scene['crowd']['kind'] == 'schema' and 'humans' in by_scene['crowd']['message']
+    assert by_scene['no-action']['kind'] == 'schema' and by_scene['no-action']['topic'] == '/stars/feedback'
+    assert "feedback needs either 'action'" in by_scene['no-action']['message']
 
     def reported(kind):
         return any(s.name.endswith(': ' + kind) and s.level == b'\x02' for d in client.diagnostics for s in d.status)
@@ -298,15 +302,25 @@ def test_replay_reruns_a_recorded_session(node, scenes, tmp_path):
     assert not any(r.get('not') for r in client.rankings)
 
 
-def test_demo_runs_to_its_summary(tiny_checkpoint, socnav1_root, tmp_path):
-    demo = subprocess.run([sys.executable, '-m', 'stars_ros.demo', '--checkpoint', str(tiny_checkpoint),
-                           '--data-root', str(socnav1_root), '--scenes', '3', '--placements', '3', '--rate', '10',
-                           '--domain-id', str(domain_id(5)), '--record-folder', str(tmp_path / 'records')],
-                          env=ros_env(domain_id(5)), capture_output=True, text=True, timeout=240)
-    assert demo.returncode == 0, demo.stdout + demo.stderr
-    assert re.search(r"People: '[abc]' and '[abc]'", demo.stdout)
-    assert demo.stdout.count('scene ') == 3 and 'Summary: 6 rankings' in demo.stdout
-    assert '6 rankings and 6 feedback ratings read back from MCAP. Ranker exit code 0.' in demo.stdout
+def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(tiny_checkpoint, socnav1_root, tmp_path):
+    """Each run records into a new temporary folder of its own (under TMPDIR here), so the
+    second restores none of the first run's folded-in users, and sends its feedback once
+    every ranking is in: the two runs print the same rankings, digit for digit."""
+    printed = []
+    for _ in range(2):
+        demo = subprocess.run([sys.executable, '-m', 'stars_ros.demo', '--checkpoint', str(tiny_checkpoint),
+                               '--data-root', str(socnav1_root), '--scenes', '3', '--placements', '3', '--rate', '10',
+                               '--domain-id', str(domain_id(5))], env=dict(ros_env(domain_id(5)), TMPDIR=str(tmp_path)),
+                              capture_output=True, text=True, timeout=240)
+        assert demo.returncode == 0, demo.stdout + demo.stderr
+        assert re.search(r"People: '[abc]' and '[abc]'", demo.stdout)
+        assert demo.stdout.count('scene ') == 3 and 'Summary: 6 rankings' in demo.stdout
+        assert '6 rankings and 6 feedback ratings read back from MCAP. Ranker exit code 0.' in demo.stdout
+        printed.append([line for line in demo.stdout.splitlines() if line.startswith(('scene ', '  '))])
+    assert len(printed[0]) == 9 and printed[0] == printed[1]
+    people_lines = [line for k, line in enumerate(printed[0]) if k % 3]
+    assert all(re.fullmatch(r'  +[abc]: (\w+ -?\d\.\d{3,5}( > )?){3}', line) for line in people_lines), people_lines
+    assert len(list(tmp_path.glob('stars_demo_*/records/stars_*'))) == 2
 
 
 # -- nodes of their own ------------------------------------------------------------------------
@@ -337,6 +351,7 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
         if process.poll() is None:
             process.kill()
         client.close()
+    assert 'Failed to publish log message' not in (tmp_path / 'ranker.log').read_text()  # a clean stop logs no error
     assert not (bag / recording.PID_FILE).exists()
     assert all(recording.is_finished(f) for f in bag.glob('*.mcap'))
     messages = list(recording.read_messages(bag))

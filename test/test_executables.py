@@ -1,0 +1,163 @@
+"""What a new user meets first: every executable's --help, where recordings go by default,
+the node defaults file and the launch file agreeing with the node, the demo's own state."""
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+import yaml
+
+from stars_ros import demo, recording, replay, scene_publisher, usage
+from stars_ros.ranker import PARAMETERS, STATE_FILE
+
+REPO = Path(__file__).resolve().parents[1]
+ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))
+TABLES = {'stars_ros.ranker': PARAMETERS, 'stars_ros.scene_publisher': scene_publisher.PARAMETERS,
+          'stars_ros.replay': replay.PARAMETERS}
+
+
+def test_every_console_script_has_a_parameter_table():
+    assert set(ENTRY_POINTS) >= {'ranker', 'scene_publisher', 'replay'}
+    assert set(ENTRY_POINTS.values()) == set(TABLES)
+
+
+@pytest.mark.parametrize('executable', [*ENTRY_POINTS, 'demo'])
+def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_path):
+    """Run as the console script runs it (``main()``), in an empty folder, with ROS_HOME
+    pointing at a folder that does not exist: rclpy.init would create ROS_HOME/log for rcl's
+    log files, and a node would record under ROS_HOME; neither may appear."""
+    ros_home, cwd = tmp_path / 'ros_home', tmp_path / 'cwd'
+    cwd.mkdir()
+    env = dict(os.environ, ROS_HOME=str(ros_home), ROS_DOMAIN_ID='231', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    env.pop('ROS_LOG_DIR', None)
+    module = ENTRY_POINTS.get(executable, 'stars_ros.demo')
+    shown = subprocess.run([sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())', '--help'],
+                           cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    assert not ros_home.exists() and not list(cwd.iterdir())
+    assert '[INFO]' not in shown.stderr and '[INFO]' not in shown.stdout
+    if executable == 'demo':
+        for option in ('--checkpoint', '--scenes', '--placements', '--record-folder', 'a new temporary folder'):
+            assert option in ' '.join(shown.stdout.split())
+        return
+    assert f'usage: ros2 run stars_ros {executable}' in shown.stdout and '-p NAME:=VALUE' in shown.stdout
+    for name, (default, description, *_) in TABLES[module].items():
+        if name == 'record_folder':
+            default = str(ros_home / 'stars_ros' / 'records')  # the child's ROS_HOME
+        assert f'  {name} (default {usage._value(default)})\n      {description}\n' in shown.stdout
+
+
+def test_help_is_asked_for_only_before_ros_args():
+    assert usage.asked_for_help(['ranker', '--help']) and usage.asked_for_help(['ranker', '-h'])
+    assert usage.asked_for_help(['ranker', '-h', '--ros-args', '-p', 'top_k:=3'])
+    assert not usage.asked_for_help(['ranker', '--ros-args', '-p', 'user_id:=--help'])
+    assert not usage.asked_for_help(['ranker'])
+
+
+def test_default_record_folder_is_under_ros_home(monkeypatch, tmp_path):
+    monkeypatch.setenv('ROS_HOME', str(tmp_path / 'ros'))
+    assert recording.default_folder() == tmp_path / 'ros' / 'stars_ros' / 'records'
+    monkeypatch.setenv('HOME', str(tmp_path / 'home'))
+    for unset in ('', None):
+        if unset is None:
+            monkeypatch.delenv('ROS_HOME')
+        else:
+            monkeypatch.setenv('ROS_HOME', unset)
+        assert recording.default_folder() == tmp_path / 'home' / '.ros' / 'stars_ros' / 'records'
+    monkeypatch.setenv('ROS_HOME', '~/elsewhere')
+    assert recording.default_folder() == tmp_path / 'home' / 'elsewhere' / 'stars_ros' / 'records'
+
+
+def test_the_ranker_records_under_ros_home_by_default():
+    assert PARAMETERS['record_folder'][0] == str(recording.default_folder())
+    assert Path(PARAMETERS['record_folder'][0]).is_absolute()
+
+
+def test_ranker_yaml_holds_the_node_defaults():
+    """config/ranker.yaml repeats the node's defaults for users to edit; it must not differ,
+    and it leaves record_folder to the node (its default depends on ROS_HOME)."""
+    values = yaml.safe_load((REPO / 'config' / 'ranker.yaml').read_text())['/**']['ros__parameters']
+    assert set(values) == set(PARAMETERS) - {'record_folder'}
+    for name, value in values.items():
+        default = PARAMETERS[name][0]
+        assert (type(value), value) == (type(default), default), name
+
+
+class _Recorded:
+    """Stands in for a launch action or description: keeps what the file passed."""
+
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+
+
+class _LaunchConfiguration:
+    def __init__(self, name):
+        self.name = name
+
+    def perform(self, context):
+        return context.launch_configurations[self.name]
+
+
+def _run_launch_file(monkeypatch, **given) -> tuple:
+    """launch/ranker.launch.py run as ros2 launch runs it with ``given`` arguments, on
+    stand-ins for launch and launch_ros (they do not install from PyPI): the declared
+    arguments and the ranker Node's keyword arguments."""
+    stand_ins = {'launch': {'LaunchDescription': _Recorded},
+                 'launch.actions': {'DeclareLaunchArgument': _Recorded, 'OpaqueFunction': _Recorded},
+                 'launch.substitutions': {'LaunchConfiguration': _LaunchConfiguration},
+                 'launch_ros': {}, 'launch_ros.actions': {'Node': _Recorded}}
+    for name, attributes in stand_ins.items():
+        monkeypatch.setitem(sys.modules, name, types.SimpleNamespace(**attributes))
+    import ament_index_python.packages
+    monkeypatch.setattr(ament_index_python.packages, 'get_package_share_directory', lambda package: '/share/' + package)
+    spec = importlib.util.spec_from_file_location('ranker_launch', REPO / 'launch' / 'ranker.launch.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    entities = module.generate_launch_description().args[0]
+    declared = {e.args[0]: e.kwargs for e in entities if 'default_value' in e.kwargs}
+    configurations = {name: given.get(name, kwargs['default_value']) for name, kwargs in declared.items()}
+    for name, kwargs in declared.items():
+        assert configurations[name] in kwargs.get('choices', [configurations[name]]), f'launch refuses {name}'
+    opaque = next(e for e in entities if 'function' in e.kwargs)
+    [node] = opaque.kwargs['function'](types.SimpleNamespace(launch_configurations=configurations))
+    return declared, node.kwargs
+
+
+def test_launch_arguments_are_node_parameters_and_record_false_turns_recording_off(monkeypatch):
+    declared, node = _run_launch_file(monkeypatch)
+    assert set(declared) - {'record'} <= set(PARAMETERS) and declared['record']['choices'] == ['true', 'false']
+    assert (node['package'], node['executable']) == ('stars_ros', 'ranker')
+    defaults_file, overrides = node['parameters']
+    assert defaults_file == '/share/stars_ros/config/ranker.yaml'
+    assert overrides == {}  # nothing given: the node's own defaults, record_folder under ROS_HOME included
+    _, node = _run_launch_file(monkeypatch, record='false')
+    assert node['parameters'][1] == {'record_folder': ''}
+    _, node = _run_launch_file(monkeypatch, record_folder='/data/bags', top_k='3')
+    overrides = node['parameters'][1]
+    assert {name: value.name for name, value in overrides.items()} == {'record_folder': 'record_folder',
+                                                                      'top_k': 'top_k'}
+
+
+def test_demo_scores_print_with_the_digits_that_tell_them_apart():
+    def reply(*scores):
+        return {'ranking': [{'candidate': f'c{k}', 'score': s} for k, s in enumerate(scores)]}
+    assert demo.score_decimals(reply(0.5, 0.25)) == 3
+    assert demo.score_decimals(reply(0.41237, 0.41231, 0.2)) == 4
+    assert demo.score_decimals(reply(0.5, 0.25), reply(0.412347, 0.412341)) == 5  # the same digits on both lines
+    assert demo.score_decimals(reply(0.7, 0.7, 0.1)) == 3  # ties stay ties
+    assert demo._line('a', reply(0.41237, 0.41231), 4) == '    a: c0 0.4124 > c1 0.4123'
+
+
+def test_demo_records_into_a_folder_of_its_own_unless_told(tmp_path, capsys):
+    assert demo.record_folder(None, tmp_path / 'run') == tmp_path / 'run' / 'records'
+    given = tmp_path / 'mine'
+    given.mkdir()
+    assert demo.record_folder(given, tmp_path / 'run') == given and not capsys.readouterr().out
+    (given / STATE_FILE).write_text('{}')
+    demo.record_folder(given, tmp_path / 'run')
+    assert 'holds folded-in users of an earlier run' in capsys.readouterr().out
