@@ -27,9 +27,9 @@ def main():
     parser.add_argument('--devices', default='cuda,cpu', help='comma-separated, timed in this order')
     parser.add_argument('--batches', type=int, default=20)
     args = parser.parse_args()
-    data = load_dataset(args.data_root)
-    protocol = ProtocolConfig.from_yaml(args.config)
+    protocol = ProtocolConfig.from_yaml(args.config)  # a bad config fails before the data loads
     base = protocol.experiment_config(args.backbone, args.variant)
+    data = load_dataset(args.data_root)
     rows = np.random.default_rng(0).permutation(len(data))
     size = base.training.batch_size
     for device in args.devices.split(','):

@@ -19,10 +19,13 @@ import shlex
 import sys
 import time
 from pathlib import Path
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
+from pydantic import Field, PrivateAttr, ValidationInfo, model_validator
 
+from stars_ros.config import Int, KeyedError, Section, TrainConfig, read_yaml, validate_under, validated
 from stars_ros.data import load_dataset
 from stars_ros.errors import ConfigError, StarsError
 from stars_ros.evaluation import DISPLAY, FitTask, ProtocolConfig, fit_executor, make_folds, run_fits
@@ -33,45 +36,75 @@ from .evaluate import METRIC_NAMES, git_state, write_csv
 
 REPO = Path(__file__).resolve().parents[1]
 CURVE_COLUMNS = ('setting', 'variant', 'fold', 'epoch', 'mse', 'rmse', 'pearson_r', 'ccc', 'n')
-KEYS = {'protocol', 'backbone', 'variants', 'pretrain_epochs', 'joint_epochs', 'every', 'settings'}
 
 
-def read_config(path: Path) -> dict:
-    try:
-        values = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as error:
-        raise ConfigError(f'cannot read {path}: {error}') from error
-    if not isinstance(values, dict) or set(values) != KEYS:
-        raise ConfigError(f'{path}: a learning-curve config has exactly the keys {sorted(KEYS)}')
-    if not 0 < values['every'] <= values['joint_epochs']:
-        raise ConfigError(f'{path}: need 0 < every <= joint_epochs')
-    if not values['settings'] or not all(isinstance(v, dict) for v in values['settings'].values()):
-        raise ConfigError(f'{path}: settings must map names to training settings')
-    values['protocol_config'] = ProtocolConfig.from_yaml(path.parent / values['protocol'])
-    if values['backbone'] not in values['protocol_config'].backbones:
-        raise ConfigError(f"{path}: backbone {values['backbone']} is not in {values['protocol']}")
-    return values
+class CurveConfig(Section):
+    """A learning-curve run (``config/learning_curve_*.yaml``); every key is required.
+
+    ``protocol`` is a protocol file relative to this one, whose outer row folds, seeds and
+    model sizes the curves use; ``backbone`` one of its backbones; ``settings`` maps a name
+    to training settings replacing the protocol's.
+    """
+
+    protocol: str
+    backbone: str
+    variants: Annotated[tuple[Literal['base', 'stars'], ...], Field(min_length=1)]
+    pretrain_epochs: Annotated[Int, Field(ge=0)]
+    joint_epochs: Annotated[Int, Field(ge=1)]
+    every: Annotated[Int, Field(ge=1)]
+    settings: Annotated[dict[str, dict[str, Any]], Field(min_length=1)]
+    _protocol: ProtocolConfig | None = PrivateAttr(None)
+
+    @model_validator(mode='after')
+    def _consistent(self, info: ValidationInfo) -> 'CurveConfig':
+        if self.every > self.joint_epochs:
+            raise KeyedError(('every',), f'must not exceed joint_epochs ({self.joint_epochs}), got {self.every}')
+        try:
+            protocol = ProtocolConfig.from_yaml(Path((info.context or {}).get('folder', '.')) / self.protocol)
+        except ConfigError as error:
+            raise KeyedError(('protocol',), error) from None
+        if self.backbone not in protocol.backbones:
+            raise KeyedError(('backbone',), f'{self.backbone!r} is not among the backbones of {self.protocol}: '
+                                            f'{list(protocol.backbones)}')
+        for name, training in self.settings.items():
+            for variant in self.variants:
+                base = protocol.experiment_config(self.backbone, variant).training.model_dump()
+                validate_under(('settings', name), TrainConfig, {**base, **training})
+        self._protocol = protocol
+        return self
+
+    @property
+    def protocol_config(self) -> ProtocolConfig:
+        return self._protocol
+
+    def to_dict(self) -> dict:
+        return self.model_dump(mode='json')
 
 
-def build_tasks(data, values: dict) -> list[tuple[str, str, FitTask]]:
+def read_config(path: Path) -> CurveConfig:
+    """The learning-curve config in ``path``, its protocol file read and checked too."""
+    return validated(CurveConfig, read_yaml(path), path, folder=Path(path).parent)
+
+
+def build_tasks(data, config: CurveConfig) -> list[tuple[str, str, FitTask]]:
     """(setting, variant, task) for every setting × variant × outer fold."""
-    protocol: ProtocolConfig = values['protocol_config']
+    protocol = config.protocol_config
     tasks = []
-    for setting, training in values['settings'].items():
-        for variant in values['variants']:
-            config = protocol.experiment_config(values['backbone'], variant).replace(
-                training={**training, 'pretrain_epochs': values['pretrain_epochs'],
-                          'joint_epochs': values['joint_epochs'], 'threads': 1})
+    for setting, training in config.settings.items():
+        for variant in config.variants:
+            experiment = protocol.experiment_config(config.backbone, variant).replace(
+                training={**training, 'pretrain_epochs': config.pretrain_epochs,
+                          'joint_epochs': config.joint_epochs, 'threads': 1})
             for seed in protocol.seeds:
                 for f, fold in enumerate(make_folds(data, 'rows', protocol.folds, seed)):
                     tasks.append((setting, variant, FitTask(f'{setting} {variant}', f'{seed}:{f}', 'curve',
-                                                            config.to_dict(), fold.train, fold.test,
-                                                            curve_at=tuple(range(values['every'], values['joint_epochs'] + 1,
-                                                                                 values['every'])))))
+                                                            experiment.to_dict(), fold.train, fold.test,
+                                                            curve_at=tuple(range(config.every, config.joint_epochs + 1,
+                                                                                 config.every)))))
     return tasks
 
 
-def summarise(points: list, values: dict) -> dict:
+def summarise(points: list) -> dict:
     """(setting, variant) -> epoch -> metric -> (mean, sd) over folds."""
     summary = {}
     for point in points:
@@ -81,15 +114,15 @@ def summarise(points: list, values: dict) -> dict:
                   for epoch, entries in sorted(series.items())} for key, series in summary.items()}
 
 
-def write_markdown(path: Path, summary: dict, values: dict, header: dict) -> None:
-    name = DISPLAY.get(values['backbone'], values['backbone'])
+def write_markdown(path: Path, summary: dict, config: CurveConfig, header: dict) -> None:
+    name = DISPLAY.get(config.backbone, config.backbone)
     keys = list(summary)
-    lines = [f"# Learning curves: {name} on the outer row folds of {values['protocol']}", '',
+    lines = [f"# Learning curves: {name} on the outer row folds of {config.protocol}", '',
              f"Command: `{header['command']}`", '',
              f"Git: {header['git']}; machine: {header['machine']}; wall {header['wall_seconds']:.0f} s.", '',
-             f"T1 = {values['pretrain_epochs']} pre-training epochs, then test metrics (rating scale, macro over "
-             f"actions, mean ± sd over folds) every {values['every']} joint epochs. Settings: "
-             + '; '.join(f'**{s}** {t}' for s, t in values['settings'].items()) + '.', '',
+             f"T1 = {config.pretrain_epochs} pre-training epochs, then test metrics (rating scale, macro over "
+             f"actions, mean ± sd over folds) every {config.every} joint epochs. Settings: "
+             + '; '.join(f'**{s}** {t}' for s, t in config.settings.items()) + '.', '',
              '## MSE by joint epoch (T2)', '',
              '| T2 | ' + ' | '.join(f'{s} {v}' for s, v in keys) + ' |',
              '| --- |' + ' --- |' * len(keys)]
@@ -147,7 +180,7 @@ def main(argv=None) -> int:
     try:
         if args.jobs < 1:
             raise StarsError('--jobs must be positive')
-        values = read_config(Path(args.config))
+        config = read_config(Path(args.config))
         data = load_dataset(args.data_root)
     except (StarsError, OSError) as error:
         print(f'error: {error}', file=sys.stderr)
@@ -158,12 +191,11 @@ def main(argv=None) -> int:
     header = {'command': command, 'git': git_state(), 'machine': machine()}
     (folder / 'command.txt').write_text(command + '\n')
     (folder / 'config.yaml').write_text(yaml.safe_dump(
-        {**{k: v for k, v in values.items() if k != 'protocol_config'},
-         'protocol_resolved': values['protocol_config'].to_dict(), 'data_fingerprint': data.fingerprint},
+        {**config.to_dict(), 'protocol_resolved': config.protocol_config.to_dict(), 'data_fingerprint': data.fingerprint},
         sort_keys=False))
     (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git']}, indent=2))
-    tasks = build_tasks(data, values)
-    print(f'{len(tasks)} fits of {values["joint_epochs"]} joint epochs; {args.jobs} job(s); writing {folder}',
+    tasks = build_tasks(data, config)
+    print(f'{len(tasks)} fits of {config.joint_epochs} joint epochs; {args.jobs} job(s); writing {folder}',
           flush=True)
     started = time.perf_counter()
     points, fits = [], []
@@ -184,12 +216,12 @@ def main(argv=None) -> int:
             print(f"[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = {last['epoch']} "
                   f"{last['mse']:.4f} ({scores['fit_seconds']:.0f} s)", flush=True)
     header['wall_seconds'] = time.perf_counter() - started
-    summary = summarise(points, values)
+    summary = summarise(points)
     write_csv(folder / 'curve.csv', points, CURVE_COLUMNS)
-    write_markdown(folder / 'results.md', summary, values, header)
+    write_markdown(folder / 'results.md', summary, config, header)
     plots = plot(folder, summary)
     (folder / 'results.json').write_text(json.dumps(
-        {**header, 'config': {k: v for k, v in values.items() if k != 'protocol_config'}, 'fits': fits,
+        {**header, 'config': config.to_dict(), 'fits': fits,
          'summary': {f'{s} {v}': series for (s, v), series in summary.items()}, 'plots': plots}, indent=1))
     print((folder / 'results.md').read_text())
     return 0

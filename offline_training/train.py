@@ -11,7 +11,6 @@ deployed model; no held-out figures then).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 
@@ -92,7 +91,7 @@ def main(argv=None) -> int:
     digest = save_checkpoint(
         recommender, args.out,
         data={'fingerprint': data.fingerprint, 'source': data.source, 'n_ratings': len(data),
-              'n_train': len(train), 'n_test': len(test), 'split': 'all rows' if args.all_rows else dataclasses.asdict(config.split)},
+              'n_train': len(train), 'n_test': len(test), 'split': 'all rows' if args.all_rows else config.split.model_dump()},
         metrics=metrics,
         provenance={'command': ' '.join(['python -m offline_training.train'] + (argv or sys.argv[1:])),
                     'train_seconds': round(seconds, 1),

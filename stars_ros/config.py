@@ -1,16 +1,21 @@
-"""Experiment configuration as frozen dataclasses: read from YAML, stored in checkpoints.
+"""Experiment configuration as frozen pydantic models: read from YAML, stored in checkpoints.
 
-Unknown keys are refused so that a typo in a YAML file never silently falls back to a
-default.
+Every section says its keys, types and ranges once. Unknown keys are refused, so that a
+typo in a YAML file never silently falls back to a default; a missing key takes its
+default (a checkpoint written before a key existed still loads). Numbers are strict: an
+integer setting refuses ``'64'`` and ``64.7``, a float setting refuses text. Every error
+names the file and the dotted key, e.g. ``config/socnav1_gat.yaml: training.lr: Input
+should be a valid number, got 'fast'``.
 """
 from __future__ import annotations
 
-import dataclasses
+import math
 import re
-from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Any, Literal
 
 import yaml
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
 
@@ -28,35 +33,147 @@ PARTS = {
 VARIANTS = ('base', *PARTS)
 ITEM_KEYINGS = ('identifier', 'prefix')
 
+#: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
+#: (an int is a float), NaN and infinities.
+Int = Annotated[int, Strict()]
+Float = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 
-def _build(cls, values, where):
+
+# -- errors -------------------------------------------------------------------------------
+class KeyedError(ValueError):
+    """Raised inside a validator about a key below the validated value: ``loc`` (a tuple of
+    keys) is appended to the validator's location. ``detail`` is a message, or the
+    ValidationError of a nested model (``model``) checked by hand."""
+
+    def __init__(self, loc: tuple, detail, model: type[BaseModel] | None = None):
+        super().__init__(str(detail))
+        self.loc, self.detail, self.model = tuple(loc), detail, model
+
+
+def _key(loc) -> str:
+    text = ''
+    for part in loc:
+        text += f'[{part}]' if isinstance(part, int) else (f'.{part}' if text else str(part))
+    return text
+
+
+def _allowed(model: type[BaseModel] | None, path) -> list | None:
+    """The keys of the model found at ``path`` below ``model`` (None if not a model)."""
+    for part in path:
+        field = model.model_fields.get(part) if model is not None else None
+        annotation = getattr(field, 'annotation', None)
+        model = annotation if isinstance(annotation, type) and issubclass(annotation, BaseModel) else None
+    return list(model.model_fields) if model is not None else None
+
+
+def _messages(error: ValidationError, model: type[BaseModel] | None, prefix: tuple = ()) -> list[str]:
+    """One ``dotted.key: message`` line per error of ``error`` (raised by ``model``)."""
+    lines, items = [], error.errors(include_url=False)
+    deeper = [item['loc'] for item in items]
+    for item in items:
+        loc, message, kind = prefix + tuple(item['loc']), item['msg'], item['type']
+        if kind == 'too_short' and any(len(other) > len(item['loc']) and other[:len(item['loc'])] == item['loc']
+                                       for other in deeper):
+            continue  # a sequence left short by its invalid items: those items are reported
+        given = item.get('input')
+        cause = (item.get('ctx') or {}).get('error')
+        if isinstance(cause, KeyedError):
+            if isinstance(cause.detail, ValidationError):
+                lines += _messages(cause.detail, cause.model, loc + cause.loc)
+                continue
+            loc, message = loc + cause.loc, str(cause.detail)
+        elif kind in ('value_error', 'assertion_error'):
+            message = str(cause) if cause is not None else message.split(', ', 1)[-1]
+        elif kind == 'extra_forbidden':
+            allowed = _allowed(model, item['loc'][:-1])
+            message = 'unknown key' + (f"; allowed: {', '.join(allowed)}" if allowed else '')
+        elif kind in ('model_type', 'model_attributes_type', 'dict_type'):
+            message = f'expected a mapping, got {type(given).__name__}'
+        elif kind == 'missing':
+            message = 'item missing' if isinstance(loc[-1], int) else 'required key missing'
+        elif loc and loc[-1] == '[key]':
+            loc, message = loc[:-1], f'not an allowed key: {message}'
+        if kind in _SHOW_INPUT:
+            message += f', got {given!r}'
+            if kind == 'float_type' and isinstance(given, str) and _is_number(given):
+                message += ' (YAML reads 1e-3 as text: write 1.0e-3)'
+        lines.append(f'{_key(loc)}: {message}' if loc else message)
+    return lines
+
+
+_SHOW_INPUT = {'int_type', 'float_type', 'bool_type', 'string_type', 'finite_number', 'literal_error',
+               'greater_than', 'greater_than_equal', 'less_than', 'less_than_equal'}
+
+
+def _is_number(text: str) -> bool:
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
+
+
+def validated(model: type[BaseModel], values, source=None, **context):
+    """``model`` validated from ``values``; a ValidationError becomes a ConfigError whose
+    lines read ``<source>: <dotted key>: <message>``."""
+    try:
+        return model.model_validate(values, context=context or None)
+    except ValidationError as error:
+        lines = _messages(error, model)
+    head = f'{source}: ' if source is not None else ''
+    raise ConfigError('\n'.join(head + line for line in lines))
+
+
+def validate_under(loc: tuple, model: type[BaseModel], values):
+    """Inside a validator: ``model`` validated from ``values``, its errors reported under
+    ``loc`` (e.g. a protocol's ``('backbones', 'gcn')``)."""
+    try:
+        return model.model_validate(values)
+    except ValidationError as error:
+        raise KeyedError(loc, error, model) from None
+
+
+def read_yaml(path) -> dict:
+    """The mapping in the YAML file ``path`` ({} for an empty file)."""
+    try:
+        values = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as error:
+        raise ConfigError(f'cannot read config {path}: {error}') from error
     if values is None:
-        return cls()
+        return {}
     if not isinstance(values, dict):
-        raise ConfigError(f'{where}: expected a mapping, got {type(values).__name__}')
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ConfigError(f'{where}: unknown keys {unknown}; allowed: {sorted(names)}')
-    return cls(**values)
+        raise ConfigError(f'{path}: a config must be a mapping, got {type(values).__name__}')
+    return values
 
 
-@dataclass(frozen=True)
-class EncoderConfig:
+class Section(BaseModel):
+    """Base of every config model: immutable, unknown keys refused."""
+
+    model_config = ConfigDict(extra='forbid', frozen=True)
+
+
+# -- the sections -------------------------------------------------------------------------
+class EncoderConfig(Section):
     """Scene encoder φθ: a registered backbone name and its sizes.
 
     ``options`` go to the backbone unchanged (e.g. ``heads`` for GAT and FT-Transformer).
     """
 
     name: str = 'gat'
-    hidden: int = 64
-    layers: int = 3
-    dropout: float = 0.0
-    options: dict = field(default_factory=dict)
+    hidden: Annotated[Int, Field(ge=1)] = 64
+    layers: Annotated[Int, Field(ge=1)] = 3
+    dropout: Annotated[Float, Field(ge=0.0, lt=1.0)] = 0.0
+    options: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator('name')
+    @classmethod
+    def _registered(cls, name: str) -> str:
+        from .encoders import ENCODERS, normalise_name  # torch: imported only when needed
+        if normalise_name(name) not in ENCODERS:
+            raise ValueError(f'unknown encoder {name!r}; registered: {", ".join(sorted(ENCODERS))}')
+        return name
 
 
-@dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(Section):
     """``variant``: ``base`` (encoder + linear head), ``stars`` (encoder fused with MF) or
     ``mf`` (biased matrix factorisation alone: StARS with h_i = 0, a content-free baseline).
 
@@ -65,21 +182,12 @@ class ModelConfig:
     names the data's keying of items for q_i and b_i (``RatingData.item_keys``).
     """
 
-    variant: str = 'stars'
-    dim: int = 64
-    item_key: str = 'identifier'
-
-    def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ConfigError(f"model.variant must be one of {list(VARIANTS)}, got '{self.variant}'")
-        if self.dim < 1:
-            raise ConfigError('model.dim must be positive')
-        if self.item_key not in ITEM_KEYINGS:
-            raise ConfigError(f"model.item_key must be one of {list(ITEM_KEYINGS)}, got '{self.item_key}'")
+    variant: Literal[VARIANTS] = 'stars'
+    dim: Annotated[Int, Field(ge=1)] = 64
+    item_key: Literal[ITEM_KEYINGS] = 'identifier'
 
 
-@dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Section):
     """Two-step training: ``pretrain_epochs`` (T1) of encoder + temporary head, then
     ``joint_epochs`` (T2) of the whole model. AdamW defaults are the published ones.
     ``embedding_l2`` weighs the L2 penalty on the user and scene rows of each batch during
@@ -87,76 +195,64 @@ class TrainConfig:
     ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
     fold-in and serving never see a GPU tensor."""
 
-    pretrain_epochs: int = 10
-    joint_epochs: int = 100
-    batch_size: int = 256
-    lr: float = 5e-5
-    weight_decay: float = 1e-5
-    grad_clip: float = 1.0
-    embedding_l2: float = 0.0
-    seed: int = 0
-    threads: int = 1
+    pretrain_epochs: Annotated[Int, Field(ge=0)] = 10
+    joint_epochs: Annotated[Int, Field(ge=0)] = 100
+    batch_size: Annotated[Int, Field(ge=1)] = 256
+    lr: Annotated[Float, Field(gt=0.0)] = 5e-5
+    weight_decay: Annotated[Float, Field(ge=0.0)] = 1e-5
+    grad_clip: Annotated[Float, Field(gt=0.0)] = 1.0
+    embedding_l2: Annotated[Float, Field(ge=0.0)] = 0.0
+    seed: Annotated[Int, Field(ge=0)] = 0
+    threads: Annotated[Int, Field(ge=1)] = 1
     device: str = 'cpu'
 
-    def __post_init__(self):
-        if self.pretrain_epochs < 0 or self.joint_epochs < 0:
-            raise ConfigError('epochs must be non-negative')
-        if self.embedding_l2 < 0:
-            raise ConfigError('embedding_l2 must be non-negative')
-        if self.batch_size < 1 or self.lr <= 0 or self.threads < 1:
-            raise ConfigError('batch_size, lr and threads must be positive')
-        if not isinstance(self.device, str) or not re.fullmatch(r'cpu|cuda(:\d+)?', self.device):
-            raise ConfigError(f"training.device must be 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
+    @field_validator('device')
+    @classmethod
+    def _device(cls, device: str) -> str:
+        if not re.fullmatch(r'cpu|cuda(:\d+)?', device):
+            raise ValueError(f"must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+        return device
 
 
-@dataclass(frozen=True)
-class SplitConfig:
+class SplitConfig(Section):
     """Seeded random split of annotation rows into train and test."""
 
-    test_fraction: float = 0.2
-    seed: int = 0
-
-    def __post_init__(self):
-        if not 0.0 < self.test_fraction < 1.0:
-            raise ConfigError('split.test_fraction must lie in (0, 1)')
+    test_fraction: Annotated[Float, Field(gt=0.0, lt=1.0)] = 0.2
+    seed: Annotated[Int, Field(ge=0)] = 0
 
 
-@dataclass(frozen=True)
-class ExperimentConfig:
-    encoder: EncoderConfig = field(default_factory=EncoderConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    training: TrainConfig = field(default_factory=TrainConfig)
-    split: SplitConfig = field(default_factory=SplitConfig)
+class ExperimentConfig(Section):
+    encoder: EncoderConfig = Field(default_factory=EncoderConfig)
+    model: ModelConfig = Field(default_factory=ModelConfig)
+    training: TrainConfig = Field(default_factory=TrainConfig)
+    split: SplitConfig = Field(default_factory=SplitConfig)
+
+    @model_validator(mode='before')
+    @classmethod
+    def _empty_sections(cls, values):
+        """A section written as an empty YAML key (``encoder:``) takes its defaults."""
+        if isinstance(values, dict):
+            return {key: {} if value is None and key in cls.model_fields else value for key, value in values.items()}
+        return values
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        return self.model_dump()
 
     @classmethod
-    def from_dict(cls, values: dict) -> 'ExperimentConfig':
-        sections = {'encoder': EncoderConfig, 'model': ModelConfig,
-                    'training': TrainConfig, 'split': SplitConfig}
-        top = values or {}
-        if not isinstance(top, dict):
-            raise ConfigError(f'config must be a mapping, got {type(top).__name__}')
-        unknown = sorted(set(top) - set(sections))
-        if unknown:
-            raise ConfigError(f'unknown top-level keys {unknown}; allowed: {sorted(sections)}')
-        try:
-            return cls(**{name: _build(section, top.get(name), name) for name, section in sections.items()})
-        except TypeError as error:
-            raise ConfigError(str(error)) from error
+    def from_dict(cls, values: dict | None, source=None) -> 'ExperimentConfig':
+        """Validate a mapping (a YAML file's, or a checkpoint's ``to_dict``); ``source``
+        (e.g. the file) heads every error message."""
+        if values is not None and not isinstance(values, dict):
+            raise ConfigError(f'{source or "config"}: a config must be a mapping, got {type(values).__name__}')
+        return validated(cls, values or {}, source)
 
     @classmethod
     def from_yaml(cls, path) -> 'ExperimentConfig':
-        try:
-            values = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError) as error:
-            raise ConfigError(f'cannot read config {path}: {error}') from error
-        return cls.from_dict(values or {})
+        return cls.from_dict(read_yaml(path), source=path)
 
     def replace(self, **sections) -> 'ExperimentConfig':
         """Copy with some sections changed, e.g. ``replace(model={'variant': 'base'})``."""
         values = self.to_dict()
         for name, changes in sections.items():
-            values[name] = {**values[name], **changes}
+            values[name] = {**values.get(name, {}), **changes}
         return ExperimentConfig.from_dict(values)

@@ -18,8 +18,7 @@ folds: ``rows`` (random examples, as published), ``cold-scene`` (grouped by scen
 test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds are
 grouped the same way, so the selection sees the situation it is selecting for; sweep samples
 are drawn over whole examples, so an example's actions never straddle a split. The model
-needs no special case:
-unseen scenes and users get zero embeddings and offsets.
+needs no special case: unseen scenes and users get zero embeddings and offsets.
 
 Every model of a table is scored on the same folds: the chosen backbones in the ``base``
 and ``stars`` variants, two baselines: ``population_mean`` (the training mean of each
@@ -33,7 +32,6 @@ the workers share the one GPU, each with its own CUDA context.
 from __future__ import annotations
 
 import concurrent.futures as futures
-import dataclasses
 import itertools
 import json
 import logging
@@ -42,13 +40,13 @@ import multiprocessing
 import pickle
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Callable, NamedTuple, Sequence
+from typing import Annotated, Any, Callable, Literal, NamedTuple, Sequence
 
 import numpy as np
-import yaml
+from pydantic import Field, field_validator, model_validator
 
-from .config import EncoderConfig, ExperimentConfig
+from .config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section, TrainConfig,
+                     read_yaml, validate_under, validated)
 from .data import RatingData
 from .errors import ConfigError, TrainingDivergedError
 from .metrics import regression_report
@@ -91,8 +89,7 @@ ABLATIONS = {
 }
 
 
-@dataclass(frozen=True)
-class ProtocolConfig:
+class ProtocolConfig(Section):
     """What one evaluation run trains and how (read from ``config/eval_*.yaml``).
 
     Args:
@@ -116,81 +113,78 @@ class ProtocolConfig:
     """
 
     name: str = 'socnav1'
-    folds: int = 5
-    inner_folds: int = 2
-    seeds: tuple = (0,)
-    grid: tuple = ((10, 100), (50, 100), (100, 100))
-    search: dict = field(default_factory=dict)
-    fractions: tuple = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
-    backbones: dict = field(default_factory=lambda: {'gat': {}})
-    variants: tuple = ('base', 'stars')
-    baselines: tuple = BASELINES
-    ablations: tuple = ()
-    ablation_backbones: tuple = ()
-    sweep_backbones: tuple = ()
-    error: str = 'mse'
-    experiment: dict = field(default_factory=dict)
+    folds: Annotated[Int, Field(ge=2)] = 5
+    inner_folds: Annotated[Int, Field(ge=2)] = 2
+    seeds: Annotated[tuple[Annotated[Int, Field(ge=0)], ...], Field(min_length=1)] = (0,)
+    grid: Annotated[tuple[tuple[Int, Int], ...], Field(min_length=1)] = ((10, 100), (50, 100), (100, 100))
+    search: dict[Literal[FAMILIES], dict[Literal[tuple(SEARCHABLE)], Annotated[list, Field(min_length=1)]]] = \
+        Field(default_factory=dict)
+    fractions: tuple[Annotated[Float, Field(gt=0.0, le=1.0)], ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+    backbones: dict[str, dict[str, Any] | None] = Field(default_factory=lambda: {'gat': {}})
+    variants: tuple[Literal['base', 'stars'], ...] = ('base', 'stars')
+    baselines: tuple[Literal[BASELINES], ...] = BASELINES
+    ablations: tuple[Literal[tuple(ABLATIONS)], ...] = ()
+    ablation_backbones: tuple[str, ...] = ()
+    sweep_backbones: tuple[str, ...] = ()
+    error: Literal['mse', 'rmse'] = 'mse'
+    experiment: dict[str, Any] = Field(default_factory=dict)
 
-    def __post_init__(self):
-        for name in ('seeds', 'variants', 'baselines', 'ablations', 'ablation_backbones', 'sweep_backbones',
-                     'fractions'):
-            object.__setattr__(self, name, tuple(getattr(self, name)))
-        object.__setattr__(self, 'grid', tuple(tuple(int(t) for t in pair) for pair in self.grid))
-        if self.folds < 2 or self.inner_folds < 2:
-            raise ConfigError('folds and inner_folds must be at least 2')
-        if not self.seeds:
-            raise ConfigError('seeds must not be empty')
-        if not self.grid or any(len(pair) != 2 or pair[0] < 0 or pair[1] < 1 for pair in self.grid):
-            raise ConfigError(f'grid must be a non-empty list of [T1, T2] pairs, T1 >= 0 and T2 >= 1, got {self.grid}')
-        if not isinstance(self.search, dict) or set(self.search) - set(FAMILIES):
-            raise ConfigError(f'search must map model families {list(FAMILIES)} to settings, got {self.search}')
-        for family, space in self.search.items():
-            if not isinstance(space, dict) or set(space) - set(SEARCHABLE):
-                raise ConfigError(f'search.{family} may vary {list(SEARCHABLE)}, got {space}')
-            if any(not isinstance(v, list) or not v for v in space.values()):
-                raise ConfigError(f'search.{family}: every setting needs a non-empty list of values')
-        if any(not 0.0 < f <= 1.0 for f in self.fractions):
-            raise ConfigError(f'fractions must lie in (0, 1], got {self.fractions}')
-        unknown = set(self.variants) - {'base', 'stars'}
-        if unknown or not self.variants and self.backbones:
-            raise ConfigError(f"variants must be a non-empty subset of ['base', 'stars'], got {list(self.variants)}")
-        if set(self.baselines) - set(BASELINES):
-            raise ConfigError(f'baselines must be a subset of {list(BASELINES)}, got {list(self.baselines)}')
-        if set(self.ablations) - set(ABLATIONS):
-            raise ConfigError(f'ablations must be a subset of {list(ABLATIONS)}, got {list(self.ablations)}')
-        if not isinstance(self.backbones, dict) or not (self.backbones or self.baselines):
-            raise ConfigError('backbones must be a mapping, and there must be a backbone or a baseline')
+    @field_validator('grid')
+    @classmethod
+    def _epoch_pairs(cls, grid: tuple) -> tuple:
+        for index, (t1, t2) in enumerate(grid):
+            if t1 < 0 or t2 < 1:
+                raise KeyedError((index,), f'need T1 >= 0 and T2 >= 1, got [{t1}, {t2}]')
+        return grid
+
+    @model_validator(mode='after')
+    def _consistent(self) -> 'ProtocolConfig':
+        """Cross-key checks, then every model the protocol trains is a valid experiment."""
+        if not self.variants and self.backbones:
+            raise KeyedError(('variants',), "must not be empty while there are backbones; give 'base' and/or 'stars'")
+        if not (self.backbones or self.baselines):
+            raise ValueError('there must be a backbone or a baseline')
         for name in ('sweep_backbones', 'ablation_backbones'):
-            if set(getattr(self, name)) - set(self.backbones):
-                raise ConfigError(f'{name} {list(getattr(self, name))} must be among backbones {list(self.backbones)}')
+            for index, backbone in enumerate(getattr(self, name)):
+                if backbone not in self.backbones:
+                    raise KeyedError((name, index), f'{backbone!r} is not among backbones {list(self.backbones)}')
         if self.ablation_backbones and 'stars' not in self.variants:
-            raise ConfigError('ablations follow the StARS variant: variants must include stars')
-        if self.error not in ('mse', 'rmse'):
-            raise ConfigError(f"error must be 'mse' or 'rmse', got '{self.error}'")
-        if 'mf' in self.baselines and not self.backbones and 'name' not in self.experiment.get('encoder', {}):
-            raise ConfigError('the mf baseline needs a backbone or experiment.encoder.name matching the data')
-        for spec in model_specs(self):  # refuses unknown keys and values early
-            if spec.variant == 'population_mean':
-                continue
-            for settings in _settings_candidates(self, spec):
-                self.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
+            raise KeyedError(('ablation_backbones',), 'ablations follow the StARS variant: variants must include stars')
+        if 'mf' in self.baselines and not self.backbones and 'name' not in (self.experiment.get('encoder') or {}):
+            raise KeyedError(('baselines',), 'the mf baseline needs a backbone or experiment.encoder.name matching '
+                                             'the data')
+        experiment = validate_under(('experiment',), ExperimentConfig, self.experiment)
+        for backbone, settings in self.backbones.items():
+            validate_under(('backbones', backbone), EncoderConfig,
+                           _merge(experiment.encoder.model_dump(), {**(settings or {}), 'name': backbone}))
+        sections = {'training': TrainConfig, 'model': ModelConfig}
+        for family, space in self.search.items():
+            for key, values in space.items():
+                section = SEARCHABLE[key]
+                for value in values:
+                    validate_under(('search', family), sections[section],
+                                   {**getattr(experiment, section).model_dump(), key: value})
+        try:  # anything left that only a whole model shows
+            for spec in model_specs(self):
+                if spec.variant != 'population_mean':
+                    for settings in _settings_candidates(self, spec):
+                        self.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
+        except ConfigError as error:
+            raise ValueError(str(error)) from None
+        return self
 
     def experiment_config(self, backbone: str | None, variant: str, settings: dict | None = None) -> ExperimentConfig:
         """The ExperimentConfig of one model (``backbone`` None: the experiment's encoder);
         ``settings`` (SEARCHABLE names, or ``item_key``) override the experiment's."""
         values = _merge(self.experiment, {'model': {'variant': variant}})
         if backbone is not None:
-            settings_of_backbone = self.backbones[backbone] or {}
-            unknown = set(settings_of_backbone) - {f.name for f in dataclasses.fields(EncoderConfig)} - {'name'}
-            if unknown:
-                raise ConfigError(f'backbones.{backbone}: unknown keys {sorted(unknown)}')
-            values = _merge(values, {'encoder': {**settings_of_backbone, 'name': backbone}})
+            values = _merge(values, {'encoder': {**(self.backbones[backbone] or {}), 'name': backbone}})
         for key, value in (settings or {}).items():
             values = _merge(values, {SEARCHABLE.get(key, 'model'): {key: value}})
         return ExperimentConfig.from_dict(values)
 
     def to_dict(self) -> dict:
-        values = dataclasses.asdict(self)
+        values = self.model_dump()
         for name in ('seeds', 'variants', 'baselines', 'ablations', 'ablation_backbones', 'sweep_backbones',
                      'fractions'):
             values[name] = list(values[name])
@@ -198,30 +192,19 @@ class ProtocolConfig:
         return values
 
     @classmethod
-    def from_dict(cls, values: dict, overrides: dict | None = None) -> 'ProtocolConfig':
+    def from_dict(cls, values: dict, overrides: dict | None = None, source=None) -> 'ProtocolConfig':
+        """Validate ``values`` with ``overrides`` merged in; ``source`` (e.g. the file) heads
+        every error message."""
         if not isinstance(values, dict):
-            raise ConfigError(f'protocol config must be a mapping, got {type(values).__name__}')
-        values = _merge(values, overrides or {})
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ConfigError(f'unknown protocol keys {unknown}; allowed: {sorted(names)}')
-        try:
-            return cls(**values)
-        except TypeError as error:
-            raise ConfigError(str(error)) from error
+            raise ConfigError(f'{source or "protocol config"}: must be a mapping, got {type(values).__name__}')
+        return validated(cls, _merge(values, overrides or {}), source)
 
     @classmethod
     def from_yaml(cls, path, overrides_path=None) -> 'ProtocolConfig':
         """Read ``path``; a second YAML ``overrides_path`` (e.g. the quick setting) merges in."""
-        return cls.from_dict(_read_yaml(path), _read_yaml(overrides_path) if overrides_path else None)
-
-
-def _read_yaml(path) -> dict:
-    try:
-        return yaml.safe_load(Path(path).read_text()) or {}
-    except (OSError, yaml.YAMLError) as error:
-        raise ConfigError(f'cannot read {path}: {error}') from error
+        if overrides_path is None:
+            return cls.from_dict(read_yaml(path), source=path)
+        return cls.from_dict(read_yaml(path), read_yaml(overrides_path), source=f'{path} (with {overrides_path})')
 
 
 # -- folds ------------------------------------------------------------------------------
@@ -429,7 +412,6 @@ class ModelSpec:
     family: str = ''        # whose search space: FAMILIES, or '' for a follower / the mean
     model: dict = field(default_factory=dict)  # model settings that differ (an ablation's)
     follows: str | None = None  # label of the spec whose per-fold choice this one takes
-    ablation: str | None = None
 
 
 def model_specs(config: ProtocolConfig) -> list[ModelSpec]:
@@ -447,8 +429,7 @@ def model_specs(config: ProtocolConfig) -> list[ModelSpec]:
             for ablation in config.ablations:
                 suffix, model = ABLATIONS[ablation]
                 specs.append(ModelSpec(f'{name} {suffix}', backbone, model.get('variant', 'stars'), '',
-                                       {k: v for k, v in model.items() if k != 'variant'}, f'{name} StARS',
-                                       ablation))
+                                       {k: v for k, v in model.items() if k != 'variant'}, f'{name} StARS'))
     return specs
 
 
@@ -461,7 +442,7 @@ def _settings_candidates(config: ProtocolConfig, spec: ModelSpec) -> list[dict]:
 def _candidates(config: ProtocolConfig, spec: ModelSpec) -> list[tuple[dict, tuple[int, int]]]:
     """(settings, (T1, T2)) worth trying; a content-free model skips pre-training, so only
     distinct T2 matter to it."""
-    if spec.variant in ('mf', 'user_bias'):
+    if spec.variant == 'mf':
         pairs = list(dict.fromkeys((0, t2) for _, t2 in config.grid))
     else:
         pairs = list(dict.fromkeys(config.grid))

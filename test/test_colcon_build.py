@@ -58,7 +58,7 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
 
 def test_source_install_setup_bash_finds_the_built_package(workspace):
     """README: `source install/setup.bash` after `colcon build`; colcon writes setup.bash only
-    with colcon-bash installed (requirements.txt), else sourcing fails: no such file."""
+    with colcon-bash installed (requirements-dev.txt), else sourcing fails: no such file."""
     prefix = workspace / 'install' / 'stars_ros'
     code = 'import stars_ros.resources as r; print(r.__file__); print(r.share_path("launch/ranker.launch.py"))'
     env = _env()

@@ -35,4 +35,4 @@ def test_train_reports_bad_config(tmp_path, socnav1_root):
     result = subprocess.run([sys.executable, '-m', 'offline_training.train', '--config', str(tmp_path / 'bad.yaml'),
                              '--data-root', str(socnav1_root), '--out', str(tmp_path / 'x.pt')],
                             cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert result.returncode == 2 and "unknown keys ['widht']" in result.stderr
+    assert result.returncode == 2 and f"{tmp_path / 'bad.yaml'}: encoder.widht: unknown key" in result.stderr
