@@ -1,10 +1,13 @@
 """Helpers for tests that run real nodes over loopback DDS.
 
-Each test module takes its own ROS domain (from the pid, so parallel runs of the suite do
-not hear each other) and discovery is limited to this machine.
+Each test process reserves a block of ROS domains for its lifetime (an exclusive lock on a
+file per block), so two runs of the suite on one machine never share a domain; each test
+module takes its own domain of the block, and discovery is limited to this machine.
 """
+import fcntl
 import json
 import os
+import tempfile
 import subprocess
 import sys
 import threading
@@ -27,9 +30,34 @@ RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+DOMAINS_PER_BLOCK = 12
+FIRST_DOMAIN, BLOCKS = 100, 10  # domains 100..219: clear of the default 0 and of Fast DDS's limit
+_reserved = {}
+
+
+def reserve_block() -> int:
+    """The first domain of a block no other process holds; the lock is kept (and released
+    by the OS) for this process's lifetime."""
+    if 'block' not in _reserved:
+        for block in range(BLOCKS):
+            handle = open(os.path.join(tempfile.gettempdir(), f'stars_ros_test_domains_{block}.lock'), 'w')
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.close()
+                continue
+            _reserved.update(block=FIRST_DOMAIN + block * DOMAINS_PER_BLOCK, handle=handle)
+            break
+        else:
+            raise RuntimeError(f'all {BLOCKS} blocks of test ROS domains are held by other runs')
+    return _reserved['block']
+
+
 def domain_id(offset: int) -> int:
-    """A ROS domain for this test process and ``offset`` (0..9), within 100..229."""
-    return 100 + (os.getpid() % 13) * 10 + offset
+    """This process's ROS domain number ``offset`` (0..11) of its reserved block."""
+    if not 0 <= offset < DOMAINS_PER_BLOCK:
+        raise ValueError(f'domain offset {offset} outside 0..{DOMAINS_PER_BLOCK - 1}')
+    return reserve_block() + offset
 
 
 def ros_env(domain: int) -> dict:
