@@ -3,6 +3,7 @@ import logging
 import os
 import platform
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -34,3 +35,23 @@ def cuda_info(device: str) -> dict:
 def format_metrics(metrics: dict) -> str:
     return (f"MSE {metrics['mse']:.4f}  RMSE {metrics['rmse']:.4f}  "
             f"Pearson r {metrics['pearson_r']:.4f}  CCC {metrics['ccc']:.4f}  (n={metrics['n']})")
+
+
+class Progress:
+    """``on_epoch`` callback of ``StarsRecommender.fit`` that prints one line per epoch to
+    ``stream``: stage, epoch, training loss, seconds per epoch and the time left."""
+
+    def __init__(self, recommender, pretrain_epochs: int, joint_epochs: int, stream=None):
+        self.recommender, self.stream = recommender, stream or sys.stderr
+        self.total = {'pretrain': pretrain_epochs, 'joint': joint_epochs}
+        self.left = pretrain_epochs + joint_epochs
+        self.started = self.last = time.perf_counter()
+
+    def __call__(self, stage: str, epoch: int) -> None:
+        now = time.perf_counter()
+        self.left -= 1
+        per_epoch = (now - self.started) / (sum(self.total.values()) - self.left)
+        loss = self.recommender.history[stage][-1]
+        print(f'{stage} epoch {epoch}/{self.total[stage]}: loss {loss:.4f}, {now - self.last:.2f} s, '
+              f'about {per_epoch * self.left:.0f} s left', file=self.stream, flush=True)
+        self.last = now

@@ -23,7 +23,7 @@ from stars_ros.errors import StarsError
 from stars_ros.metrics import regression_report
 from stars_ros.training import StarsRecommender, split_rows
 
-from .common import DEFAULT_SOCNAV1, cuda_info, format_metrics, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, setup_logging
 
 
 def parse_args(argv=None):
@@ -38,6 +38,7 @@ def parse_args(argv=None):
     parser.add_argument('--seed', type=int, help='override training seed')
     parser.add_argument('--device', help="override training.device: 'cpu', 'cuda' or 'cuda:N'")
     parser.add_argument('--all-rows', action='store_true', help='train on every rating (no held-out test)')
+    parser.add_argument('--quiet', action='store_true', help='no progress line per epoch (on stderr)')
     parser.add_argument('--verbose', action='store_true', help='log every epoch')
     return parser.parse_args(argv)
 
@@ -74,7 +75,10 @@ def main(argv=None) -> int:
     label = f'{config.encoder.name}-{config.model.variant}'
     started = time.perf_counter()
     try:
-        recommender = StarsRecommender(config).fit(data, train)
+        recommender = StarsRecommender(config)
+        pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
+        recommender.fit(data, train, on_epoch=None if args.quiet else Progress(
+            recommender, pretrain, config.training.joint_epochs))
     except StarsError as error:
         print(f'error: {error}', file=sys.stderr)
         return 1

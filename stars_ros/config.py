@@ -177,7 +177,7 @@ class ModelConfig(Section):
     """``variant``: ``base`` (encoder + linear head), ``stars`` (encoder fused with MF) or
     ``mf`` (biased matrix factorisation alone: StARS with h_i = 0, a content-free baseline).
 
-    The other variants are ablations of StARS (``stars_ros.model.PARTS``), for evaluation.
+    The other variants are ablations of StARS (``PARTS``), for evaluation.
     ``dim`` is the size of h_i and of the user, scene and action embeddings. ``item_key``
     names the data's keying of items for q_i and b_i (``RatingData.item_keys``).
     """
@@ -185,6 +185,11 @@ class ModelConfig(Section):
     variant: Literal[VARIANTS] = 'stars'
     dim: Annotated[Int, Field(ge=1)] = 64
     item_key: Literal[ITEM_KEYINGS] = 'identifier'
+
+    @property
+    def parts(self) -> frozenset:
+        """What the variant has of StARS (``PARTS``); ``base`` has only the content."""
+        return PARTS.get(self.variant, frozenset({'content'}))
 
 
 class TrainConfig(Section):

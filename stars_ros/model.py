@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import PARTS, VARIANTS
+from .config import VARIANTS, ModelConfig
 from .encoders import Encoder
 
 UNKNOWN = -1
@@ -57,7 +57,7 @@ class StarsModel(nn.Module):
         if variant not in VARIANTS:
             raise ValueError(f"Could not resolve variant '{variant}' among choices {list(VARIANTS)}")
         self.personalised = variant != 'base'
-        self.parts = PARTS.get(variant, frozenset({'content'}))
+        self.parts = ModelConfig(variant=variant).parts
         self.uses_content = 'content' in self.parts
         self.residual = 'residual' in self.parts
         self.n_actions = n_actions

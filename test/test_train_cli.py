@@ -24,6 +24,8 @@ def test_train_writes_checkpoint_with_held_out_metrics(tmp_path, socnav1_root):
     assert result.returncode == 0, result.stderr
     assert 'gcn-stars held-out: MSE' in result.stdout and 'Pearson r' in result.stdout and 'CCC' in result.stdout
     assert "identifier '01998 A'" in result.stdout  # the data decision is reported
+    assert 'pretrain epoch 1/1: loss' in result.stderr and 'joint epoch 1/1: loss' in result.stderr
+    assert 's left' in result.stderr
     metadata = read_checkpoint(out)['metadata']
     assert set(metadata['metrics']) >= {'mse', 'pearson_r', 'ccc'}
     assert metadata['data']['n_test'] == 1856
