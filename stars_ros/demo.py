@@ -35,7 +35,6 @@ import numpy as np
 from .errors import StarsError
 from .predictor import Predictor
 from .recording import read_messages
-from .resources import share_path
 from .scene_source import PLACEMENTS, placement_candidates, read_scenes
 
 SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT', Path(__file__).resolve().parents[2] / 'shared' / 'datasets'

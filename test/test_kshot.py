@@ -4,14 +4,15 @@ import json
 import numpy as np
 
 from offline_training import kshot
+from stars_ros.kshot import annotator_folds, reveal_pools
 
 
 def test_annotator_folds_and_pools_partition_the_data(socnav1):
-    folds = kshot.annotator_folds(socnav1.users, 3, seed=0)
+    folds = annotator_folds(socnav1.users, 3, seed=0)
     names = sorted(set(socnav1.users.tolist()))
     assert sorted(n for fold in folds for n in fold) == names and [len(f) for f in folds] == [4, 4, 4]
-    assert folds == kshot.annotator_folds(socnav1.users, 3, seed=0) != kshot.annotator_folds(socnav1.users, 3, seed=1)
-    pools = kshot.reveal_pools(socnav1, folds[0], 20, seed=0)
+    assert folds == annotator_folds(socnav1.users, 3, seed=0) != annotator_folds(socnav1.users, 3, seed=1)
+    pools = reveal_pools(socnav1, folds[0], 20, seed=0)
     for name, (revealed, test) in pools.items():
         rows = np.flatnonzero(socnav1.users == name)
         assert len(revealed) == 20 and not set(revealed) & set(test)

@@ -9,7 +9,6 @@ import json
 import signal
 import time
 
-import numpy as np
 import pytest
 from std_msgs.msg import String
 
