@@ -29,9 +29,9 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'ranker = stars_ros.ranker:main',
-            'scene_publisher = stars_ros.scene_publisher:main',
-            'replay = stars_ros.replay:main',
+            'ranker = stars_ros.ros.ranker:main',
+            'scene_publisher = stars_ros.ros.scene_publisher:main',
+            'replay = stars_ros.ros.replay:main',
         ],
     },
 )

@@ -108,7 +108,7 @@ def live(checkpoint: str, scenes: list, args) -> dict:
 
     client.node.create_subscription(String, '/stars/ranking', on_ranking, RELIABLE)
     with tempfile.TemporaryDirectory() as records:
-        process = start_node('stars_ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': records},
+        process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': records},
                              Path(records) / 'ranker.log')
         try:
             deadline = time.monotonic() + 120
@@ -227,7 +227,7 @@ def streamer_main(args) -> int:
     from std_msgs.msg import String
 
     from ros_helpers import RELIABLE
-    from stars_ros.spinning import spin_until_shutdown
+    from stars_ros.ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
     rclpy.init()

@@ -23,8 +23,8 @@ request per scene, user id included) and times scene → ranking:
 The ratios ranker / echo say what the model adds over the middleware floor. Before the
 nodes start, ``in_process`` times the steps of one request on one thread in this process
 (parse and validate, featurise, encode, score, build the reply), with the encoder in its
-serving form (GAT: compiled) and, as references measured in the same run, in its numpy dense
-form and its PyG sparse form.
+serving form (GAT: compiled; the others: dense numpy) and, as a reference measured in the
+same run, in its PyG sparse form.
 """
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
 from stars_ros.scene_source import read_scenes  # noqa: E402
-from stars_ros.spinning import spin_until_shutdown  # noqa: E402
+from stars_ros.ros.spinning import spin_until_shutdown  # noqa: E402
 
 QUEUE_DEPTH = 1000
 QOS = QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -229,15 +229,14 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
 
     from stars_ros import messages
     from stars_ros.predictor import Predictor
-    from stars_ros.ranker import resolve_checkpoint
-    from stars_ros.scene_graph import RELATIONS, featurise
-    from stars_ros.scene_store import GraphStore, dense_graphs
+    from stars_ros.resources import resolve_checkpoint
+    from stars_ros.scene_graph import featurise
+    from stars_ros.scene_store import GraphStore
     from stars_ros.serving import Pending, rank_batch
 
     torch.set_num_threads(1)
     predictor = Predictor.load(resolve_checkpoint(checkpoint))
     model = predictor.recommender.model
-    relations = len(RELATIONS) if model.encoder.uses_edge_type else None
     steps = {}
 
     def request_total(text):
@@ -246,20 +245,19 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
         return messages.dumps(messages.ranking_payload(request, 'alice', False, scored.ranked,
                                                        predictor.fingerprint, 1.0, scored.action, 0))
 
-    serving_encoder, dense_encoder = model.encoder.serving_form(), model.encoder.dense_form()
+    serving_encoder = model.encoder.serving_form()
     for k, (_, text) in enumerate(requests(scenes, 'in-process', count)):
         _, total = _timed(lambda: request_total(text))
         request, parse = _timed(lambda: messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES))
         graph, featurising = _timed(lambda: featurise(request.graphs[0], validate=False))
-        dense, sparse = dense_graphs([graph], relations), GraphStore([graph]).batch(torch.arange(1))
+        sparse = GraphStore([graph]).batch(torch.arange(1))
         _, encode_serving = _timed(lambda: serving_encoder([graph]))
-        _, encode_dense = _timed(lambda: dense_encoder(dense))
         with torch.inference_mode():
             _, encode_sparse = _timed(lambda: model.encode(sparse))
         _, score = _timed(lambda: predictor.score('alice', [request.graphs[0]], validate=False))
         if k >= 50:  # the first are warm-up
             for name, ms in (('request_total', total), ('parse_validate', parse), ('featurise', featurising),
-                             ('encode_serving', encode_serving), ('encode_dense', encode_dense),
+                             ('encode_serving', encode_serving),
                              ('encode_sparse_reference', encode_sparse),
                              ('featurise_encode_score', score)):
                 steps.setdefault(name, []).append(ms)
@@ -291,7 +289,7 @@ def main(argv=None) -> int:
     base_env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                     PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     with tempfile.TemporaryDirectory() as records:
-        ranker = [sys.executable, '-m', 'stars_ros.ranker', '--ros-args', '-p', f'record_folder:={records}',
+        ranker = [sys.executable, '-m', 'stars_ros.ros.ranker', '--ros-args', '-p', f'record_folder:={records}',
                   '-p', f'queue_depth:={QUEUE_DEPTH}']
         if args.checkpoint:
             ranker += ['-p', f'checkpoint:={args.checkpoint}']

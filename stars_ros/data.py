@@ -22,21 +22,23 @@ protocol is an *example*: one user's ratings of one scene, every action rated in
 scene with all actions as targets.
 Rules: every file must be non-empty; every score numeric and finite; every annotation's
 scene listed in the scene file; a (user, scene, action) triple appears once; scene keys
-are unique. Breaking a rule raises DataError naming the file and line. Scenes without
-ratings are kept (they cost nothing and may be scored later).
+are unique, and so are column names. Breaking a rule raises DataError naming the file and
+line (the header is line 1). Scenes without ratings are kept (they cost nothing and may be
+scored later). The CSV files are read with pandas.
 """
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import logging
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from .errors import DataError, SceneGraphError
 from .scene_graph import FEATURISER_VERSION, featurise
@@ -240,30 +242,81 @@ def load_socnav1(root) -> RatingData:
         keyings={'prefix': [key.split(' ')[0] for key in scene_keys]})
 
 
-def _read_csv(path, required_first):
-    """Rows of a CSV as (line number, dict); checks header and emptiness."""
+def _csv_cells(path, nrows=None) -> pd.DataFrame:
+    """The records of a CSV as strings, the header row included, blank lines kept: a field
+    a record lacks is NaN, an empty one ''. ParserError for a record longer than the first."""
+    return pd.read_csv(path, header=None, dtype=str, keep_default_na=False, skip_blank_lines=False,
+                       engine='python', nrows=nrows)
+
+
+def _line_breaks(cells: pd.DataFrame) -> np.ndarray:
+    """Line breaks inside each record's quoted fields: a record spans that many more lines."""
+    return cells.apply(lambda column: column.str.count(r'\r\n|\r|\n')).sum(axis=1).to_numpy(dtype=np.int64)
+
+
+def _read_csv(path, required_first) -> tuple:
+    """(header, rows) of a CSV: rows as stripped strings in the header's columns, indexed by
+    file line (the header is line 1), blank rows dropped. Checks the header, every row's
+    field count and emptiness."""
     if not path.exists():
         raise DataError(f'{path}: file missing')
-    with path.open(newline='') as handle:
-        reader = csv.reader(handle)
-        header = next(reader, None)
-        if header is None:
-            raise DataError(f'{path}: empty file')
-        header = [h.strip() for h in header]
-        missing = [c for c in required_first if c not in header]
-        if missing:
-            raise DataError(f'{path}:1: missing columns {missing} (header is {header})')
-        rows = []
-        for row in reader:
-            number = reader.line_num
-            if not any(cell.strip() for cell in row):
-                continue
-            if len(row) != len(header):
-                raise DataError(f'{path}:{number}: {len(row)} fields, header has {len(header)}')
-            rows.append((number, dict(zip(header, (cell.strip() for cell in row)))))
-    if not rows:
+    too_long = None
+    try:
+        cells = _csv_cells(path)
+    except pd.errors.EmptyDataError:
+        raise DataError(f'{path}: empty file') from None
+    except pd.errors.ParserError as error:  # a record with more fields than the header
+        found = re.search(r'Expected (\d+) fields in line (\d+), saw (\d+)', str(error))
+        if found is None:
+            raise DataError(f'{path}: {error}') from None
+        expected, record, saw = map(int, found.groups())
+        cells = _csv_cells(path, nrows=record - 1)  # the records before it, checked first
+        too_long = (record + int(_line_breaks(cells).sum()), saw)
+    breaks = _line_breaks(cells)
+    cells.index = 1 + np.arange(len(cells)) + np.cumsum(breaks) - breaks
+    header = [name.strip() for name in cells.iloc[0].fillna('')] if len(cells) else []  # a lone line break: no header
+    missing = [c for c in required_first if c not in header]
+    if missing:
+        raise DataError(f'{path}:1: missing columns {missing} (header is {header})')
+    repeated = sorted({name for name in header if header.count(name) > 1})
+    if repeated:
+        raise DataError(f'{path}:1: repeated columns {repeated}')
+    rows = cells.iloc[1:].apply(lambda column: column.str.strip())
+    rows.columns = header
+    rows = rows[rows.fillna('').ne('').any(axis=1)]
+    fields = cells.loc[rows.index].notna().sum(axis=1)
+    short = fields < len(header)
+    if short.any():
+        line = short.idxmax()
+        raise DataError(f'{path}:{line}: {fields[line]} fields, header has {len(header)}')
+    if too_long is not None:
+        raise DataError(f'{path}:{too_long[0]}: {too_long[1]} fields, header has {len(header)}')
+    if rows.empty:
         raise DataError(f'{path}: no data rows')
     return header, rows
+
+
+def _numbers(column: pd.Series) -> tuple:
+    """(values, not a number, not finite) of a column of strings, read as ``float`` reads
+    them ('nan' is a number that is not finite)."""
+    values = pd.to_numeric(column, errors='coerce')
+    not_number = values.isna() & ~column.str.fullmatch(r'[+-]?nan', case=False)
+    return values, not_number, ~np.isfinite(values) & ~not_number
+
+
+def _raise_first(path, problems) -> None:
+    """Raise DataError for the first line at fault: ``problems`` are (mask over lines,
+    message of a line), in the order one line is checked; the earliest line wins."""
+    found = [(mask.idxmax(), k) for k, (mask, _) in enumerate(problems) if mask.any()]
+    if found:
+        line, k = min(found)
+        raise DataError(f'{path}:{line}: {problems[k][1](line)}')
+
+
+def _first_line(column: pd.Series, line) -> int | None:
+    """The line where ``column``'s value at ``line`` first occurs, None if there."""
+    first = column.index[column == column[line]][0]
+    return None if first == line else first
 
 
 def _load_generic_scenes(root):
@@ -271,27 +324,24 @@ def _load_generic_scenes(root):
     table, lines = root / 'scenes.csv', root / 'scenes.jsonl'
     if table.exists() == lines.exists():
         raise DataError(f'{root}: needs exactly one of scenes.csv or scenes.jsonl')
-    keys, where = [], {}
     if table.exists():
         header, rows = _read_csv(table, ['scene'])
         names = [h for h in header if h != 'scene']
         if not names:
             raise DataError(f'{table}:1: no feature columns after scene')
-        features = np.empty((len(rows), len(names)))
-        for r, (number, row) in enumerate(rows):
-            key = row['scene']
-            if not key or key in where:
-                raise DataError(f'{table}:{number}: scene key {key!r} empty or repeated (first at line {where.get(key)})')
-            where[key] = number
-            keys.append(key)
-            for c, name in enumerate(names):
-                try:
-                    features[r, c] = float(row[name])
-                except ValueError:
-                    raise DataError(f'{table}:{number}: column {name} value {row[name]!r} is not a number') from None
-                if not math.isfinite(features[r, c]):
-                    raise DataError(f'{table}:{number}: column {name} is not finite')
-        return keys, TabularStore(features, names), table
+        keys = rows['scene']
+        problems = [(keys.eq('') | keys.duplicated(), lambda line: (
+            f'scene key {keys[line]!r} empty or repeated (first at line {_first_line(keys, line)})'))]
+        features = []
+        for name in names:
+            values, not_number, not_finite = _numbers(rows[name])
+            problems += [
+                (not_number, lambda line, name=name: f'column {name} value {rows[name][line]!r} is not a number'),
+                (not_finite, lambda line, name=name: f'column {name} is not finite')]
+            features.append(values.to_numpy(dtype=np.float64))
+        _raise_first(table, problems)
+        return keys.tolist(), TabularStore(np.stack(features, axis=1), names), table
+    keys, where = [], {}
     graphs = []
     text = lines.read_text().splitlines()
     for number, line in enumerate(text, 1):
@@ -315,26 +365,21 @@ def load_generic(root) -> RatingData:
     path = root / 'annotations.csv'
     _, rows = _read_csv(path, ANNOTATION_COLUMNS)
     index = {key: i for i, key in enumerate(keys)}
-    seen = {}
-    users, scenes, actions, scores = [], [], [], []
-    for number, row in rows:
-        for column in ANNOTATION_COLUMNS:
-            if not row[column]:
-                raise DataError(f'{path}:{number}: {column} is empty')
-        if row['scene'] not in index:
-            raise DataError(f"{path}:{number}: scene {row['scene']!r} is not in {scene_file.name}")
-        triple = (row['user'], row['scene'], row['action'])
-        if triple in seen:
-            raise DataError(f'{path}:{number}: duplicate rating of {triple} (first at line {seen[triple]})')
-        seen[triple] = number
-        users.append(row['user'])
-        scenes.append(index[row['scene']])
-        actions.append(row['action'])
-        scores.append(_score(path, number, row['score']))
-    action_names = tuple(sorted(set(actions)))
+    triples = list(ANNOTATION_COLUMNS[:3])
+    scores, not_number, not_finite = _numbers(rows['score'])
+    empty = [(rows[column].eq(''), lambda line, column=column: f'{column} is empty') for column in ANNOTATION_COLUMNS]
+    _raise_first(path, empty + [
+        (~rows['scene'].isin(keys), lambda line: f"scene {rows['scene'][line]!r} is not in {scene_file.name}"),
+        (rows.duplicated(triples), lambda line: (
+            f'duplicate rating of {tuple(rows.loc[line, triples])} (first at line '
+            f'{rows.index[(rows[triples] == rows.loc[line, triples]).all(axis=1)][0]})')),
+        (not_number, lambda line: f"score {rows['score'][line]!r} is not a number"),
+        (not_finite, lambda line: f"score {rows['score'][line]!r} is not a finite number")])
+    action_names = tuple(sorted(set(rows['action'])))
     action_index = {name: i for i, name in enumerate(action_names)}
+    scores = scores.to_numpy(dtype=np.float64)
     return RatingData(
-        users=np.array(users), scenes=np.array(scenes, dtype=np.int64),
-        actions=np.array([action_index[a] for a in actions], dtype=np.int64),
-        scores=np.array(scores), scene_keys=keys, store=store, action_names=action_names,
-        fingerprint=_digest([path, scene_file]), source=str(root), scale=(min(scores), max(scores)))
+        users=np.array(rows['user'].tolist()), scenes=rows['scene'].map(index).to_numpy(dtype=np.int64),
+        actions=rows['action'].map(action_index).to_numpy(dtype=np.int64),
+        scores=scores, scene_keys=keys, store=store, action_names=action_names,
+        fingerprint=_digest([path, scene_file]), source=str(root), scale=(float(scores.min()), float(scores.max())))

@@ -5,9 +5,9 @@ With everything but the user fixed, the model's normalised prediction is linear 
 
     z(u, i, a) = p_uᵀ(q̄_i ⊙ r_a) + b_u + [h_iᵀ r_a + b_i + b],    q̄_i = q_i + h_i
 
-(q_i = 0, b_i = 0 for scenes unseen in training). For ratings (i_j, a_j, y_j) with
-z_j = (y_j − μ_a) / σ_a, x_j = [q̄_i ⊙ r_a, 1] and c_j = h_iᵀ r_a + b_i + b, the fold-in is
-ridge regression of z_j − c_j on x_j towards a prior θ₀:
+(q_i = 0, b_i = 0 for scenes unseen in training; the ablations without the residual term
+drop h_iᵀ r_a). For ratings (i_j, a_j, y_j) with z_j = (y_j − μ_a) / σ_a, x_j = [q̄_i ⊙ r_a, 1]
+and c_j the bracket, the fold-in is ridge regression of z_j − c_j on x_j towards a prior θ₀:
 
     θ_u = argmin Σ_j (x_jᵀθ − (z_j − c_j))² + λ ‖θ − θ₀‖²
         = (XᵀX + λI)⁻¹ (Xᵀ(z − c) + λθ₀),
@@ -19,7 +19,9 @@ are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene
 and the ranker node hands over the h its ranking of the rated scene computed
 (``remember``): re-solving a user after one more rating is then one solve.
 
-ROS-free: the ranker node, the offline refit and the k-shot evaluation all use ``FoldIn``.
+x_j and c_j come from the predictor's ``InferenceModel.linear_form``: the weights and the
+arithmetic the node scores with, not a copy of them. ROS-free: the ranker node, the offline
+refit and the k-shot evaluation all use ``FoldIn``.
 """
 from __future__ import annotations
 
@@ -129,31 +131,30 @@ class FoldIn:
             raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
         self.predictor = predictor
         self.recommender = recommender
+        self.inference = predictor.inference  # the weights and the scoring arithmetic, shared
         self.actions = tuple(recommender.action_names)
         self._action_index = {a: k for k, a in enumerate(self.actions)}
-        self.action_rows = model.action_embedding.detach().double().numpy()
-        self.scene_rows = model.scene_embedding.weight.detach().double().numpy()
-        self.scene_offsets = model.scene_bias.weight.detach().double().numpy()[:, 0]
-        self.bias = float(model.bias.detach())
-        self.target_mean = model.target_mean.detach().double().numpy()
-        self.target_std = model.target_std.detach().double().numpy()
-        self.user_rows = np.concatenate([model.user_embedding.weight.detach().double().numpy(),
-                                         model.user_bias.weight.detach().double().numpy()], axis=1)
-        self.population = self.user_rows.mean(0) if len(recommender.users) else np.zeros(self.user_rows.shape[1])
-        self.dim = self.action_rows.shape[1]
+        self.dim = self.inference.dim
+        self.population = (self._user_row(slice(None)).mean(0) if len(recommender.users)
+                           else np.zeros(self.dim + 1))
         self._cache = collections.OrderedDict()
         self._cache_scenes = cache_scenes
         self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
         self._lock = threading.Lock()
         solve_ridge(np.ones((1, self.dim + 1)), np.zeros(1), self.population, 1.0)  # a process's first
-        # LAPACK solve costs ~10 ms here: paid at load, not by the first feedback
+        # LAPACK solve costs milliseconds: paid at load, not by the first feedback
+
+    def _user_row(self, row) -> np.ndarray:
+        """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
+        inference = self.inference
+        return np.concatenate([inference.user_rows[row], inference.user_offsets[row, None]], axis=-1).astype(np.float64)
 
     # -- pieces ------------------------------------------------------------------------
     def prior(self, user_id=None) -> np.ndarray:
         """θ₀ = (p, b_u): the user's trained row if the checkpoint knows them, else the
         population mean."""
         row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
-        return self.population.copy() if row == UNKNOWN else self.user_rows[row].copy()
+        return self.population.copy() if row == UNKNOWN else self._user_row(row)
 
     def action_index(self, actions: Sequence[str]) -> np.ndarray:
         unknown = sorted({a for a in actions if a not in self._action_index})
@@ -162,23 +163,17 @@ class FoldIn:
         return np.array([self._action_index[a] for a in actions], dtype=np.int64)
 
     def to_z(self, scores, actions: np.ndarray) -> np.ndarray:
-        return (np.asarray(scores, dtype=np.float64) - self.target_mean[actions]) / self.target_std[actions]
+        return self.inference.to_z(scores, actions)
 
     def to_rating_scale(self, z, actions: np.ndarray) -> np.ndarray:
         """Scores of normalised predictions, clipped to the checkpoint's rating scale."""
-        return self.recommender.clip(np.asarray(z) * self.target_std[actions] + self.target_mean[actions])
+        return self.recommender.clip(self.inference.to_rating_scale(z, actions))
 
     def design_from_h(self, h, scene_keys: Sequence, actions: np.ndarray) -> tuple:
-        """(x [n, dim+1], c [n]) for ratings whose scenes are encoded as ``h`` [n, dim]."""
-        h = np.asarray(h, dtype=np.float64)
-        rows = self.recommender.scene_index(list(scene_keys)).numpy()
-        known = rows != UNKNOWN
-        q = np.where(known[:, None], self.scene_rows[np.maximum(rows, 0)], 0.0)
-        scene_offset = np.where(known, self.scene_offsets[np.maximum(rows, 0)], 0.0)
-        r = self.action_rows[actions]
-        x = np.concatenate([(q + h) * r, np.ones((len(h), 1))], axis=1)
-        c = (h * r).sum(1) + scene_offset + self.bias
-        return x, c
+        """(x [n, dim+1], c [n]) (float64) for ratings whose scenes are encoded as ``h``
+        [n, dim]: ``InferenceModel.linear_form``, the model's z = xᵀθ + c."""
+        rows = self.recommender.scene_vocabulary.rows(list(scene_keys))
+        return self.inference.linear_form(np.asarray(h, dtype=np.float64), rows, actions)
 
     def remember(self, scenes: Sequence, rows: np.ndarray) -> None:
         """Cache h [len(scenes), dim] of ``scenes``, encoded by this FoldIn's predictor (the

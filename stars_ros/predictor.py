@@ -69,6 +69,11 @@ class Predictor:
         return cls(recommender, metadata, digest)
 
     @property
+    def inference(self) -> InferenceModel:
+        """The numpy weights and scoring arithmetic this predictor serves with (read-only)."""
+        return self._inference
+
+    @property
     def input_kind(self) -> str:
         return self.recommender.model.encoder.input_kind
 

@@ -9,7 +9,10 @@ import os
 import sys
 from pathlib import Path
 
+from .errors import CheckpointError
+
 PACKAGE = 'stars_ros'
+DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'
 
 
 def _candidate_roots():
@@ -34,3 +37,15 @@ def share_path(relative: str) -> Path:
             return path
         tried.append(str(path))
     raise FileNotFoundError(f'{relative} not found; looked in: ' + ', '.join(tried))
+
+
+def resolve_checkpoint(value: str) -> str:
+    """A checkpoint parameter or option as a path: the packaged ``DEFAULT_CHECKPOINT`` when
+    it is empty."""
+    if value:
+        return value
+    try:
+        return str(share_path(DEFAULT_CHECKPOINT))
+    except FileNotFoundError as error:
+        raise CheckpointError(f'no checkpoint given and the packaged default is missing ({error}); '
+                              'pass --ros-args -p checkpoint:=PATH') from None

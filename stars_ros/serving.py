@@ -1,4 +1,5 @@
-"""Rank a batch of queued scene requests with one model snapshot: the ranker node's core.
+"""Rank a batch of queued scene requests with one model snapshot, and keep the figures the
+ranker reports (``BusySpans``, ``PeriodStats``, ``Problems``); ``ranker_core`` uses them.
 
 ROS-free. When scenes arrive faster than they are scored, the node scores everything
 queued (up to ``max_batch``) in one call, and requests of the same user are encoded in one
@@ -9,6 +10,8 @@ request only fails itself: a group that raises is scored again one request at a 
 from __future__ import annotations
 
 import collections
+import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +19,8 @@ import numpy as np
 from .errors import SceneGraphError, StarsError, UnknownActionError
 from .messages import BadMessage, SceneRequest
 from .predictor import rank_order
+
+WARNINGS = ('unknown_user', 'unknown_scene', 'user_models')  # kinds of problem that are warnings, not errors
 
 
 @dataclass(frozen=True)
@@ -187,3 +192,38 @@ class PeriodStats:
             values['period.fold_in_delay_ms.max'] = round(self.delay_max, 3)
             values['period.delayed_processing_ms.max'] = round(self.delayed_processing_max, 3)
         return values
+
+
+class Problems:
+    """The problems a node reports, by kind: totals since start, and the count and latest
+    detail of each kind since the last /diagnostics. Decides which reports are logged: at
+    most one line per kind every ``throttle`` seconds. Thread-safe (the node's own threads
+    report too)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._counts = collections.Counter()
+        self._period = {}  # kind -> (count, latest detail) since the last take_period
+        self._last_log = {}
+
+    def add(self, kind: str, detail: str, throttle: float) -> int | None:
+        """Count one problem; its kind's total when it is to be logged, else None."""
+        now = time.monotonic()
+        with self._lock:
+            self._counts[kind] += 1
+            self._period[kind] = (self._period.get(kind, (0, ''))[0] + 1, detail)
+            if now - self._last_log.get(kind, -1e9) < throttle:
+                return None
+            self._last_log[kind] = now
+            return self._counts[kind]
+
+    def ranked(self) -> None:
+        with self._lock:
+            self._counts['ranking'] += 1
+
+    def take_period(self) -> tuple[dict, dict]:
+        """(kind -> (count, latest detail) since the last call, totals since start); a new
+        period starts."""
+        with self._lock:
+            period, self._period = self._period, {}
+            return period, dict(self._counts)

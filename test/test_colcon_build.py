@@ -53,7 +53,7 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
                      'models/socnav1_gat_stars.pt', 'models/README.md'):
         assert (share / 'stars_ros' / relative).is_file(), relative
     python_dirs = list((prefix / 'lib').glob('python3*/site-packages/stars_ros'))
-    assert python_dirs and (python_dirs[0] / 'ranker.py').is_file()
+    assert python_dirs and (python_dirs[0] / 'ros' / 'ranker.py').is_file()
 
 
 def test_source_install_setup_bash_finds_the_built_package(workspace):
@@ -77,7 +77,7 @@ def test_installed_ranker_finds_its_packaged_files(workspace):
     folder (the way it does under `ros2 run`), not from this checkout."""
     prefix = workspace / 'install' / 'stars_ros'
     site = next((prefix / 'lib').glob('python3*/site-packages'))
-    code = ('from stars_ros.ranker import resolve_checkpoint; from stars_ros.resources import share_path; '
+    code = ('from stars_ros.resources import resolve_checkpoint, share_path; '
             'print(resolve_checkpoint("")); print(share_path("msg_schemas/scene_graph.schema.json"))')
     env = dict(os.environ, PYTHONPATH=str(site), AMENT_PREFIX_PATH=str(prefix))
     env.pop('STARS_ROS_SHARE', None)

@@ -76,6 +76,13 @@ def test_generic_graphs(tmp_path):
     (GOOD_ANNOTATIONS, 'scene,crowd\ns1,lots\n', r'scenes.csv:2: column crowd value .lots. is not a number'),
     (GOOD_ANNOTATIONS, 'scene,crowd\ns1,1\ns1,2\n', r'scenes.csv:3: scene key .s1. empty or repeated'),
     (GOOD_ANNOTATIONS, 'scene\ns1\n', r'scenes.csv:1: no feature columns'),
+    (GOOD_ANNOTATIONS, 'scene,crowd,crowd\ns1,1,2\n', r"scenes.csv:1: repeated columns \['crowd'\]"),
+    ('user,scene,action,score\nu1,s1,wave,4\nu1,s2\n', GOOD_SCENES, r'annotations.csv:3: 2 fields, header has 4'),
+    # lines count from the header as line 1, blank lines and quoted line breaks included
+    ('user,scene,action,score\n"u\n1",s1,wave,4\n\nu1,s2,wave,4,9\n', GOOD_SCENES,
+     r'annotations.csv:5: 5 fields, header has 4'),
+    ('user,scene,action,score\n"u\n1",s1,wave,4\n  ,  \nu1,s2,wave,high\n', GOOD_SCENES,
+     r'annotations.csv:5: score .high. is not a number'),
 ])
 def test_generic_errors_name_file_and_line(tmp_path, annotations, scenes, message):
     root = write_generic(tmp_path / 'd', annotations, scenes_csv=scenes)

@@ -1,5 +1,5 @@
-"""The dense numpy form and the serving form (GAT's compiled kernel, the dense form for the
-others) of every graph backbone compute what its PyG form (what training runs) computes."""
+"""The serving form of every graph backbone (GAT's compiled kernel, the dense numpy form
+for the others) computes what its PyG form (what training runs) computes."""
 import numpy as np
 import pytest
 import torch
@@ -31,36 +31,27 @@ def _encoder(name, options, seed=0):
     return encoder
 
 
-def _dense(encoder, graphs):
-    return dense_graphs(graphs, len(RELATIONS) if encoder.uses_edge_type else None)
-
-
-def test_every_graph_backbone_has_a_dense_form():
-    assert set(GRAPH_BACKBONES) == {'gcn', 'gin', 'graphsage', 'ggnn', 'rgcn', 'gat'}
+def _pyg(encoder, graphs):
+    with torch.no_grad():
+        return encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
 
 
 @pytest.mark.parametrize('name, options', CASES)
-def test_dense_equals_sparse_on_random_scenes(name, options):
+def test_serving_equals_pyg_on_random_scenes(name, options):
     rng = np.random.default_rng(1)
     graphs = [featurise(random_scene(rng)) for _ in range(40)]
     encoder = _encoder(name, options)
-    with torch.no_grad():
-        sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
-    dense = encoder.dense_form()
-    padded = dense(_dense(encoder, graphs))  # graphs of different sizes in one batch
-    one_by_one = np.concatenate([dense(_dense(encoder, [g])) for g in graphs])
-    assert sparse.shape == padded.shape == (40, 16) and padded.dtype == np.float32
-    assert np.allclose(padded, sparse, atol=1e-5, rtol=1e-4), np.abs(padded - sparse).max()
-    assert np.allclose(one_by_one, sparse, atol=1e-5, rtol=1e-4)
+    sparse = _pyg(encoder, graphs)
     serving = encoder.serving_form()
-    together, alone = serving(graphs), np.concatenate([serving([g]) for g in graphs])
-    assert together.shape == (40, 16) and together.dtype == np.float32
+    together = serving(graphs)  # graphs of different sizes in one batch
+    alone = np.concatenate([serving([g]) for g in graphs])
+    assert sparse.shape == together.shape == (40, 16) and together.dtype == np.float32
     assert np.allclose(together, sparse, atol=1e-5, rtol=1e-4), np.abs(together - sparse).max()
     assert np.allclose(alone, sparse, atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize('name, options', CASES)
-def test_dense_equals_sparse_on_socnav1_scenes(name, options, socnav1):
+def test_serving_equals_pyg_on_socnav1_scenes(name, options, socnav1):
     store = socnav1.store
     chosen = torch.from_numpy(np.random.default_rng(2).choice(len(store), 64, replace=False))
     batch = store.batch(chosen)
@@ -73,8 +64,6 @@ def test_dense_equals_sparse_on_socnav1_scenes(name, options, socnav1):
     encoder = _encoder(name, options, seed=3)
     with torch.no_grad():
         sparse = encoder(batch).numpy()
-    dense = encoder.dense_form()(_dense(encoder, graphs))
-    assert np.allclose(dense, sparse, atol=1e-5, rtol=1e-4), np.abs(dense - sparse).max()
     serving = encoder.serving_form()(graphs)
     assert np.allclose(serving, sparse, atol=1e-5, rtol=1e-4), np.abs(serving - sparse).max()
 
@@ -88,9 +77,8 @@ def test_serving_form_counts_parallel_edges_and_serves_a_lone_robot(name, option
     lone = SceneGraph(x=features[:1], edge_index=np.zeros((2, 0), dtype=np.int64), edge_type=np.zeros(0, dtype=np.int64))
     encoder = _encoder(name, options, seed=4)
     for graphs in ([parallel], [lone], [parallel, lone]):
-        with torch.no_grad():
-            sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
         serving = encoder.serving_form()(graphs)
+        sparse = _pyg(encoder, graphs)
         assert np.allclose(serving, sparse, atol=1e-5, rtol=1e-4), np.abs(serving - sparse).max()
 
 
@@ -109,33 +97,28 @@ def test_the_gat_kernel_warm_up_compiles_what_every_request_uses():
 
 
 def test_gat_attention_rows_far_apart_are_normalised_each_by_its_own_maximum():
-    """The dense GAT shifts all attention logits by one maximum; rows far below it would
-    underflow to 0/0, so it falls back to a maximum per row, as PyG's softmax does."""
+    """Attention logits hundreds apart: the kernel shifts each row's softmax by that row's
+    maximum, as PyG's softmax does, so no row underflows to 0/0."""
     encoder = _encoder('gat', {'heads': 4})
     with torch.no_grad():
         for conv in encoder.convs:
             conv.att_dst.mul_(3000.0)  # targets' logits hundreds apart
     graphs = [featurise(random_scene(np.random.default_rng(6))) for _ in range(8)]
-    with torch.no_grad():
-        sparse = encoder(GraphStore(graphs).batch(torch.arange(len(graphs)))).numpy()
-    dense = encoder.dense_form()(_dense(encoder, graphs))
+    sparse = _pyg(encoder, graphs)
     assert np.isfinite(sparse).all()
-    assert np.allclose(dense, sparse, atol=1e-4, rtol=1e-4), np.abs(dense - sparse).max()
-    serving = encoder.serving_form()(graphs)  # the kernel shifts each row by its own maximum
+    serving = encoder.serving_form()(graphs)
     assert np.allclose(serving, sparse, atol=1e-4, rtol=1e-4), np.abs(serving - sparse).max()
 
 
 @pytest.mark.parametrize('name', ['gat', 'gcn'])
-def test_dense_and_serving_forms_are_snapshots_of_the_weights(name):
+def test_serving_forms_are_snapshots_of_the_weights(name):
     encoder = _encoder(name, {})
     graphs = [featurise(random_scene(np.random.default_rng(5)))]
-    dense, serving = encoder.dense_form(), encoder.serving_form()
-    before = dense(_dense(encoder, graphs))
+    serving = encoder.serving_form()
+    before = serving(graphs)
     with torch.no_grad():
         encoder.project.weight.add_(1.0)
-    assert np.array_equal(dense(_dense(encoder, graphs)), before)
-    assert np.allclose(serving(graphs), before, atol=1e-5, rtol=1e-4)
-    assert not np.allclose(encoder.dense_form()(_dense(encoder, graphs)), before)
+    assert np.array_equal(serving(graphs), before)
     assert not np.allclose(encoder.serving_form()(graphs), before)
 
 

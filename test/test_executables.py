@@ -11,13 +11,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-from stars_ros import demo, recording, replay, scene_publisher, usage
-from stars_ros.ranker import PARAMETERS, STATE_FILE
+from stars_ros import recording
+from stars_ros.ranker_core import PARAMETERS
+from stars_ros.ros import demo, replay, scene_publisher, usage
+from stars_ros.user_state import STATE_FILE
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))
-TABLES = {'stars_ros.ranker': PARAMETERS, 'stars_ros.scene_publisher': scene_publisher.PARAMETERS,
-          'stars_ros.replay': replay.PARAMETERS}
+TABLES = {'stars_ros.ros.ranker': PARAMETERS, 'stars_ros.ros.scene_publisher': scene_publisher.PARAMETERS,
+          'stars_ros.ros.replay': replay.PARAMETERS}
 
 
 def test_every_console_script_has_a_parameter_table():
@@ -35,7 +37,7 @@ def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_p
     env = dict(os.environ, ROS_HOME=str(ros_home), ROS_DOMAIN_ID='231', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     env.pop('ROS_LOG_DIR', None)
-    module = ENTRY_POINTS.get(executable, 'stars_ros.demo')
+    module = ENTRY_POINTS.get(executable, 'stars_ros.ros.demo')
     shown = subprocess.run([sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())', '--help'],
                            cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
     assert shown.returncode == 0, shown.stderr

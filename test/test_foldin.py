@@ -5,10 +5,13 @@ import threading
 
 import numpy as np
 import pytest
+import torch
 
 from stars_ros import messages
 from stars_ros.foldin import FeedbackHistories, FoldIn, Rating, UserModel, solve_ridge
 from stars_ros.predictor import Predictor
+from stars_ros.scene_graph import featurise
+from stars_ros.scene_store import GraphStore
 
 
 @pytest.fixture()
@@ -25,16 +28,43 @@ def ratings(socnav1_root):
 
 
 def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings):
+    """FoldIn.predict (the design) equals the served score and the torch model given the
+    same (p_u, b_u) in place of a trained row."""
     foldin = FoldIn(predictor)
     rng = np.random.default_rng(0)
     theta = rng.normal(size=foldin.dim + 1)
     user = UserModel(theta[:-1], float(theta[-1]), 3, 1.0)
     predictor.set_user_model('someone', user)
-    expected = predictor.score('someone', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
+    scenes, keys = [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]]
+    expected = predictor.score('someone', scenes, keys)[:, 0]
     assert np.allclose(foldin.predict(user, ratings[:10]), expected, atol=1e-5)
+    batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
+    model = predictor.recommender.model
+    with torch.no_grad():
+        rows = (torch.tensor(user.p, dtype=torch.float32).expand(10, -1), torch.full((10, 1), user.b))
+        torch_scores = predictor.recommender.predict_scores_from_h([None] * 10, keys, model.encode(batch), rows)
+    assert np.allclose(foldin.predict(user, ratings[:10]), torch_scores[:, 0], atol=1e-5)
     zero = UserModel(np.zeros(foldin.dim), 0.0, 0, 1.0)  # p = 0, b = 0: the stranger's prediction
     stranger = predictor.score('stranger', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
     assert np.allclose(foldin.predict(zero, ratings[:10]), stranger, atol=1e-5)
+
+
+def test_design_reproduces_the_model_for_a_trained_user(predictor, ratings):
+    """xᵀθ + c with θ the trained row of user 'a' is what InferenceModel.scores serves for
+    'a', and what the torch model predicts, on scenes with and without a trained q_i."""
+    recommender = predictor.recommender
+    scenes, keys = [r.scene for r in ratings], [r.scene_id for r in ratings]
+    assert 0 < sum(k in recommender.scene_vocabulary for k in keys) < len(keys)
+    foldin = FoldIn(predictor)
+    x, c, _ = foldin.design(ratings)
+    designed = foldin.to_rating_scale(x @ foldin.prior('a') + c, foldin.action_index(['navigate'] * len(ratings)))
+    inference = predictor.inference
+    row = recommender.user_vocabulary.row('a')
+    served = inference.scores(predictor.encode(scenes), (inference.user_rows[row], inference.user_offsets[row]),
+                              recommender.scene_vocabulary.rows(keys))[:, 0]
+    assert np.allclose(designed, recommender.clip(served), atol=1e-5)
+    batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
+    assert np.allclose(designed, recommender.predict_scores(['a'] * len(scenes), keys, batch)[:, 0], atol=1e-5)
 
 
 def test_solve_is_the_ridge_solution(predictor, ratings):

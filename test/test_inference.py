@@ -51,6 +51,24 @@ def test_base_and_mf_variants_match_the_model():
         assert np.allclose(inference.scores(h_np, rows, np.array([1, 1, 1])), expected, atol=1e-5)
 
 
+@pytest.mark.parametrize('variant', ['stars', 'stars_no_residual', 'mf'])
+def test_linear_form_is_the_scoring_arithmetic_in_the_user(variant):
+    """z = xᵀ(p_u, b_u) + c for one action per row, residual term included only where the
+    variant has it: the fold-in's regression is the model's prediction."""
+    model = small_model(variant)
+    inference = InferenceModel(model)
+    h = np.random.default_rng(1).normal(size=(4, 2))
+    scenes, actions = np.array([1, UNKNOWN, 0, 1]), np.array([0, 1, 1, 0])
+    x, c = inference.linear_form(h, scenes, actions)
+    assert x.dtype == c.dtype == np.float64 and x.shape == (4, 3) and c.shape == (4,)
+    theta = np.array([1.0, 2.0, 0.3])  # user 0: p = (1, 2), b_u = 0.3
+    with torch.no_grad():
+        expected = model(torch.zeros(4, dtype=torch.long), torch.from_numpy(scenes), torch.from_numpy(h).float())
+    assert np.allclose(x @ theta + c, expected.numpy()[np.arange(4), actions], atol=1e-5)
+    stranger = inference.scores(h.astype(np.float32), (np.zeros(2, np.float32), np.float32(0)), scenes)
+    assert np.allclose(inference.to_rating_scale(c, actions), stranger[np.arange(4), actions], atol=1e-5)
+
+
 def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoint, socnav1_root):
     predictor = Predictor.load(tiny_checkpoint)
     recommender = predictor.recommender

@@ -32,7 +32,7 @@ def scenes(socnav1_root):
 
 
 def _start(domain, checkpoint, folder, log):
-    return start_node('stars_ros.ranker', domain, {
+    return start_node('stars_ros.ros.ranker', domain, {
         'checkpoint': checkpoint, 'record_folder': folder, 'flush_interval': 0.2,
         'fold_in_regularisation': LAMBDA}, log)
 
@@ -141,7 +141,7 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
 def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, scenes, tmp_path):
     domain = domain_id(8)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
                                                       'fold_in': False}, tmp_path / 'ranker.log')
     try:
         client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': scenes[19]})
@@ -165,7 +165,9 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
     user who rated least recently back to the checkpoint, with a warning."""
     domain = domain_id(9)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {
+    models = []
+    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    process = start_node('stars_ros.ros.ranker', domain, {
         'checkpoint': tiny_checkpoint, 'record_folder': tmp_path, 'flush_interval': 0.2,
         'fold_in_max_ratings': 2, 'fold_in_max_users': 1}, tmp_path / 'ranker.log')
     try:
@@ -177,6 +179,8 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
         client.feedback({'user_id': 'other', 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 0.0})
         assert client.wait(lambda: any(e['kind'] == 'user_models' and USER in e['message'] for e in client.errors), 20)
         assert all('personalised_from' not in r for r in _rank(client, scenes, 'evicted').values())
+        # the executor solves 'other' once no scene waits: stopping before that would race it
+        assert client.wait(lambda: any(m['user_id'] == 'other' for m in models), 20)
         assert stop(process, signal.SIGINT) == 0
     finally:
         if process.poll() is None:
@@ -192,7 +196,7 @@ def test_diagnostics_count_the_rankings_that_waited_behind_fold_in(tiny_checkpoi
     how long, and their processing time from reception."""
     domain = domain_id(10)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {
+    process = start_node('stars_ros.ros.ranker', domain, {
         'checkpoint': tiny_checkpoint, 'record_folder': tmp_path, 'diagnostics_period': 0.2}, tmp_path / 'ranker.log')
     try:
         client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': scenes[19]})

@@ -83,7 +83,7 @@ def node(tiny_checkpoint, scenes, tmp_path_factory):
     folder = tmp_path_factory.mktemp('shared_ranker')
     domain = domain_id(0)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {
+    process = start_node('stars_ros.ros.ranker', domain, {
         'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
         'diagnostics_period': 0.3, 'log_throttle': 1.0}, folder / 'ranker.log')
     try:
@@ -273,7 +273,7 @@ def test_scene_publisher_feeds_the_ranker(node, socnav1_root, tmp_path):
               'scene_id_prefix': 'pub-', 'rate': 20.0}, 'pub-'),
             ({'count': 3, 'seed': 4, 'user_id': KNOWN_USER, 'scene_id_prefix': 'rnd-', 'rate': 20.0}, 'rnd-')]
     for params, prefix in runs:
-        publisher = start_node('stars_ros.scene_publisher', domain_id(0), params, tmp_path / f'{prefix}.log')
+        publisher = start_node('stars_ros.ros.scene_publisher', domain_id(0), params, tmp_path / f'{prefix}.log')
         assert publisher.wait(timeout=60) == 0, (tmp_path / f'{prefix}.log').read_text()
     assert client.wait(lambda: all(client.ranking_for(f'pub-{k}') for k in range(4))
                        and all(client.ranking_for(f'rnd-{k}') for k in range(3)), 30)
@@ -293,7 +293,7 @@ def test_replay_reruns_a_recorded_session(node, scenes, tmp_path):
             recorder.write('/stars/scene', json.dumps({'scene_id': f'replayed-{k}', 'graph': scenes[k]}),
                            10 ** 9 + (k + 2) * 10 ** 8)
         recorder.write('/stars/ranking', '{"not": "played by default"}', 2 * 10 ** 9)
-    replay = start_node('stars_ros.replay', domain_id(0), {'bag': tmp_path / 'session', 'rate': 1.0},
+    replay = start_node('stars_ros.ros.replay', domain_id(0), {'bag': tmp_path / 'session', 'rate': 1.0},
                         tmp_path / 'replay.log')
     assert replay.wait(timeout=60) == 0, (tmp_path / 'replay.log').read_text()
     assert 'replayed 6 messages' in (tmp_path / 'replay.log').read_text()
@@ -308,7 +308,7 @@ def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(tiny
     every ranking is in: the two runs print the same rankings, digit for digit."""
     printed = []
     for _ in range(2):
-        demo = subprocess.run([sys.executable, '-m', 'stars_ros.demo', '--checkpoint', str(tiny_checkpoint),
+        demo = subprocess.run([sys.executable, '-m', 'stars_ros.ros.demo', '--checkpoint', str(tiny_checkpoint),
                                '--data-root', str(socnav1_root), '--scenes', '3', '--placements', '3', '--rate', '10',
                                '--domain-id', str(domain_id(5))], env=dict(ros_env(domain_id(5)), TMPDIR=str(tmp_path)),
                               capture_output=True, text=True, timeout=240)
@@ -330,7 +330,7 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
     domain = domain_id(1 if signal_number == signal.SIGINT else 2)
     client = RosClient(domain)
     client.user_pub.publish(String(data=KNOWN_USER))
-    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path},
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path},
                          tmp_path / 'ranker.log')  # starts after the user id was published
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))
@@ -376,7 +376,7 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
 def test_hard_kill_then_recovery_keeps_everything_before_the_last_flush(tiny_checkpoint, scenes, tmp_path):
     domain = domain_id(3)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
                                                       'flush_interval': 0.2}, tmp_path / 'ranker.log')
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))
@@ -408,7 +408,7 @@ def test_unwritable_record_folder_is_reported_and_ranking_goes_on(tiny_checkpoin
     blocker.write_text('not a folder')
     domain = domain_id(4)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint,
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint,
                                                       'record_folder': blocker / 'records', 'diagnostics_period': 0.3},
                          tmp_path / 'ranker.log')
     try:
@@ -438,7 +438,7 @@ def test_a_flood_beyond_queue_depth_is_refused_as_overload_and_serving_goes_on(t
     both refused and ranked, and the node serves on."""
     domain = domain_id(6)
     client = RosClient(domain)
-    process = start_node('stars_ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
                                                       'queue_depth': 20, 'max_batch': 1}, tmp_path / 'ranker.log')
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))

@@ -1,15 +1,15 @@
-"""The whole GAT encoder as one compiled function (numba), for serving.
+"""The whole GAT encoder as one compiled function (numba), GAT's serving form.
 
-The numpy dense form of a 3-layer GAT makes ~90 array calls for one scene; on this
-machine, between the node's other work, each costs 3–5 µs, so the encoder took ~0.4 ms
-of a ~0.9 ms request. Compiled, the same arithmetic over the scene's edge list (no
-padding) runs in one call: ~0.1 ms (README, "Benchmarks"). Training keeps PyG's sparse
-form; ``test/test_dense_encoders.py`` checks all forms agree.
+Scoring one scene of ~20 nodes through numpy array calls would pay each call's fixed cost
+about ninety times (projections, per-head attention, softmax, readout); compiled, the same
+arithmetic runs in one call over the scene's edge list (no padding). docs/performance.md
+gives what it buys, measured, with the results file. Training keeps PyG's sparse form;
+``test/test_dense_encoders.py`` checks the kernel against it.
 
 numba caches the machine code beside this file (or in its user cache where that is not
-writable): the first process compiles for a few seconds, later ones load it in ~0.7 s.
-``GATKernel`` runs it once when built, so a node pays that while loading its checkpoint,
-never on a request.
+writable): the first process compiles for a few seconds, later ones load it in under a
+second. ``GATKernel`` runs it once when built, so a node pays that while loading its
+checkpoint, never on a request.
 """
 from __future__ import annotations
 

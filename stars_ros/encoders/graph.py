@@ -5,16 +5,18 @@ readout that concatenates the robot node's state with the mean over all nodes (t
 question is how appropriate the *robot's* behaviour is, so its node is kept apart).
 
 Training runs PyG's sparse convolutions over big batches. Serving scores one or a few
-scenes of ~20 nodes, where each tensor operation's fixed cost is the whole cost: PyG's
-per-call bookkeeping, torch's dispatch (~3–6 µs an operation here) and nn.Module calls.
-So every backbone also says how its convolution reads a padded dense numpy batch:
-``dense_weights`` (the convolution's own parameters as float32 arrays, in the layout the
-dense form multiplies by), ``dense_structure`` (the matrix its layers multiply by,
-computed once per batch) and ``dense_conv``. ``GraphEncoder.dense_form`` assembles them
-into a function over a snapshot of the weights (README, "Benchmarks"). What serving calls
-is ``serving_form``: the dense form, or, for GAT, the whole encoder compiled into one call
-(``compiled_gat``). ``test/test_dense_encoders.py`` checks that all forms agree for every
-backbone. The dense and compiled forms rely on what ``featurise`` guarantees: no self loops.
+scenes of ~20 nodes, where each tensor operation's fixed cost is the whole cost (PyG's
+per-call bookkeeping, torch's dispatch, nn.Module calls), so every backbone has exactly one
+numpy serving form, ``serving_form``, over a snapshot of its weights:
+
+- ``DenseGraphEncoder`` backbones (GCN, GIN, GraphSAGE, GGNN, RGCN) run a padded dense
+  batch: each says how its convolution reads it through ``dense_weights`` (its parameters
+  as float32 arrays, in the layout the dense form multiplies by), ``dense_structure`` (the
+  matrix its layers multiply by, computed once per batch) and ``dense_conv``;
+- GAT runs the whole encoder compiled into one call (``compiled_gat``).
+
+``test/test_dense_encoders.py`` checks every serving form against the PyG form. Both rely
+on what ``featurise`` guarantees: no self loops.
 """
 from __future__ import annotations
 
@@ -63,18 +65,6 @@ class GraphEncoder(Encoder):
     def init_conv(self, hidden: int, **options) -> nn.Module:
         raise NotImplementedError
 
-    def dense_weights(self, conv: nn.Module) -> dict:
-        """``conv``'s parameters as float32 arrays, as ``dense_conv`` uses them."""
-        raise NotImplementedError
-
-    def dense_structure(self, graphs: DenseGraphs) -> np.ndarray:
-        """What ``dense_conv`` needs of the graphs, shared by all layers (default: adjacency)."""
-        return graphs.adjacency
-
-    def dense_conv(self, weights: dict, h: np.ndarray, structure: np.ndarray) -> np.ndarray:
-        """The convolution applied to node states ``h`` [G, N, hidden] of padded graphs."""
-        raise NotImplementedError
-
     def forward(self, graphs: GraphBatch) -> torch.Tensor:
         h = torch.relu(self.project(graphs.x))
         for conv in self.convs:
@@ -87,20 +77,36 @@ class GraphEncoder(Encoder):
         return self.readout(torch.cat([h[graphs.root], pooled], dim=1))
 
     def serving_form(self) -> Callable[[Sequence[SceneGraph]], np.ndarray]:
-        """This encoder (in eval mode) as a numpy function of a list of scene graphs, over a
-        copy of the current weights: the dense form, or a compiled one where a backbone has it."""
-        dense = self.dense_form()
-        relations = len(RELATIONS) if self.uses_edge_type else None
-        return lambda graphs: dense(dense_graphs(graphs, relations))
+        """This encoder (in eval mode) as a numpy function of a list of scene graphs returning
+        h [graphs, out_dim] (float32), over a copy of the current weights: later training
+        does not reach it."""
+        raise NotImplementedError
 
-    def dense_form(self) -> Callable[[DenseGraphs], np.ndarray]:
-        """This encoder (in eval mode) as a numpy function of a DenseGraphs batch, over a
-        copy of the current weights: later training does not reach it."""
+
+class DenseGraphEncoder(GraphEncoder):
+    """A graph backbone served by its dense numpy form: padded graphs (``DenseGraphs``),
+    each convolution given by ``dense_weights``, ``dense_structure`` and ``dense_conv``."""
+
+    def dense_weights(self, conv: nn.Module) -> dict:
+        """``conv``'s parameters as float32 arrays, as ``dense_conv`` uses them."""
+        raise NotImplementedError
+
+    def dense_structure(self, graphs: DenseGraphs) -> np.ndarray:
+        """What ``dense_conv`` needs of the graphs, shared by all layers (default: adjacency)."""
+        return graphs.adjacency
+
+    def dense_conv(self, weights: dict, h: np.ndarray, structure: np.ndarray) -> np.ndarray:
+        """The convolution applied to node states ``h`` [G, N, hidden] of padded graphs."""
+        raise NotImplementedError
+
+    def serving_form(self) -> Callable[[Sequence[SceneGraph]], np.ndarray]:
         project = _linear(self.project)
         convs = [self.dense_weights(conv) for conv in self.convs]
         hidden_layer, output_layer = _linear(self.readout[0]), _linear(self.readout[2])
+        relations = len(RELATIONS) if self.uses_edge_type else None
 
-        def encode(graphs: DenseGraphs) -> np.ndarray:
+        def encode(scene_graphs: Sequence[SceneGraph]) -> np.ndarray:
+            graphs = dense_graphs(scene_graphs, relations)
             h = _relu(graphs.x @ project[0] + project[1])
             structure = self.dense_structure(graphs)
             for weights in convs:
@@ -119,16 +125,12 @@ def _mean_operator(adjacency: np.ndarray) -> np.ndarray:
     return adjacency / np.maximum(adjacency.sum(-1, keepdims=True), 1.0)
 
 
-# a softmax normaliser below this has lost precision to underflow (float32 normals end at 1.2e-38)
-_SMALLEST_NORMALISER = 1e-30
-
-
 def _with_self_loops(adjacency: np.ndarray) -> np.ndarray:
     return adjacency + np.eye(adjacency.shape[-1], dtype=adjacency.dtype)
 
 
 @register('gcn')
-class GCN(GraphEncoder):
+class GCN(DenseGraphEncoder):
     def init_conv(self, hidden):
         return gnn.GCNConv(hidden, hidden)
 
@@ -145,7 +147,7 @@ class GCN(GraphEncoder):
 
 
 @register('gin')
-class GIN(GraphEncoder):
+class GIN(DenseGraphEncoder):
     def init_conv(self, hidden):
         return gnn.GINConv(nn.Sequential(nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, hidden)),
                            train_eps=True)
@@ -159,7 +161,7 @@ class GIN(GraphEncoder):
 
 
 @register('graphsage')
-class GraphSAGE(GraphEncoder):
+class GraphSAGE(DenseGraphEncoder):
     def init_conv(self, hidden):
         return gnn.SAGEConv(hidden, hidden)
 
@@ -175,7 +177,7 @@ class GraphSAGE(GraphEncoder):
 
 
 @register('ggnn')
-class GGNN(GraphEncoder):
+class GGNN(DenseGraphEncoder):
     """Gated graph network: one GRU-gated propagation step per layer."""
 
     def init_conv(self, hidden):
@@ -198,7 +200,7 @@ class GGNN(GraphEncoder):
 
 
 @register('rgcn')
-class RGCN(GraphEncoder):
+class RGCN(DenseGraphEncoder):
     """Relational GCN: one weight matrix per edge type of ``scene_graph.RELATIONS``."""
 
     uses_edge_type = True
@@ -233,50 +235,10 @@ class GAT(GraphEncoder):
         return gnn.GATConv(hidden, hidden // heads, heads=heads)
 
     def serving_form(self):
-        """The compiled kernel (``compiled_gat``): one call instead of ~90 numpy calls."""
+        """The compiled kernel (``compiled_gat``): the whole encoder in one call."""
         heads, channels = self.convs[0].heads, self.convs[0].out_channels
         return GATKernel(_linear(self.project), [_linear(conv.lin)[0] for conv in self.convs],
                          [_array(conv.att_src).reshape(heads, channels) for conv in self.convs],
                          [_array(conv.att_dst).reshape(heads, channels) for conv in self.convs],
                          [_array(conv.bias) for conv in self.convs], self.convs[0].negative_slope,
                          _linear(self.readout[0]), _linear(self.readout[2]))
-
-    def dense_weights(self, conv):
-        heads, channels = conv.heads, conv.out_channels
-        if not 0 <= conv.negative_slope <= 1:
-            raise ValueError('the dense GAT form computes leaky ReLU as a maximum: slope must be in [0, 1]')
-        weight = _linear(conv.lin)[0]  # [hidden, heads * channels]
-        per_head = weight.reshape(-1, heads, channels)
-        attention = np.concatenate([(per_head * _array(conv.att_src)).sum(-1),  # folded into one product:
-                                    (per_head * _array(conv.att_dst)).sum(-1)], axis=1)  # [hidden, 2 heads]
-        # each head's values get a column of ones (weight 0, bias 1): multiplying them by the
-        # unnormalised attention also sums each row, the softmax's normaliser
-        value_weight = np.zeros((weight.shape[0], heads, channels + 1), dtype=np.float32)
-        value_weight[:, :, :channels] = per_head
-        value_bias = np.zeros((heads, channels + 1), dtype=np.float32)
-        value_bias[:, channels] = 1.0
-        return {'value_weight': value_weight.reshape(weight.shape[0], -1), 'value_bias': value_bias.reshape(-1),
-                'attention': attention, 'bias': _array(conv.bias), 'heads': heads, 'channels': channels,
-                'slope': float(conv.negative_slope)}
-
-    def dense_structure(self, graphs):
-        # GATConv adds one self loop; log gives -inf off the graph and log(k) for k parallel edges
-        with np.errstate(divide='ignore'):
-            return np.log(_with_self_loops(graphs.adjacency))[:, None]  # [G, 1, N (to), N (from)]
-
-    def dense_conv(self, weights, h, structure):
-        g, n, _ = h.shape
-        heads, channels = weights['heads'], weights['channels']
-        values = (h @ weights['value_weight'] + weights['value_bias'])  # [G, N, heads * (channels + 1)]
-        values = values.reshape(g, n, heads, channels + 1).transpose(0, 2, 1, 3)  # [G, heads, N, channels + 1]
-        scores = (h @ weights['attention']).transpose(0, 2, 1)  # [G, 2 heads, N]
-        logits = scores[:, heads:, :, None] + scores[:, :heads, None, :]  # target + source: [G, heads, to, from]
-        logits = np.maximum(logits, weights['slope'] * logits) + structure  # leaky ReLU (0 < slope < 1)
-        # softmax over each row's sources: shifting every row by the one global maximum costs a
-        # fraction of a maximum per row, and is exact unless some row lies so far below it that
-        # its exponentials underflow; then each row is shifted by its own maximum
-        summed = np.exp(logits - logits.max()) @ values  # [G, heads, N, channels + normaliser]
-        if summed[..., channels].min() < _SMALLEST_NORMALISER:
-            summed = np.exp(logits - logits.max(-1, keepdims=True)) @ values
-        attended = summed[..., :channels] / summed[..., channels:]
-        return attended.transpose(0, 2, 1, 3).reshape(g, n, -1) + weights['bias']

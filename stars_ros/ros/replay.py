@@ -11,18 +11,16 @@ from __future__ import annotations
 
 import time
 
-import rclpy
 from mcap.exceptions import McapError
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
-from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from ..recording import bag_topics, read_messages
 from . import usage
-from .recording import bag_topics, read_messages
+from .spinning import run_node
 
 PARAMETERS = {  # name: (default, description)
     'bag': ('', 'bag folder or MCAP file to play'),
@@ -84,20 +82,7 @@ def main(args=None):
     if usage.print_help_if_asked('replay', __doc__, PARAMETERS, 'ros2 run stars_ros replay --ros-args '
                                  '-p bag:=$HOME/.ros/stars_ros/records/stars_2026_01_01-12_00_00 -p rate:=2.0', args):
         return
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Replay()
-        node.play()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (McapError, OSError, ValueError) as error:
-        get_logger('replay').fatal(str(error))
-        raise SystemExit(1) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node('replay', Replay, Replay.play, (McapError, OSError, ValueError), args)
 
 
 if __name__ == '__main__':

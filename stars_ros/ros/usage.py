@@ -35,7 +35,7 @@ def help_text(executable: str, doc: str, parameters: Mapping[str, tuple], exampl
     to set them."""
     about = '\n\n'.join(doc.strip().split('\n\n')[:2]).replace('``', '')
     lines = [f'usage: ros2 run stars_ros {executable} [--ros-args (-p NAME:=VALUE | --params-file FILE | -r A:=B)...]',
-             f'       python -m stars_ros.{executable} [--ros-args ...]', '', about, '',
+             f'       python -m stars_ros.ros.{executable} [--ros-args ...]', '', about, '',
              'parameters (set with --ros-args -p NAME:=VALUE, values read as YAML: -p "name:=\'\'" is an',
              'empty string; or --params-file FILE; remap topics with -r stars/scene:=/other):']
     for name, (default, description, *_) in parameters.items():

@@ -12,19 +12,16 @@ import json
 import time
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
-from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from ..errors import DataError
+from ..scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
 from . import usage
-from .errors import DataError
-from .scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
-from .spinning import spin_until_shutdown
+from .spinning import run_node
 
 PARAMETERS = {  # name: (default, description)
     'source': ('', 'JSONL file of scenes; empty: random scenes'),
@@ -81,20 +78,8 @@ def main(args=None):
     if usage.print_help_if_asked('scene_publisher', __doc__, PARAMETERS, 'ros2 run stars_ros scene_publisher '
                                  '--ros-args -p source:=raw/a.jsonl -p user_id:=a -p rate:=5.0 -p count:=10', args):
         return
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ScenePublisher()
-        spin_until_shutdown(node)
-    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
-        pass
-    except (DataError, OSError, ValueError) as error:
-        get_logger('scene_publisher').fatal(str(error))
-        raise SystemExit(1) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node('scene_publisher', ScenePublisher, fatal=(DataError, OSError, ValueError), args=args,
+             ends=(SystemExit,))  # _tick's end once count requests are out
 
 
 if __name__ == '__main__':

@@ -1,7 +1,7 @@
 """The main-job demo: the ranker serving two people, their rankings side by side, feedback
 recorded to MCAP, then a summary. Ends by itself.
 
-    python -m stars_ros.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
+    python -m stars_ros.ros.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
 
 Set-up loads the checkpoint (the packaged default unless one is given) and picks, among the
 annotators it knows, the two whose rankings of alternative robot placements differ most on
@@ -32,17 +32,19 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import StarsError
-from .predictor import Predictor
-from .recording import read_messages
-from .scene_source import PLACEMENTS, placement_candidates, read_scenes
+from ..errors import StarsError
+from ..predictor import Predictor
+from ..recording import read_messages
+from ..resources import resolve_checkpoint
+from ..scene_source import PLACEMENTS, placement_candidates, read_scenes
+from ..user_state import STATE_FILE
 
-SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT', Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
+SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT', Path(__file__).resolve().parents[3] / 'shared' / 'datasets'
                               / 'socnav1'))
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(prog='python -m stars_ros.demo', description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.ros.demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', default='', help='default: the packaged models/socnav1_gat_stars.pt')
     parser.add_argument('--data-root', type=Path, default=SOCNAV1, help='SocNav1 root (default: %(default)s)')
     parser.add_argument('--scenes', type=int, default=8, help='scenes per person (default: %(default)s)')
@@ -103,7 +105,6 @@ def record_folder(given: Path | None, work: Path) -> Path:
     """Where the demo's ranker records: ``work``/records, a folder of this run's own, unless a
     folder is ``given``; one given that holds folded-in users of an earlier run is said to,
     since the ranker restores them and their scores then differ from a fresh start."""
-    from .ranker import STATE_FILE
     if given is None:
         return work / 'records'
     if (given / STATE_FILE).exists():
@@ -117,7 +118,6 @@ def _line(user, reply, decimals: int) -> str:
 
 
 def run(args) -> int:
-    from .ranker import resolve_checkpoint
     checkpoint = resolve_checkpoint(args.checkpoint)
     predictor = Predictor.load(checkpoint)
     if not (args.data_root / 'raw').is_dir():
@@ -129,7 +129,7 @@ def run(args) -> int:
           f'robot placements differ most on scenes both rated')
 
     env = dict(os.environ, PYTHONUNBUFFERED='1')
-    env['PYTHONPATH'] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get('PYTHONPATH', '')
+    env['PYTHONPATH'] = str(Path(__file__).resolve().parents[2]) + os.pathsep + env.get('PYTHONPATH', '')
     if args.domain_id is not None:
         env['ROS_DOMAIN_ID'] = str(args.domain_id)
 
@@ -146,7 +146,7 @@ def run(args) -> int:
     records.mkdir(parents=True, exist_ok=True)
     before = set(records.glob('stars_*'))
     ranker = subprocess.Popen(
-        [sys.executable, '-m', 'stars_ros.ranker', '--ros-args', '-p', f'checkpoint:={checkpoint}',
+        [sys.executable, '-m', 'stars_ros.ros.ranker', '--ros-args', '-p', f'checkpoint:={checkpoint}',
          '-p', f'record_folder:={records}', '-p', 'flush_interval:=0.5', '--log-level', 'warn'], env=env)
     publishers = []
     rclpy.init(domain_id=args.domain_id)
@@ -165,7 +165,7 @@ def run(args) -> int:
         print(f'Ranker up (pid {ranker.pid}); two scene_publisher nodes send {len(chosen)} scenes each\n')
         for user in (user_a, user_b):
             publishers.append(subprocess.Popen(
-                [sys.executable, '-m', 'stars_ros.scene_publisher', '--ros-args', '-r', f'__node:=scenes_{user}',
+                [sys.executable, '-m', 'stars_ros.ros.scene_publisher', '--ros-args', '-r', f'__node:=scenes_{user}',
                  '-p', f'source:={scene_file}', '-p', f'user_id:={user}', '-p', f'count:={len(chosen)}',
                  '-p', f'rate:={args.rate}', '-p', f'placements:={args.placements}',
                  '-p', f'scene_id_prefix:={user}/', '--log-level', 'warn'], env=env))

@@ -1,0 +1,329 @@
+"""What the ranker node does, without ROS: the checkpoint served, the queue of scene
+requests and their batches, problem reports and diagnostics, the recording, and the fold-in
+of feedback (``personalisation``). ``stars_ros.ros.ranker`` declares the parameters, turns
+messages into the text this class takes and publishes the text it gives.
+
+One thread (the node's executor) calls ``RankerCore``; its own threads journal feedback and
+write the state file, so the disk never holds up the rankings. ``work`` scores one batch of
+queued requests with one model snapshot, else re-solves one user who gave feedback, so the
+ranking of others waits for at most one solve; ``reload`` runs between two batches, so every
+ranking is scored by exactly one checkpoint, the one whose fingerprint it carries.
+
+A ranking's ``processing_ms`` counts from the middleware's reception of the request, so a
+wait behind other callbacks is in it. The core notes when it does fold-in work; a ranking
+whose wait overlapped such work is counted, with that overlap, in the next diagnostics
+(``period.*``): the node itself shows what fold-in costs others.
+"""
+from __future__ import annotations
+
+import collections
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Mapping
+
+from . import messages, recording
+from .errors import CheckpointError
+from .personalisation import Personalisation
+from .predictor import Predictor
+from .resources import DEFAULT_CHECKPOINT, resolve_checkpoint
+from .serving import WARNINGS, BusySpans, Pending, PeriodStats, Problems, error_kind, rank_batch
+from .user_state import STATE_FILE
+
+MAX_STRANGERS_REMEMBERED = 10000
+TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model')
+_INT_MAX = 2 ** 31 - 1
+
+PARAMETERS = {  # name: (default, description, read_only, range)
+    'checkpoint': ('', f'checkpoint file; empty: the packaged {DEFAULT_CHECKPOINT}. Read again by ~/reload',
+                   False, None),
+    'top_k': (0, 'publish only the best k entries of each ranking; 0: all', False, (0, _INT_MAX)),
+    'record_folder': (str(recording.default_folder()), 'folder for the MCAP bags and user_models.json; default '
+                      '$ROS_HOME/stars_ros/records (ROS_HOME: ~/.ros unless set); empty: do not record', True, None),
+    'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
+                       (4096, _INT_MAX)),
+    'flush_interval': (1.0, 'seconds between flushes of the recording; a hard kill loses at most this',
+                       True, (0.01, 3600.0)),
+    'max_message_bytes': (messages.DEFAULT_MAX_BYTES, 'larger messages are refused (kind oversized)',
+                          False, (1024, 64 << 20)),
+    'queue_depth': (1000, 'QoS depth of stars/scene and the most requests waiting to be scored', True,
+                    (1, 100000)),
+    'max_batch': (16, 'most queued requests scored in one forward pass', False, (1, 1024)),
+    'log_throttle': (5.0, 'seconds between two log lines about the same kind of error', False,
+                     (0.0, 3600.0)),
+    'diagnostics_period': (1.0, 'seconds between two /diagnostics messages', True, (0.05, 3600.0)),
+    'fold_in': (True, "personalise from feedback: re-solve the user's embedding after each rating", False, None),
+    'fold_in_min_ratings': (1, 'ratings a user needs before their folded-in embedding is served', False,
+                            (1, 100000)),
+    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state file "
+                            'keeps); older ones stay in the MCAP log for the offline refit', True, (1, 1000000)),
+    'fold_in_max_users': (1000, 'folded-in users kept; beyond this the one who rated least recently goes back to '
+                          'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),
+    'fold_in_regularisation': (1.0, 'ridge weight λ pulling a folded-in user towards the prior '
+                               '(their trained row, else the population mean)', False, (1e-6, 1e6)),
+}
+
+
+class RankerCore:
+    """The ranker's state and work; see the module docstring.
+
+    Args:
+        params (dict): parameter values by name (``PARAMETERS``); read at each use, so the
+            node's updates to this dict apply at once.
+        topics (Mapping): each of ``TOPICS`` -> its resolved name, as recordings and error
+            reports give it.
+        node_name (str): the node's fully qualified name, for the recording's metadata.
+        publish (callable): ``publish(topic, text)`` sends ``text`` on stars/ranking,
+            stars/errors or stars/user_model.
+        logger: takes ``info``, ``warning`` and ``error`` lines.
+        now (callable): the time recorded messages are logged at (ns of ROS time).
+    """
+
+    def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
+                 logger, now: Callable[[], int]):
+        self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
+        self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
+        self.predictor = Predictor.load(self.checkpoint_path)
+        logger.info(f'serving {self.checkpoint_path} (fingerprint {self.predictor.fingerprint[:12]}, '
+                    f'actions {list(self.predictor.actions)})')
+        self.user_id, self.problems, self._strangers_reported = None, Problems(), set()
+        self.queue = collections.deque()  # Pending requests
+        self._fold_in_spans = BusySpans()  # when fold-in work was done (time.time_ns)
+        self._period_stats = PeriodStats()  # for the next diagnostics
+        self.recorder = None
+        self.recorder = self._start_recorder(node_name)
+        folder = params['record_folder']
+        self.personalisation = Personalisation(
+            self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
+            Path(folder).expanduser() / STATE_FILE if folder else None, params['flush_interval'])
+        self.personalisation.restore()
+        self._to_journal = queue.SimpleQueue()  # accepted feedback on its way to the recorder's journal
+        self._journal_thread = threading.Thread(target=self._journal_loop, name='stars-ranker-journal', daemon=True)
+        self._journal_thread.start()
+
+    # -- recording -----------------------------------------------------------------------
+    def _start_recorder(self, node_name: str):
+        folder = self.params['record_folder']
+        if not folder:
+            self.logger.warning('record_folder is empty: scenes, rankings and feedback are not recorded')
+            return None
+        try:
+            for bag in recording.abandoned_bags(folder):
+                self.logger.warning(f'recovered {bag} left by a hard kill: {recording.recover(bag)}')
+        except (OSError, ValueError) as error:
+            self.report('recording', f'could not recover old bags in {folder}: {error}')
+        depth = self.params['queue_depth']
+        depths = {'stars/scene': depth, 'stars/ranking': depth, 'stars/feedback': 100, 'stars/errors': 100,
+                  'stars/user_model': depth}
+        qos = {self.topics[topic]: recording.qos_profile(n) for topic, n in depths.items()}
+        qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
+        recorder = recording.Recorder(
+            folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
+            custom={'node': node_name, 'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
+            on_event=self._on_recorder_event)
+        if recorder.error is None:
+            self.logger.info(f'recording to {recorder.path}')
+        return recorder
+
+    def _on_recorder_event(self, level: str, text: str):
+        if level == 'error':
+            self.report('recording', text + '; ranking goes on, feedback is kept in memory until the disk works')
+        else:
+            self.logger.info(text)
+
+    def record(self, topic: str, text: str, log_time: int | None = None):
+        """Record ``text`` on ``topic`` (one of ``TOPICS``) at ``log_time`` (default: now)."""
+        if self.recorder is not None:
+            self.recorder.write(self.topics[topic], text, self._now() if log_time is None else log_time)
+
+    def _journal_loop(self):
+        """Feedback into the recorder's journal (written and fsync'd) from a thread of its own:
+        every ranking queued behind an fsync in the executor thread would wait for the disk."""
+        while (item := self._to_journal.get()) is not None:
+            topic, text, log_time, scene_id = item
+            if not self.recorder.write_feedback(topic, text, log_time):
+                self.report('recording', 'feedback could not be written yet; kept in memory and retried', topic,
+                            scene_id)
+
+    # -- problems and diagnostics --------------------------------------------------------
+    def report(self, kind: str, detail: str, topic: str = '', scene_id: str | None = None):
+        """Count, publish on stars/errors, log (throttled per kind) and record one problem."""
+        total = self.problems.add(kind, detail, self.params['log_throttle'])
+        payload = messages.dumps({'kind': kind, 'message': detail, 'topic': topic, 'scene_id': scene_id,
+                                  'level': 'warning' if kind in WARNINGS else 'error'})
+        self._publish('stars/errors', payload)
+        self.record('stars/errors', payload)
+        if total is not None:
+            line = (f"[{kind}] {detail} (total {total}; repeats are logged at most every {self.params['log_throttle']}"
+                    ' s)')
+            if kind in WARNINGS:  # rclpy fixes one severity per call site
+                self.logger.warning(line)
+            else:
+                self.logger.error(line)
+
+    def diagnostics(self) -> tuple[str, str, dict, list]:
+        """(level: 'ok', 'warn' or 'error'; summary; key-values; [(kind, level, count, latest
+        detail)] of each kind of problem) of the period since the last call, which ends it."""
+        period, counts = self.problems.take_period()
+        recorder = self.recorder
+        level = 'error' if set(period) - set(WARNINGS) or (recorder and recorder.error) else (
+            'warn' if period else 'ok')
+        summary = 'serving' if not period else 'serving; problems since last report: ' + ', '.join(
+            f'{k} x{n}' for k, (n, _) in sorted(period.items()))
+        values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
+                  'rankings': counts.get('ranking', 0), 'queued': len(self.queue),
+                  'recording': 'off' if recorder is None else (recorder.error or str(recorder.path)),
+                  'feedback_not_on_disk': 0 if recorder is None else
+                  recorder.pending_feedback + self._to_journal.qsize(),
+                  'folded_in_users': len(self.predictor.user_models), **self._period_stats.values()}
+        values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
+        self._period_stats = PeriodStats()
+        kinds = [(kind, 'warn' if kind in WARNINGS else 'error', count, detail)
+                 for kind, (count, detail) in sorted(period.items())]
+        return level, summary, values, kinds
+
+    # -- input ---------------------------------------------------------------------------
+    def accept_scene(self, text: str, received: int):
+        """Queue a stars/scene request the middleware received at ``received`` (time.time_ns)."""
+        try:
+            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
+            return
+        log_time = self._now()
+        self.personalisation.scenes.received(request.scene_id, text)
+        if len(self.queue) >= self.params['queue_depth']:
+            self.record('stars/scene', text, log_time)
+            self.report('overload', f"{self.params['queue_depth']} requests already wait to be scored; "
+                        'this one is dropped', self.topics['stars/scene'], request.scene_id)
+            return
+        self.queue.append(Pending(request, request.user_id or self.user_id, received, text, log_time))
+
+    def accept_user_id(self, text: str):
+        try:
+            self.user_id = messages.parse_user_id(text)
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/user_id'])
+            return
+        self.record('stars/user_id', text)
+
+    def accept_feedback(self, text: str) -> bool:
+        """Journal a stars/feedback message and queue its fold-in; True when a user now waits
+        to be re-solved (call ``work``)."""
+        topic = self.topics['stars/feedback']
+        try:
+            feedback = messages.parse_feedback(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), topic, error.scene_id)
+            return False
+        if feedback.action is not None and feedback.action not in self.predictor.actions:
+            self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
+                        f'{list(self.predictor.actions)}', topic, feedback.scene_id)
+            return False
+        if self.recorder is None:
+            self.report('recording', 'feedback accepted but record_folder is empty: it is not stored', topic,
+                        feedback.scene_id)
+        else:
+            self._to_journal.put((topic, text, self._now(), feedback.scene_id))
+        if not self.params['fold_in']:
+            return False
+        started = time.time_ns()
+        refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'])
+        if refused is not None:
+            self.report('unknown_scene', refused, topic, feedback.scene_id)
+        self._fold_in_spans.add(started, time.time_ns())
+        return refused is None
+
+    def reload(self) -> tuple[bool, str]:
+        """Load the checkpoint parameter's file again and serve it from the next batch on:
+        (success, what is served or why not). Folded-in users are re-solved against it (call
+        ``work``)."""
+        try:
+            path = resolve_checkpoint(self.params['checkpoint'])
+            predictor = Predictor.load(path)
+        except CheckpointError as error:
+            self.report('checkpoint', f'reload failed, still serving {self.predictor.fingerprint[:12]}: {error}')
+            return False, str(error)
+        self.predictor, self.checkpoint_path = predictor, path
+        self.personalisation.use(predictor)
+        self._strangers_reported = set()  # who is a stranger depends on the model
+        message = f'serving {path} (fingerprint {predictor.fingerprint})'
+        self.logger.info(message)
+        return True, message
+
+    # -- work ----------------------------------------------------------------------------
+    def work(self) -> bool:
+        """One batch of queued requests, else one fold-in solve; True when more work waits."""
+        pending = self.personalisation.pending
+        try:
+            if self.queue:
+                self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
+            elif pending:
+                started = time.time_ns()
+                try:
+                    self._solve_next()
+                finally:
+                    ended = time.time_ns()
+                    self._fold_in_spans.add(started, ended)
+                    self._period_stats.fold_in_update((ended - started) / 1e6)
+        except Exception as error:  # noqa: BLE001 - the node must keep serving
+            self.report('internal', f'{type(error).__name__}: {error}')
+        return bool(self.queue or pending)
+
+    def _solve_next(self):
+        solved = self.personalisation.solve_next(self.params['fold_in_min_ratings'],
+                                                 self.params['fold_in_regularisation'])
+        if solved is not None:
+            payload = messages.dumps(messages.user_model_payload(*solved, self.predictor.fingerprint))
+            self._publish('stars/user_model', payload)
+            self.record('stars/user_model', payload)
+
+    def _serve(self, batch: list):
+        predictor, top_k = self.predictor, self.params['top_k']
+        started = time.time_ns()
+        for item, result in zip(batch, rank_batch(predictor, batch, top_k)):
+            request = item.request
+            if isinstance(result, Exception):
+                self.record('stars/scene', item.text, item.log_time)
+                self.report(error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
+                continue
+            known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
+            processing_ms = max(0, time.time_ns() - item.received) / 1e6
+            payload = messages.dumps(messages.ranking_payload(
+                request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
+                result.action, personalised))
+            self._publish('stars/ranking', payload)
+            self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
+            self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
+            self.record('stars/ranking', payload)
+            self.personalisation.scenes.ranked(request.scene_id, item.text, predictor, result.h)
+            self.problems.ranked()
+            if item.user_id is not None and not known and not personalised:
+                self._report_stranger(item.user_id, request.scene_id)
+
+    def _report_stranger(self, user_id: str, scene_id: str):
+        """Warn once per unknown user and model, not per ranking: strangers are the normal
+        case on a robot, and a warning per ranking would cost every one of them latency."""
+        if user_id in self._strangers_reported:
+            return
+        if len(self._strangers_reported) >= MAX_STRANGERS_REMEMBERED:
+            self._strangers_reported.clear()
+        self._strangers_reported.add(user_id)
+        self.report('unknown_user', f"user '{user_id}' is not in the training data: ranked by scene content and "
+                    'population offsets (reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
+
+    def close(self):
+        """Record the requests never scored, finish the state file, the journal and the
+        recording (clean shutdown)."""
+        for item in self.queue:  # in the log even though they were never scored
+            self.record('stars/scene', item.text, item.log_time)
+        self.personalisation.close()
+        self._to_journal.put(None)
+        self._journal_thread.join(timeout=10)  # every accepted feedback reaches the recorder
+        if self.queue:
+            self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
+        if self.recorder is not None:
+            for entry in self.recorder.close():
+                self.logger.error(f'feedback that could not be stored: {entry}')
+            self.logger.info(f'recording closed: {self.recorder.path}')

@@ -1,0 +1,164 @@
+"""The ranker node: personalised rankings of robot actions (or candidate scenes) per scene.
+
+Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feedback``;
+publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` and ``/diagnostics``;
+serves ``~/reload``. See README.md ("The ranker node") and docs/personalisation.md. Run with
+``ros2 run stars_ros ranker`` or ``python -m stars_ros.ros.ranker --ros-args -p checkpoint:=PATH``.
+
+Threads: the executor thread does the serving. A scene callback takes every request
+already waiting on stars/scene, validates and queues them (beyond ``queue_depth`` waiting
+they are refused as ``overload``), and scores up to ``max_batch`` of them in one pass with
+one model snapshot; a guard condition brings the executor back for the rest, or for a
+fold-in solve, once other ready callbacks (feedback, ``~/reload``, parameters) have had
+their turn. Handing requests to a worker thread cost more in waiting for the GIL
+(docs/performance.md). The callbacks share the node's default, mutually exclusive callback
+group, so a multi-threaded executor keeps this order too.
+
+The work itself, ROS-free, is ``stars_ros.ranker_core.RankerCore``; this module declares the
+parameters (``ranker_core.PARAMETERS``), creates the topics, the service and the timers,
+and passes messages to and from the core.
+"""
+from __future__ import annotations
+
+import gc
+import time
+
+import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidHandle
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from threadpoolctl import threadpool_limits
+
+from ..errors import CheckpointError
+from ..ranker_core import PARAMETERS, TOPICS, RankerCore
+from . import usage
+from .spinning import run_node, spin_until_shutdown
+
+LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR}
+
+
+def _descriptor(name: str) -> ParameterDescriptor:
+    """The parameter's description, and what rclpy then refuses on its own: a value of
+    another type than the default's, one outside the range, any change to a read-only one."""
+    default, description, read_only, limits = PARAMETERS[name]
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if isinstance(default, int) and limits:
+        descriptor.integer_range = [IntegerRange(from_value=limits[0], to_value=limits[1], step=1)]
+    elif isinstance(default, float) and limits:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=limits[0], to_value=limits[1])]
+    return descriptor
+
+
+def _received(info: dict) -> int:
+    """When the middleware received a message (time.time_ns; now if it does not stamp)."""
+    return info.get('received_timestamp') or time.time_ns()
+
+
+class RankerNode(Node):
+    """Serves rankings from a StARS checkpoint; see the module docstring."""
+
+    def __init__(self, **kwargs):
+        super().__init__('ranker', **kwargs)
+        self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
+                       for name, spec in PARAMETERS.items()}
+        self.add_post_set_parameters_callback(self._on_parameters_set)
+        torch.set_num_threads(1)
+        # numpy's OpenBLAS spreads products above ~0.26 M multiply-adds (a fold-in solve over
+        # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
+        # cores the executor, the DDS threads and the node's neighbours need
+        threadpool_limits(1, user_api='blas')
+        reliable = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.publishers_by_topic = {'stars/ranking': self.create_publisher(String, 'stars/ranking', reliable),
+                                    'stars/errors': self.create_publisher(String, 'stars/errors', 100),
+                                    'stars/user_model': self.create_publisher(String, 'stars/user_model', reliable)}
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
+                               self.get_fully_qualified_name(), self._publish, self.get_logger(),
+                               lambda: self.get_clock().now().nanoseconds)
+        self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
+        self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data), latched)
+        self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
+        self.create_service(Trigger, '~/reload', self._on_reload)
+        self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
+        self._more_work = self.create_guard_condition(self._work)
+
+    def _on_parameters_set(self, parameters):
+        """Apply what rclpy accepted: the descriptors have checked type, range and read-only."""
+        self.params.update({p.name: p.value for p in parameters if p.name in PARAMETERS})
+
+    def _publish(self, topic: str, text: str):
+        try:
+            self.publishers_by_topic[topic].publish(String(data=text))
+        except (InvalidHandle, _rclpy.RCLError):
+            if topic != 'stars/errors':  # shutting down (a thread of close()): errors are logged and recorded
+                raise
+
+    def _publish_diagnostics(self):
+        level, summary, values, kinds = self.core.diagnostics()
+        name = self.get_fully_qualified_name()
+        statuses = [DiagnosticStatus(level=LEVELS[level], name=f'{name}: ranker', message=summary, hardware_id=name,
+                                     values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]
+        statuses += [DiagnosticStatus(level=LEVELS[kind_level], name=f'{name}: {kind}', message=detail,
+                                      hardware_id=name, values=[KeyValue(key='count', value=str(count))])
+                     for kind, kind_level, count, detail in kinds]
+        array = DiagnosticArray(status=statuses)
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
+
+    def _on_scene(self, msg: String, info: dict):
+        """Queue this request and those already waiting behind it (at most queue_depth per
+        call, so a flood cannot keep the executor from serving), then serve a batch."""
+        self.core.accept_scene(msg.data, _received(info))
+        subscription = self._scene_subscription
+        for _ in range(self.params['queue_depth']):
+            with subscription.handle:  # the next one waiting and its info, taken as the executor takes them
+                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            if taken is None:
+                break
+            self.core.accept_scene(taken[0].data, _received(taken[1]))
+        self._work()
+
+    def _on_feedback(self, msg: String):
+        if self.core.accept_feedback(msg.data):
+            self._more_work.trigger()
+
+    def _on_reload(self, request, response):
+        response.success, response.message = self.core.reload()
+        if response.success:
+            self._more_work.trigger()
+        return response
+
+    def _work(self):
+        if self.core.work():
+            self._more_work.trigger()
+
+    def close(self):
+        """Finish the state file and the recording (clean shutdown). Called after
+        ``destroy_node``, which takes the node's /rosout publisher with it: a signal has shut
+        the context down by then, and each line logged while that publisher still existed
+        would end in "Failed to publish log message to rosout: publisher's context is invalid"."""
+        self.core.close()
+
+
+def _serve(node: RankerNode):
+    gc.collect()
+    gc.freeze()  # the model and imports leave the collector's generations: full
+    spin_until_shutdown(node)  # collections while serving then walk only what requests create
+
+
+def main(args=None):
+    if usage.print_help_if_asked('ranker', __doc__, PARAMETERS,
+                                 'ros2 run stars_ros ranker --ros-args -p checkpoint:=model.pt -p top_k:=3', args):
+        return
+    run_node('ranker', RankerNode, _serve, (CheckpointError,), args, close=RankerNode.close)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,207 @@
+"""The node's fold-in orchestration without ROS, on the tiny checkpoint: which feedback
+becomes a rating, the solve and its bounds, eviction, a reload after a refit, the state
+file across a restart, and the scene memory feedback is matched against."""
+import json
+
+import numpy as np
+import pytest
+
+from stars_ros import messages, personalisation
+from stars_ros.errors import SceneGraphError, StarsError
+from stars_ros.foldin import FoldIn, Rating
+from stars_ros.messages import Feedback
+from stars_ros.personalisation import Personalisation, SceneMemory
+from stars_ros.predictor import Predictor
+from stars_ros.scene_source import read_scenes, scene_request
+from stars_ros.serving import Pending, rank_batch
+from stars_ros.user_state import STATE_FILE
+
+
+class Log:
+    """Stands in for the node's report and logger."""
+
+    def __init__(self):
+        self.reports, self.lines = [], []
+
+    def __call__(self, kind, detail):
+        self.reports.append((kind, detail))
+
+    def info(self, line):
+        self.lines.append(('info', line))
+
+    def warning(self, line):
+        self.lines.append(('warning', line))
+
+
+@pytest.fixture()
+def predictor(tiny_checkpoint):
+    return Predictor.load(tiny_checkpoint)
+
+
+@pytest.fixture(scope='module')
+def scenes(socnav1_root):
+    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:6]
+
+
+def _personalisation(predictor, log, max_ratings=200, max_users=1000, **kwargs):
+    return Personalisation(predictor, max_ratings, max_users, log, log, **kwargs)
+
+
+def _rank(core: Personalisation, scene_id: str, payload: dict) -> str:
+    """Receive and rank a request as the node does; returns its text."""
+    text = messages.dumps(payload)
+    core.scenes.received(scene_id, text)
+    [scored] = rank_batch(core.predictor, [Pending(messages.parse_scene_request(text), None, 0, text)])
+    core.scenes.ranked(scene_id, text, core.predictor, scored.h)
+    return text
+
+
+def _rate(core, user_id, scene, score=1.0, **rated) -> str | None:
+    scene_id = scene['identifier']
+    if core.scenes.get(scene_id)[0] is None:
+        _rank(core, scene_id, scene_request(scene_id, scene))
+    return core.add_feedback(Feedback(user_id, scene_id, score, **(rated or {'action': 'navigate'})))
+
+
+def test_feedback_on_a_ranked_scene_is_solved_from_its_h_and_served(predictor, scenes, monkeypatch):
+    log = Log()
+    core = _personalisation(predictor, log)
+    expected = FoldIn(predictor).fit([Rating(scenes[0], 'navigate', 1.0, scenes[0]['identifier'])], 'newcomer', 0.5)
+    _rank(core, scenes[0]['identifier'], scene_request(scenes[0]['identifier'], scenes[0]))
+
+    def encode(*args, **kwargs):
+        raise AssertionError('the solve encoded a scene its ranking had encoded')
+    monkeypatch.setattr(predictor, 'encode', encode)
+    assert _rate(core, 'newcomer', scenes[0]) is None and list(core.pending) == ['newcomer']
+    user_id, model = core.solve_next(min_ratings=1, regularisation=0.5)
+    assert user_id == 'newcomer' and model.n_ratings == 1 and model.regularisation == 0.5
+    assert np.allclose(model.p, expected.p, atol=1e-5) and model.b == pytest.approx(expected.b, abs=1e-5)
+    assert predictor.user_model('newcomer') is model and predictor.personalised_from('newcomer') == 1
+    assert core.solve_next() is None and not core.pending and log.reports == []
+
+
+def test_feedback_that_names_no_usable_rating_says_why(predictor, scenes):
+    log = Log()
+    core = _personalisation(predictor, log)
+    unknown = core.add_feedback(Feedback('ann', 'never-seen', 1.0, action='navigate'))
+    assert "scene 'never-seen', which this node has not ranked (or no longer remembers)" in unknown
+    placements = scene_request('placements', scenes[1], placements=3)
+    _rank(core, 'placements', placements)
+    assert 'ranked candidate scenes' in core.add_feedback(Feedback('ann', 'placements', 1.0, action='navigate'))
+    assert "had no candidate 'elsewhere'" in core.add_feedback(Feedback('ann', 'placements', 1.0,
+                                                                         candidate='elsewhere'))
+    assert 'its request no longer passes' in core.add_feedback(
+        Feedback('ann', 'placements', 1.0, candidate=placements['candidates'][0]['candidate']), max_bytes=16)
+    assert not core.pending and len(core.histories) == 0
+    label = placements['candidates'][2]['candidate']
+    assert core.add_feedback(Feedback('ann', 'placements', 0.5, candidate=label)) is None
+    [rating] = core.histories.ratings('ann')
+    assert rating.scene == placements['candidates'][2]['graph'] and rating.scene_id is None
+
+
+def test_a_user_is_served_once_they_have_min_ratings(predictor, scenes):
+    core = _personalisation(predictor, Log())
+    _rate(core, 'ann', scenes[0])
+    assert core.solve_next(min_ratings=2) is None and predictor.user_model('ann') is None and not core.pending
+    _rate(core, 'ann', scenes[1], 0.0)
+    assert core.solve_next(min_ratings=2)[1].n_ratings == 2
+
+
+def test_the_user_who_rated_least_recently_goes_back_to_the_checkpoint(predictor, scenes):
+    log = Log()
+    core = _personalisation(predictor, log, max_ratings=2, max_users=1)
+    for scene in scenes[:3]:
+        _rate(core, 'ann', scene)
+    assert len(core.histories.ratings('ann')) == 2 and core.histories.dropped('ann') == 1
+    core.solve_next()
+    _rate(core, 'bob', scenes[3])
+    assert predictor.user_model('ann') is None and 'ann' not in core.histories
+    assert log.reports == [('user_models', "folded-in user 'ann' dropped: more than fold_in_max_users = 1 users "
+                                           'rated more recently (their feedback stays in the MCAP log for the '
+                                           'offline refit)')]
+
+
+def test_a_rating_the_model_cannot_encode_leaves_the_history_reported(predictor, scenes, monkeypatch):
+    log = Log()
+    core = _personalisation(predictor, log)
+    _rate(core, 'ann', scenes[0])
+    _rate(core, 'ann', scenes[1])
+    bad = core.histories.ratings('ann')[1].scene
+    encode = core.foldin.encode
+
+    def refusing(batch):
+        if any(scene is bad for scene in batch):
+            raise SceneGraphError('a node outside the room')
+        return encode(batch)
+    monkeypatch.setattr(core.foldin, 'encode', refusing)
+    user_id, model = core.solve_next()
+    assert model.n_ratings == 1 and core.histories.dropped('ann') == 1
+    assert log.reports == [('scene_graph', "feedback of 'ann' not folded in: a node outside the room")]
+
+
+def test_a_reload_keeps_only_the_feedback_a_refit_did_not_absorb(predictor, tiny_checkpoint, scenes):
+    core = _personalisation(predictor, Log())
+    for user_id, rated in (('ann', scenes[:2]), ('bob', scenes[2:3])):
+        for scene in rated:
+            _rate(core, user_id, scene)
+    while core.solve_next() is not None:
+        pass
+    refit = Predictor.load(tiny_checkpoint)
+    refit.metadata = {**refit.metadata, 'provenance': {'refit': {'ratings_per_user': {'ann': 1, 'bob': 1}}}}
+    core.use(refit)
+    assert core.predictor is refit and core.foldin.predictor is refit
+    assert list(core.pending) == ['ann'] and 'bob' not in core.histories
+    assert [r.scene_id for r in core.histories.ratings('ann')] == [scenes[1]['identifier']]
+    user_id, model = core.solve_next()
+    assert user_id == 'ann' and refit.user_model('ann') is model and model.n_ratings == 1
+    assert refit.user_model('bob') is None
+
+
+def test_folded_in_users_survive_a_restart_with_the_same_checkpoint_only(tiny_checkpoint, scenes, tmp_path):
+    state_path = tmp_path / STATE_FILE
+    first = _personalisation(Predictor.load(tiny_checkpoint), Log(), state_path=state_path, flush_interval=60.0)
+    _rate(first, 'ann', scenes[0])
+    _rate(first, 'ann', scenes[1], 0.25)
+    _, model = first.solve_next()
+    first.close()
+    log = Log()
+    restarted = _personalisation(Predictor.load(tiny_checkpoint), log, state_path=state_path)
+    restarted.restore()
+    restarted.close()
+    restored = restarted.predictor.user_model('ann')
+    assert np.array_equal(restored.p, model.p) and restored.b == model.b and restored.n_ratings == 2
+    assert [r.score for r in restarted.histories.ratings('ann')] == [1.0, 0.25]
+    assert log.lines == [('info', f'restored 1 folded-in users from {state_path}')] and not log.reports
+    state = json.loads(state_path.read_text())
+    state_path.write_text(json.dumps({**state, 'fingerprint': '0' * 64}))
+    other = _personalisation(Predictor.load(tiny_checkpoint), log, state_path=state_path)
+    other.restore()
+    assert not other.predictor.user_models and len(other.histories) == 0
+    [(kind, detail)] = log.reports
+    assert kind == 'user_models' and detail.endswith('folded-in users are not restored')
+
+
+def test_a_model_without_users_serves_without_fold_in(predictor, scenes, monkeypatch):
+    def refuse(predictor):
+        raise StarsError("fold-in needs a personalised model; this one is 'base'")
+    monkeypatch.setattr(personalisation, 'FoldIn', refuse)
+    log = Log()
+    core = _personalisation(predictor, log)
+    assert core.foldin is None and log.lines == [('warning', 'no online fold-in with this checkpoint: fold-in needs '
+                                                             "a personalised model; this one is 'base'")]
+    assert _rate(core, 'ann', scenes[0]) is None
+    assert core.solve_next() is None and not predictor.user_models
+
+
+def test_scene_memory_keeps_the_latest_requests_and_ignores_a_stale_ranking():
+    memory = SceneMemory(size=2)
+    for scene_id in ('a', 'b', 'c'):
+        memory.received(scene_id, f'text {scene_id}')
+    assert memory.get('a') == (None, None) and len(memory) == 2
+    memory.received('b', 'newer b')
+    memory.ranked('b', 'text b', 'predictor', 'h')  # the older request under that id
+    assert memory.get('b') == ('newer b', None)
+    memory.ranked('b', 'newer b', 'predictor', 'h')
+    assert memory.get('b') == ('newer b', ('predictor', 'h'))
+    memory.received('d', 'text d')  # b was received last, so c goes
+    assert memory.get('c') == (None, None) and memory.get('b')[0] == 'newer b'

@@ -1,0 +1,141 @@
+"""The ranker's work without ROS (what test_ranker_node.py checks over DDS, here in one
+process): rankings carry the checkpoint's fingerprint, problems are reported by kind and
+summed up in the diagnostics, feedback is folded in once the queue is empty, a reload that
+fails keeps serving, and a clean close leaves the feedback and the state file on disk."""
+import itertools
+import json
+
+import pytest
+
+from stars_ros import messages, recording
+from stars_ros.ranker_core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.scene_source import read_scenes, scene_request
+from stars_ros.user_state import STATE_FILE
+
+
+class Node:
+    """What the node gives the core: its publishers, its logger and the ROS clock."""
+
+    def __init__(self):
+        self.published, self.lines = [], []
+        self.clock = itertools.count(1_000_000_000, 1000)
+
+    def publish(self, topic, text):
+        self.published.append((topic, json.loads(text)))
+
+    def on(self, topic):
+        return [payload for t, payload in self.published if t == topic]
+
+    def info(self, line):
+        self.lines.append(('info', line))
+
+    def warning(self, line):
+        self.lines.append(('warning', line))
+
+    def error(self, line):
+        self.lines.append(('error', line))
+
+
+@pytest.fixture(scope='module')
+def scenes(socnav1_root):
+    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:4]
+
+
+def _core(node, checkpoint, **params):
+    values = {name: spec[0] for name, spec in PARAMETERS.items()}
+    values.update({'checkpoint': str(checkpoint), 'record_folder': '', **params})
+    return RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
+                      lambda: next(node.clock))
+
+
+def _scene(core, scene, user_id=None, scene_id=None):
+    core.accept_scene(messages.dumps(scene_request(scene_id or scene['identifier'], scene, user_id)), 0)
+
+
+def test_rankings_carry_the_fingerprint_and_a_stranger_is_warned_once(tiny_checkpoint, scenes):
+    node = Node()
+    core = _core(node, tiny_checkpoint)
+    for scene in scenes[:2]:
+        _scene(core, scene, 'stranger')
+    assert core.work() is False
+    rankings = node.on('stars/ranking')
+    assert [r['scene_id'] for r in rankings] == [s['identifier'] for s in scenes[:2]]
+    assert {r['fingerprint'] for r in rankings} == {core.predictor.fingerprint}
+    assert all(r['known_user'] is False and r['user_id'] == 'stranger' for r in rankings)
+    [warning] = node.on('stars/errors')
+    assert (warning['kind'], warning['level'], warning['topic']) == ('unknown_user', 'warning', '/stars/scene')
+    core.close()
+
+
+def test_problems_are_reported_throttled_and_summed_up_in_the_diagnostics(tiny_checkpoint, scenes):
+    node = Node()
+    core = _core(node, tiny_checkpoint, queue_depth=1)
+    assert core.diagnostics()[0] == 'ok'
+    core.accept_scene('{"scene_id": "x"', 0)
+    core.accept_scene('[]', 0)
+    _scene(core, scenes[0], 'a')
+    _scene(core, scenes[1], 'a')  # the queue holds one
+    kinds = [e['kind'] for e in node.on('stars/errors')]
+    assert len(kinds) == 3 and kinds[-1] == 'overload'
+    assert [level for level, _ in node.lines if level == 'error'] == ['error'] * len(set(kinds))  # one line per kind
+    assert core.work() is False and len(node.on('stars/ranking')) == 1
+    level, summary, values, per_kind = core.diagnostics()
+    assert level == 'error' and summary.startswith('serving; problems since last report: ')
+    assert values['rankings'] == 1 and values['errors.overload'] == 1 and values['queued'] == 0
+    assert values['recording'] == 'off' and values['period.rankings'] == 1
+    assert ('overload', 'error', 1) in [entry[:3] for entry in per_kind]
+    assert core.diagnostics()[:2] == ('ok', 'serving')  # a new period
+    core.close()
+
+
+def test_feedback_is_folded_in_once_no_scene_waits(tiny_checkpoint, scenes):
+    node = Node()
+    core = _core(node, tiny_checkpoint)
+    _scene(core, scenes[0], 'newcomer')
+    core.work()
+    feedback = {'user_id': 'newcomer', 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0}
+    assert core.accept_feedback(messages.dumps(feedback)) is True
+    _scene(core, scenes[1], 'newcomer')
+    assert core.work() is True and not node.on('stars/user_model')  # the scene first
+    assert core.work() is False
+    [model] = node.on('stars/user_model')
+    assert model['user_id'] == 'newcomer' and model['n_ratings'] == 1
+    assert model['fingerprint'] == core.predictor.fingerprint
+    _scene(core, scenes[2], 'newcomer')
+    core.work()
+    assert node.on('stars/ranking')[-1]['personalised_from'] == 1
+    assert core.accept_feedback(messages.dumps({**feedback, 'scene_id': 'gone'})) is False
+    assert node.on('stars/errors')[-1]['kind'] == 'unknown_scene'
+    core.params['fold_in'] = False
+    assert core.accept_feedback(messages.dumps(feedback)) is False and not core.personalisation.pending
+    core.close()
+
+
+def test_a_failed_reload_keeps_serving_the_checkpoint(tiny_checkpoint, tmp_path):
+    node = Node()
+    core = _core(node, tiny_checkpoint)
+    fingerprint = core.predictor.fingerprint
+    core.params['checkpoint'] = str(tmp_path / 'missing.pt')
+    succeeded, message = core.reload()
+    assert not succeeded and core.predictor.fingerprint == fingerprint
+    assert node.on('stars/errors')[-1]['kind'] == 'checkpoint'
+    core.params['checkpoint'] = str(tiny_checkpoint)
+    assert core.reload() == (True, f'serving {tiny_checkpoint} (fingerprint {fingerprint})')
+    core.close()
+
+
+def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoint, scenes, tmp_path):
+    node = Node()
+    core = _core(node, tiny_checkpoint, record_folder=str(tmp_path), flush_interval=60.0)
+    _scene(core, scenes[0], 'newcomer')
+    core.work()
+    core.accept_feedback(messages.dumps({'user_id': 'newcomer', 'scene_id': scenes[0]['identifier'],
+                                         'action': 'navigate', 'score': 0.5}))
+    core.work()
+    _scene(core, scenes[1], 'newcomer')  # never scored: still recorded
+    core.close()
+    recorded = [topic for topic, _, _ in recording.read_messages(core.recorder.path)]
+    for topic in ('/stars/scene', '/stars/ranking', '/stars/feedback', '/stars/user_model', '/stars/errors'):
+        assert topic in recorded, topic
+    assert recorded.count('/stars/scene') == 2
+    assert list(json.loads((tmp_path / STATE_FILE).read_text())['users']) == ['newcomer']

@@ -1,0 +1,125 @@
+"""The ranker's state file (user_models.json): round trip, the files earlier versions wrote,
+another checkpoint's users and corrupted files refused with a reason, the writer thread."""
+import json
+import re
+import time
+
+import numpy as np
+import pytest
+
+from stars_ros import user_state
+from stars_ros.foldin import Rating, UserModel
+from stars_ros.user_state import STATE_FILE, StateWriter, UserStateError
+
+SCENE = {'identifier': 's1', 'humans': [{'id': 1, 'xPos': 0.5, 'yPos': -1.0, 'orientation': 90}]}
+FINGERPRINT = 'ab' * 32
+
+
+def _users():
+    models = {'ann': UserModel(np.array([0.25, -1.5]), 0.125, 2, 1.0), 'bob': UserModel(np.zeros(2), -0.5, 1, 0.05)}
+    histories = {'ann': ([Rating(SCENE, 'navigate', 0.75, 's1'), Rating(SCENE, 'navigate', 0.5, None)], 3),
+                 'bob': ([Rating([0.0, 1.5], 'wait', 1.0, None)], 0)}
+    return models, histories
+
+
+def _same_models(loaded: dict, expected: dict):
+    assert list(loaded) == list(expected)
+    for user_id, model in expected.items():
+        got = loaded[user_id]
+        assert np.array_equal(got.p, model.p) and got.p.dtype == np.float64
+        assert (got.b, got.n_ratings, got.regularisation) == (model.b, model.n_ratings, model.regularisation)
+
+
+def test_round_trip_keeps_models_histories_and_dropped_counts(tmp_path):
+    models, histories = _users()
+    path = tmp_path / 'records' / STATE_FILE  # the folder is created
+    user_state.save(path, user_state.to_dict(FINGERPRINT, models, histories))
+    loaded = user_state.load(path, FINGERPRINT)
+    assert loaded.fingerprint == FINGERPRINT
+    _same_models(loaded.models, models)
+    assert loaded.histories == histories
+    assert not (path.parent / (STATE_FILE + '.tmp')).exists()
+
+
+def test_a_user_without_history_is_saved_with_an_empty_one(tmp_path):
+    models, histories = _users()
+    del histories['bob']
+    state = user_state.to_dict(FINGERPRINT, models, histories)
+    assert state['users']['bob']['ratings'] == [] and state['users']['bob']['ratings_dropped'] == 0
+    assert set(state) == {'format', 'version', 'fingerprint', 'users'} and state['format'] == user_state.FORMAT
+
+
+def test_files_written_by_earlier_versions_load(tmp_path):
+    """The exact text the node wrote before the state file had a module of its own (users
+    spliced in one by one), and a version-1 file from before ratings_dropped existed."""
+    path = tmp_path / STATE_FILE
+    path.write_text(
+        '{"format":"stars_ros.user_models","version":1,"fingerprint":"' + FINGERPRINT + '","users":{"ann":'
+        '{"p_u":[0.25,-1.5],"b_u":0.125,"n_ratings":2,"regularisation":1.0,"ratings_dropped":3,"ratings":['
+        '{"scene":' + json.dumps(SCENE, separators=(',', ':')) + ',"action":"navigate","score":0.75,"scene_id":"s1"},'
+        '{"scene":' + json.dumps(SCENE, separators=(',', ':')) + ',"action":"navigate","score":0.5,"scene_id":null}]},'
+        '"bob":{"p_u":[0.0,0.0],"b_u":-0.5,"n_ratings":1,"regularisation":0.05,"ratings_dropped":0,"ratings":['
+        '{"scene":[0.0,1.5],"action":"wait","score":1.0,"scene_id":null}]}}}')
+    models, histories = _users()
+    loaded = user_state.load(path, FINGERPRINT)
+    _same_models(loaded.models, models)
+    assert loaded.histories == histories
+    assert path.read_text() == json.dumps(user_state.to_dict(FINGERPRINT, models, histories), separators=(',', ':'))
+    older = {'format': user_state.FORMAT, 'version': 1, 'fingerprint': FINGERPRINT,
+             'users': {'ann': {**models['ann'].to_json(), 'ratings': [{'scene': SCENE, 'action': 'navigate',
+                                                                       'score': 1, 'scene_id': 's1'}]}}}
+    path.write_text(json.dumps(older))
+    assert user_state.load(path, FINGERPRINT).histories == {'ann': ([Rating(SCENE, 'navigate', 1.0, 's1')], 0)}
+
+
+def test_users_of_another_checkpoint_are_refused_naming_both(tmp_path):
+    path = tmp_path / STATE_FILE
+    user_state.save(path, user_state.to_dict(FINGERPRINT, *_users()))
+    with pytest.raises(UserStateError, match=f'solved against checkpoint {FINGERPRINT[:12]}, not the served '
+                                             f'cdcdcdcdcdcd: folded-in users are not restored'):
+        user_state.load(path, 'cd' * 32)
+
+
+@pytest.mark.parametrize('text', [
+    '{"format":"stars_ros.user_models","version":1,"fingerprint":"abab',  # truncated
+    '[]', '{"format":"something else","users":{}}', '{"format":"stars_ros.user_models","users":{}}',
+    '{"format":"stars_ros.user_models","fingerprint":"x","users":{"ann":{"p_u":[0],"b_u":0}}}',
+    '{"format":"stars_ros.user_models","fingerprint":"x","users":{"ann":{"p_u":[0],"b_u":0,"n_ratings":1,'
+    '"regularisation":1,"ratings":[{"scene":{},"action":"a","score":"high"}]}}}',
+    '{"format":"stars_ros.user_models","fingerprint":"x","users":[]}',
+])
+def test_a_corrupted_file_is_refused_with_a_reason(tmp_path, text):
+    path = tmp_path / STATE_FILE
+    path.write_text(text)
+    reason = f'cannot read {re.escape(str(path))}: .+; folded-in users are not restored'
+    with pytest.raises(UserStateError, match=reason):
+        user_state.load(path, 'x')
+
+
+def test_no_file_is_no_users(tmp_path):
+    assert user_state.load(tmp_path / STATE_FILE, FINGERPRINT) is None
+
+
+def test_the_writer_saves_when_asked_and_once_more_on_close(tmp_path):
+    models, histories = _users()
+    states = iter([user_state.to_dict(FINGERPRINT, models, {}), user_state.to_dict(FINGERPRINT, models, histories)])
+    path = tmp_path / STATE_FILE
+    writer = StateWriter(path, lambda: next(states), interval=60.0, on_error=pytest.fail)
+    writer.request()
+    deadline = time.monotonic() + 30
+    while not path.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert user_state.load(path, FINGERPRINT).histories == {'ann': ([], 0), 'bob': ([], 0)}
+    writer.request()  # within the interval: written at its end, or at close
+    writer.close()
+    assert user_state.load(path, FINGERPRINT).histories == histories
+
+
+def test_the_writer_reports_a_disk_that_refuses(tmp_path):
+    (tmp_path / 'file').write_text('')
+    errors = []
+    writer = StateWriter(tmp_path / 'file' / STATE_FILE, lambda: user_state.to_dict(FINGERPRINT, {}, {}), 0.01,
+                         errors.append)
+    writer.request()
+    writer.close()
+    assert errors and errors[0].startswith(f"could not write {tmp_path / 'file' / STATE_FILE}: ")
