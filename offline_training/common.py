@@ -1,4 +1,4 @@
-"""Pieces the offline programs share: logging set-up and the SocNav1 default path."""
+"""Pieces the offline programs share: logging, inputs, progress lines, plots, the SocNav1 default path."""
 import logging
 import os
 import platform
@@ -7,6 +7,9 @@ import time
 from pathlib import Path
 
 import torch
+
+from stars_ros.data import load_dataset
+from stars_ros.errors import StarsError
 
 DEFAULT_SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT',
                                       Path(__file__).resolve().parents[1].parent / 'shared' / 'datasets' / 'socnav1'))
@@ -55,3 +58,44 @@ class Progress:
         print(f'{stage} epoch {epoch}/{self.total[stage]}: loss {loss:.4f}, {now - self.last:.2f} s, '
               f'about {per_epoch * self.left:.0f} s left', file=self.stream, flush=True)
         self.last = now
+
+
+def pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (no display needed)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def mean_band(axis, x, means, sds, label: str, marker: str = 'o', alpha: float = 0.2) -> None:
+    """A line of means with a ±sd band in the line's colour."""
+    line, = axis.plot(x, means, marker=marker, label=label)
+    axis.fill_between(x, means - sds, means + sds, alpha=alpha, color=line.get_color())
+
+
+def label_axis(axis, xlabel: str, ylabel: str, legend_size: int | None = None) -> None:
+    axis.set_xlabel(xlabel)
+    axis.set_ylabel(ylabel)
+    axis.grid(alpha=0.3)
+    if legend_size:
+        axis.legend(fontsize=legend_size)
+
+
+def save_png(figure, path: Path) -> str:
+    """Lay out, write and close ``figure``; returns the file's name."""
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    pyplot().close(figure)
+    return path.name
+
+
+def read_inputs(read_config, data_root):
+    """(config, data): the config first, so a bad one is refused before the data loads; None
+    after printing the error (the caller exits with status 2)."""
+    try:
+        config = read_config()
+        return config, load_dataset(data_root)
+    except (StarsError, OSError) as error:
+        print(f'error: {error}', file=sys.stderr)
+        return None

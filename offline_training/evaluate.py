@@ -36,7 +36,7 @@ from stars_ros.evaluation import (DISPLAY, PROTOCOLS, ProtocolConfig, ablation_t
                                   paired_tests, run_protocol, settings_key, sparsity_summary, time_accounting)
 from stars_ros.stats import format_mean_sd, mean_sd
 
-from .common import DEFAULT_SOCNAV1, cuda_info, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, cuda_info, label_axis, machine, mean_band, pyplot, save_png, setup_logging
 
 REPO = Path(__file__).resolve().parents[1]
 METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
@@ -323,10 +323,7 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
 
 def plot_sparsity(folder: Path, summary: dict, error: str) -> list[str]:
     """One PNG per metric, one panel per swept backbone (base, StARS and the baselines)."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     panels = {}
     for label in summary:
         backbone = label.rsplit(' ', 1)[0] if label.endswith((' base', ' StARS')) else None
@@ -345,18 +342,10 @@ def plot_sparsity(folder: Path, summary: dict, error: str) -> list[str]:
                 sds = np.array([s[1] for s in stats])
                 if np.isnan(means).all():
                     continue
-                line, = axis.plot(fractions, means, marker='o', label=label)
-                axis.fill_between(fractions, means - sds, means + sds, alpha=0.2, color=line.get_color())
+                mean_band(axis, fractions, means, sds, label)
             axis.set_title(backbone)
-            axis.set_xlabel('training fraction of the outer-train pool')
-            axis.set_ylabel(METRIC_NAMES[metric])
-            axis.grid(alpha=0.3)
-            axis.legend(fontsize=7)
-        figure.tight_layout()
-        name = f'sparsity_{metric}.png'
-        figure.savefig(folder / name, dpi=120)
-        plt.close(figure)
-        written.append(name)
+            label_axis(axis, 'training fraction of the outer-train pool', METRIC_NAMES[metric], legend_size=7)
+        written.append(save_png(figure, folder / f'sparsity_{metric}.png'))
     return written
 
 

@@ -43,7 +43,6 @@ import numpy as np
 import torch
 
 from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
 from stars_ros.errors import StarsError
 from stars_ros.evaluation import fit_executor, worker_data
 from stars_ros.kshot import LAMBDA_GRID, PRIORS, Design, annotator_folds, choose_regularisation, reveal_pools
@@ -51,7 +50,7 @@ from stars_ros.metrics import regression_report
 from stars_ros.stats import mean_sd
 from stars_ros.training import StarsRecommender
 
-from .common import DEFAULT_SOCNAV1, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, label_axis, machine, pyplot, read_inputs, save_png, setup_logging
 
 METHODS = ('unpersonalised', 'fold-in', 'fold-in (zero prior)', 'retrained')
 METRICS = ('mse', 'pearson_r', 'ccc')
@@ -271,9 +270,7 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
 
 
 def plot(path: Path, summary: dict) -> None:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     figure, axes = plt.subplots(1, len(METRICS), figsize=(13, 3.6))
     for axis, metric in zip(axes, METRICS):
@@ -283,25 +280,19 @@ def plot(path: Path, summary: dict) -> None:
             sds = np.array([summary[method][k][metric][1] for k in ks])
             sds = np.nan_to_num(sds)
             axis.errorbar(ks, means, yerr=sds, marker='o', capsize=3, label=method)
-        axis.set_xlabel('revealed ratings k')
-        axis.set_ylabel(NAMES[metric])
-        axis.grid(alpha=0.3)
+        label_axis(axis, 'revealed ratings k', NAMES[metric])
     axes[0].legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
+    save_png(figure, path)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging(args.verbose)
     torch.set_num_threads(1)
-    try:
-        config = configure(args)
-        data = load_dataset(args.data_root)
-    except (StarsError, OSError) as error:
-        print(f'error: {error}', file=sys.stderr)
+    inputs = read_inputs(lambda: configure(args), args.data_root)
+    if inputs is None:
         return 2
+    config, data = inputs
     folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()

@@ -26,12 +26,11 @@ import yaml
 from pydantic import Field, PrivateAttr, ValidationInfo, model_validator
 
 from stars_ros.config import Int, KeyedError, Section, TrainConfig, read_yaml, validate_under, validated
-from stars_ros.data import load_dataset
-from stars_ros.errors import ConfigError, StarsError
+from stars_ros.errors import ConfigError
 from stars_ros.evaluation import DISPLAY, FitTask, ProtocolConfig, fit_executor, make_folds, run_fits
 from stars_ros.stats import mean_sd
 
-from .common import DEFAULT_SOCNAV1, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, label_axis, machine, mean_band, pyplot, read_inputs, save_png, setup_logging
 from .evaluate import METRIC_NAMES, git_state, write_csv
 
 REPO = Path(__file__).resolve().parents[1]
@@ -144,9 +143,7 @@ def write_markdown(path: Path, summary: dict, config: CurveConfig, header: dict)
 
 
 def plot(folder: Path, summary: dict) -> list[str]:
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     written = []
     for metric in ('mse', 'pearson_r', 'ccc'):
         figure, axis = plt.subplots(figsize=(6, 4))
@@ -154,17 +151,9 @@ def plot(folder: Path, summary: dict) -> list[str]:
             epochs = list(series)
             means = np.array([series[e][metric][0] for e in epochs])
             sds = np.array([series[e][metric][1] for e in epochs])
-            line, = axis.plot(epochs, means, marker='.', label=f'{setting} {variant}')
-            axis.fill_between(epochs, means - sds, means + sds, alpha=0.15, color=line.get_color())
-        axis.set_xlabel('joint epochs (T2)')
-        axis.set_ylabel(METRIC_NAMES[metric])
-        axis.grid(alpha=0.3)
-        axis.legend(fontsize=8)
-        figure.tight_layout()
-        name = f'curve_{metric}.png'
-        figure.savefig(folder / name, dpi=120)
-        plt.close(figure)
-        written.append(name)
+            mean_band(axis, epochs, means, sds, f'{setting} {variant}', marker='.', alpha=0.15)
+        label_axis(axis, 'joint epochs (T2)', METRIC_NAMES[metric], legend_size=8)
+        written.append(save_png(figure, folder / f'curve_{metric}.png'))
     return written
 
 
@@ -177,14 +166,13 @@ def main(argv=None) -> int:
     parser.add_argument('--verbose', action='store_true')
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
-    try:
-        if args.jobs < 1:
-            raise StarsError('--jobs must be positive')
-        config = read_config(Path(args.config))
-        data = load_dataset(args.data_root)
-    except (StarsError, OSError) as error:
-        print(f'error: {error}', file=sys.stderr)
+    if args.jobs < 1:
+        print('error: --jobs must be positive', file=sys.stderr)
         return 2
+    inputs = read_inputs(lambda: read_config(Path(args.config)), args.data_root)
+    if inputs is None:
+        return 2
+    config, data = inputs
     folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
     command = shlex.join(['python', '-m', 'offline_training.learning_curve', *(sys.argv[1:] if argv is None else argv)])

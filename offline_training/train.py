@@ -18,12 +18,11 @@ import numpy as np
 
 from stars_ros.checkpoint import save_checkpoint
 from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
 from stars_ros.errors import StarsError
 from stars_ros.metrics import regression_report
 from stars_ros.training import StarsRecommender, split_rows
 
-from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, read_inputs, setup_logging
 
 
 def parse_args(argv=None):
@@ -58,12 +57,10 @@ def configure(args) -> ExperimentConfig:
 def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging(args.verbose)
-    try:
-        config = configure(args)
-        data = load_dataset(args.data_root)
-    except (StarsError, OSError) as error:
-        print(f'error: {error}', file=sys.stderr)
+    inputs = read_inputs(lambda: configure(args), args.data_root)
+    if inputs is None:
         return 2
+    config, data = inputs
     for note in data.notes:
         print(f'note: {note}')
     if args.all_rows:
