@@ -230,17 +230,19 @@ def tests_table(tests: list, error: str) -> list[str]:
 
 
 def comparison_table(result, error: str, name: str) -> list[str]:
-    """base → StARS per backbone, the layout of the README's published table."""
+    """base → StARS per backbone, at the paper's precision (the layout of its table)."""
     metrics = (error, 'pearson_r', 'ccc')
-    final = {(e[0]['backbone'], e[0]['variant']): e for e in by_model(result.final()).values()}
+    final = by_model(result.final())
     lines = [f'| {name}, this run | ' + ' | '.join(f'{METRIC_NAMES[m]} base → StARS' for m in metrics) + ' |',
              '| --- | ' + ' | '.join('---' for _ in metrics) + ' |']
     for backbone in result.config.backbones:
-        if (backbone, 'base') not in final or (backbone, 'stars') not in final:
+        label = DISPLAY.get(backbone, backbone)
+        base, stars = final.get(f'{label} base'), final.get(f'{label} StARS')
+        if base is None or stars is None:
             continue
-        cells = [f"{_short(mean_sd([e[m] for e in final[backbone, 'base']])[0])} → "
-                 f"{_short(mean_sd([e[m] for e in final[backbone, 'stars']])[0])}" for m in metrics]
-        lines.append(f'| {DISPLAY.get(backbone, backbone)} | ' + ' | '.join(cells) + ' |')
+        cells = [f"{_short(mean_sd([e[m] for e in base])[0])} → {_short(mean_sd([e[m] for e in stars])[0])}"
+                 for m in metrics]
+        lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
     return lines if len(lines) > 2 else []
 
 
@@ -299,7 +301,7 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
              f'Negative Δ{METRIC_NAMES[error]} and positive Δr, ΔCCC favour StARS.', '']
     comparison = comparison_table(result, error, config.name)
     if comparison:
-        lines += ['## Beside the published table', '', *comparison, '']
+        lines += ['## base → StARS at the paper\'s precision', '', *comparison, '']
     if config.ablation_backbones:
         lines += ['## Ablation: the parts of StARS', '', *ablation_table(result, header['ablation_tests'], error),
                   'Each ablation is StARS with the named part held at zero (or items keyed by the numeric '

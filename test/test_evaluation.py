@@ -166,10 +166,13 @@ def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(socnav1, mo
 
 
 def test_ablations_follow_the_stars_choice_of_each_fold(socnav1, monkeypatch):
+    from offline_training import evaluate
+
     def fake_fit(task, data=None):
-        training = task.experiment['training']
+        training, model = task.experiment['training'], task.experiment['model']
         error = 0.4 if training['embedding_l2'] == 0.1 else 0.6
-        return {'mse': 0.02, 'rmse': 0.14, 'pearson_r': 0.9, 'ccc': 0.9, 'n': len(task.test), 'z_rmse': error,
+        mse = {'base': 0.04}.get(model['variant'], 0.03 if model['item_key'] == 'prefix' else 0.02)
+        return {'mse': mse, 'rmse': 0.14, 'pearson_r': 0.9, 'ccc': 0.9, 'n': len(task.test), 'z_rmse': error,
                 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
                 **({'curve': [{'epoch': t, 'z_rmse': error} for t in task.curve_at]} if task.curve_at else {})}
 
@@ -185,6 +188,7 @@ def test_ablations_follow_the_stars_choice_of_each_fold(socnav1, monkeypatch):
     for label in ('GCN user offsets only', 'GCN StARS without q_i', 'GCN StARS, items keyed by prefix'):
         assert final[label]['settings'] == {'embedding_l2': 0.1}
     assert final['GCN user offsets only']['variant'] == 'user_bias'
+    assert evaluate.comparison_table(result, 'mse', 'x')[2].startswith('| GCN | .040 → .020 |')  # not the prefix row
     assert not [s for s in result.inner if s['model'] not in ('GCN base', 'GCN StARS')]
     with pytest.raises(ConfigError, match=r'^ablations\[0\]: Input should be'):
         ProtocolConfig.from_dict({'ablations': ['stars_no_p']})
