@@ -260,11 +260,16 @@ def sparsity_table(summary: dict, error: str) -> list[str]:
 def timing_table(timing: dict, load_seconds: float) -> list[str]:
     wall = timing['wall_seconds']
     busy = timing['worker_seconds'] or math.nan
+    if timing['resumed_fits']:
+        use = (f"{timing['resumed_fits']} fits came from the earlier run's records.jsonl (--resume), so the "
+               f"wall time is this run's alone; the worker-seconds ({busy:.0f}) are every fit's, as measured.")
+    else:
+        use = (f"Fits kept the workers busy {timing['utilisation']:.0%} of the wall time ({busy:.0f} "
+               'worker-seconds); the rest is process start-up, fold set-up and the tail where fewer fits '
+               'than workers remain.')
     lines = [f"Wall time {wall / 60:.1f} min ({wall:.0f} s) with {timing['jobs']} job(s) × "
              f"{timing['threads_per_job']} torch thread(s); loading and featurising the data took "
-             f"{load_seconds:.1f} s before that. Fits kept the workers busy {timing['utilisation']:.0%} "
-             f"of the wall time ({busy:.0f} worker-seconds); the rest is process start-up, fold "
-             'set-up and the tail where fewer fits than workers remain.', '',
+             f"{load_seconds:.1f} s before that. {use}", '',
              '| Stage | worker-seconds | share |', '| --- | --- | --- |']
     names = {'inner': 'inner selection', 'final': 'final fit on the outer-train pool',
              'sweep': 'sparsity sweep (fractions < 1)'}

@@ -470,6 +470,7 @@ class EvaluationResult:
     wall_seconds: float = 0.0
     jobs: int = 1
     threads: int = 1
+    resumed: int = 0  # fits taken from an earlier run's records, not run again
 
     def final(self) -> list:
         return [r for r in self.records if r['fraction'] == 1.0]
@@ -550,8 +551,10 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
 
     def cached(task):
         training = task.experiment['training']
-        return earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
-                                    training['pretrain_epochs'], training['joint_epochs'], task.settings))
+        found = earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
+                                     training['pretrain_epochs'], training['joint_epochs'], task.settings))
+        result.resumed += found is not None
+        return found
 
     def task(spec, fold_id, stage, settings, pair, train, test, **extra):
         return FitTask(spec.label, fold_id, stage, experiment(spec, settings, pair), train, test,
@@ -724,5 +727,6 @@ def time_accounting(result: EvaluationResult) -> dict:
     busy = sum(stages.values())
     return {'wall_seconds': result.wall_seconds, 'worker_seconds': busy, 'jobs': result.jobs,
             'threads_per_job': result.threads,
-            'utilisation': busy / (result.wall_seconds * result.jobs) if result.wall_seconds else math.nan,
+            'utilisation': busy / (result.wall_seconds * result.jobs) if result.wall_seconds and not result.resumed
+            else math.nan, 'resumed_fits': result.resumed,
             'by_stage': stages, 'by_model': models, 'seconds_per_epoch_full_pool': per_epoch}

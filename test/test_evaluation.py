@@ -336,4 +336,5 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(socnav1_root, t
         return json.dumps([[{k: v for k, v in entry.items() if k != 'fit_seconds'} for entry in values[name]]
                            for name in ('records', 'inner', 'selection', 'tests')])
     assert results(part) == results(whole)
+    assert f'{reused} fits came from the earlier run' in (part / 'tables.md').read_text()
     assert evaluate.main([*args, '--out', str(part), '--resume', '--device', 'cuda']) == 2  # other settings
