@@ -3,7 +3,7 @@
 SocNav1 root (``raw/a.jsonl`` … or the ``raw`` folder itself): one file per annotator,
 annotator = file name without extension; one JSON scene per line with ``identifier`` and a
 0–100 ``score``, used on [0, 1] (score / 100). The single action is ``navigate``.
-Scene identity is the full ``identifier``: "01998 A" and "01998 B" are different scenes
+Scene identity is the full ``identifier``: "01892 A" and "01892 B" are different scenes
 (different content and scores). The published StARS paper's 1.89 ratings per scene
 (9,280 / 4,904) implies that it keyed items by the numeric prefix instead, merging such
 pairs; ``item_keys('prefix')`` gives that keying for q_i and b_i (each rating is still
