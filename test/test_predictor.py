@@ -72,3 +72,16 @@ def test_predictor_matches_training_scale(predictor, socnav1):
             raw[scene['identifier']] = scene
     got = [predictor.score('a', [raw[k]], [k])[0, 0] for k in keys]
     assert np.allclose(got, expected, atol=1e-5)
+
+
+def test_served_scores_are_clipped_to_the_checkpoints_rating_scale(tiny_checkpoint, scenes):
+    """A user row that pushes the raw score far outside [0, 1]: ranking reports the scale's
+    edge, as evaluation does (the scale is stored in the checkpoint)."""
+    from stars_ros.foldin import UserModel
+    predictor = Predictor.load(tiny_checkpoint)
+    assert predictor.recommender.rating_scale == (0.0, 1.0)
+    dim = predictor.inference.dim
+    for offset, edge in ((50.0, 1.0), (-50.0, 0.0)):
+        predictor.set_user_model('pushy', UserModel(np.zeros(dim), offset, 1, 1.0))
+        assert predictor.rank('pushy', scenes[0])[0].score == edge
+        assert np.all(predictor.score('pushy', scenes) == edge)
