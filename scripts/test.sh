@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Set up the environment, then run the default test suite (slow benchmarks excluded;
-# add `-m slow` to run those). Extra arguments go to pytest.
+# Set up the environment, then run the whole test suite (`-m "not slow"` for the quick
+# subset). Extra arguments go to pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_venv.sh

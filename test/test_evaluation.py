@@ -198,6 +198,7 @@ def test_ablations_follow_the_stars_choice_of_each_fold(socnav1, monkeypatch):
         ProtocolConfig.from_dict({'grid': [[10, 0]]})
 
 
+@pytest.mark.slow
 def test_quick_cli_end_to_end(socnav1_root, tmp_path):
     out = tmp_path / 'quick'
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
@@ -243,6 +244,7 @@ def test_learning_curve_point_is_the_fit_with_that_many_epochs(socnav1):
         assert curve[0][metric] == pytest.approx(alone[metric], rel=1e-6)
 
 
+@pytest.mark.slow
 def test_learning_curve_cli_writes_its_results(socnav1_root, tmp_path):
     protocol = tmp_path / 'protocol.yaml'
     protocol.write_text(yaml.safe_dump({

@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from offline_training import kshot
 from stars_ros.kshot import annotator_folds, reveal_pools
@@ -39,6 +40,7 @@ def test_quick_run_writes_tables_plot_and_comparable_curves(socnav1_root, tmp_pa
     assert 'of the k=0 -> full retraining MSE gap' in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_fits_in_worker_processes_give_what_inline_fits_give(socnav1_root, tmp_path):
     """Two seeds' folds with their fits in 2 worker processes, then all inline: same records."""
     runs = {}

@@ -302,6 +302,7 @@ def test_replay_reruns_a_recorded_session(node, scenes, tmp_path):
     assert not any(r.get('not') for r in client.rankings)
 
 
+@pytest.mark.slow
 def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(tiny_checkpoint, socnav1_root, tmp_path):
     """Each run records into a new temporary folder of its own (under TMPDIR here), so the
     second restores none of the first run's folded-in users, and sends its feedback once
