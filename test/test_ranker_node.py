@@ -126,7 +126,14 @@ def test_candidate_scenes_equal_rank_scenes_and_users_differ(node, scenes, predi
 def test_user_id_topic_and_message_precedence(node, scenes, predictor):
     _, client = node
     client.user_pub.publish(String(data='c'))
-    time.sleep(0.5)
+    for attempt in range(200):  # a request without a user id is ranked for the latched one once it arrived
+        probe = f'user-probe-{attempt}'
+        client.scene({'scene_id': probe, 'graph': scenes[5]})
+        assert client.wait(lambda: client.ranking_for(probe) is not None, 10)
+        if client.ranking_for(probe)['user_id'] == 'c':
+            break
+    else:
+        pytest.fail('the latched user id never reached the ranker')
     client.scene({'scene_id': 'from-topic', 'graph': scenes[5]})
     client.scene({'scene_id': 'from-message', 'user_id': 'a', 'graph': scenes[5]})
     client.scene({'scene_id': 'stranger', 'user_id': 'nobody-knows-me', 'graph': scenes[5]})
