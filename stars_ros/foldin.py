@@ -45,12 +45,33 @@ DEFAULT_CACHE_SCENES = 4096
 class Rating:
     """One rating to fold in: ``scene`` is a scene-graph dict (or a tabular feature row),
     ``score`` is on the model's rating scale, ``scene_id`` names a training scene whose q_i
-    applies (None for scenes the model never saw, e.g. candidate placements)."""
+    applies (None for scenes the model never saw, e.g. candidate placements).
+
+    A ranker names each rating it accepts (``rating_id``, unique; ``stamp``, ROS time ns;
+    ``origin``, the node that accepted it), so that robots sharing ratings (``fleet``) count
+    each once and order them alike."""
 
     scene: object
     action: str
     score: float
     scene_id: str | None = None
+    rating_id: str = ''
+    stamp: int = 0
+    origin: str = ''
+
+    def to_json(self) -> dict:
+        """The rating as the state file and stars/user_model's ``ratings`` hold it."""
+        scene = self.scene if isinstance(self.scene, dict) else [float(v) for v in self.scene]
+        values = {'id': self.rating_id, 'stamp': int(self.stamp), 'origin': self.origin, 'scene': scene,
+                  'action': self.action, 'score': float(self.score)}
+        return values if self.scene_id is None else {**values, 'scene_id': self.scene_id}
+
+    @classmethod
+    def from_json(cls, values: dict, fallback_id: str = '') -> 'Rating':
+        """The rating of ``to_json``'s form; ``fallback_id`` names one written before ratings
+        had ids."""
+        return cls(values['scene'], values['action'], float(values['score']), values.get('scene_id'),
+                   values.get('id') or fallback_id, int(values.get('stamp', 0)), values.get('origin', ''))
 
 
 @dataclass(frozen=True)
@@ -117,6 +138,10 @@ class FoldIn:
         predictor (Predictor): the model to fold users into; its weights are only read.
         cache_scenes (int, optional): most encoded scenes, and most ratings' regression rows,
             kept (least recently used go).
+        scene_by_scene (bool, optional): encode each scene in a forward pass of its own. A
+            scene's h then does not depend on the scenes encoded with it (in a batch it
+            differs by float rounding), so robots that solve a user from the same shared
+            ratings get the same model to the last bit.
 
     ``fit`` may be called from several threads; the caches are locked. A user is re-solved
     from all their ratings at each new one, so each rating's row of the regression is built
@@ -124,7 +149,7 @@ class FoldIn:
     run; docs/personalisation.md).
     """
 
-    def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES):
+    def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False):
         recommender = predictor.recommender
         model = recommender.require_model()
         if not model.personalised:
@@ -139,6 +164,7 @@ class FoldIn:
                            else np.zeros(self.dim + 1))
         self._cache = collections.OrderedDict()
         self._cache_scenes = cache_scenes
+        self.scene_by_scene = scene_by_scene
         self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
         self._lock = threading.Lock()
         solve_ridge(np.ones((1, self.dim + 1)), np.zeros(1), self.population, 1.0)  # a process's first
@@ -193,7 +219,8 @@ class FoldIn:
             found = {id(s): self._cache[id(s)][1] for s in scenes if id(s) in self._cache}
         missing = list({id(s): s for s in scenes if id(s) not in found}.values())
         if missing:
-            h = self.predictor.encode(missing).astype(np.float64)
+            h = (np.concatenate([self.predictor.encode([scene]) for scene in missing]) if self.scene_by_scene
+                 else self.predictor.encode(missing)).astype(np.float64)
             self.remember(missing, h)
             found.update((id(s), row) for s, row in zip(missing, h))
         return np.stack([found[id(s)] for s in scenes])

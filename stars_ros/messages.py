@@ -263,10 +263,23 @@ def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool
     return reply
 
 
-def user_model_payload(user_id: str, model, fingerprint: str) -> dict:
+def user_model_payload(user_id: str, model, fingerprint: str, origin: str | None = None,
+                       ratings: Sequence | None = None) -> dict:
     """The stars/user_model message (user_model.schema.json) for a folded-in ``model``
-    (``foldin.UserModel``) solved against the checkpoint ``fingerprint``."""
-    return {'user_id': str(user_id), **model.to_json(), 'fingerprint': fingerprint}
+    (``foldin.UserModel``) solved against the checkpoint ``fingerprint``; with fleet sharing,
+    the node that solved it (``origin``) and the ``ratings`` (``foldin.Rating``) it was
+    solved from."""
+    payload = {'user_id': str(user_id), **model.to_json(), 'fingerprint': fingerprint}
+    if ratings is not None:
+        payload.update(origin=origin, ratings=[r.to_json() for r in ratings])
+    return payload
+
+
+def parse_user_model(text, max_bytes: int = DEFAULT_MAX_BYTES) -> dict:
+    """Validate a stars/user_model message (a peer's, with fleet sharing) and return it."""
+    payload = load_json(text, max_bytes)
+    check('user_model', payload)
+    return payload
 
 
 def dumps(payload: dict) -> str:

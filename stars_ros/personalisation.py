@@ -9,7 +9,8 @@ history (bounded: foldin.FeedbackHistories), and the user waits in ``pending``. 
 calls ``solve_next`` when no scene waits, one user per turn, so the ranking of others waits
 for at most one solve (timings in docs/personalisation.md). The result goes into the
 predictor's overlay (swapped whole) and into the state file (``user_state``), which a
-restart with the same checkpoint restores.
+restart with the same checkpoint restores. With fleet sharing (``fleet``), peers' ratings
+join a user's own and the model is solved from the union.
 
 One thread (the node's executor) calls ``Personalisation``; only its state writer's thread
 reads it besides.
@@ -17,12 +18,13 @@ reads it besides.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Callable
 
-from . import messages, user_state
-from .errors import StarsError
+from . import fleet, messages, user_state
+from .errors import StarsError, UnknownActionError
 from .foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
 from .serving import error_kind
 
@@ -71,14 +73,21 @@ class Personalisation:
         state_path (Path, optional): the state file (``user_state``); None: nothing persists.
         flush_interval (float, optional): at most one write of the state file per this many seconds.
         scene_memory (int, optional): scene requests remembered for feedback.
+        origin (str, optional): the node's name, which its ratings carry.
+        sharing (bool, optional): fleet sharing: solve each user from their own and their
+            peers' ratings (``fleet``), each scene encoded on its own.
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
                  logger=None, state_path: Path | None = None, flush_interval: float = 1.0,
-                 scene_memory: int = SCENE_MEMORY):
+                 scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False):
         self.histories = FeedbackHistories(max_ratings, max_users)
+        self.peers = fleet.PeerRatings(max_ratings, max_users)
+        self.origin, self.sharing = origin, sharing
         self.scenes = SceneMemory(scene_memory)
         self.pending = collections.OrderedDict()  # users to re-solve, longest waiting first
+        self.to_announce = collections.OrderedDict()  # users whose model peers are to be sent again
+        self.solved_from = {}  # user -> the ratings their served model was solved from
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
@@ -89,7 +98,7 @@ class Personalisation:
     def _fold_in_model(self, predictor) -> FoldIn | None:
         """The FoldIn of ``predictor``; None (and a warning) for a model without users."""
         try:
-            return FoldIn(predictor)
+            return FoldIn(predictor, scene_by_scene=self.sharing)
         except StarsError as error:
             self._logger.warning(f'no online fold-in with this checkpoint: {error}')
             return None
@@ -100,17 +109,18 @@ class Personalisation:
         re-solved against the new model."""
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
-        for user_id in self.histories.absorb(absorbed):
+        for user_id in [*self.histories.absorb(absorbed), *self.peers.snapshot()]:
             self.pending[user_id] = None
 
     # -- feedback ------------------------------------------------------------------------
-    def add_feedback(self, feedback, max_bytes: int = messages.DEFAULT_MAX_BYTES) -> str | None:
-        """Add the rating ``feedback`` (messages.Feedback) gives to its user's history and
-        queue the user for a solve; returns instead why it cannot be folded in (the node
-        reports that as ``unknown_scene``)."""
+    def add_feedback(self, feedback, max_bytes: int = messages.DEFAULT_MAX_BYTES, stamp: int = 0) -> str | None:
+        """Add the rating ``feedback`` (messages.Feedback) gives, received at ``stamp`` (ROS
+        time, ns), to its user's history and queue the user for a solve; returns instead why
+        it cannot be folded in (the node reports that as ``unknown_scene``)."""
         rating = self._rating(feedback, max_bytes)
         if isinstance(rating, str):
             return rating
+        rating = dataclasses.replace(rating, rating_id=fleet.new_rating_id(), stamp=stamp, origin=self.origin)
         self._forget(self.histories.add(feedback.user_id, rating))
         self.pending[feedback.user_id] = None
         return None
@@ -127,10 +137,55 @@ class Personalisation:
             return f"feedback for scene '{feedback.scene_id}' not folded in: its request no longer passes: {error}"
         rating = rating_from_feedback(feedback, request, self.predictor.actions)
         if not isinstance(rating, str) and encoded is not None and self.foldin is not None \
-                and encoded[0] is self.foldin.predictor:  # h from ranking it: the solve need not encode
+                and encoded[0] is self.foldin.predictor and not self.sharing:  # h from ranking it: the
+            # solve need not encode (a shared rating is encoded alone, as its peers encode it)
             index = request.labels.index(feedback.candidate) if request.ranks_scenes else 0
             self.foldin.remember([rating.scene], encoded[1][index:index + 1])
         return rating
+
+    def add_peer_ratings(self, user_id: str, entries: list) -> bool:
+        """Take in the ``ratings`` of a peer's stars/user_model message (fleet sharing):
+        those this node does not hold yet join the user's; True when the user now waits to be
+        re-solved. StarsError, and nothing changes, when one of them cannot be folded in."""
+        foldin = self.foldin
+        if foldin is None:
+            return False
+        held = self.peers.known(user_id) | {r.rating_id for r in self.histories.ratings(user_id)}
+        new = {e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}
+        if not new:
+            return False
+        for rating in new.values():  # every one checked before any is kept
+            if rating.action not in foldin.actions:
+                raise UnknownActionError(f"rating '{rating.rating_id}' is of action '{rating.action}'; this model "
+                                         f'knows {list(foldin.actions)}')
+        foldin.encode([r.scene for r in new.values()])  # a scene the model cannot encode raises here
+        self._forget(self.peers.add(user_id, list(new.values())))
+        self.pending[user_id] = None
+        return True
+
+    def ratings(self, user_id: str) -> list:
+        """The ratings ``user_id``'s model is solved from: their history, and with fleet
+        sharing the union with their peers' ratings (``fleet.solve_set``)."""
+        own = self.histories.ratings(user_id)
+        if not self.sharing:
+            return own
+        return fleet.solve_set(own, self.peers.ratings(user_id), self.histories.max_ratings)
+
+    def announce_all(self) -> None:
+        """Send every folded-in user's model to peers again (one joined): ``to_announce``."""
+        if self.sharing:
+            self.to_announce.update(dict.fromkeys(self.predictor.user_models))
+
+    def model_message(self, user_id: str) -> dict | None:
+        """The stars/user_model message of ``user_id``'s served model (None: none served);
+        with fleet sharing, with the ratings it was solved from."""
+        model = self.predictor.user_model(user_id)
+        if model is None:
+            return None
+        if not self.sharing:
+            return messages.user_model_payload(user_id, model, self.predictor.fingerprint)
+        return messages.user_model_payload(user_id, model, self.predictor.fingerprint, self.origin,
+                                           self.solved_from.get(user_id, []))
 
     # -- the solve -----------------------------------------------------------------------
     def solve_next(self, min_ratings: int = 1, regularisation: float = 1.0) -> tuple[str, UserModel] | None:
@@ -141,7 +196,7 @@ class Personalisation:
             return None
         user_id = self.pending.popitem(last=False)[0]
         foldin = self.foldin
-        ratings = self.histories.ratings(user_id)
+        ratings = self.ratings(user_id)
         if foldin is None or not ratings or len(ratings) < min_ratings:
             return None
         try:
@@ -151,26 +206,33 @@ class Personalisation:
             if not ratings:
                 return None
             model = foldin.fit(ratings, user_id, regularisation)
+        self.solved_from[user_id] = ratings
         self.predictor.set_user_model(user_id, model)
+        self.to_announce.pop(user_id, None)  # the solve's own message carries it
         self._save()
         return user_id, model
 
     def _drop_unusable(self, foldin: FoldIn, user_id: str, ratings: list) -> list:
-        """Ratings whose scene the model cannot encode leave the history, each reported."""
+        """Ratings of an action or a scene the model does not take (a reload changed it) leave
+        the history and the peers' ratings, each reported."""
         unusable = []
         for rating in ratings:
             try:
+                foldin.action_index([rating.action])
                 foldin.encode([rating.scene])
             except StarsError as error:
                 unusable.append(rating)
                 self._report(error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
         self.histories.discard(user_id, unusable)
-        return self.histories.ratings(user_id)
+        self.peers.discard(user_id, unusable)
+        return self.ratings(user_id)
 
     def _forget(self, evicted: list) -> None:
         """Users pushed out by max_users go back to the checkpoint's row."""
         for user_id in evicted:
             self.predictor.set_user_model(user_id, None)
+            self.peers.drop(user_id)
+            self.solved_from.pop(user_id, None)
             self._report('user_models', f"folded-in user '{user_id}' dropped: more than fold_in_max_users = "
                          f'{self.histories.max_users} users rated more recently (their feedback stays in '
                          'the MCAP log for the offline refit)')
@@ -182,7 +244,7 @@ class Personalisation:
         """The state file's content: every folded-in user, model and history."""
         histories = self.histories.snapshot()
         predictor = self.predictor
-        return user_state.to_dict(predictor.fingerprint, predictor.user_models, histories)
+        return user_state.to_dict(predictor.fingerprint, predictor.user_models, histories, self.peers.snapshot())
 
     def restore(self) -> None:
         """Folded-in users of the last run, if they were solved against the served checkpoint."""
@@ -194,7 +256,13 @@ class Personalisation:
         if state is None:
             return
         evicted = set(self.histories.restore(state.histories))
-        self.predictor.set_user_models({u: m for u, m in state.models.items() if u not in evicted})
+        for user_id, ratings in state.peers.items():
+            evicted.update(self.peers.add(user_id, ratings))
+        restored = {u: m for u, m in state.models.items() if u not in evicted}
+        self.solved_from.update({u: self.ratings(u) for u in restored})
+        self.predictor.set_user_models(restored)
+        if self.sharing:  # solved again from what was kept, in case the last solve did not reach the file
+            self.pending.update(dict.fromkeys(restored))
         self._logger.info(f'restored {len(state.models)} folded-in users from {self.state_path}')
 
     def _save(self) -> None:

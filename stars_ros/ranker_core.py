@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable, Mapping
 
 from . import messages, recording
-from .errors import CheckpointError
+from .errors import CheckpointError, StarsError
 from .personalisation import Personalisation
 from .predictor import Predictor
 from .resources import DEFAULT_CHECKPOINT, resolve_checkpoint
@@ -62,6 +62,9 @@ PARAMETERS = {  # name: (default, description, read_only, range)
                           'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),
     'fold_in_regularisation': (1.0, 'ridge weight λ pulling a folded-in user towards the prior '
                                '(their trained row, else the population mean)', False, (1e-6, 1e6)),
+    'fleet_sharing': (False, 'share folded-in users with the other rankers on stars/user_model (remap it to one '
+                      "fleet-wide topic): publish each model with the ratings it was solved from, take in peers' "
+                      "ratings and solve each user from everyone's", True, None),
 }
 
 
@@ -96,7 +99,9 @@ class RankerCore:
         folder = params['record_folder']
         self.personalisation = Personalisation(
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
-            Path(folder).expanduser() / STATE_FILE if folder else None, params['flush_interval'])
+            Path(folder).expanduser() / STATE_FILE if folder else None, params['flush_interval'],
+            origin=node_name, sharing=params['fleet_sharing'])
+        self._peers_reported = set()  # (kind, peer, value) warned about once
         self.personalisation.restore()
         self._to_journal = queue.SimpleQueue()  # accepted feedback on its way to the recorder's journal
         self._journal_thread = threading.Thread(target=self._journal_loop, name='stars-ranker-journal', daemon=True)
@@ -118,6 +123,7 @@ class RankerCore:
                   'stars/user_model': depth}
         qos = {self.topics[topic]: recording.qos_profile(n) for topic, n in depths.items()}
         qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
+        qos[self.topics['stars/user_model']] = recording.qos_profile(depth, transient_local=True)
         recorder = recording.Recorder(
             folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
             custom={'node': node_name, 'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
@@ -221,19 +227,59 @@ class RankerCore:
             self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
             return False
+        log_time = self._now()
         if self.recorder is None:
             self.report('recording', 'feedback accepted but record_folder is empty: it is not stored', topic,
                         feedback.scene_id)
         else:
-            self._to_journal.put((topic, text, self._now(), feedback.scene_id))
+            self._to_journal.put((topic, text, log_time, feedback.scene_id))
         if not self.params['fold_in']:
             return False
         started = time.time_ns()
-        refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'])
+        refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time)
         if refused is not None:
             self.report('unknown_scene', refused, topic, feedback.scene_id)
         self._fold_in_spans.add(started, time.time_ns())
         return refused is None
+
+    def accept_user_model(self, text: str) -> bool:
+        """Take in a peer's stars/user_model message (fleet sharing): the ratings it was
+        solved from that this node lacks join the user's. True when the user now waits to be
+        re-solved (call ``work``). A message of another checkpoint is ignored (warned about
+        once per peer and checkpoint); a bad one is reported and changes nothing."""
+        topic = self.topics['stars/user_model']
+        try:
+            payload = messages.parse_user_model(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, f'peer user model refused: {error}', topic)
+            return False
+        peer, user_id = payload.get('origin', 'a ranker without fleet sharing'), payload['user_id']
+        if payload['fingerprint'] != self.predictor.fingerprint:
+            self._warn_once(peer, payload['fingerprint'], f"user models from {peer} were solved against checkpoint "
+                            f"{payload['fingerprint'][:12]}, not the served {self.predictor.fingerprint[:12]}: "
+                            'ignored (reported once per peer and checkpoint)')
+            return False
+        if payload['regularisation'] != self.params['fold_in_regularisation']:
+            self._warn_once(peer, payload['regularisation'], f"{peer} folds in with fold_in_regularisation = "
+                            f"{payload['regularisation']}, this node with {self.params['fold_in_regularisation']}: "
+                            'their models of a user differ (reported once per peer and value)')
+        try:
+            return self.personalisation.add_peer_ratings(user_id, payload.get('ratings', []))
+        except StarsError as error:
+            self.report(error_kind(error), f"user model of '{user_id}' from {peer} refused, nothing taken in: "
+                        f'{error}', topic)
+            return False
+
+    def _warn_once(self, peer: str, value, detail: str):
+        if (peer, value) not in self._peers_reported:
+            self._peers_reported.add((peer, value))
+            self.report('fleet', detail, self.topics['stars/user_model'])
+
+    def announce(self) -> bool:
+        """A subscriber joined stars/user_model: send it every folded-in user (fleet
+        sharing); True when some wait to be sent (call ``work``)."""
+        self.personalisation.announce_all()
+        return bool(self.personalisation.to_announce)
 
     def reload(self) -> tuple[bool, str]:
         """Load the checkpoint parameter's file again and serve it from the next batch on:
@@ -254,8 +300,9 @@ class RankerCore:
 
     # -- work ----------------------------------------------------------------------------
     def work(self) -> bool:
-        """One batch of queued requests, else one fold-in solve; True when more work waits."""
-        pending = self.personalisation.pending
+        """One batch of queued requests, else one fold-in solve, else one model sent again to
+        peers; True when more work waits."""
+        pending, to_announce = self.personalisation.pending, self.personalisation.to_announce
         try:
             if self.queue:
                 self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
@@ -267,15 +314,22 @@ class RankerCore:
                     ended = time.time_ns()
                     self._fold_in_spans.add(started, ended)
                     self._period_stats.fold_in_update((ended - started) / 1e6)
+            elif to_announce:
+                self._publish_model(to_announce.popitem(last=False)[0])
         except Exception as error:  # noqa: BLE001 - the node must keep serving
             self.report('internal', f'{type(error).__name__}: {error}')
-        return bool(self.queue or pending)
+        return bool(self.queue or pending or to_announce)
 
     def _solve_next(self):
         solved = self.personalisation.solve_next(self.params['fold_in_min_ratings'],
                                                  self.params['fold_in_regularisation'])
         if solved is not None:
-            payload = messages.dumps(messages.user_model_payload(*solved, self.predictor.fingerprint))
+            self._publish_model(solved[0])
+
+    def _publish_model(self, user_id: str):
+        message = self.personalisation.model_message(user_id)
+        if message is not None:
+            payload = messages.dumps(message)
             self._publish('stars/user_model', payload)
             self.record('stars/user_model', payload)
 

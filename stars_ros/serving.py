@@ -20,7 +20,7 @@ from .errors import SceneGraphError, StarsError, UnknownActionError
 from .messages import BadMessage, SceneRequest
 from .predictor import rank_order
 
-WARNINGS = ('unknown_user', 'unknown_scene', 'user_models')  # kinds of problem that are warnings, not errors
+WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet')  # kinds of problem that are warnings, not errors
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,8 @@ ROS-free. One JSON object::
     {"format": "stars_ros.user_models", "version": 1, "fingerprint": "<checkpoint digest>",
      "users": {"<user id>": {"p_u": [...], "b_u": ..., "n_ratings": ..., "regularisation": ...,
                              "ratings_dropped": <oldest ratings no longer kept>,
-                             "ratings": [{"scene": ..., "action": ..., "score": ..., "scene_id": ...}]}}}
+                             "ratings": [<this node's ratings, foldin.Rating.to_json>],
+                             "peer_ratings": [<ratings peers shared (fleet sharing)>]}}}
 
 ``save`` writes it atomically (a temporary file, fsync'd, renamed over the old one);
 ``StateWriter`` does so from a thread of its own, at most once per interval, so an fsync
@@ -15,6 +16,7 @@ never holds up serving and a hard kill loses at most one interval.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import threading
@@ -38,21 +40,33 @@ class UserStateError(StarsError):
 @dataclass(frozen=True)
 class UserState:
     """Folded-in users: ``models`` user -> foldin.UserModel, ``histories`` user -> (ratings,
-    ratings dropped), as ``foldin.FeedbackHistories.snapshot`` gives them."""
+    ratings dropped), as ``foldin.FeedbackHistories.snapshot`` gives them, and ``peers``
+    user -> [Rating] that peers shared (``fleet``)."""
 
     fingerprint: str
     models: dict
     histories: dict
+    peers: dict
 
 
-def to_dict(fingerprint: str, models: Mapping, histories: Mapping) -> dict:
+def to_dict(fingerprint: str, models: Mapping, histories: Mapping, peers: Mapping | None = None) -> dict:
     """The file's content for the users of ``models``, with their histories."""
     users = {}
     for user_id, model in models.items():
         ratings, dropped = histories.get(user_id, ((), 0))
-        users[user_id] = {**model.to_json(), 'ratings_dropped': int(dropped), 'ratings': [
-            {'scene': r.scene, 'action': r.action, 'score': r.score, 'scene_id': r.scene_id} for r in ratings]}
+        users[user_id] = {**model.to_json(), 'ratings_dropped': int(dropped),
+                          'ratings': [r.to_json() for r in ratings],
+                          'peer_ratings': [r.to_json() for r in (peers or {}).get(user_id, ())]}
     return {'format': FORMAT, 'version': VERSION, 'fingerprint': fingerprint, 'users': users}
+
+
+def _ratings(user_id: str, entries: list, kind: str) -> list:
+    """Ratings of the file; one written before ratings had ids is named by a digest of the
+    user, its place and its content, the same at every load."""
+    def fallback(k, entry):
+        text = json.dumps([user_id, kind, k, entry['scene'], entry['action'], entry['score']], sort_keys=True)
+        return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+    return [Rating.from_json(entry, fallback(k, entry)) for k, entry in enumerate(entries)]
 
 
 def from_dict(state) -> UserState:
@@ -61,9 +75,9 @@ def from_dict(state) -> UserState:
         raise ValueError(f'not a {FORMAT} file')
     users = state['users']
     models = {u: UserModel.from_json(v) for u, v in users.items()}
-    histories = {u: ([Rating(r['scene'], r['action'], float(r['score']), r.get('scene_id')) for r in v['ratings']],
-                     int(v.get('ratings_dropped', 0))) for u, v in users.items()}
-    return UserState(str(state['fingerprint']), models, histories)
+    histories = {u: (_ratings(u, v['ratings'], 'own'), int(v.get('ratings_dropped', 0))) for u, v in users.items()}
+    peers = {u: _ratings(u, v['peer_ratings'], 'peer') for u, v in users.items() if v.get('peer_ratings')}
+    return UserState(str(state['fingerprint']), models, histories, peers)
 
 
 def save(path: Path, state: dict) -> None:

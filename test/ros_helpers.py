@@ -65,32 +65,37 @@ def ros_env(domain: int) -> dict:
                 PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''), PYTHONUNBUFFERED='1')
 
 
-def start_node(module: str, domain: int, params: dict, log_path: Path, args=()) -> subprocess.Popen:
-    """``python -m <module> [args] --ros-args -p k:=v ...`` with its output in ``log_path``."""
+def start_node(module: str, domain: int, params: dict, log_path: Path, args=(), ros_args=()) -> subprocess.Popen:
+    """``python -m <module> [args] --ros-args -p k:=v ... [ros_args]`` with its output in ``log_path``."""
     command = [sys.executable, '-m', module, *args, '--ros-args']
     for name, value in params.items():
         command += ['-p', f'{name}:={value}']
+    command += list(ros_args)
     return subprocess.Popen(command, env=ros_env(domain), stdout=open(log_path, 'w'), stderr=subprocess.STDOUT)
 
 
 class RosClient:
     """A test-side node on its own context: publishes requests, collects replies."""
 
-    def __init__(self, domain: int, listen: bool = True):
+    def __init__(self, domain: int, listen: bool = True, namespace: str = ''):
         """``listen=False``: no subscriptions of its own (a benchmark adds just the ones it
-        times, so that collecting everything does not load the measuring process)."""
+        times, so that collecting everything does not load the measuring process);
+        ``namespace``: talk to the ranker in that namespace (``/robot1``)."""
         os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
-        self.node = Node('stars_test_client', context=self.context)
-        self.scene_pub = self.node.create_publisher(String, '/stars/scene', RELIABLE)
-        self.feedback_pub = self.node.create_publisher(String, '/stars/feedback', RELIABLE)
-        self.user_pub = self.node.create_publisher(String, '/stars/user_id', LATCHED)
+        self.node = Node('stars_test_client', namespace=namespace or None, context=self.context)
+        self.scene_pub = self.node.create_publisher(String, f'{namespace}/stars/scene', RELIABLE)
+        self.feedback_pub = self.node.create_publisher(String, f'{namespace}/stars/feedback', RELIABLE)
+        self.user_pub = self.node.create_publisher(String, f'{namespace}/stars/user_id', LATCHED)
+        self.namespace = namespace
         self.rankings, self.errors, self.diagnostics = [], [], []
         self._changed = threading.Condition()
         if listen:
-            self.node.create_subscription(String, '/stars/ranking', self._keep(self.rankings, json.loads), RELIABLE)
-            self.node.create_subscription(String, '/stars/errors', self._keep(self.errors, json.loads), RELIABLE)
+            self.node.create_subscription(String, f'{namespace}/stars/ranking', self._keep(self.rankings, json.loads),
+                                          RELIABLE)
+            self.node.create_subscription(String, f'{namespace}/stars/errors', self._keep(self.errors, json.loads),
+                                          RELIABLE)
             self.node.create_subscription(DiagnosticArray, '/diagnostics', self._keep(self.diagnostics, None), 100)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -130,7 +135,8 @@ class RosClient:
         while time.monotonic() < deadline:
             if process.poll() is not None:
                 raise RuntimeError(f'node exited with {process.returncode}')
-            if self.scene_pub.get_subscription_count() and self.node.count_publishers('/stars/ranking'):
+            if self.scene_pub.get_subscription_count() and self.node.count_publishers(
+                    f'{self.namespace}/stars/ranking'):
                 self.scene(probe)
                 if self.wait(lambda: self.ranking_for(probe['scene_id']) is not None, 2.0):
                     return

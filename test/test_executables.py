@@ -132,7 +132,9 @@ def _run_launch_file(monkeypatch, **given) -> tuple:
 
 def test_launch_arguments_are_node_parameters_and_record_false_turns_recording_off(monkeypatch):
     declared, node = _run_launch_file(monkeypatch)
-    assert set(declared) - {'record'} <= set(PARAMETERS) and declared['record']['choices'] == ['true', 'false']
+    assert set(declared) - {'record', 'namespace', 'fleet_topic'} <= set(PARAMETERS)
+    assert declared['record']['choices'] == ['true', 'false']
+    assert 'namespace' not in node and node['remappings'] == []
     assert (node['package'], node['executable']) == ('stars_ros', 'ranker')
     defaults_file, overrides = node['parameters']
     assert defaults_file == '/share/stars_ros/config/ranker.yaml'
@@ -143,6 +145,9 @@ def test_launch_arguments_are_node_parameters_and_record_false_turns_recording_o
     overrides = node['parameters'][1]
     assert {name: value.name for name, value in overrides.items()} == {'record_folder': 'record_folder',
                                                                       'top_k': 'top_k'}
+    _, node = _run_launch_file(monkeypatch, namespace='robot1', fleet_sharing='true', fleet_topic='/fleet/user_model')
+    assert node['namespace'] == 'robot1' and node['remappings'] == [('stars/user_model', '/fleet/user_model')]
+    assert node['parameters'][1]['fleet_sharing'].name == 'fleet_sharing'
 
 
 def test_demo_scores_print_with_the_digits_that_tell_them_apart():

@@ -182,7 +182,7 @@ def test_folded_in_users_survive_a_restart_with_the_same_checkpoint_only(tiny_ch
 
 
 def test_a_model_without_users_serves_without_fold_in(predictor, scenes, monkeypatch):
-    def refuse(predictor):
+    def refuse(predictor, **options):
         raise StarsError("fold-in needs a personalised model; this one is 'base'")
     monkeypatch.setattr(personalisation, 'FoldIn', refuse)
     log = Log()

@@ -1,5 +1,6 @@
 """The ranker's state file (user_models.json): round trip, the files earlier versions wrote,
 another checkpoint's users and corrupted files refused with a reason, the writer thread."""
+import dataclasses
 import json
 import re
 import time
@@ -17,9 +18,15 @@ FINGERPRINT = 'ab' * 32
 
 def _users():
     models = {'ann': UserModel(np.array([0.25, -1.5]), 0.125, 2, 1.0), 'bob': UserModel(np.zeros(2), -0.5, 1, 0.05)}
-    histories = {'ann': ([Rating(SCENE, 'navigate', 0.75, 's1'), Rating(SCENE, 'navigate', 0.5, None)], 3),
-                 'bob': ([Rating([0.0, 1.5], 'wait', 1.0, None)], 0)}
+    histories = {'ann': ([Rating(SCENE, 'navigate', 0.75, 's1', 'r1', 10, '/ranker'),
+                          Rating(SCENE, 'navigate', 0.5, None, 'r2', 20, '/ranker')], 3),
+                 'bob': ([Rating([0.0, 1.5], 'wait', 1.0, None, 'r3', 30, '/ranker')], 0)}
     return models, histories
+
+
+def _without_ids(histories: dict) -> dict:
+    return {u: ([dataclasses.replace(r, rating_id='', stamp=0, origin='') for r in ratings], dropped)
+            for u, (ratings, dropped) in histories.items()}
 
 
 def _same_models(loaded: dict, expected: dict):
@@ -33,11 +40,12 @@ def _same_models(loaded: dict, expected: dict):
 def test_round_trip_keeps_models_histories_and_dropped_counts(tmp_path):
     models, histories = _users()
     path = tmp_path / 'records' / STATE_FILE  # the folder is created
-    user_state.save(path, user_state.to_dict(FINGERPRINT, models, histories))
+    peers = {'ann': [Rating(SCENE, 'navigate', 0.25, 's1', 'p1', 15, '/robot2/ranker')]}
+    user_state.save(path, user_state.to_dict(FINGERPRINT, models, histories, peers))
     loaded = user_state.load(path, FINGERPRINT)
     assert loaded.fingerprint == FINGERPRINT
     _same_models(loaded.models, models)
-    assert loaded.histories == histories
+    assert loaded.histories == histories and loaded.peers == peers
     assert not (path.parent / (STATE_FILE + '.tmp')).exists()
 
 
@@ -63,13 +71,16 @@ def test_files_written_by_earlier_versions_load(tmp_path):
     models, histories = _users()
     loaded = user_state.load(path, FINGERPRINT)
     _same_models(loaded.models, models)
-    assert loaded.histories == histories
-    assert path.read_text() == json.dumps(user_state.to_dict(FINGERPRINT, models, histories), separators=(',', ':'))
+    assert _without_ids(loaded.histories) == _without_ids(histories) and loaded.peers == {}
+    ids = [r.rating_id for ratings, _ in loaded.histories.values() for r in ratings]
+    assert len(set(ids)) == 3 and all(ids)  # named, each differently, and the same at every load
+    assert ids == [r.rating_id for ratings, _ in user_state.load(path, FINGERPRINT).histories.values() for r in ratings]
     older = {'format': user_state.FORMAT, 'version': 1, 'fingerprint': FINGERPRINT,
              'users': {'ann': {**models['ann'].to_json(), 'ratings': [{'scene': SCENE, 'action': 'navigate',
                                                                        'score': 1, 'scene_id': 's1'}]}}}
     path.write_text(json.dumps(older))
-    assert user_state.load(path, FINGERPRINT).histories == {'ann': ([Rating(SCENE, 'navigate', 1.0, 's1')], 0)}
+    assert _without_ids(user_state.load(path, FINGERPRINT).histories) == {
+        'ann': ([Rating(SCENE, 'navigate', 1.0, 's1')], 0)}
 
 
 def test_users_of_another_checkpoint_are_refused_naming_both(tmp_path):

@@ -1,8 +1,10 @@
 """The ranker node: personalised rankings of robot actions (or candidate scenes) per scene.
 
 Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feedback``;
-publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` and ``/diagnostics``;
-serves ``~/reload``. See README.md ("The ranker node") and docs/personalisation.md. Run with
+publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` (transient local) and
+``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
+``stars/user_model`` (its peers', and its own, which changes nothing) and sends every
+folded-in user again when a subscriber joins that topic (``stars_ros.fleet``). See README.md ("The ranker node") and docs/personalisation.md. Run with
 ``ros2 run stars_ros ranker`` or ``python -m stars_ros.ros.ranker --ros-args -p checkpoint:=PATH``.
 
 Threads: the executor thread does the serving. A scene callback takes every request
@@ -26,6 +28,7 @@ import time
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -75,9 +78,14 @@ class RankerNode(Node):
         reliable = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.publishers_by_topic = {'stars/ranking': self.create_publisher(String, 'stars/ranking', reliable),
-                                    'stars/errors': self.create_publisher(String, 'stars/errors', 100),
-                                    'stars/user_model': self.create_publisher(String, 'stars/user_model', reliable)}
+        models = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)  # a robot that joins late gets them
+        sharing = self.params['fleet_sharing']
+        self.publishers_by_topic = {
+            'stars/ranking': self.create_publisher(String, 'stars/ranking', reliable),
+            'stars/errors': self.create_publisher(String, 'stars/errors', 100),
+            'stars/user_model': self.create_publisher(String, 'stars/user_model', models, event_callbacks=(
+                PublisherEventCallbacks(matched=self._on_model_subscriber) if sharing else None))}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
                                self.get_fully_qualified_name(), self._publish, self.get_logger(),
@@ -85,6 +93,8 @@ class RankerNode(Node):
         self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
         self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data), latched)
         self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
+        if sharing:
+            self.create_subscription(String, 'stars/user_model', self._on_user_model, models)
         self.create_service(Trigger, '~/reload', self._on_reload)
         self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
         self._more_work = self.create_guard_condition(self._work)
@@ -127,6 +137,16 @@ class RankerNode(Node):
 
     def _on_feedback(self, msg: String):
         if self.core.accept_feedback(msg.data):
+            self._more_work.trigger()
+
+    def _on_user_model(self, msg: String):
+        if self.core.accept_user_model(msg.data):
+            self._more_work.trigger()
+
+    def _on_model_subscriber(self, info):
+        """A subscriber joined stars/user_model: the history a late joiner gets holds the last
+        ``queue_depth`` messages, so every folded-in user is sent again."""
+        if info.current_count_change > 0 and self.core.announce():
             self._more_work.trigger()
 
     def _on_reload(self, request, response):
