@@ -78,9 +78,11 @@ class RankerNode(Node):
         reliable = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        models = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE,
-                            durability=DurabilityPolicy.TRANSIENT_LOCAL)  # a robot that joins late gets them
         sharing = self.params['fleet_sharing']
+        # a robot that joins late gets the last models; with fleet sharing the history also
+        # holds a re-send of every user (``_on_model_subscriber``) until the newcomer has it
+        models = QoSProfile(depth=self.params['queue_depth'] + (self.params['fold_in_max_users'] if sharing else 0),
+                            reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.publishers_by_topic = {
             'stars/ranking': self.create_publisher(String, 'stars/ranking', reliable),
             'stars/errors': self.create_publisher(String, 'stars/errors', 100),
@@ -145,7 +147,7 @@ class RankerNode(Node):
 
     def _on_model_subscriber(self, info):
         """A subscriber joined stars/user_model: the history a late joiner gets holds the last
-        ``queue_depth`` messages, so every folded-in user is sent again."""
+        messages, not the last of each user, so every folded-in user is sent again."""
         if info.current_count_change > 0 and self.core.announce():
             self._more_work.trigger()
 
