@@ -119,11 +119,11 @@ class RankerCore:
         except (OSError, ValueError) as error:
             self.report('recording', f'could not recover old bags in {folder}: {error}')
         depth = self.params['queue_depth']
-        depths = {'stars/scene': depth, 'stars/ranking': depth, 'stars/feedback': 100, 'stars/errors': 100,
-                  'stars/user_model': depth}
+        depths = {'stars/scene': depth, 'stars/ranking': depth, 'stars/feedback': 100, 'stars/errors': 100}
         qos = {self.topics[topic]: recording.qos_profile(n) for topic, n in depths.items()}
         qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
-        qos[self.topics['stars/user_model']] = recording.qos_profile(depth, transient_local=True)
+        qos[self.topics['stars/user_model']] = recording.qos_profile(
+            depth + (self.params['fold_in_max_users'] if self.params['fleet_sharing'] else 0), transient_local=True)
         recorder = recording.Recorder(
             folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
             custom={'node': node_name, 'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
