@@ -101,7 +101,7 @@ class RankerCore:
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
             Path(folder).expanduser() / STATE_FILE if folder else None, params['flush_interval'],
             origin=node_name, sharing=params['fleet_sharing'])
-        self._peers_reported = set()  # (kind, peer, value) warned about once
+        self._peers_reported = set()  # (peer, fingerprint or λ) warned about once
         self.personalisation.restore()
         self._to_journal = queue.SimpleQueue()  # accepted feedback on its way to the recorder's journal
         self._journal_thread = threading.Thread(target=self._journal_loop, name='stars-ranker-journal', daemon=True)
@@ -272,6 +272,8 @@ class RankerCore:
 
     def _warn_once(self, peer: str, value, detail: str):
         if (peer, value) not in self._peers_reported:
+            if len(self._peers_reported) >= MAX_STRANGERS_REMEMBERED:
+                self._peers_reported.clear()
             self._peers_reported.add((peer, value))
             self.report('fleet', detail, self.topics['stars/user_model'])
 
