@@ -1,7 +1,8 @@
 """Run the evaluation protocol (cross-validation, paired tests, sparsity sweep) and write a results folder.
 
     python -m offline_training.evaluate --config config/eval_socnav1.yaml \
-        --protocol rows --jobs 2 --out OUT [--quick] [--backbones gcn,gat] [--device cuda]
+        --protocol rows --jobs 2 --out OUT [--quick] [--backbones gcn,gat] [--device cuda] \
+        [--executor ray [--ray-address HOST:PORT] [--cpus-per-fit 1] [--gpus-per-fit 0.1]]
 
 Writes into ``--out`` (required: a run never writes into the repository unasked): ``command.txt``,
 ``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each fit's
@@ -10,6 +11,9 @@ and ``--resume`` goes on from there), ``folds.csv`` (per model,
 fold and training fraction), ``selection.csv`` (inner validation of every (T1, T2)),
 ``tests.csv``, ``results.json`` (everything), ``tables.md`` (the paper's tables, the
 paired tests, the sparsity table and where the time went) and ``sparsity_<metric>.png``.
+A fit that fails (raises, or its worker dies) is named on stderr and in ``failed.jsonl``;
+the others go on, and the run ends with status 1 without tables, which would compare models
+on different folds; ``--resume`` runs the failed fits again.
 """
 from __future__ import annotations
 
@@ -36,7 +40,8 @@ from stars_ros.evaluation import (DISPLAY, PROTOCOLS, ProtocolConfig, ablation_t
                                   paired_tests, run_protocol, settings_key, sparsity_summary, time_accounting)
 from stars_ros.stats import format_mean_sd, mean_sd
 
-from .common import DEFAULT_SOCNAV1, cuda_info, label_axis, machine, mean_band, pyplot, save_png, setup_logging
+from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, cuda_info, label_axis, machine, mean_band,
+                     pyplot, save_png, setup_logging)
 
 REPO = Path(__file__).resolve().parents[1]
 METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
@@ -57,7 +62,6 @@ def parse_args(argv=None):
     parser.add_argument('--quick', action='store_true',
                         help='merge config/eval_quick.yaml (fewer folds and epochs, tiny model)')
     parser.add_argument('--backbones', help='comma-separated subset of the config\'s backbones')
-    parser.add_argument('--jobs', type=int, default=1, help='worker processes (default: %(default)s)')
     parser.add_argument('--threads', type=int, default=1,
                         help='torch threads per job (default: %(default)s; more busy-wait and collapse on a shared machine)')
     parser.add_argument('--device', help="where every fit trains: 'cpu', 'cuda' or 'cuda:N' (default: the "
@@ -65,8 +69,9 @@ def parse_args(argv=None):
     parser.add_argument('--out', required=True, help='results folder (created; the run name is the config\'s)')
     parser.add_argument('--resume', action='store_true',
                         help="reuse the fits in the folder's records.jsonl from an earlier run with the same "
-                             'config.yaml (jobs and threads may differ) and run only the rest')
+                             'config.yaml (jobs, threads and the executor may differ) and run only the rest')
     parser.add_argument('--verbose', action='store_true', help='log every fit')
+    add_executor_options(parser)
     return parser.parse_args(argv)
 
 
@@ -86,7 +91,11 @@ def configure(args) -> ProtocolConfig:
     return config
 
 
-RESUME_MAY_DIFFER = ('data_root', 'jobs', 'threads')
+RESUME_MAY_DIFFER = ('data_root', 'jobs', 'threads', 'executor')
+#: What a run writes at its end; an earlier run's are removed first, so that they never sit
+#: beside records they do not summarise.
+SUMMARY_FILES = ('tables.md', 'results.json', 'folds.csv', 'selection.csv', 'tests.csv', 'failed.jsonl',
+                 *(f'sparsity_{metric}.png' for metric in ('mse', 'rmse', 'pearson_r', 'ccc')))
 
 
 def previous_entries(folder: Path, settings: dict) -> list:
@@ -320,10 +329,10 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
                   'Fractions sampled without replacement from each outer-train pool (nested), '
                   'scored on the fixed outer test fold; plots: ' +
                   ', '.join(f'`sparsity_{m}.png`' for m in (error, 'pearson_r', 'ccc')) + '.', '']
-    failed = [r for r in result.records if 'error' in r]
-    if failed:
-        lines += ['## Failed fits', ''] + [f"- {r['model']} fold {r['fold']} fraction {r['fraction']}: {r['error']}"
-                                           for r in failed] + ['']
+    diverged = [r for r in result.records if 'error' in r]
+    if diverged:
+        lines += ['## Diverged fits', ''] + [f"- {r['model']} fold {r['fold']} fraction {r['fraction']}: {r['error']}"
+                                             for r in diverged] + ['']
     lines += ['## Where the time goes', '', *timing_table(timing, load_seconds), '']
     path.write_text('\n'.join(lines))
 
@@ -369,6 +378,24 @@ def _json_default(value):
     raise TypeError(f'cannot write {type(value).__name__} as JSON')
 
 
+def report_failures(folder: Path, result, shown: int = 50) -> None:
+    """Write ``failed.jsonl`` and tell on stderr which fits failed and which selections
+    they stopped (the first ``shown`` fits; all are in the file)."""
+    with (folder / 'failed.jsonl').open('w') as stream:
+        for entry in result.failed:
+            stream.write(json.dumps(entry, default=_json_default) + '\n')
+    lines = [f'error: {len(result.failed)} fit(s) failed:', *(f"  {e['fit']}: {e['error']}"
+                                                               for e in result.failed[:shown])]
+    if len(result.failed) > shown:
+        lines.append(f"  ... and {len(result.failed) - shown} more in {folder / 'failed.jsonl'}")
+    lines += [f"  {e['model']} fold {e['fold']}: no settings chosen (an inner fit failed), so its final fit and "
+              'those of the models that follow its choice did not run' for e in result.unchosen]
+    lines.append(f'No tables: they would compare models on different folds. records.jsonl keeps the '
+                 f'{len(result.records) + len(result.inner)} entries that completed; run again with --resume to run '
+                 'the rest.')
+    print('\n'.join(lines), file=sys.stderr)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging(args.verbose)
@@ -376,11 +403,12 @@ def main(argv=None) -> int:
     try:
         config = configure(args)
         device = ExperimentConfig.from_dict(config.experiment).training.device
-        if args.jobs < 1 or args.threads < 1:
-            raise StarsError('--jobs and --threads must be positive')
+        if args.threads < 1:
+            raise StarsError('--threads must be positive')
         started = time.perf_counter()
         data = load_dataset(args.data_root)
         load_seconds = time.perf_counter() - started
+        fits = build_executor(args, data, args.threads, [device])
     except (StarsError, OSError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
@@ -395,13 +423,16 @@ def main(argv=None) -> int:
                       f'{len(data.scene_keys)} scenes, fingerprint {data.fingerprint[:12]})'}
     settings = yaml.safe_load(yaml.safe_dump(  # as config.yaml reads back
         {'protocol': args.protocol, 'quick': args.quick, 'data_root': str(args.data_root),
-         'data_fingerprint': data.fingerprint, 'jobs': args.jobs, 'threads': threads, 'device': device,
-         **config.to_dict()}, sort_keys=False))
+         'data_fingerprint': data.fingerprint, 'jobs': fits.jobs, 'threads': threads, 'executor': fits.settings,
+         'device': device, **config.to_dict()}, sort_keys=False))
     try:
         previous = previous_entries(folder, settings) if args.resume else []
     except StarsError as error:
+        fits.executor.shutdown()
         print(f'error: {error}', file=sys.stderr)
         return 2
+    for stale in SUMMARY_FILES:
+        (folder / stale).unlink(missing_ok=True)
     (folder / 'command.txt').write_text(command + '\n')
     (folder / 'config.yaml').write_text(yaml.safe_dump(settings, sort_keys=False))
 
@@ -409,8 +440,9 @@ def main(argv=None) -> int:
         (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git'],
                                                          'load_average_start': header['load_start']}, indent=2))
     write_machine()
+    where = ' as Ray tasks' if args.executor == 'ray' else ''
     print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
-          f'{args.jobs} job(s) × {threads} thread(s) on {device}; writing {folder}', flush=True)
+          f'{fits.jobs} job(s) × {threads} thread(s) on {device}{where}; writing {folder}', flush=True)
     if previous:
         print(f'resuming: {len(previous)} entries in the earlier records.jsonl; their fits are not run again', flush=True)
     with (folder / 'records.jsonl').open('w') as stream:
@@ -418,13 +450,16 @@ def main(argv=None) -> int:
             stream.write(json.dumps(entry, default=_json_default) + '\n')
             stream.flush()
         try:
-            result = run_protocol(data, config, args.protocol, jobs=args.jobs, threads=threads, on_record=keep,
-                                  resume=previous)
+            result = run_protocol(data, config, args.protocol, jobs=fits.jobs, threads=threads, on_record=keep,
+                                  resume=previous, executor=fits.executor)
         except (StarsError, ValueError) as error:
             print(f'error: {error}', file=sys.stderr)
             return 1
     header['machine'].update(cuda_info(device))  # the GPU's name, now that the workers are done with it
     write_machine()
+    if result.failed:
+        report_failures(folder, result)
+        return 1
 
     tests = paired_tests(result, (config.error, 'pearson_r', 'ccc'))
     header['ablation_tests'] = ablation_tests(result, (config.error, 'pearson_r', 'ccc'))

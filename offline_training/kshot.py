@@ -28,7 +28,9 @@ test rows is reported too.
 Metrics (MSE, r, CCC on the rating scale) are pooled over the fold's held-out test rows,
 then given as mean ± sd over folds (of all seeds). Writes results.json, results.md and
 kshot.png. The fits are independent of each other: ``--jobs`` runs them in worker
-processes (one torch thread each, sharing the GPU with ``--device cuda``).
+processes (one torch thread each, sharing the GPU with ``--device cuda``), ``--executor ray``
+as Ray tasks. A fold any of whose fits fails (raises, or its worker dies) is left out and
+named with the error; the run then ends with status 1.
 """
 from __future__ import annotations
 
@@ -44,13 +46,14 @@ import torch
 
 from stars_ros.config import ExperimentConfig
 from stars_ros.errors import StarsError
-from stars_ros.evaluation import fit_executor, worker_data
+from stars_ros.evaluation import FitFailure, fit_outcome, worker_data
 from stars_ros.kshot import LAMBDA_GRID, PRIORS, Design, annotator_folds, choose_regularisation, reveal_pools
 from stars_ros.metrics import regression_report
 from stars_ros.stats import mean_sd
 from stars_ros.training import StarsRecommender
 
-from .common import DEFAULT_SOCNAV1, label_axis, machine, pyplot, read_inputs, save_png, setup_logging
+from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, pyplot, read_inputs,
+                     save_png, setup_logging)
 
 METHODS = ('unpersonalised', 'fold-in', 'fold-in (zero prior)', 'retrained')
 METRICS = ('mse', 'pearson_r', 'ccc')
@@ -73,11 +76,11 @@ def parse_args(argv=None):
     parser.add_argument('--epochs', type=int, nargs=2, metavar=('T1', 'T2'), help='override the config epochs')
     parser.add_argument('--regularisation', type=float, help='fold-in λ (default: chosen on fold 0, see above)')
     parser.add_argument('--max-train-rows', type=int, help='subsample each fold\'s training rows (seeded)')
-    parser.add_argument('--jobs', type=int, default=1, help='worker processes for the fits (default: %(default)s)')
     parser.add_argument('--device', help="train on this device ('cpu', 'cuda'; default: the config's)")
     parser.add_argument('--quick', action='store_true',
                         help='pipeline check: 2 folds, k in {0,2,5}, tiny model and epochs, 1,500 training rows')
     parser.add_argument('--verbose', action='store_true')
+    add_executor_options(parser)
     return parser.parse_args(argv)
 
 
@@ -91,8 +94,8 @@ def configure(args) -> ExperimentConfig:
     training = {'threads': 1, **({'device': args.device} if args.device else {})}
     if args.epochs:
         training.update(pretrain_epochs=args.epochs[0], joint_epochs=args.epochs[1])
-    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2 or args.jobs < 1:
-        raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2 and jobs at least 1')
+    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2:
+        raise StarsError(f'ks must lie in 0..{args.pool} and folds must be at least 2')
     return config.replace(training=training)
 
 
@@ -138,29 +141,39 @@ def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
     return np.sort(np.concatenate([train, *(pools[name][0][:k] for name in held)]))
 
 
-def run(args, config, data, log=print) -> dict:
+def run(args, config, data, fits, log=print) -> dict:
+    """Every fold of the plan, its fits run by ``fits`` (common.FitExecutor)."""
     plan = plan_folds(args, data)
     experiment = config.to_dict()
-    executor = fit_executor(data, args.jobs, 1)
+    executor = fits.executor
     submitted = {}
 
     def submit(folds):  # the largest fits first, so that the last wave is short
-        fits = sorted(((fold, k) for fold in folds for k in sorted(args.ks)), key=lambda f: -len(fit_rows_of(*f)))
-        for fold, k in fits:
+        order = sorted(((fold, k) for fold in folds for k in sorted(args.ks)), key=lambda f: -len(fit_rows_of(*f)))
+        for fold, k in order:
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold[5], k == 0)
 
-    if args.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
+    if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
         submit(plan)
-    records, fits, regularisation, selection, folds = [], [], {}, {}, {}
+    records, timings, regularisation, selection, folds, failed = [], [], {}, {}, {}, []
     try:
         for fold in plan:
             seed, fold_id, held, train, pools, test = fold
-            folds.setdefault(str(seed), []).append(held)
-            if args.jobs == 1:
+            if fits.jobs == 1:
                 submit([fold])
-            base = submitted.pop((seed, fold_id, 0)).result()
-            fits.append({'seed': seed, 'fold': fold_id, 'k': 0, 'seconds': round(base['seconds'], 1),
-                         'n_train': len(train)})
+            outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')
+                        for k in sorted(args.ks)}
+            lost = [{'seed': seed, 'fold': fold_id, 'k': k, 'error': outcome.error}
+                    for k, outcome in outcomes.items() if isinstance(outcome, FitFailure)]
+            if lost:
+                failed += lost
+                log(f'seed {seed} fold {fold_id}: left out, ' + '; '.join(f"the fit at k={f['k']} failed: "
+                                                                          f"{f['error']}" for f in lost))
+                continue
+            folds.setdefault(str(seed), []).append(held)
+            base = outcomes[0]
+            timings.append({'seed': seed, 'fold': fold_id, 'k': 0, 'seconds': round(base['seconds'], 1),
+                            'n_train': len(train)})
             log(f'seed {seed} fold {fold_id} (held out {held}): base model on {len(train)} ratings in '
                 f"{base['seconds']:.0f} s")
             design = Design(base['recommender'], data)
@@ -189,20 +202,20 @@ def run(args, config, data, log=print) -> dict:
                         by_lambda[candidate] = report(data, test, predictions[test])
                     entry[method] = by_lambda[lambdas[method]]
                     entry['mse_by_lambda'][method] = {str(lam): r['mse'] for lam, r in by_lambda.items()}
-                retrained = base if k == 0 else submitted.pop((seed, fold_id, k)).result()
+                retrained = outcomes[k]
                 if k:
-                    fits.append({'seed': seed, 'fold': fold_id, 'k': k, 'seconds': round(retrained['seconds'], 1),
-                                 'n_train': len(fit_rows_of(fold, k))})
+                    timings.append({'seed': seed, 'fold': fold_id, 'k': k, 'seconds': round(retrained['seconds'], 1),
+                                    'n_train': len(fit_rows_of(fold, k))})
                 entry['retrained'] = report(data, test, retrained['predictions'])
                 records.append(entry)
                 log(f'seed {seed} fold {fold_id} k={k}: MSE ' + '  '.join(f"{m} {entry[m]['mse']:.4f}"
                                                                          for m in METHODS))
             if args.on_fold:
-                args.on_fold(records, fits, regularisation, selection, folds)
+                args.on_fold(records, timings, regularisation, selection, folds, failed)
     finally:
         executor.shutdown(cancel_futures=True)
-    return {'records': records, 'fits': fits, 'regularisation': regularisation, 'selection': selection,
-            'folds': folds}
+    return {'records': records, 'fits': timings, 'regularisation': regularisation, 'selection': selection,
+            'folds': folds, 'failed': failed}
 
 
 def summarise(records: list) -> dict:
@@ -232,6 +245,7 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
     shares = {method: gap_share(summary, top, method) for method in PRIORS}
     payload = {**header, 'regularisation': result['regularisation'], 'regularisation_selection': result['selection'],
                'folds': result['folds'], 'records': result['records'], 'fits': result['fits'],
+               'failed': result['failed'],
                'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()},
                'gap_share': {'k': top, **shares}}
     (folder / 'results.json').write_text(json.dumps(payload, indent=1))
@@ -293,27 +307,39 @@ def main(argv=None) -> int:
     if inputs is None:
         return 2
     config, data = inputs
+    try:
+        fits = build_executor(args, data, devices=[config.training.device])
+    except StarsError as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
     folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
-              'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': args.jobs, 'quick': args.quick,
+              'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
+              'executor': fits.settings, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),
               'epochs': [config.training.pretrain_epochs, config.training.joint_epochs]}
 
-    def on_fold(records, fits, regularisation, selection, folds):  # partial results survive a stopped run
-        write_results(folder, {'records': records, 'fits': fits, 'regularisation': regularisation,
-                               'selection': selection, 'folds': folds},
+    def on_fold(records, timings, regularisation, selection, folds, failed):  # partial results survive a stop
+        write_results(folder, {'records': records, 'fits': timings, 'regularisation': regularisation,
+                               'selection': selection, 'folds': folds, 'failed': failed},
                       {**header, 'seconds': time.perf_counter() - started, 'complete': False})
     args.on_fold = on_fold
     try:
-        result = run(args, config, data, log=lambda line: print(line, flush=True))
+        result = run(args, config, data, fits, log=lambda line: print(line, flush=True))
     except StarsError as error:
         print(f'error: {error}', file=sys.stderr)
         return 1
-    payload = write_results(folder, result, {**header, 'seconds': time.perf_counter() - started, 'complete': True})
+    payload = write_results(folder, result, {**header, 'seconds': time.perf_counter() - started,
+                                             'complete': not result['failed']})
     print((folder / 'results.md').read_text())
+    if result['failed']:
+        print('\n'.join([f"error: {len(result['failed'])} fit(s) failed, their folds are left out:",
+                         *(f"  seed {f['seed']} fold {f['fold']} k={f['k']}: {f['error']}" for f in result['failed'])]),
+              file=sys.stderr)
+        return 1
     shares = payload['gap_share']
     for method in PRIORS:
         if shares[method] is not None:

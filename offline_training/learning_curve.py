@@ -1,7 +1,7 @@
 """Test-fold learning curves of one backbone's base and StARS variants on the outer CV folds.
 
     python -m offline_training.learning_curve --config config/learning_curve_socnav1.yaml \
-        --jobs 1 [--out results/learning_curve_socnav1]
+        --jobs 1 --out results/learning_curve_socnav1 [--executor ray]
 
 Answers "would more epochs, or another learning rate, close the gap to the published
 figures?" without choosing anything on the test folds: every fit runs the full
@@ -9,7 +9,9 @@ figures?" without choosing anything on the test folds: every fit runs the full
 is exactly the fit with (T1, T2) — the same seeds give the same first T2 epochs — so the
 curves line up with the evaluation tables. Writes ``command.txt``, ``config.yaml``,
 ``machine.json``, ``records.jsonl`` (each fit as it finishes), ``curve.csv``,
-``results.json``, ``results.md`` and ``curve_<metric>.png``.
+``results.json``, ``results.md`` and ``curve_<metric>.png``. A fit that fails (raises, or
+its worker dies) is named on stderr; the others go on, and the run ends with status 1
+without curves.
 """
 from __future__ import annotations
 
@@ -26,11 +28,12 @@ import yaml
 from pydantic import Field, PrivateAttr, ValidationInfo, model_validator
 
 from stars_ros.config import Int, KeyedError, Section, TrainConfig, read_yaml, validate_under, validated
-from stars_ros.errors import ConfigError
-from stars_ros.evaluation import DISPLAY, FitTask, ProtocolConfig, fit_executor, make_folds, run_fits
+from stars_ros.errors import ConfigError, StarsError
+from stars_ros.evaluation import DISPLAY, FitFailure, FitTask, ProtocolConfig, make_folds, run_fits
 from stars_ros.stats import mean_sd
 
-from .common import DEFAULT_SOCNAV1, label_axis, machine, mean_band, pyplot, read_inputs, save_png, setup_logging
+from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, mean_band, pyplot,
+                     read_inputs, save_png, setup_logging)
 from .evaluate import METRIC_NAMES, git_state, write_csv
 
 REPO = Path(__file__).resolve().parents[1]
@@ -161,18 +164,21 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--config', default=str(REPO / 'config' / 'learning_curve_socnav1.yaml'))
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
-    parser.add_argument('--jobs', type=int, default=1, help='worker processes, one torch thread each')
     parser.add_argument('--out', required=True, help='results folder')
     parser.add_argument('--verbose', action='store_true')
+    add_executor_options(parser)
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
-    if args.jobs < 1:
-        print('error: --jobs must be positive', file=sys.stderr)
-        return 2
     inputs = read_inputs(lambda: read_config(Path(args.config)), args.data_root)
     if inputs is None:
         return 2
     config, data = inputs
+    tasks = build_tasks(data, config)
+    try:
+        fits = build_executor(args, data, devices=[task.experiment['training']['device'] for _, _, task in tasks])
+    except StarsError as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
     folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
     command = shlex.join(['python', '-m', 'offline_training.learning_curve', *(sys.argv[1:] if argv is None else argv)])
@@ -182,21 +188,23 @@ def main(argv=None) -> int:
         {**config.to_dict(), 'protocol_resolved': config.protocol_config.to_dict(), 'data_fingerprint': data.fingerprint},
         sort_keys=False))
     (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git']}, indent=2))
-    tasks = build_tasks(data, config)
-    print(f'{len(tasks)} fits of {config.joint_epochs} joint epochs; {args.jobs} job(s); writing {folder}',
-          flush=True)
+    print(f'{len(tasks)} fits of {config.joint_epochs} joint epochs; {fits.jobs} job(s) ({fits.settings["kind"]}); '
+          f'writing {folder}', flush=True)
     started = time.perf_counter()
-    points, fits = [], []
+    points, curves, failed = [], [], []
     waiting = [(task, setting, variant) for setting, variant, task in tasks]
     with (folder / 'records.jsonl').open('w') as stream:  # each fit kept as it finishes
         for done, ((task, setting, variant), scores) in enumerate(
-                run_fits(fit_executor(data, args.jobs, 1), waiting, args.jobs), 1):
+                run_fits(fits.executor, waiting, fits.jobs), 1):
+            if isinstance(scores, FitFailure):
+                failed.append(f'{task.name}: {scores.error}')
+                continue
             if 'error' in scores:
                 print(f'{task.model} fold {task.fold}: {scores["error"]}', file=sys.stderr)
                 continue
             fit = {'setting': setting, 'variant': variant, 'fold': task.fold,
                    'fit_seconds': scores['fit_seconds'], 'curve': scores['curve']}
-            fits.append(fit)
+            curves.append(fit)
             points += [{'setting': setting, 'variant': variant, 'fold': task.fold, **p} for p in scores['curve']]
             stream.write(json.dumps(fit) + '\n')
             stream.flush()
@@ -204,12 +212,17 @@ def main(argv=None) -> int:
             print(f"[{done}/{len(tasks)}] {task.model} fold {task.fold}: MSE at T2 = {last['epoch']} "
                   f"{last['mse']:.4f} ({scores['fit_seconds']:.0f} s)", flush=True)
     header['wall_seconds'] = time.perf_counter() - started
+    if failed:
+        print('\n'.join([f'error: {len(failed)} fit(s) failed:', *(f'  {line}' for line in failed),
+                         'No curves: their means would mix folds; the completed fits are in records.jsonl.']),
+              file=sys.stderr)
+        return 1
     summary = summarise(points)
     write_csv(folder / 'curve.csv', points, CURVE_COLUMNS)
     write_markdown(folder / 'results.md', summary, config, header)
     plots = plot(folder, summary)
     (folder / 'results.json').write_text(json.dumps(
-        {**header, 'config': config.to_dict(), 'fits': fits,
+        {**header, 'config': config.to_dict(), 'fits': curves,
          'summary': {f'{s} {v}': series for (s, v), series in summary.items()}, 'plots': plots}, indent=1))
     print((folder / 'results.md').read_text())
     return 0

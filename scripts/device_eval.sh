@@ -8,16 +8,27 @@
 # records.jsonl, config.yaml, machine.json and (when the run finished) tables.md.
 #
 # Settings (environment): JOBS (12) worker processes sharing the GPU; BACKBONES (gat);
+# EXECUTOR (process; ray: every fit a Ray task on a local Ray instance, GPUS_PER_FIT (0.0625:
+# sixteen fits share the GPU) of the GPU and one CPU each, JOBS unset: as many as fit);
 # DEVICE (cuda; cpu runs the same steps on the CPU, for a dry run or a comparison);
 # EVAL_SECONDS (480) limit of the evaluation (not SECONDS: bash's own counter);
 # DATA (.device_data/socnav1); RESUME_FROM: a folder with an earlier run's config.yaml and
 # records.jsonl (e.g. a returned socnav1-rows/) whose fits are reused (--resume).
-# Missing pure-Python packages (fastjsonschema) are installed from .whl/*.whl if present.
+# Missing packages (fastjsonschema; ray and those of its needs the machine lacks, for
+# EXECUTOR=ray) are installed from .whl/*.whl if present. Ray's wheel is about 79 MB.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 : "${OUT:?set OUT to the folder that collects the results}"
-JOBS=${JOBS:-12}
+EXECUTOR=${EXECUTOR:-process}
 DEVICE=${DEVICE:-cuda}
+if [ "$EXECUTOR" = ray ]; then
+  workers=(--executor ray ${JOBS:+--jobs "$JOBS"})
+  [ "$DEVICE" = cpu ] || workers+=(--gpus-per-fit "${GPUS_PER_FIT:-0.0625}")
+  export RAY_AUTH_MODE=disabled  # a local instance that nothing else reaches: no token to write
+else
+  JOBS=${JOBS:-12}
+  workers=(--jobs "$JOBS")
+fi
 BACKBONES=${BACKBONES:-gat}
 EVAL_SECONDS=${EVAL_SECONDS:-480}
 DATA=${DATA:-.device_data/socnav1}
@@ -29,13 +40,16 @@ mkdir -p "$OUT"
 run() {
 echo "== machine $(date -u +%FT%TZ)"
 nvidia-smi || echo "(no nvidia-smi)"
-if ! python3 -c 'import fastjsonschema' 2>/dev/null; then
+needed='import fastjsonschema'; [ "$EXECUTOR" = ray ] && needed="$needed, ray"
+if ! python3 -c "$needed" 2>/dev/null; then
   if compgen -G '.whl/*.whl' >/dev/null; then
     echo "installing .whl/*.whl into /tmp/site"
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
     export PYTHONPATH=$PYTHONPATH:/tmp/site
   fi
 fi
+[ "$EXECUTOR" = ray ] && { python3 -c 'import ray; print("ray", ray.__version__)' ||
+  { echo "error: EXECUTOR=ray needs ray there (pip download ray==2.60.0 into .whl)"; return 2; }; }
 python3 - <<'EOF' || { echo "error: a package is missing (see above)"; return 2; }
 import platform, torch, torch_geometric, numpy, scipy, yaml, matplotlib, fastjsonschema
 print(f'python {platform.python_version()}, torch {torch.__version__} (CUDA {torch.version.cuda}), '
@@ -53,7 +67,7 @@ echo "== CUDA tests"
 timeout 300 python3 -m pytest -q -p no:cacheprovider test/test_training.py -k cuda
 tests=$?
 
-echo "== evaluation: $BACKBONES on $DEVICE, $JOBS jobs, limit $EVAL_SECONDS s"
+echo "== evaluation: $BACKBONES on $DEVICE, ${workers[*]}, limit $EVAL_SECONDS s"
 resume=()
 if [ -n "${RESUME_FROM:-}" ]; then
   mkdir -p "$RESULTS"
@@ -63,7 +77,7 @@ fi
 nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 30 > "$OUT/gpu.csv" 2>/dev/null &
 sampler=$!
 timeout "$EVAL_SECONDS" python3 -m offline_training.evaluate --config config/eval_socnav1.yaml --protocol rows \
-  --device "$DEVICE" --jobs "$JOBS" --data-root "$DATA" --out "$RESULTS" --backbones "$BACKBONES" "${resume[@]}"
+  --device "$DEVICE" "${workers[@]}" --data-root "$DATA" --out "$RESULTS" --backbones "$BACKBONES" "${resume[@]}"
 status=$?
 kill "$sampler" 2>/dev/null
 echo "== evaluation exit status $status (124: stopped at the limit; records.jsonl keeps the finished fits)"

@@ -27,7 +27,13 @@ action) and ``mf`` (biased matrix factorisation, no scene content), and for
 in each fold so that each differs from it in one part only. Fits are independent
 jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
 CPU pays better than threads inside one small-graph model. With ``training.device`` 'cuda'
-the workers share the one GPU, each with its own CUDA context.
+the workers share the one GPU, each with its own CUDA context. Any other
+``concurrent.futures.Executor`` can run them instead (``stars_ros.distributed``: Ray tasks).
+
+A fit that raises, or whose worker dies, is a *failure*: reported by name, never recorded,
+so a resumed run tries it again; the other fits go on. A selection that lost an inner fit
+cannot choose, so that fold's final fits are not run. A fit that diverges is a result
+instead (NaN scores with an ``error``), recorded like any other.
 """
 from __future__ import annotations
 
@@ -281,14 +287,51 @@ class FitTask:
     curve_at: tuple = ()  # joint epochs at which the test rows are also scored
     settings: str = '{}'  # the searched settings in the experiment, as settings_key text
 
+    @property
+    def name(self) -> str:
+        """The fit in words, as failures are reported: 'GAT StARS fold 0:1 inner fold 0 (T1, T2) = (10, 100)'."""
+        parts = {'inner': f'inner fold {self.inner_fold}', 'sweep': f'fraction {self.fraction:g}'}
+        settings = '' if self.settings == '{}' else f' {self.settings}'
+        training = self.experiment['training']
+        return (f"{self.model} fold {self.fold} {parts.get(self.stage, self.stage)}{settings} "
+                f"(T1, T2) = ({training['pretrain_epochs']}, {training['joint_epochs']})")
+
+
+@dataclass(frozen=True)
+class FitFailure:
+    """What a fit that raised, or whose worker died, gives instead of scores. Unlike a
+    diverged fit (scores with an ``error``) it is no result: it is never recorded."""
+
+    error: str  # 'ValueError: no training rows'
+
+    @classmethod
+    def of(cls, error: BaseException) -> FitFailure:
+        return cls(f'{type(error).__name__}: {error}')
+
+
+def fit_outcome(future: futures.Future, name: str) -> Any:
+    """The finished ``future``'s result, or a FitFailure carrying its exception (logged
+    with its traceback under the fit's ``name``), so that one failed fit does not end a
+    run of many."""
+    try:
+        return future.result()
+    except Exception as error:  # noqa: BLE001 - any error of a fit is its own, reported by the caller
+        log.warning('%s failed', name, exc_info=error)
+        return FitFailure.of(error)
+
 
 _WORKER_DATA: RatingData | None = None
 
 
+def hold_worker_data(data: RatingData) -> None:
+    """Keep ``data`` for the fits this worker process runs (see ``worker_data``)."""
+    global _WORKER_DATA
+    _WORKER_DATA = data
+
+
 def _init_worker(data_blob: bytes, threads: int) -> None:
     import torch
-    global _WORKER_DATA
-    _WORKER_DATA = pickle.loads(data_blob)
+    hold_worker_data(pickle.loads(data_blob))
     torch.set_num_threads(threads)
 
 
@@ -383,7 +426,9 @@ def run_fits(executor: futures.Executor, waiting: list, jobs: int,
     """Run the ``(FitTask, *context)`` items of ``waiting`` with at most ``jobs`` in flight,
     yielding ``(item, scores)`` as each fit finishes. ``waiting`` is read as the run goes, so
     the caller may put new items in front of it between two results. A task for which
-    ``cached`` returns scores (an earlier run's) is yielded without being run."""
+    ``cached`` returns scores (an earlier run's) is yielded without being run. A fit that
+    raises, or whose worker dies, yields a FitFailure instead of scores; so does every fit
+    submitted after the executor broke (a process pool whose worker died)."""
     in_flight = {}
     try:
         while waiting or in_flight:
@@ -393,12 +438,16 @@ def run_fits(executor: futures.Executor, waiting: list, jobs: int,
                 if scores is not None:
                     yield item, scores
                     continue
-                in_flight[executor.submit(run_fit, item[0])] = item
+                try:
+                    in_flight[executor.submit(run_fit, item[0])] = item
+                except futures.BrokenExecutor as error:
+                    yield item, FitFailure.of(error)
             if not in_flight:
                 continue
             finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
             for future in finished:
-                yield in_flight.pop(future), future.result()
+                item = in_flight.pop(future)
+                yield item, fit_outcome(future, item[0].name)
     finally:
         executor.shutdown(cancel_futures=True)
 
@@ -471,6 +520,8 @@ class EvaluationResult:
     jobs: int = 1
     threads: int = 1
     resumed: int = 0  # fits taken from an earlier run's records, not run again
+    failed: list = field(default_factory=list)    # per fit that raised or whose worker died: what, and the error
+    unchosen: list = field(default_factory=list)  # per (model, fold) whose selection lost an inner fit
 
     def final(self) -> list:
         return [r for r in self.records if r['fraction'] == 1.0]
@@ -482,11 +533,14 @@ def _fit_key(model, fold, stage, fraction, inner_fold, t1, t2, settings) -> tupl
 
 def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
                  threads: int = 1, on_record: Callable[[dict], None] | None = None,
-                 resume: Sequence[dict] = ()) -> EvaluationResult:
+                 resume: Sequence[dict] = (), executor: futures.Executor | None = None) -> EvaluationResult:
     """Run the whole protocol on ``data``; ``on_record`` sees each entry as it arrives: the
     records, and the selection fits with ``stage`` 'inner'. ``resume`` takes such entries of
     an earlier run of the same config: their fits are not run again. Fits are seeded, so on
-    the CPU a resumed run gives the results of an uninterrupted one."""
+    the CPU a resumed run gives the results of an uninterrupted one. ``executor`` runs the
+    fits, at most ``jobs`` at a time (default: ``fit_executor(data, jobs, threads)``); the
+    run shuts it down. Failed fits and the selections they stopped are in ``failed`` and
+    ``unchosen`` of the result."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
     if jobs < 1 or threads < 1:
@@ -595,8 +649,13 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
                     waiting.append((task(spec, fold_id, 'inner', settings, pair, train, validation, inner_fold=i,
                                          curve_at=tuple(sorted(ends))), spec, settings, pair))
     total = len(waiting)
-    fits = run_fits(fit_executor(data, jobs, threads), waiting, jobs, cached if earlier else None)
+    fits = run_fits(executor or fit_executor(data, jobs, threads), waiting, jobs, cached if earlier else None)
     for done, ((fit, spec, settings, pair), scores) in enumerate(fits, 1):
+        if isinstance(scores, FitFailure):
+            result.failed.append({'fit': fit.name, 'model': spec.label, 'fold': fit.fold, 'stage': fit.stage,
+                                  'fraction': fit.fraction, 'inner_fold': fit.inner_fold, 'settings': settings,
+                                  'T1': pair[0], 'T2': pair[1], 'error': scores.error})
+            continue
         if fit.stage != 'inner':
             record(spec, fit.fold, fit.fraction, settings, pair, len(fit.train), len(fit.test), scores, fit.stage)
             log.info('[%d/%d] %s fold %s fraction %g %s (T1, T2) = %s: %s %.4f (%.1f s)', done, total,
@@ -631,6 +690,8 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
             unlocked = choose(spec, fit.fold, chosen_settings, best[1], means[best])
             waiting[:0] = unlocked
             total += len(unlocked)
+    result.unchosen = [{'model': label, 'fold': fold_id} for (label, fold_id), table in inner_scores.items()
+                       if any(len(v) < config.inner_folds for v in table.values())]
     result.wall_seconds = time.perf_counter() - started
     return result
 

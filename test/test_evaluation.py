@@ -2,6 +2,7 @@
 import csv
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -340,3 +341,83 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(socnav1_root, t
     assert results(part) == results(whole)
     assert f'{reused} fits came from the earlier run' in (part / 'tables.md').read_text()
     assert evaluate.main([*args, '--out', str(part), '--resume', '--device', 'cuda']) == 2  # other settings
+
+
+def test_failed_fits_are_named_and_stop_only_what_needs_them(socnav1, monkeypatch):
+    """An inner fit that raises leaves its fold without a choice (so without the final fits
+    of StARS and of the ablation following it); a final fit that raises is missing alone; a
+    fit that diverges is a result, recorded with its error. Everything else completes."""
+    def fake_fit(task, data=None):
+        if (task.model, task.fold, task.stage, task.inner_fold) in {('GCN StARS', '0:1', 'inner', 0),
+                                                                    ('GCN base', '0:0', 'final', -1)}:
+            raise RuntimeError('injected')
+        diverged = (task.model, task.fold) == ('GCN base', '0:1')
+        return {'mse': math.nan if diverged else 0.02, 'rmse': 0.14, 'pearson_r': 0.9, 'ccc': 0.9,
+                'n': len(task.test), 'z_rmse': 0.5, 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
+                **({'error': 'training diverged'} if diverged else {}),
+                **({'curve': [{'epoch': t, 'z_rmse': 0.5} for t in task.curve_at]} if task.curve_at else {})}
+
+    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    config = ProtocolConfig.from_dict({'folds': 2, 'grid': [[1, 1], [0, 2]], 'backbones': {'gcn': {}},
+                                       'baselines': ['population_mean'], 'ablation_backbones': ['gcn'],
+                                       'ablations': ['user_bias']})
+    result = run_protocol(socnav1, config, 'rows')
+    assert [(f['fit'], f['error']) for f in result.failed] == [
+        ('GCN base fold 0:0 final (T1, T2) = (1, 1)', 'RuntimeError: injected'),
+        ('GCN StARS fold 0:1 inner fold 0 (T1, T2) = (1, 1)', 'RuntimeError: injected'),
+        ('GCN StARS fold 0:1 inner fold 0 (T1, T2) = (0, 2)', 'RuntimeError: injected')]
+    assert result.unchosen == [{'model': 'GCN StARS', 'fold': '0:1'}]
+    models = ('Population mean', 'GCN base', 'GCN StARS', 'GCN user offsets only')
+    missing = {('GCN base', '0:0'), ('GCN StARS', '0:1'), ('GCN user offsets only', '0:1')}
+    assert sorted((r['model'], r['fold']) for r in result.final()) == sorted(
+        {(m, f) for m in models for f in ('0:0', '0:1')} - missing)
+    diverged, = (r for r in result.records if 'error' in r)
+    assert (diverged['model'], diverged['fold'], diverged['error']) == ('GCN base', '0:1', 'training diverged')
+    assert not [e for e in result.inner if (e['model'], e['fold'], e['inner_fold']) == ('GCN StARS', '0:1', 0)]
+
+
+def test_a_run_with_failed_fits_ends_without_tables_and_resume_runs_them(socnav1_root, tmp_path, monkeypatch,
+                                                                           capsys):
+    """A run over a finished one, in which an inner fit raises: status 1, the fit named,
+    the earlier tables removed, no new ones. --resume runs that fit and the final fits its
+    selection unlocks, nothing else, and ends with the first run's results."""
+    from offline_training import evaluate
+    ran, broken = [], set()
+
+    def fake_fit(task, data=None):
+        if (task.model, task.fold, task.stage, task.inner_fold) in broken:
+            raise RuntimeError('injected')
+        training = task.experiment['training']
+        ran.append((task.model, task.fold, task.stage, task.fraction, task.inner_fold))
+        score = (training['pretrain_epochs'] * 7 + len(task.train) + 3 * task.inner_fold) % 11 / 100 + 0.01
+        return {'mse': score, 'rmse': score ** 0.5, 'pearson_r': 0.9, 'ccc': 0.8, 'n': len(task.test),
+                'z_rmse': score, 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
+                'curve': [{'epoch': t, 'z_rmse': score + t / 1000} for t in task.curve_at]}
+
+    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    out = tmp_path / 'out'
+    args = ['--quick', '--backbones', 'gat', '--data-root', str(socnav1_root), '--out', str(out)]
+    assert evaluate.main(args) == 0
+    whole = (out / 'results.json').read_text()
+    broken.add(('GAT StARS', '0:1', 'inner', 1))
+    assert evaluate.main(args) == 1
+    stderr = capsys.readouterr().err
+    assert 'GAT StARS fold 0:1 inner fold 1 (T1, T2) = (1, 1): RuntimeError: injected' in stderr
+    assert 'GAT StARS fold 0:1: no settings chosen (an inner fit failed)' in stderr and 'No tables' in stderr
+    assert not (out / 'tables.md').exists() and not (out / 'results.json').exists()
+    assert [json.loads(line)['fit'] for line in (out / 'failed.jsonl').read_text().splitlines()] == [
+        'GAT StARS fold 0:1 inner fold 1 (T1, T2) = (1, 1)', 'GAT StARS fold 0:1 inner fold 1 (T1, T2) = (0, 2)']
+    assert not [line for line in (out / 'records.jsonl').read_text().splitlines()
+                if '"GAT StARS"' in line and '"0:1"' in line and '"inner_fold": 1' in line]
+    broken.clear()
+    ran.clear()
+    assert evaluate.main([*args, '--resume']) == 0
+    assert sorted(ran) == [('GAT StARS', '0:1', 'final', 1.0, -1), ('GAT StARS', '0:1', 'inner', 1.0, 1),
+                           ('GAT StARS', '0:1', 'inner', 1.0, 1), ('GAT StARS', '0:1', 'sweep', 0.5, -1)]
+    assert not (out / 'failed.jsonl').exists()
+
+    def results(text):  # in any order; the population mean's fit time is measured anew
+        values = json.loads(text)
+        return {name: sorted(json.dumps({k: v for k, v in entry.items() if k != 'fit_seconds'}, sort_keys=True)
+                             for entry in values[name]) for name in ('records', 'inner', 'selection', 'tests')}
+    assert results((out / 'results.json').read_text()) == results(whole)

@@ -78,6 +78,7 @@ def _same(first, second):
         [(e['action'], e['score']) for e in second['ranking']]
 
 
+@pytest.mark.slow
 def test_a_fleet_of_three_rankers_shares_what_it_learns(tiny_checkpoint, scenes, tmp_path):
     domain = domain_id(11)
     robots = []

@@ -55,3 +55,24 @@ def test_fits_in_worker_processes_give_what_inline_fits_give(socnav1_root, tmp_p
     for parallel, inline in zip(runs[2]['records'], runs[1]['records']):
         assert parallel['retrained'] == inline['retrained'] and parallel['fold-in'] == inline['fold-in']
     assert runs[2]['jobs'] == 2 and runs[2]['seeds'] == [0, 1]
+
+
+def test_a_fold_whose_fit_fails_is_left_out_and_named(socnav1_root, tmp_path, monkeypatch, capsys):
+    """The fourth fit (fold 1's retraining at k = 5, the largest first) raises: fold 0 is
+    reported, fold 1 is named with the error and left out, and the run ends with status 1."""
+    calls, fit_rows = [], kshot.fit_rows
+
+    def failing_fourth(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == 4:
+            raise RuntimeError('injected')
+        return fit_rows(*args, **kwargs)
+
+    monkeypatch.setattr(kshot, 'fit_rows', failing_fourth)
+    out = tmp_path / 'kshot'
+    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(socnav1_root), '--out', str(out),
+                       '--quick']) == 1
+    results = json.loads((out / 'results.json').read_text())
+    assert not results['complete'] and {r['fold'] for r in results['records']} == {0}
+    assert results['failed'] == [{'seed': 0, 'fold': 1, 'k': 5, 'error': 'RuntimeError: injected'}]
+    assert 'seed 0 fold 1 k=5: RuntimeError: injected' in capsys.readouterr().err
