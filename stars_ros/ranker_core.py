@@ -263,12 +263,15 @@ class RankerCore:
             self._warn_once(peer, payload['regularisation'], f"{peer} folds in with fold_in_regularisation = "
                             f"{payload['regularisation']}, this node with {self.params['fold_in_regularisation']}: "
                             'their models of a user differ (reported once per peer and value)')
+        started = time.time_ns()
         try:
             return self.personalisation.add_peer_ratings(user_id, payload.get('ratings', []))
         except StarsError as error:
             self.report(error_kind(error), f"user model of '{user_id}' from {peer} refused, nothing taken in: "
                         f'{error}', topic)
             return False
+        finally:  # encoding a peer's rated scenes is fold-in work others may wait behind
+            self._fold_in_spans.add(started, time.time_ns())
 
     def _warn_once(self, peer: str, value, detail: str):
         if (peer, value) not in self._peers_reported:
