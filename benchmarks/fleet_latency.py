@@ -15,6 +15,7 @@ theirs (no other graph is heard). This process:
     models at ``--model-rate`` per second (each a new user with ``--ratings-per-model``
     ratings of real scenes, as robot A would send them), so that the VM's drift falls on
     both alike; it also counts the streamed models B solved and published.
+The rankers record (MCAP and the state file) unless ``--no-record``.
 """
 from __future__ import annotations
 
@@ -151,6 +152,8 @@ def main(argv=None) -> int:
     parser.add_argument('--paced-period', type=float, default=0.05)
     parser.add_argument('--model-rate', type=float, default=10.0, help='peer models per second while loading')
     parser.add_argument('--ratings-per-model', type=int, default=5)
+    parser.add_argument('--no-record', action='store_true',
+                        help="rankers with record_folder '': no MCAP recording, no state file")
     parser.add_argument('--out', default=str(REPO / 'results' / 'fleet_latency.json'))
     args = parser.parse_args(argv)
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
@@ -161,8 +164,9 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as records:
         try:
             for name in ('robot_a', 'robot_b'):
+                folder = "''" if args.no_record else f'{records}/{name}'
                 processes.append(start_node('stars_ros.ros.ranker', domain, {
-                    'checkpoint': checkpoint, 'record_folder': f'{records}/{name}', 'fleet_sharing': True},
+                    'checkpoint': checkpoint, 'record_folder': folder, 'fleet_sharing': True},
                     Path(records) / f'{name}.log', ros_args=['-r', f'__ns:=/{name}',
                                                              '-r', f'stars/user_model:={FLEET_TOPIC}']))
                 clients.append(RosClient(domain, namespace=f'/{name}'))

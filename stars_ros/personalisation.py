@@ -61,6 +61,17 @@ class SceneMemory:
         return tuple(self._scenes.get(scene_id, (None, None)))
 
 
+@dataclasses.dataclass
+class PeerIntake:
+    """New ratings of one peer message, checked one scene per executor turn: ``encoded`` of
+    them so far."""
+
+    user_id: str
+    peer: str
+    ratings: list
+    encoded: int = 0
+
+
 class Personalisation:
     """Fold-in of the users who give feedback, for the model the node serves.
 
@@ -87,6 +98,7 @@ class Personalisation:
         self.scenes = SceneMemory(scene_memory)
         self.pending = collections.OrderedDict()  # users to re-solve, longest waiting first
         self.to_announce = collections.OrderedDict()  # users whose model peers are to be sent again
+        self.intake = collections.deque()  # PeerIntake: peers' ratings being checked, oldest first
         self.solved_from = {}  # user -> the ratings their served model was solved from
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
@@ -143,25 +155,51 @@ class Personalisation:
             self.foldin.remember([rating.scene], encoded[1][index:index + 1])
         return rating
 
-    def add_peer_ratings(self, user_id: str, entries: list) -> bool:
-        """Take in the ``ratings`` of a peer's stars/user_model message (fleet sharing):
-        those this node does not hold yet join the user's; True when the user now waits to be
-        re-solved. StarsError, and nothing changes, when one of them cannot be folded in."""
+    def add_peer_ratings(self, user_id: str, entries: list, peer: str = '') -> bool:
+        """Stage the ``ratings`` of a peer's stars/user_model message (fleet sharing) that this
+        node does not hold yet; True when some wait in ``intake`` (call ``take_in_next``).
+        UnknownActionError, and nothing is staged, when one names an action the model lacks."""
         foldin = self.foldin
         if foldin is None:
             return False
-        held = self.peers.known(user_id) | {r.rating_id for r in self.histories.ratings(user_id)}
-        new = {e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}
+        held = self._held(user_id)
+        new = list({e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}.values())
         if not new:
             return False
-        for rating in new.values():  # every one checked before any is kept
+        for rating in new:
             if rating.action not in foldin.actions:
                 raise UnknownActionError(f"rating '{rating.rating_id}' is of action '{rating.action}'; this model "
                                          f'knows {list(foldin.actions)}')
-        foldin.encode([r.scene for r in new.values()])  # a scene the model cannot encode raises here
-        self._forget(self.peers.add(user_id, list(new.values())))
-        self.pending[user_id] = None
+        self.intake.append(PeerIntake(user_id, peer, new))
         return True
+
+    def take_in_next(self) -> tuple[str, str] | None:
+        """Encode the next staged peer rating's scene (one forward pass per call, so rankings
+        wait for at most one); once every rating of a message has passed, they join the
+        user's and the user waits to be re-solved. Returns (kind, why) when a message is
+        refused (a scene the model cannot encode): then none of its ratings is kept."""
+        staged = self.intake[0]
+        if self.foldin is None:
+            self.intake.popleft()
+            return None
+        try:
+            self.foldin.encode([staged.ratings[staged.encoded].scene])
+        except StarsError as error:
+            self.intake.popleft()
+            return error_kind(error), (f"user model of '{staged.user_id}' from {staged.peer} refused, nothing "
+                                       f'taken in: {error}')
+        staged.encoded += 1
+        if staged.encoded == len(staged.ratings):
+            self.intake.popleft()
+            held = self._held(staged.user_id)
+            new = [r for r in staged.ratings if r.rating_id not in held]  # another message may have brought them
+            if new:
+                self._forget(self.peers.add(staged.user_id, new))
+                self.pending[staged.user_id] = None
+        return None
+
+    def _held(self, user_id: str) -> set:
+        return self.peers.known(user_id) | {r.rating_id for r in self.histories.ratings(user_id)}
 
     def ratings(self, user_id: str) -> list:
         """The ratings ``user_id``'s model is solved from: their history, and with fleet

@@ -263,15 +263,12 @@ class RankerCore:
             self._warn_once(peer, payload['regularisation'], f"{peer} folds in with fold_in_regularisation = "
                             f"{payload['regularisation']}, this node with {self.params['fold_in_regularisation']}: "
                             'their models of a user differ (reported once per peer and value)')
-        started = time.time_ns()
         try:
-            return self.personalisation.add_peer_ratings(user_id, payload.get('ratings', []))
+            return self.personalisation.add_peer_ratings(user_id, payload.get('ratings', []), peer)
         except StarsError as error:
             self.report(error_kind(error), f"user model of '{user_id}' from {peer} refused, nothing taken in: "
                         f'{error}', topic)
             return False
-        finally:  # encoding a peer's rated scenes is fold-in work others may wait behind
-            self._fold_in_spans.add(started, time.time_ns())
 
     def _warn_once(self, peer: str, value, detail: str):
         if (peer, value) not in self._peers_reported:
@@ -305,12 +302,21 @@ class RankerCore:
 
     # -- work ----------------------------------------------------------------------------
     def work(self) -> bool:
-        """One batch of queued requests, else one fold-in solve, else one model sent again to
-        peers; True when more work waits."""
-        pending, to_announce = self.personalisation.pending, self.personalisation.to_announce
+        """One batch of queued requests, else one peer rating checked, else one fold-in solve,
+        else one model sent again to peers; True when more work waits."""
+        personalisation = self.personalisation
+        pending, to_announce, intake = personalisation.pending, personalisation.to_announce, personalisation.intake
         try:
             if self.queue:
                 self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
+            elif intake:
+                started = time.time_ns()
+                try:
+                    refused = personalisation.take_in_next()
+                finally:
+                    self._fold_in_spans.add(started, time.time_ns())
+                if refused is not None:
+                    self.report(*refused, self.topics['stars/user_model'])
             elif pending:
                 started = time.time_ns()
                 try:
@@ -323,7 +329,7 @@ class RankerCore:
                 self._publish_model(to_announce.popitem(last=False)[0])
         except Exception as error:  # noqa: BLE001 - the node must keep serving
             self.report('internal', f'{type(error).__name__}: {error}')
-        return bool(self.queue or pending or to_announce)
+        return bool(self.queue or intake or pending or to_announce)
 
     def _solve_next(self):
         solved = self.personalisation.solve_next(self.params['fold_in_min_ratings'],

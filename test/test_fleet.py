@@ -173,11 +173,11 @@ def test_garbage_from_a_peer_is_reported_and_changes_nothing(tiny_checkpoint, sc
         'scene_graph': variant(lambda p: p['ratings'][1]['scene'].update(humans=[{'id': 1}])),
     }
     for kind, text in bad.items():
-        assert robot_b.accept_user_model(text) is False, kind
+        _deliver([text], robot_b)
         error = node_b.on('stars/errors')[-1]
         assert error['kind'] in (kind, 'schema') and error['level'] == 'error', (kind, error)
         assert error['topic'] == '/robot_b/stars/user_model'
-    assert not robot_b.personalisation.pending and robot_b.personalisation.peers.snapshot() == {}
+    assert not robot_b.personalisation.intake and robot_b.personalisation.peers.snapshot() == {}
     assert robot_b.predictor.user_model(USER) is None
     assert _deliver([json.dumps(good)], robot_b) == [True]  # the good one still goes in whole
     assert np.array_equal(_served(robot_b), _served(robot_a))
