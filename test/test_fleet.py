@@ -198,3 +198,23 @@ def test_a_restarted_robot_keeps_its_peers_ratings(tiny_checkpoint, scenes, tmp_
     assert np.array_equal(_served(robot_b2), served)
     assert _deliver(_models(node_a), robot_b2) == [False]  # known already: nothing was lost
     robot_b2.close()
+
+
+def test_a_peer_message_is_taken_in_one_rated_scene_per_turn(tiny_checkpoint, scenes):
+    """Rankings wait behind at most one encoding: a message of three new ratings takes three
+    turns of ``work``, and a ranking queued meanwhile goes first."""
+    node_a, robot_a = _robot('robot_a', tiny_checkpoint)
+    node_b, robot_b = _robot('robot_b', tiny_checkpoint)
+    for scene in scenes[:3]:
+        _rate(node_a, robot_a, scene, 0.7)
+    assert robot_b.accept_user_model(_models(node_a)[-1]) is True
+    for turn in (1, 2):
+        assert robot_b.work() is True and robot_b.personalisation.intake[0].encoded == turn
+        assert robot_b.personalisation.peers.snapshot() == {}  # nothing kept before all have passed
+    robot_b.accept_scene(messages.dumps(scene_request('meanwhile', scenes[6], 'other')), 0)
+    robot_b.work()
+    assert node_b.on('stars/ranking')[-1]['scene_id'] == 'meanwhile' and robot_b.personalisation.intake
+    robot_b.work()  # the third scene: the ratings are kept and the user waits for a solve
+    assert not robot_b.personalisation.intake and list(robot_b.personalisation.pending) == [USER]
+    _drain(robot_b)
+    assert np.array_equal(_served(robot_b), _served(robot_a))
