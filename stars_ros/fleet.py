@@ -49,9 +49,6 @@ class PeerRatings:
         self._users = collections.OrderedDict()  # user -> {rating id: Rating}
         self._lock = threading.Lock()
 
-    def __contains__(self, user_id) -> bool:
-        return user_id in self._users
-
     def known(self, user_id: str) -> set:
         with self._lock:
             return set(self._users.get(user_id, ()))
