@@ -4,7 +4,6 @@ makes robot B rank for that user exactly as A does; feedback given to A and B at
 moment ends in the same model on both; a robot started after the feedback gets the models;
 a model of another checkpoint is ignored with a warning."""
 import json
-import time
 
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -55,21 +54,38 @@ class Robot:
         self.rank(scene, user, scene['identifier'])
         self.client.feedback({'user_id': user, 'scene_id': scene['identifier'], 'action': 'navigate', 'score': score})
 
-    def personalised(self, scene, user, n_ratings, timeout=REACH_TIMEOUT):
-        """The first ranking for ``user`` solved from ``n_ratings`` ratings, asked again until
-        one comes (None after ``timeout`` s)."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            reply = self.rank(scene, user)
-            if reply.get('personalised_from') == n_ratings:
-                return reply
-            self.client.wait(lambda: False, 0.1)  # a pause between probes, not a condition
-        return None
+    def personalised(self, shared, scene, user, n_ratings):
+        """This robot's ranking of ``scene`` for ``user`` once it has published a model of
+        them solved from ``n_ratings`` ratings (None if none comes within REACH_TIMEOUT):
+        the model is served before it is published."""
+        origin = f'/{self.name}/ranker'
+        if not shared.wait(lambda: any(m['origin'] == origin and m['user_id'] == user and m['n_ratings'] == n_ratings
+                                       for m in shared.models), REACH_TIMEOUT):
+            return None
+        reply = self.rank(scene, user)
+        assert reply['personalised_from'] == n_ratings
+        return reply
 
     def close(self):
         if self.process.poll() is None:
             self.process.terminate()
             self.process.wait(timeout=30)
+        self.client.close()
+
+
+class FleetTopic:
+    """The fleet topic as a listener that joined first sees it, and a publisher on it."""
+
+    def __init__(self, domain):
+        self.client = RosClient(domain, listen=False)
+        self.models = []
+        self.client.node.create_subscription(String, FLEET_TOPIC, self.client._keep(self.models, json.loads), MODELS)
+        self.publisher = self.client.node.create_publisher(String, FLEET_TOPIC, MODELS)
+
+    def wait(self, predicate, timeout: float) -> bool:
+        return self.client.wait(predicate, timeout)
+
+    def close(self):
         self.client.close()
 
 
@@ -82,9 +98,7 @@ def _same(first, second):
 def test_a_fleet_of_three_rankers_shares_what_it_learns(tiny_checkpoint, scenes, tmp_path):
     domain = domain_id(11)
     robots = []
-    listener = RosClient(domain, listen=False)
-    shared = []
-    listener.node.create_subscription(String, FLEET_TOPIC, listener._keep(shared, json.loads), MODELS)
+    fleet = FleetTopic(domain)
     try:
         robots += [Robot(name, domain, tiny_checkpoint, tmp_path, scenes[11]) for name in ('robot_a', 'robot_b')]
         robot_a, robot_b = robots
@@ -94,8 +108,8 @@ def test_a_fleet_of_three_rankers_shares_what_it_learns(tiny_checkpoint, scenes,
         stranger_at_b = robot_b.rank(probe, 'walker')
         for scene, score in zip(scenes[:3], (1.0, 0.9, 0.1)):
             robot_a.rate(scene, 'walker', score)
-        at_a = robot_a.personalised(probe, 'walker', 3)
-        at_b = robot_b.personalised(probe, 'walker', 3)
+        at_a = robot_a.personalised(fleet, probe, 'walker', 3)
+        at_b = robot_b.personalised(fleet, probe, 'walker', 3)
         assert at_a is not None and at_b is not None, 'the fold-in did not reach robot B in time'
         assert [e['score'] for e in at_b['ranking']] != [e['score'] for e in stranger_at_b['ranking']]
         _same(at_a, at_b)
@@ -107,29 +121,28 @@ def test_a_fleet_of_three_rankers_shares_what_it_learns(tiny_checkpoint, scenes,
                                  'score': 0.95})
         robot_b.client.feedback({'user_id': 'runner', 'scene_id': scenes[4]['identifier'], 'action': 'navigate',
                                  'score': 0.05})
-        at_a, at_b = robot_a.personalised(probe, 'runner', 2), robot_b.personalised(probe, 'runner', 2)
+        at_a, at_b = robot_a.personalised(fleet, probe, 'runner', 2), robot_b.personalised(fleet, probe, 'runner', 2)
         assert at_a is not None and at_b is not None, 'A and B did not converge in time'
         _same(at_a, at_b)
-        assert listener.wait(lambda: sum(m['user_id'] == 'runner' and m['n_ratings'] == 2 for m in shared) >= 2, 10)
-        final = {m['origin']: (m['p_u'], m['b_u']) for m in shared if m['user_id'] == 'runner' and m['n_ratings'] == 2}
+        final = {m['origin']: (m['p_u'], m['b_u']) for m in fleet.models
+                 if m['user_id'] == 'runner' and m['n_ratings'] == 2}
         assert final['/robot_a/ranker'] == final['/robot_b/ranker']  # the same model, to the last digit sent
 
         # a robot started after the feedback receives the models
         robots.append(Robot('robot_c', domain, tiny_checkpoint, tmp_path, scenes[11]))
         robot_c = robots[-1]
-        late = robot_c.personalised(probe, 'walker', 3)
+        late = robot_c.personalised(fleet, probe, 'walker', 3)
         assert late is not None, 'the late robot did not get the models'
-        _same(late, robot_a.personalised(probe, 'walker', 3))
-        assert robot_c.personalised(probe, 'runner', 2) is not None
+        _same(late, robot_a.rank(probe, 'walker'))
+        assert robot_c.personalised(fleet, probe, 'runner', 2) is not None
 
         # a model solved against another checkpoint is ignored, with a warning
-        other = dict(next(m for m in shared if m['user_id'] == 'walker'), user_id='jogger',
+        other = dict(next(m for m in fleet.models if m['user_id'] == 'walker'), user_id='jogger',
                      fingerprint=Predictor.load(share_path(DEFAULT_CHECKPOINT)).fingerprint)
-        publisher = listener.node.create_publisher(String, FLEET_TOPIC, MODELS)
-        publisher.publish(String(data=json.dumps(other)))
+        fleet.publisher.publish(String(data=json.dumps(other)))
         assert robot_b.client.wait(lambda: any(e['kind'] == 'fleet' for e in robot_b.client.errors), 20)
         assert 'personalised_from' not in robot_b.rank(probe, 'jogger')
     finally:
         for robot in robots:
             robot.close()
-        listener.close()
+        fleet.close()
