@@ -4,8 +4,9 @@ Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feed
 publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` (transient local) and
 ``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
 ``stars/user_model`` (its peers', and its own, which changes nothing) and sends every
-folded-in user again when a subscriber joins that topic (``stars_ros.fleet``). See README.md ("The ranker node") and docs/personalisation.md. Run with
-``ros2 run stars_ros ranker`` or ``python -m stars_ros.ros.ranker --ros-args -p checkpoint:=PATH``.
+folded-in user again when a subscriber joins that topic (``stars_ros.fleet``). See README.md
+("The ranker node") and docs/personalisation.md. Run with ``ros2 run stars_ros ranker`` or
+``python -m stars_ros.ros.ranker --ros-args -p checkpoint:=PATH``.
 
 Threads: the executor thread does the serving. A scene callback takes every request
 already waiting on stars/scene, validates and queues them (beyond ``queue_depth`` waiting
