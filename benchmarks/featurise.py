@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from offline_training.common import DEFAULT_SOCNAV1, machine
-from stars_ros.scene_graph import featurise, validate_scene
+from stars_ros.data.scene_graph import featurise, validate_scene
 
 
 def rate(function, scenes, repeats=3):

@@ -38,9 +38,9 @@ from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
 from ros_helpers import RosClient, domain_id, start_node  # noqa: E402
-from stars_ros.predictor import Predictor  # noqa: E402
+from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
-from stars_ros.scene_source import read_scenes  # noqa: E402
+from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 FLEET_TOPIC = '/fleet/user_model'
 MODELS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

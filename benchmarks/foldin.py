@@ -49,9 +49,9 @@ sys.path.insert(0, str(REPO / 'test'))
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
 from stars_ros import messages  # noqa: E402
-from stars_ros.foldin import FoldIn, Rating  # noqa: E402
-from stars_ros.predictor import Predictor  # noqa: E402
-from stars_ros.scene_source import read_scenes  # noqa: E402
+from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
+from stars_ros.model.predictor import Predictor  # noqa: E402
+from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 TARGET_P99_MS = 10.0  # the node's latency target (issue 4)
 

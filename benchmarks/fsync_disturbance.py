@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO / 'benchmarks'))
 
 import node_latency  # noqa: E402
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
-from stars_ros.scene_source import read_scenes  # noqa: E402
+from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 
 LINE = b'x' * 3000 + b'\n'

@@ -51,7 +51,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
-from stars_ros.scene_source import read_scenes  # noqa: E402
+from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.ros.spinning import spin_until_shutdown  # noqa: E402
 
 QUEUE_DEPTH = 1000
@@ -228,11 +228,11 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     import torch
 
     from stars_ros import messages
-    from stars_ros.predictor import Predictor
+    from stars_ros.model.predictor import Predictor
     from stars_ros.resources import resolve_checkpoint
-    from stars_ros.scene_graph import featurise
-    from stars_ros.scene_store import GraphStore
-    from stars_ros.serving import Pending, rank_batch
+    from stars_ros.data.scene_graph import featurise
+    from stars_ros.data.scene_store import GraphStore
+    from stars_ros.node.batching import Pending, rank_batch
 
     torch.set_num_threads(1)
     predictor = Predictor.load(resolve_checkpoint(checkpoint))

@@ -21,9 +21,9 @@ from offline_training.common import DEFAULT_SOCNAV1, machine
 
 FIT = '''
 import sys, time
-from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
-from stars_ros.training import StarsRecommender, split_rows
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.data.ratings import load_dataset
+from stars_ros.model.training import StarsRecommender, split_rows
 config = ExperimentConfig.from_yaml(sys.argv[1]).replace(
     training={'pretrain_epochs': 0, 'joint_epochs': int(sys.argv[3]), 'threads': int(sys.argv[4])})
 data = load_dataset(sys.argv[2])

@@ -13,9 +13,9 @@ import time
 import numpy as np
 
 from offline_training.common import DEFAULT_SOCNAV1
-from stars_ros.data import load_dataset
-from stars_ros.evaluation import ProtocolConfig
-from stars_ros.training import StarsRecommender
+from stars_ros.data.ratings import load_dataset
+from stars_ros.evaluation.protocol import ProtocolConfig
+from stars_ros.model.training import StarsRecommender
 
 
 def main():

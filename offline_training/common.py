@@ -13,9 +13,9 @@ from typing import NamedTuple
 
 import torch
 
-from stars_ros.data import RatingData, load_dataset
+from stars_ros.data.ratings import RatingData, load_dataset
 from stars_ros.errors import StarsError
-from stars_ros.evaluation import fit_executor
+from stars_ros.evaluation.protocol import fit_executor
 
 DEFAULT_SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT',
                                       Path(__file__).resolve().parents[1].parent / 'shared' / 'datasets' / 'socnav1'))
@@ -162,7 +162,7 @@ def build_executor(args: argparse.Namespace, data: RatingData, threads: int = 1,
             raise StarsError('fits on the GPU need --gpus-per-fit with --executor ray (e.g. 0.1: ten share a GPU)')
     if gpus and 'cuda' not in set(devices):
         raise StarsError('--gpus-per-fit reserves GPUs for fits that train on the CPU: give --device cuda')
-    from stars_ros.distributed import RayExecutor  # imports Ray: only here
+    from stars_ros.evaluation.ray_executor import RayExecutor  # imports Ray: only here
     retries = DEFAULT_MAX_RETRIES if args.max_retries is None else args.max_retries
     try:
         executor = RayExecutor(data, args.ray_address, cpus, gpus, threads, retries)

@@ -16,9 +16,9 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
-from stars_ros.training import StarsRecommender, split_rows
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.data.ratings import load_dataset
+from stars_ros.model.training import StarsRecommender, split_rows
 
 from .common import DEFAULT_SOCNAV1, machine
 

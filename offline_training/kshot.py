@@ -11,7 +11,7 @@ the remaining ratings are the test rows, the same for every k, so the curves com
 k. For each k the held-out annotators are scored three ways:
 
 - ``unpersonalised``: p_u = 0, b_u = 0 (what the node does for a stranger);
-- ``fold-in``: (p_u, b_u) solved in closed form (stars_ros.foldin) from the first k revealed
+- ``fold-in``: (p_u, b_u) solved in closed form (stars_ros.personalisation.foldin) from the first k revealed
   ratings, towards the population prior (the mean trained user row, as the node does);
 - ``fold-in (zero prior)``: the same towards p_u = 0, b_u = 0, i.e. towards the
   unpersonalised model (equal to it at k = 0);
@@ -44,13 +44,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stars_ros.config import ExperimentConfig
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
-from stars_ros.evaluation import FitFailure, fit_outcome, worker_data
-from stars_ros.kshot import LAMBDA_GRID, PRIORS, Design, annotator_folds, choose_regularisation, reveal_pools
-from stars_ros.metrics import regression_report
-from stars_ros.stats import mean_sd
-from stars_ros.training import StarsRecommender
+from stars_ros.evaluation.protocol import FitFailure, fit_outcome, worker_data
+from stars_ros.evaluation.kshot import LAMBDA_GRID, PRIORS, Design, annotator_folds, choose_regularisation, reveal_pools
+from stars_ros.model.metrics import regression_report
+from stars_ros.evaluation.stats import mean_sd
+from stars_ros.model.training import StarsRecommender
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, pyplot, read_inputs,
                      save_png, setup_logging)

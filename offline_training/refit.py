@@ -36,15 +36,16 @@ import numpy as np
 import torch
 from mcap.exceptions import McapError
 
-from stars_ros import messages, recording
-from stars_ros.checkpoint import save_checkpoint
-from stars_ros.data import RatingData, load_dataset
+from stars_ros import messages
+from stars_ros.recording import bag as recording
+from stars_ros.model.checkpoint import save_checkpoint
+from stars_ros.data.ratings import RatingData, load_dataset
 from stars_ros.errors import StarsError
-from stars_ros.foldin import DEFAULT_REGULARISATION, FoldIn, rating_from_feedback, scene_digest
-from stars_ros.predictor import Predictor
-from stars_ros.scene_graph import featurise
-from stars_ros.scene_store import GraphStore, TabularStore
-from stars_ros.training import StarsRecommender
+from stars_ros.personalisation.foldin import DEFAULT_REGULARISATION, FoldIn, rating_from_feedback, scene_digest
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_graph import featurise
+from stars_ros.data.scene_store import GraphStore, TabularStore
+from stars_ros.model.training import StarsRecommender
 
 from .common import setup_logging
 

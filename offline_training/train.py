@@ -16,11 +16,11 @@ import time
 
 import numpy as np
 
-from stars_ros.checkpoint import save_checkpoint
-from stars_ros.config import ExperimentConfig
+from stars_ros.model.checkpoint import save_checkpoint
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
-from stars_ros.metrics import regression_report
-from stars_ros.training import StarsRecommender, split_rows
+from stars_ros.model.metrics import regression_report
+from stars_ros.model.training import StarsRecommender, split_rows
 
 from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, read_inputs, setup_logging
 

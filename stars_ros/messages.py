@@ -18,8 +18,8 @@ from functools import lru_cache
 from typing import Sequence
 from urllib.parse import urljoin
 
-from .errors import MessageError
-from .resources import share_path
+from stars_ros.errors import MessageError, SceneGraphError, StarsError, UnknownActionError
+from stars_ros.resources import share_path
 
 SCHEMA_BASE = 'https://stars-ros.dev/msg_schemas/'
 DEFAULT_MAX_BYTES = 262144
@@ -285,3 +285,16 @@ def parse_user_model(text, max_bytes: int = DEFAULT_MAX_BYTES) -> dict:
 def dumps(payload: dict) -> str:
     """Compact JSON that refuses NaN and infinities, as the schemas do."""
     return json.dumps(payload, separators=(',', ':'), allow_nan=False)
+
+
+def error_kind(error: Exception) -> str:
+    """The diagnostics category of an error raised while handling a message."""
+    if isinstance(error, BadMessage):
+        return error.kind
+    if isinstance(error, UnknownActionError):
+        return 'unknown_action'
+    if isinstance(error, SceneGraphError):
+        return 'scene_graph'
+    if isinstance(error, StarsError):
+        return 'model'
+    return 'internal'

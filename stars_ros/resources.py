@@ -9,7 +9,7 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import CheckpointError
+from stars_ros.errors import CheckpointError
 
 PACKAGE = 'stars_ros'
 DEFAULT_CHECKPOINT = 'models/socnav1_gat_stars.pt'

@@ -4,10 +4,10 @@ from pathlib import Path
 
 import pytest
 
-from stars_ros.checkpoint import save_checkpoint
-from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
-from stars_ros.training import StarsRecommender, split_rows
+from stars_ros.model.checkpoint import save_checkpoint
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.data.ratings import load_dataset
+from stars_ros.model.training import StarsRecommender, split_rows
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_CONFIG = {

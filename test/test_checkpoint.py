@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from stars_ros.checkpoint import FORMAT_VERSION, load_checkpoint, read_checkpoint, save_checkpoint
+from stars_ros.model.checkpoint import FORMAT_VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from stars_ros.errors import CheckpointError
 
 
@@ -107,7 +107,7 @@ def test_a_file_that_is_no_torch_file_is_named_as_such(content, what, tmp_path):
 def test_incompatible_weights(tiny_checkpoint, tmp_path):
     content = torch.load(tiny_checkpoint, weights_only=True)
     content['metadata']['config']['model']['dim'] = 32
-    from stars_ros.checkpoint import _digest
+    from stars_ros.model.checkpoint import _digest
     content['digest'] = _digest(content['metadata'], content['state_dict'])
     torch.save(content, tmp_path / 'mismatch.pt')
     with pytest.raises(CheckpointError, match='incompatible'):

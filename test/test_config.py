@@ -3,9 +3,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from stars_ros.config import ExperimentConfig
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError
-from stars_ros.evaluation import ProtocolConfig
+from stars_ros.evaluation.protocol import ProtocolConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
 

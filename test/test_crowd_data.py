@@ -9,11 +9,11 @@ training and the memoriser has nothing to memorise.
 import numpy as np
 import pytest
 
-from stars_ros import crowd_data
-from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
-from stars_ros.evaluation import Fold, make_folds
-from stars_ros.training import StarsRecommender
+from stars_ros.data import crowd_data
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.data.ratings import load_dataset
+from stars_ros.evaluation.protocol import Fold, make_folds
+from stars_ros.model.training import StarsRecommender
 
 MOODY = crowd_data.CrowdShape(users=60, scenes=120, features=8, raters_per_scene=6, latent=3, taste=0.2,
                               leniency=0.2, mood=1.5, noise=0.2)

@@ -4,7 +4,7 @@ import numpy as np
 import torch
 import pytest
 
-from stars_ros.data import load_dataset
+from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import DataError
 
 SCENE = {'humans': [{'id': 1, 'xPos': 50, 'yPos': 80, 'orientation': 10}], 'objects': [], 'links': [],

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from stars_ros.encoders import ENCODERS, resolve_encoder
-from stars_ros.scene_graph import NODE_FEATURES, RELATIONS, SceneGraph, featurise
-from stars_ros.scene_source import random_scene
-from stars_ros.scene_store import GraphStore, dense_graphs
+from stars_ros.model.encoders import ENCODERS, resolve_encoder
+from stars_ros.data.scene_graph import NODE_FEATURES, RELATIONS, SceneGraph, featurise
+from stars_ros.data.scene_source import random_scene
+from stars_ros.data.scene_store import GraphStore, dense_graphs
 
 GRAPH_BACKBONES = sorted(name for name, cls in ENCODERS.items() if cls.input_kind == 'graph')
 OPTIONS = {'gat': [{'heads': 4}, {'heads': 1}], 'rgcn': [{}, {'num_bases': 3}]}
@@ -84,7 +84,7 @@ def test_serving_form_counts_parallel_edges_and_serves_a_lone_robot(name, option
 
 def test_the_gat_kernel_warm_up_compiles_what_every_request_uses():
     """A batch, a lone robot or float64 features must not compile a new signature on a request."""
-    from stars_ros.encoders.compiled_gat import _gat_encode
+    from stars_ros.model.encoders.compiled_gat import _gat_encode
     serving = _encoder('gat', {'heads': 4}).serving_form()  # compiles (or loads) at construction
     signatures = list(_gat_encode.signatures)
     rng = np.random.default_rng(8)
@@ -123,7 +123,7 @@ def test_serving_forms_are_snapshots_of_the_weights(name):
 
 
 def _graph(batch, start, count, edge_start, edge_count):
-    from stars_ros.scene_graph import SceneGraph
+    from stars_ros.data.scene_graph import SceneGraph
     edges = slice(edge_start, edge_start + edge_count)
     return SceneGraph(x=batch.x[start:start + count].numpy(),
                       edge_index=(batch.edge_index[:, edges] - start).numpy(),

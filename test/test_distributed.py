@@ -1,4 +1,4 @@
-"""The evaluation's fits as Ray tasks (stars_ros.distributed) and where the programs run their fits
+"""The evaluation's fits as Ray tasks (stars_ros.evaluation.ray_executor) and where the programs run their fits
 (offline_training.common): same records as the process pool, failures named, a killed run resumed."""
 import argparse
 import json
@@ -20,10 +20,10 @@ import yaml
 
 from offline_training import evaluate
 from offline_training.common import add_executor_options, build_executor
-from stars_ros.config import ExperimentConfig
-from stars_ros.distributed import RayExecutor, fit_slots
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.evaluation.ray_executor import RayExecutor, fit_slots
 from stars_ros.errors import StarsError
-from stars_ros.evaluation import FitFailure, FitTask, fit_executor, fit_outcome, run_fits
+from stars_ros.evaluation.protocol import FitFailure, FitTask, fit_executor, fit_outcome, run_fits
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = ['--quick', '--backbones', 'gcn']
@@ -106,7 +106,7 @@ def test_a_fit_that_raises_on_a_ray_worker_is_named_and_the_others_finish(socnav
     outcomes = {item[0].model: scores for item, scores in run_fits(RayExecutor(socnav1), waiting, 2)}
     assert outcomes['no rows'] == FitFailure('ValueError: no training rows')
     assert all(0 < outcomes[name]['mse'] < 1 for name in ('first', 'third'))
-    failure, = (r for r in caplog.records if r.name == 'stars_ros.evaluation')
+    failure, = (r for r in caplog.records if r.name == 'stars_ros.evaluation.protocol')
     assert failure.getMessage() == 'no rows fold 0:0 final (T1, T2) = (1, 1) failed'
     assert 'raised in a Ray worker' in caplog.text  # the worker's traceback
 
@@ -189,7 +189,7 @@ class NoRay(importlib.abc.MetaPathFinder):
 
 
 sys.meta_path.insert(0, NoRay())
-import stars_ros.evaluation
+import stars_ros.evaluation.protocol
 from offline_training import evaluate, kshot, learning_curve
 imported = 'ray' in sys.modules
 status = evaluate.main(['--quick', '--executor', 'ray', '--data-root', sys.argv[1], '--out', sys.argv[2]])

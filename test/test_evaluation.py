@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import yaml
 
-from stars_ros import evaluation
-from stars_ros.config import ExperimentConfig
+from stars_ros.evaluation import protocol as evaluation
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError
-from stars_ros.evaluation import (FitTask, ProtocolConfig, grouped_folds, make_folds, paired_tests, run_fit,
+from stars_ros.evaluation.protocol import (FitTask, ProtocolConfig, grouped_folds, make_folds, paired_tests, run_fit,
                                   run_protocol, sweep_samples, time_accounting)
 
 REPO = Path(__file__).resolve().parents[1]

@@ -12,9 +12,9 @@ import pytest
 import yaml
 
 from stars_ros import recording
-from stars_ros.ranker_core import PARAMETERS
+from stars_ros.node.core import PARAMETERS
 from stars_ros.ros import demo, replay, scene_publisher, usage
-from stars_ros.user_state import STATE_FILE
+from stars_ros.personalisation.user_state import STATE_FILE
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))

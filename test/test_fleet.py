@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from stars_ros import messages
-from stars_ros.fleet import PeerRatings, solve_set
-from stars_ros.foldin import Rating
-from stars_ros.ranker_core import PARAMETERS, TOPICS, RankerCore
-from stars_ros.scene_source import read_scenes, scene_request
-from stars_ros.user_state import STATE_FILE
+from stars_ros.personalisation.fleet import PeerRatings, solve_set
+from stars_ros.personalisation.foldin import Rating
+from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.data.scene_source import read_scenes, scene_request
+from stars_ros.personalisation.user_state import STATE_FILE
 from test_ranker_core import Node
 
 USER = 'visitor'

@@ -10,9 +10,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from ros_helpers import RosClient, domain_id, start_node
-from stars_ros.predictor import Predictor
+from stars_ros.model.predictor import Predictor
 from stars_ros.resources import DEFAULT_CHECKPOINT, share_path
-from stars_ros.scene_source import read_scenes
+from stars_ros.data.scene_source import read_scenes
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
 FLEET_TOPIC = '/fleet/user_model'

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from stars_ros import messages
-from stars_ros.foldin import FeedbackHistories, FoldIn, Rating, UserModel, solve_ridge
-from stars_ros.predictor import Predictor
-from stars_ros.scene_graph import featurise
-from stars_ros.scene_store import GraphStore
+from stars_ros.personalisation.foldin import FeedbackHistories, FoldIn, Rating, UserModel, solve_ridge
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_graph import featurise
+from stars_ros.data.scene_store import GraphStore
 
 
 @pytest.fixture()

@@ -1,15 +1,15 @@
-"""The numpy serving arithmetic (stars_ros.inference) against the hand-checked StARS
+"""The numpy serving arithmetic (stars_ros.model.numpy_model) against the hand-checked StARS
 prediction and against StarsModel on a trained checkpoint."""
 import numpy as np
 import pytest
 import torch
 
-from stars_ros.inference import InferenceModel
-from stars_ros.model import UNKNOWN
-from stars_ros.predictor import Predictor
-from stars_ros.scene_graph import featurise
-from stars_ros.scene_source import read_scenes
-from stars_ros.scene_store import GraphStore
+from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.model import UNKNOWN
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_graph import featurise
+from stars_ros.data.scene_source import read_scenes
+from stars_ros.data.scene_store import GraphStore
 from test_model import small_model
 
 H = np.array([[0.5, 1.0]], dtype=np.float32)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from offline_training import kshot
-from stars_ros.kshot import annotator_folds, reveal_pools
+from stars_ros.evaluation.kshot import annotator_folds, reveal_pools
 
 
 def test_annotator_folds_and_pools_partition_the_data(socnav1):

@@ -8,8 +8,8 @@ from referencing import Registry, Resource
 
 from mutations import mutate
 from stars_ros import messages
-from stars_ros.predictor import Ranked
-from stars_ros.scene_source import read_scenes, scene_request
+from stars_ros.model.predictor import Ranked
+from stars_ros.data.scene_source import read_scenes, scene_request
 
 SCHEMAS = ('scene_graph', 'scene_request', 'ranking', 'feedback')
 

@@ -2,8 +2,8 @@
 import pytest
 import torch
 
-from stars_ros.encoders import resolve_encoder
-from stars_ros.model import UNKNOWN, StarsModel
+from stars_ros.model.encoders import resolve_encoder
+from stars_ros.model.model import UNKNOWN, StarsModel
 
 
 def small_model(variant='stars'):

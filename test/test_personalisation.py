@@ -6,15 +6,16 @@ import json
 import numpy as np
 import pytest
 
-from stars_ros import messages, personalisation
+from stars_ros import messages
+from stars_ros.personalisation import online as personalisation
 from stars_ros.errors import SceneGraphError, StarsError
-from stars_ros.foldin import FoldIn, Rating
+from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.messages import Feedback
-from stars_ros.personalisation import Personalisation, SceneMemory
-from stars_ros.predictor import Predictor
-from stars_ros.scene_source import read_scenes, scene_request
-from stars_ros.serving import Pending, rank_batch
-from stars_ros.user_state import STATE_FILE
+from stars_ros.personalisation.online import Personalisation, SceneMemory
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_source import read_scenes, scene_request
+from stars_ros.node.batching import Pending, rank_batch
+from stars_ros.personalisation.user_state import STATE_FILE
 
 
 class Log:

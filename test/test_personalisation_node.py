@@ -15,9 +15,9 @@ from std_msgs.msg import String
 from offline_training import refit
 from ros_helpers import RELIABLE, RosClient, domain_id, start_node, stop
 from stars_ros import recording
-from stars_ros.foldin import FoldIn, Rating
-from stars_ros.predictor import Predictor
-from stars_ros.scene_source import read_scenes, scene_request
+from stars_ros.personalisation.foldin import FoldIn, Rating
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_source import read_scenes, scene_request
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
 USER = 'newcomer'

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from stars_ros.errors import CheckpointError, SceneGraphError, UnknownActionError
-from stars_ros.predictor import Predictor
+from stars_ros.model.predictor import Predictor
 
 
 @pytest.fixture(scope='module')
@@ -77,7 +77,7 @@ def test_predictor_matches_training_scale(predictor, socnav1):
 def test_served_scores_are_clipped_to_the_checkpoints_rating_scale(tiny_checkpoint, scenes):
     """A user row that pushes the raw score far outside [0, 1]: ranking reports the scale's
     edge, as evaluation does (the scale is stored in the checkpoint)."""
-    from stars_ros.foldin import UserModel
+    from stars_ros.personalisation.foldin import UserModel
     predictor = Predictor.load(tiny_checkpoint)
     assert predictor.recommender.rating_scale == (0.0, 1.0)
     dim = predictor.inference.dim

@@ -7,10 +7,11 @@ import json
 
 import pytest
 
-from stars_ros import messages, recording
-from stars_ros.ranker_core import PARAMETERS, TOPICS, RankerCore
-from stars_ros.scene_source import read_scenes, scene_request
-from stars_ros.user_state import STATE_FILE
+from stars_ros import messages
+from stars_ros import recording
+from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.data.scene_source import read_scenes, scene_request
+from stars_ros.personalisation.user_state import STATE_FILE
 
 
 class Node:

@@ -21,11 +21,11 @@ from std_msgs.msg import String
 from mutations import mutate
 from ros_helpers import RosClient, domain_id, ros_env, start_node, stop
 from stars_ros import recording
-from stars_ros.checkpoint import save_checkpoint
-from stars_ros.config import ExperimentConfig
-from stars_ros.predictor import Predictor
-from stars_ros.scene_source import read_scenes, scene_request
-from stars_ros.training import StarsRecommender, split_rows
+from stars_ros.model.checkpoint import save_checkpoint
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_source import read_scenes, scene_request
+from stars_ros.model.training import StarsRecommender, split_rows
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter client
 KNOWN_USER = 'b'  # in the tiny checkpoint's training rows

@@ -8,10 +8,10 @@ import pytest
 
 from offline_training import refit
 from stars_ros import recording
-from stars_ros.checkpoint import load_checkpoint
-from stars_ros.foldin import FoldIn, Rating
-from stars_ros.predictor import Predictor
-from stars_ros.scene_source import read_scenes, scene_request
+from stars_ros.model.checkpoint import load_checkpoint
+from stars_ros.personalisation.foldin import FoldIn, Rating
+from stars_ros.model.predictor import Predictor
+from stars_ros.data.scene_source import read_scenes, scene_request
 
 QOS = recording.qos_profile()
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from stars_ros.errors import SceneGraphError
-from stars_ros.scene_graph import NODE_FEATURES, NODE_TYPES, RELATIONS, featurise, validate_scene
+from stars_ros.data.scene_graph import NODE_FEATURES, NODE_TYPES, RELATIONS, featurise, validate_scene
 
 SQUARE_ROOM = [[-200, -200], [200, -200], [200, 400], [-200, 400], [-200, -200]]
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import stats as scipy_stats
 
-from stars_ros.stats import corrected_resampled_ttest, format_mean_sd, holm, mean_sd
+from stars_ros.evaluation.stats import corrected_resampled_ttest, format_mean_sd, holm, mean_sd
 
 
 def test_corrected_ttest_matches_hand_computation():

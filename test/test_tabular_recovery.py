@@ -11,10 +11,10 @@ import csv
 import numpy as np
 import pytest
 
-from stars_ros.config import ExperimentConfig
-from stars_ros.data import load_dataset
-from stars_ros.evaluation import ProtocolConfig, by_model, run_protocol
-from stars_ros.training import StarsRecommender, split_rows
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.data.ratings import load_dataset
+from stars_ros.evaluation.protocol import ProtocolConfig, by_model, run_protocol
+from stars_ros.model.training import StarsRecommender, split_rows
 
 NOISE = 0.2
 EXPERIMENT = {'encoder': {'name': 'mlp', 'hidden': 32, 'layers': 2},

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import yaml
 
-from stars_ros.checkpoint import read_checkpoint
-from stars_ros.predictor import Predictor
+from stars_ros.model.checkpoint import read_checkpoint
+from stars_ros.model.predictor import Predictor
 
 REPO = Path(__file__).resolve().parents[1]
 

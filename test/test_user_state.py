@@ -8,9 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from stars_ros import user_state
-from stars_ros.foldin import Rating, UserModel
-from stars_ros.user_state import STATE_FILE, StateWriter, UserStateError
+from stars_ros.personalisation import user_state
+from stars_ros.personalisation.foldin import Rating, UserModel
+from stars_ros.personalisation.user_state import STATE_FILE, StateWriter, UserStateError
 
 SCENE = {'identifier': 's1', 'humans': [{'id': 1, 'xPos': 0.5, 'yPos': -1.0, 'orientation': 90}]}
 FINGERPRINT = 'ab' * 32

@@ -4,7 +4,7 @@ Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feed
 publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` (transient local) and
 ``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
 ``stars/user_model`` (its peers', and its own, which changes nothing) and sends every
-folded-in user again when a subscriber joins that topic (``stars_ros.fleet``). See README.md
+folded-in user again when a subscriber joins that topic (``stars_ros.personalisation.fleet``). See README.md
 ("The ranker node") and docs/personalisation.md. Run with ``ros2 run stars_ros ranker`` or
 ``python -m stars_ros.ros.ranker --ros-args -p checkpoint:=PATH``.
 
@@ -17,7 +17,7 @@ their turn. Handing requests to a worker thread cost more in waiting for the GIL
 (docs/performance.md). The callbacks share the node's default, mutually exclusive callback
 group, so a multi-threaded executor keeps this order too.
 
-The work itself, ROS-free, is ``stars_ros.ranker_core.RankerCore``; this module declares the
+The work itself, ROS-free, is ``stars_ros.node.core.RankerCore``; this module declares the
 parameters (``ranker_core.PARAMETERS``), creates the topics, the service and the timers,
 and passes messages to and from the core.
 """
@@ -38,10 +38,10 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 
-from ..errors import CheckpointError
-from ..ranker_core import PARAMETERS, TOPICS, RankerCore
-from . import usage
-from .spinning import run_node, spin_until_shutdown
+from stars_ros.errors import CheckpointError
+from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.ros import usage
+from stars_ros.ros.spinning import run_node, spin_until_shutdown
 
 LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR}
 

@@ -18,9 +18,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from ..recording import bag_topics, read_messages
-from . import usage
-from .spinning import run_node
+from stars_ros.recording.bag import bag_topics, read_messages
+from stars_ros.ros import usage
+from stars_ros.ros.spinning import run_node
 
 PARAMETERS = {  # name: (default, description)
     'bag': ('', 'bag folder or MCAP file to play'),

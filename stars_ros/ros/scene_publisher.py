@@ -18,10 +18,10 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from ..errors import DataError
-from ..scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
-from . import usage
-from .spinning import run_node
+from stars_ros.errors import DataError
+from stars_ros.data.scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
+from stars_ros.ros import usage
+from stars_ros.ros.spinning import run_node
 
 PARAMETERS = {  # name: (default, description)
     'source': ('', 'JSONL file of scenes; empty: random scenes'),

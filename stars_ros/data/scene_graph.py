@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import SceneGraphError
+from stars_ros.errors import SceneGraphError
 
 NODE_TYPES = ('robot', 'room', 'human', 'object', 'wall', 'interaction')
 GEOMETRY_FEATURES = ('x', 'y', 'distance', 'sin_bearing', 'cos_bearing',
@@ -61,7 +61,7 @@ def validate_scene(scene) -> None:
     """
     import fastjsonschema
 
-    from .messages import validator
+    from stars_ros.messages import validator
 
     try:
         validator('scene_graph')(scene)

@@ -23,10 +23,11 @@ import logging
 from pathlib import Path
 from typing import Callable
 
-from . import fleet, messages, user_state
-from .errors import StarsError, UnknownActionError
-from .foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
-from .serving import error_kind
+from stars_ros.personalisation import fleet
+from stars_ros import messages
+from stars_ros.personalisation import user_state
+from stars_ros.errors import StarsError, UnknownActionError
+from stars_ros.personalisation.foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
 
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
 
@@ -186,7 +187,7 @@ class Personalisation:
             self.foldin.encode([staged.ratings[staged.encoded].scene])
         except StarsError as error:
             self.intake.popleft()
-            return error_kind(error), (f"user model of '{staged.user_id}' from {staged.peer} refused, nothing "
+            return messages.error_kind(error), (f"user model of '{staged.user_id}' from {staged.peer} refused, nothing "
                                        f'taken in: {error}')
         staged.encoded += 1
         if staged.encoded == len(staged.ratings):
@@ -260,7 +261,7 @@ class Personalisation:
                 foldin.encode([rating.scene])
             except StarsError as error:
                 unusable.append(rating)
-                self._report(error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
+                self._report(messages.error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
         self.histories.discard(user_id, unusable)
         self.peers.discard(user_id, unusable)
         return self.ratings(user_id)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataError
+from stars_ros.errors import DataError
 
 
 def read_scenes(path) -> list:

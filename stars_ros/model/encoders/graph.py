@@ -27,10 +27,10 @@ import torch
 from torch import nn
 from torch_geometric import nn as gnn
 
-from ..scene_graph import RELATIONS, SceneGraph
-from ..scene_store import DenseGraphs, GraphBatch, dense_graphs
-from .base import Encoder, register
-from .compiled_gat import GATKernel
+from stars_ros.data.scene_graph import RELATIONS, SceneGraph
+from stars_ros.data.scene_store import DenseGraphs, GraphBatch, dense_graphs
+from stars_ros.model.encoders.base import Encoder, register
+from stars_ros.model.encoders.compiled_gat import GATKernel
 
 
 def _array(tensor: torch.Tensor | None) -> np.ndarray | float:

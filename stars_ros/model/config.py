@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
-from .errors import ConfigError
+from stars_ros.errors import ConfigError
 
 #: The parts of each personalised variant: ``content`` (h_i), ``p`` (p_u), ``q`` (q_i), the
 #: offsets ``b_u`` and ``b_i``, and ``residual`` (the h_i added inside the final product).
@@ -167,7 +167,7 @@ class EncoderConfig(Section):
     @field_validator('name')
     @classmethod
     def _registered(cls, name: str) -> str:
-        from .encoders import ENCODERS, normalise_name  # torch: imported only when needed
+        from stars_ros.model.encoders import ENCODERS, normalise_name  # torch: imported only when needed
         if normalise_name(name) not in ENCODERS:
             raise ValueError(f'unknown encoder {name!r}; registered: {", ".join(sorted(ENCODERS))}')
         return name

@@ -23,13 +23,14 @@ import time
 from pathlib import Path
 from typing import Callable, Mapping
 
-from . import messages, recording
-from .errors import CheckpointError, StarsError
-from .personalisation import Personalisation
-from .predictor import Predictor
-from .resources import DEFAULT_CHECKPOINT, resolve_checkpoint
-from .serving import WARNINGS, BusySpans, Pending, PeriodStats, Problems, error_kind, rank_batch
-from .user_state import STATE_FILE
+from stars_ros import messages
+from stars_ros.recording import bag as recording
+from stars_ros.errors import CheckpointError, StarsError
+from stars_ros.personalisation.online import Personalisation
+from stars_ros.model.predictor import Predictor
+from stars_ros.resources import DEFAULT_CHECKPOINT, resolve_checkpoint
+from stars_ros.node.batching import WARNINGS, BusySpans, Pending, PeriodStats, Problems, rank_batch
+from stars_ros.personalisation.user_state import STATE_FILE
 
 MAX_STRANGERS_REMEMBERED = 10000
 TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model')
@@ -266,7 +267,7 @@ class RankerCore:
         try:
             return self.personalisation.add_peer_ratings(user_id, payload.get('ratings', []), peer)
         except StarsError as error:
-            self.report(error_kind(error), f"user model of '{user_id}' from {peer} refused, nothing taken in: "
+            self.report(messages.error_kind(error), f"user model of '{user_id}' from {peer} refused, nothing taken in: "
                         f'{error}', topic)
             return False
 
@@ -351,7 +352,7 @@ class RankerCore:
             request = item.request
             if isinstance(result, Exception):
                 self.record('stars/scene', item.text, item.log_time)
-                self.report(error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
+                self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
             processing_ms = max(0, time.time_ns() - item.received) / 1e6

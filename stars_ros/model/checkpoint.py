@@ -18,12 +18,12 @@ from pathlib import Path
 
 import torch
 
-from . import __version__
-from .config import ExperimentConfig
-from .errors import CheckpointError, ConfigError, StarsError
-from .training import StarsRecommender, build_model
+from stars_ros import __version__
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.errors import CheckpointError, ConfigError, StarsError
+from stars_ros.model.training import StarsRecommender, build_model
 
-FORMAT = 'stars_ros.checkpoint'
+FORMAT = 'stars_ros.model.checkpoint'
 FORMAT_VERSION = 1
 _ZIP_MAGIC = b'PK\x03\x04'  # torch.save's format since torch 1.6
 _PICKLE_PROTOCOL = b'\x80'  # the legacy format: a pickle, protocol 2 or later

@@ -18,7 +18,7 @@ from typing import Sequence
 import numba
 import numpy as np
 
-from ..scene_graph import SceneGraph
+from stars_ros.data.scene_graph import SceneGraph
 
 
 @numba.njit(cache=True)

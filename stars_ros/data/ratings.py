@@ -40,9 +40,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import DataError, SceneGraphError
-from .scene_graph import FEATURISER_VERSION, featurise
-from .scene_store import GraphStore, TabularStore
+from stars_ros.errors import DataError, SceneGraphError
+from stars_ros.data.scene_graph import FEATURISER_VERSION, featurise
+from stars_ros.data.scene_store import GraphStore, TabularStore
 
 log = logging.getLogger(__name__)
 SOCNAV_ACTION = 'navigate'

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .base import Encoder, register
+from stars_ros.model.encoders.base import Encoder, register
 
 
 def _mlp(sizes, dropout):

@@ -25,8 +25,8 @@ import math
 import threading
 from collections.abc import Iterable, Mapping
 
-from .errors import StarsError
-from .evaluation import hold_worker_data
+from stars_ros.errors import StarsError
+from stars_ros.evaluation.protocol import hold_worker_data
 
 try:
     import ray

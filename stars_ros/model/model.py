@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import VARIANTS, ModelConfig
-from .encoders import Encoder
+from stars_ros.model.config import VARIANTS, ModelConfig
+from stars_ros.model.encoders import Encoder
 
 UNKNOWN = -1
 
@@ -125,7 +125,7 @@ class StarsModel(nn.Module):
     def forward(self, users: torch.Tensor, scenes: torch.Tensor, h: torch.Tensor,
                 user_rows: tuple | None = None) -> torch.Tensor:
         """``user_rows`` (p [R, dim], b_u [R, 1]) replaces the table lookup of ``users``:
-        how users folded in after training (stars_ros.foldin) are scored."""
+        how users folded in after training (stars_ros.personalisation.foldin) are scored."""
         if not self.personalised:
             return self.head(h)
         p, user_bias = user_rows if user_rows is not None else (

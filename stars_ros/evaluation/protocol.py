@@ -28,7 +28,7 @@ in each fold so that each differs from it in one part only. Fits are independent
 jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
 CPU pays better than threads inside one small-graph model. With ``training.device`` 'cuda'
 the workers share the one GPU, each with its own CUDA context. Any other
-``concurrent.futures.Executor`` can run them instead (``stars_ros.distributed``: Ray tasks).
+``concurrent.futures.Executor`` can run them instead (``stars_ros.evaluation.ray_executor``: Ray tasks).
 
 A fit that raises, or whose worker dies, is a *failure*: reported by name, never recorded,
 so a resumed run tries it again; the other fits go on. A selection that lost an inner fit
@@ -51,12 +51,12 @@ from typing import Annotated, Any, Callable, Literal, NamedTuple, Sequence
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from .config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section, TrainConfig,
+from stars_ros.model.config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section, TrainConfig,
                      read_yaml, validate_under, validated)
-from .data import RatingData
-from .errors import ConfigError, TrainingDivergedError
-from .metrics import regression_report
-from .stats import corrected_resampled_ttest, holm
+from stars_ros.data.ratings import RatingData
+from stars_ros.errors import ConfigError, TrainingDivergedError
+from stars_ros.model.metrics import regression_report
+from stars_ros.evaluation.stats import corrected_resampled_ttest, holm
 
 log = logging.getLogger(__name__)
 
@@ -352,7 +352,7 @@ def worker_data() -> RatingData:
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     """Fit ``task``'s model and return its test metrics, z-RMSE and seconds (and, with
     ``curve_at``, the same at those joint epochs under ``curve``)."""
-    from .training import StarsRecommender
+    from stars_ros.model.training import StarsRecommender
     data = _WORKER_DATA if data is None else data
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()

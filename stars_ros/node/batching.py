@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import SceneGraphError, StarsError, UnknownActionError
-from .messages import BadMessage, SceneRequest
-from .predictor import rank_order
+from stars_ros.errors import StarsError, UnknownActionError
+from stars_ros.messages import SceneRequest
+from stars_ros.model.predictor import rank_order
 
 WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet')  # kinds of problem that are warnings, not errors
 
@@ -50,19 +50,6 @@ class Scored:
     ranked: list
     action: str | None
     h: np.ndarray
-
-
-def error_kind(error: Exception) -> str:
-    """The diagnostics category of an error raised while handling a message."""
-    if isinstance(error, BadMessage):
-        return error.kind
-    if isinstance(error, UnknownActionError):
-        return 'unknown_action'
-    if isinstance(error, SceneGraphError):
-        return 'scene_graph'
-    if isinstance(error, StarsError):
-        return 'model'
-    return 'internal'
 
 
 def _ranking_action(predictor, request: SceneRequest) -> str | None:

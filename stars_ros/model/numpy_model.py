@@ -6,7 +6,7 @@ torch: graph encoders run their serving form (``GraphEncoder.serving_form``: GAT
 the others their dense numpy form) and the StARS scoring is two array products. Tabular
 encoders keep their torch forward: one row through a few layers has no graph bookkeeping
 to save. ``InferenceModel`` holds the one numpy copy of the weights: the Predictor scores
-with it and ``stars_ros.foldin`` builds its regression from it (``linear_form``).
+with it and ``stars_ros.personalisation.foldin`` builds its regression from it (``linear_form``).
 ``test/test_inference.py`` checks that the result equals ``StarsModel`` within float32
 rounding.
 """
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .model import UNKNOWN, StarsModel
+from stars_ros.model.model import UNKNOWN, StarsModel
 
 
 def _array(tensor: torch.Tensor) -> np.ndarray:

@@ -24,7 +24,7 @@ import threading
 import uuid
 from typing import Iterable, Sequence
 
-from .foldin import Rating
+from stars_ros.personalisation.foldin import Rating
 
 
 def new_rating_id() -> str:

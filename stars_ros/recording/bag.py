@@ -38,7 +38,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic  # the encoder mcap_ros2.writer uses
 from mcap_ros2.decoder import DecoderFactory
 
-from . import __version__
+from stars_ros import __version__
 
 STRING = 'std_msgs/msg/String'
 STRING_DEFINITION = 'string data\n'
@@ -485,7 +485,7 @@ def bag_topics(bag) -> dict:
         with open(path, 'rb') as handle:
             summary = make_reader(handle).get_summary()
         if summary is None:
-            raise McapError(f'{path} has no summary: run `python -m stars_ros.recording recover {bag}` first')
+            raise McapError(f'{path} has no summary: run `python -m stars_ros.recording.bag recover {bag}` first')
         for channel in summary.channels.values():
             topics.setdefault(channel.topic, _topic_qos(channel))
     return topics
@@ -598,10 +598,10 @@ def abandoned_bags(folder) -> list:
 
 
 def main(argv=None) -> int:
-    """``python -m stars_ros.recording recover BAG...``: repair bags left by a hard kill."""
+    """``python -m stars_ros.recording.bag recover BAG...``: repair bags left by a hard kill."""
     import argparse
 
-    parser = argparse.ArgumentParser(prog='python -m stars_ros.recording', description=main.__doc__)
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.recording.bag', description=main.__doc__)
     parser.add_argument('command', choices=['recover'])
     parser.add_argument('bags', nargs='+', type=Path)
     args = parser.parse_args(argv)

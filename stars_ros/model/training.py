@@ -23,12 +23,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import ExperimentConfig
-from .data import RatingData
-from .encoders import resolve_encoder
-from .errors import ConfigError, StarsError, TrainingDivergedError
-from .metrics import regression_report
-from .model import UNKNOWN, StarsModel
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.data.ratings import RatingData
+from stars_ros.model.encoders import resolve_encoder
+from stars_ros.errors import ConfigError, StarsError, TrainingDivergedError
+from stars_ros.model.metrics import regression_report
+from stars_ros.model.model import UNKNOWN, StarsModel
 
 log = logging.getLogger(__name__)
 EVAL_BATCH = 2048

@@ -34,8 +34,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import StarsError, UnknownActionError
-from .model import UNKNOWN
+from stars_ros.errors import StarsError, UnknownActionError
+from stars_ros.model.model import UNKNOWN
 
 DEFAULT_REGULARISATION = 1.0
 DEFAULT_CACHE_SCENES = 4096

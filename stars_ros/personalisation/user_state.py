@@ -24,9 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Mapping
 
-from . import messages
-from .errors import StarsError
-from .foldin import Rating, UserModel
+from stars_ros import messages
+from stars_ros.errors import StarsError
+from stars_ros.personalisation.foldin import Rating, UserModel
 
 STATE_FILE = 'user_models.json'
 FORMAT = 'stars_ros.user_models'

@@ -10,7 +10,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import torch
 
-from .scene_graph import SceneGraph
+from stars_ros.data.scene_graph import SceneGraph
 
 
 class GraphBatch(NamedTuple):

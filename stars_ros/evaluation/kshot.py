@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .errors import StarsError
-from .foldin import FoldIn
-from .predictor import Predictor
+from stars_ros.errors import StarsError
+from stars_ros.personalisation.foldin import FoldIn
+from stars_ros.model.predictor import Predictor
 
 PRIORS = {'fold-in': 'population', 'fold-in (zero prior)': 'zero'}
 LAMBDA_GRID = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import re
 
-from .base import Encoder, ENCODERS, register
-from . import graph, tabular  # noqa: F401  (modules register their backbones on import)
+from stars_ros.model.encoders.base import Encoder, ENCODERS, register
+from stars_ros.model.encoders import graph, tabular  # noqa: F401  (modules register their backbones on import)
 
 
 def normalise_name(name: str) -> str:

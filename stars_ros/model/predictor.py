@@ -4,7 +4,7 @@ Unknown users and scenes are the normal case on a robot: they get p_u = 0, b_u =
 q_i = 0, b_i = 0, so the prediction is the content term plus population offsets, and
 ``Ranking.known_user`` says so (Surprise's fallback-with-a-reason, without an exception).
 
-Users folded in after training (``stars_ros.foldin``) are served from an overlay
+Users folded in after training (``stars_ros.personalisation.foldin``) are served from an overlay
 user_id -> UserModel that scoring consults before the trained table. The overlay is never
 changed in place: an update builds a new dict and swaps the reference, so a thread scoring
 meanwhile sees the old or the new overlay, never half of one. ``knows_user`` keeps meaning
@@ -18,11 +18,11 @@ from typing import Sequence
 
 import numpy as np
 
-from .checkpoint import load_checkpoint
-from .errors import SceneGraphError, UnknownActionError
-from .inference import InferenceModel
-from .model import UNKNOWN
-from .scene_graph import featurise
+from stars_ros.model.checkpoint import load_checkpoint
+from stars_ros.errors import SceneGraphError, UnknownActionError
+from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.model import UNKNOWN
+from stars_ros.data.scene_graph import featurise
 
 
 @dataclass(frozen=True)
