@@ -23,13 +23,13 @@ FIT = '''
 import sys, time
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
-from stars_ros.model.training import StarsRecommender, split_rows
+from stars_ros.model.training import StarsTrainer, split_rows
 config = ExperimentConfig.from_yaml(sys.argv[1]).replace(
     training={'pretrain_epochs': 0, 'joint_epochs': int(sys.argv[3]), 'threads': int(sys.argv[4])})
 data = load_dataset(sys.argv[2])
 train, _ = split_rows(data, config.split.test_fraction, config.split.seed)
 started = time.perf_counter()
-StarsRecommender(config).fit(data, train)
+StarsTrainer(config).fit(data, train)
 print((time.perf_counter() - started) / int(sys.argv[3]))
 '''
 BUSY = 'while True:\n    pass\n'

@@ -2,7 +2,7 @@
 
     PYTHONPATH=. python benchmarks/train_step.py [--devices cuda,cpu] [--backbone gat] [--batches 20]
 
-Times ``StarsRecommender.fit`` for one joint epoch of ``--batches`` batches with the
+Times ``StarsTrainer.fit`` for one joint epoch of ``--batches`` batches with the
 published grid's model settings (config/eval_socnav1.yaml), after an untimed warm-up fit
 (CUDA start-up, kernel choice). ``fit`` reads each loss back per batch, so the wall time
 includes the GPU's work. Tells whether a GPU pays for these small graphs before a long run.
@@ -15,7 +15,7 @@ import numpy as np
 from offline_training.common import DEFAULT_SOCNAV1
 from stars_ros.data.ratings import load_dataset
 from stars_ros.evaluation.protocol import ProtocolConfig
-from stars_ros.model.training import StarsRecommender
+from stars_ros.model.training import StarsTrainer
 
 
 def main():
@@ -34,9 +34,9 @@ def main():
     size = base.training.batch_size
     for device in args.devices.split(','):
         config = base.replace(training={'pretrain_epochs': 0, 'joint_epochs': 1, 'threads': 1, 'device': device})
-        StarsRecommender(config).fit(data, rows[:2 * size])  # warm-up
+        StarsTrainer(config).fit(data, rows[:2 * size])  # warm-up
         started = time.perf_counter()
-        StarsRecommender(config).fit(data, rows[:args.batches * size])
+        StarsTrainer(config).fit(data, rows[:args.batches * size])
         seconds = time.perf_counter() - started
         print(f'{args.backbone} {args.variant} on {device}: {1000 * seconds / args.batches:.1f} ms per batch '
               f'({args.batches} batches of {size}, 1 thread)', flush=True)

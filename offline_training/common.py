@@ -47,7 +47,7 @@ def format_metrics(metrics: dict) -> str:
 
 
 class Progress:
-    """``on_epoch`` callback of ``StarsRecommender.fit`` that prints one line per epoch to
+    """``on_epoch`` callback of ``StarsTrainer.fit`` that prints one line per epoch to
     ``stream``: stage, epoch, training loss, seconds per epoch and the time left."""
 
     def __init__(self, recommender, pretrain_epochs: int, joint_epochs: int, stream=None):

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
-from stars_ros.model.training import StarsRecommender, split_rows
+from stars_ros.model.training import StarsTrainer, split_rows
 
 from .common import DEFAULT_SOCNAV1, machine
 
@@ -33,7 +33,7 @@ def _run(job):
     config = ExperimentConfig.from_dict(config_dict)
     train, test = split_rows(data, config.split.test_fraction, config.split.seed)
     started = time.perf_counter()
-    recommender = StarsRecommender(config).fit(data, train)
+    recommender = StarsTrainer(config).fit(data, train)
     seconds = time.perf_counter() - started
     epochs = config.training.pretrain_epochs + config.training.joint_epochs
     return {'backbone': config.encoder.name, 'variant': config.model.variant,

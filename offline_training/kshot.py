@@ -50,7 +50,7 @@ from stars_ros.evaluation.protocol import FitFailure, fit_outcome, worker_data
 from stars_ros.evaluation.kshot import LAMBDA_GRID, PRIORS, Design, annotator_folds, choose_regularisation, reveal_pools
 from stars_ros.model.metrics import regression_report
 from stars_ros.evaluation.stats import mean_sd
-from stars_ros.model.training import StarsRecommender
+from stars_ros.model.training import StarsTrainer
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, pyplot, read_inputs,
                      save_png, setup_logging)
@@ -105,7 +105,7 @@ def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, 
     the fold-in designs are computed."""
     data = worker_data() if data is None else data
     started = time.perf_counter()
-    recommender = StarsRecommender(ExperimentConfig.from_dict(experiment)).fit(data, train)
+    recommender = StarsTrainer(ExperimentConfig.from_dict(experiment)).fit(data, train)
     seconds = time.perf_counter() - started
     predictions = recommender.predict_rows(data, test)
     if keep:

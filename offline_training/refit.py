@@ -45,7 +45,7 @@ from stars_ros.personalisation.foldin import DEFAULT_REGULARISATION, FoldIn, rat
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore, TabularStore
-from stars_ros.model.training import StarsRecommender
+from stars_ros.model.training import StarsTrainer
 
 from .common import setup_logging
 
@@ -183,7 +183,7 @@ def join_feedback(text: str, scenes: dict, actions, found: LogRatings, log) -> N
     found.ratings.setdefault(feedback.user_id, []).append(rating)
 
 
-def set_user_rows(recommender: StarsRecommender, solved: dict) -> None:
+def set_user_rows(recommender: StarsTrainer, solved: dict) -> None:
     model = recommender.model
     with torch.no_grad():
         for user, user_model in solved.items():
@@ -209,7 +209,7 @@ def _concat(first, second):
     return store
 
 
-def feedback_data(recommender: StarsRecommender, ratings: dict, original: RatingData | None) -> RatingData:
+def feedback_data(recommender: StarsTrainer, ratings: dict, original: RatingData | None) -> RatingData:
     """The feedback ratings as RatingData (scenes keyed by their training key when they
     have one, else by content), appended to ``original`` when given."""
     keys, scenes, rows = [], [], []
@@ -239,7 +239,7 @@ def feedback_data(recommender: StarsRecommender, ratings: dict, original: Rating
                       original.fingerprint, original.source)
 
 
-def fine_tune(recommender: StarsRecommender, data: RatingData, epochs: int) -> list:
+def fine_tune(recommender: StarsTrainer, data: RatingData, epochs: int) -> list:
     """``epochs`` joint epochs over every row of ``data``, from the current weights, with the
     checkpoint's optimiser settings and rating normalisation."""
     return recommender.fine_tune(data, epochs)

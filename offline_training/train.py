@@ -20,7 +20,7 @@ from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
 from stars_ros.model.metrics import regression_report
-from stars_ros.model.training import StarsRecommender, split_rows
+from stars_ros.model.training import StarsTrainer, split_rows
 
 from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, read_inputs, setup_logging
 
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     label = f'{config.encoder.name}-{config.model.variant}'
     started = time.perf_counter()
     try:
-        recommender = StarsRecommender(config)
+        recommender = StarsTrainer(config)
         pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
         recommender.fit(data, train, on_epoch=None if args.quiet else Progress(
             recommender, pretrain, config.training.joint_epochs))

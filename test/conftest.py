@@ -7,7 +7,7 @@ import pytest
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
-from stars_ros.model.training import StarsRecommender, split_rows
+from stars_ros.model.training import StarsTrainer, split_rows
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_CONFIG = {
@@ -38,7 +38,7 @@ def socnav1(socnav1_root):
 def tiny_checkpoint(socnav1, tmp_path_factory):
     """A small StARS-GCN trained on 1,500 SocNav1 ratings (a few seconds), saved to disk."""
     train, _ = split_rows(socnav1, 0.2, 0)
-    recommender = StarsRecommender(ExperimentConfig.from_dict(TINY_CONFIG)).fit(socnav1, train[:1500])
+    recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(socnav1, train[:1500])
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
     save_checkpoint(recommender, path, data={'fingerprint': socnav1.fingerprint, 'source': 'socnav1'})
     return path

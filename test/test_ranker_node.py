@@ -25,7 +25,7 @@ from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.model.training import StarsRecommender, split_rows
+from stars_ros.model.training import StarsTrainer, split_rows
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter client
 KNOWN_USER = 'b'  # in the tiny checkpoint's training rows
@@ -49,7 +49,7 @@ def other_checkpoint(socnav1, tmp_path_factory):
               'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'lr': 3e-3, 'batch_size': 128, 'threads': 1,
                            'seed': 5}}
     train, _ = split_rows(socnav1, 0.2, 5)
-    recommender = StarsRecommender(ExperimentConfig.from_dict(config)).fit(socnav1, train[:800])
+    recommender = StarsTrainer(ExperimentConfig.from_dict(config)).fit(socnav1, train[:800])
     path = tmp_path_factory.mktemp('other') / 'other.pt'
     save_checkpoint(recommender, path, data={'fingerprint': socnav1.fingerprint, 'source': 'socnav1'})
     return path

@@ -14,7 +14,7 @@ import pytest
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
 from stars_ros.evaluation.protocol import ProtocolConfig, by_model, run_protocol
-from stars_ros.model.training import StarsRecommender, split_rows
+from stars_ros.model.training import StarsTrainer, split_rows
 
 NOISE = 0.2
 EXPERIMENT = {'encoder': {'name': 'mlp', 'hidden': 32, 'layers': 2},
@@ -70,5 +70,5 @@ def test_every_tabular_backbone_recovers_it(planted, backbone):
                                              'model': {'variant': variant, 'dim': 8},
                                              'training': {**EXPERIMENT['training'], 'pretrain_epochs': 5,
                                                           'joint_epochs': 60}})
-        rmse[variant] = StarsRecommender(config).fit(planted, train).evaluate(planted, test)['rmse']
+        rmse[variant] = StarsTrainer(config).fit(planted, train).evaluate(planted, test)['rmse']
     assert rmse['stars'] < 0.5 * rmse['base'], rmse

@@ -7,7 +7,7 @@ import torch
 
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError, DataError, TrainingDivergedError
-from stars_ros.model.training import NotFittedError, StarsRecommender, split_rows
+from stars_ros.model.training import NotFittedError, StarsTrainer, split_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
          'training': {'pretrain_epochs': 2, 'joint_epochs': 4, 'lr': 3e-3, 'batch_size': 128, 'threads': 1}}
@@ -37,9 +37,9 @@ def test_stars_and_its_ablations_start_exactly_where_base_ends(socnav1, rows):
     yet predicts what the scene-only model predicts."""
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 2, 'joint_epochs': 0})
-    base = StarsRecommender(config.replace(model={'variant': 'base'})).fit(socnav1, train).predict_rows(socnav1, test)
+    base = StarsTrainer(config.replace(model={'variant': 'base'})).fit(socnav1, train).predict_rows(socnav1, test)
     for variant in ('stars', 'base_user_bias', 'stars_no_q'):
-        started = StarsRecommender(config.replace(model={'variant': variant})).fit(socnav1, train)
+        started = StarsTrainer(config.replace(model={'variant': variant})).fit(socnav1, train)
         np.testing.assert_allclose(started.predict_rows(socnav1, test), base, atol=1e-6)
 
 
@@ -49,7 +49,7 @@ def test_ablations_keep_their_missing_parts_at_zero(socnav1, rows):
     for variant, absent in (('base_user_bias', ('user_embedding', 'scene_embedding', 'scene_bias')),
                             ('stars_no_q', ('scene_embedding',)),
                             ('user_bias', ('user_embedding', 'scene_embedding', 'scene_bias'))):
-        model = StarsRecommender(config.replace(model={'variant': variant})).fit(socnav1, train[:600]).model
+        model = StarsTrainer(config.replace(model={'variant': variant})).fit(socnav1, train[:600]).model
         for name in absent:
             assert getattr(model, name).weight.abs().sum() == 0, (variant, name)
         assert model.user_bias.weight.abs().sum() > 0
@@ -57,7 +57,7 @@ def test_ablations_keep_their_missing_parts_at_zero(socnav1, rows):
 
 def test_predictions_stay_on_the_rating_scale(socnav1, rows):
     train, test = rows
-    recommender = StarsRecommender(ExperimentConfig.from_dict(SMALL).replace(
+    recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(
         training={'pretrain_epochs': 1, 'joint_epochs': 1})).fit(socnav1, train[:500])
     assert recommender.rating_scale == (0.0, 1.0)
     with torch.no_grad():
@@ -72,8 +72,8 @@ def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(socnav1):
     assert merged == ['01892', '01892']  # "01892 A" and "01892 B": different scenes, one prefix
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 0, 'joint_epochs': 1})
     rows = np.arange(len(socnav1))
-    by_identifier = StarsRecommender(config).fit(socnav1, rows)
-    by_prefix = StarsRecommender(config.replace(model={'item_key': 'prefix'})).fit(socnav1, rows)
+    by_identifier = StarsTrainer(config).fit(socnav1, rows)
+    by_prefix = StarsTrainer(config.replace(model={'item_key': 'prefix'})).fit(socnav1, rows)
     assert len(by_identifier.scene_keys) == len(socnav1.scene_keys) and len(by_prefix.scene_keys) == 4904
     with pytest.raises(DataError, match="item keying 'room'"):
         socnav1.item_keys('room')
@@ -82,7 +82,7 @@ def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(socnav1):
 @pytest.mark.parametrize('variant', ['stars', 'base', 'mf'])
 def test_training_lowers_the_loss_and_beats_the_mean(socnav1, rows, variant):
     train, test = rows
-    recommender = StarsRecommender(ExperimentConfig.from_dict(SMALL).replace(model={'variant': variant}))
+    recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(model={'variant': variant}))
     recommender.fit(socnav1, train)
     joint = recommender.history['joint']
     assert joint[-1] < joint[0]
@@ -97,14 +97,14 @@ def test_training_lowers_the_loss_and_beats_the_mean(socnav1, rows, variant):
 def test_training_is_deterministic(socnav1, rows):
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL)
-    first = StarsRecommender(config).fit(socnav1, train[:800]).predict_rows(socnav1, test)
-    second = StarsRecommender(config).fit(socnav1, train[:800]).predict_rows(socnav1, test)
+    first = StarsTrainer(config).fit(socnav1, train[:800]).predict_rows(socnav1, test)
+    second = StarsTrainer(config).fit(socnav1, train[:800]).predict_rows(socnav1, test)
     assert np.array_equal(first, second)
 
 
 def test_vocabularies_come_from_training_rows_only(socnav1, rows):
     train, _ = rows
-    recommender = StarsRecommender(ExperimentConfig.from_dict(SMALL).replace(
+    recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(
         training={'pretrain_epochs': 0, 'joint_epochs': 1})).fit(socnav1, train[:300])
     assert set(recommender.users) == set(socnav1.users[train[:300]].tolist())
     assert len(recommender.scene_keys) == len(set(socnav1.scenes[train[:300]].tolist()))
@@ -114,19 +114,19 @@ def test_divergence_is_reported(socnav1, rows):
     config = ExperimentConfig.from_dict(SMALL).replace(training={'lr': 1e30, 'grad_clip': 1e30,
                                                                  'pretrain_epochs': 1, 'joint_epochs': 1})
     with pytest.raises(TrainingDivergedError, match='lower the learning rate'):
-        StarsRecommender(config).fit(socnav1, rows[0][:500])
+        StarsTrainer(config).fit(socnav1, rows[0][:500])
 
 
 def test_predict_before_fit():
     with pytest.raises(NotFittedError, match='not fitted'):
-        StarsRecommender(ExperimentConfig()).predict_scores(['a'], [None], None)
+        StarsTrainer(ExperimentConfig()).predict_scores(['a'], [None], None)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason='checks the message torch gives without a GPU')
 def test_cuda_device_without_a_gpu_is_a_config_error(socnav1, rows):
     config = ExperimentConfig.from_dict(SMALL).replace(training={'device': 'cuda'})
     with pytest.raises(ConfigError, match='torch sees no CUDA GPU'):
-        StarsRecommender(config).fit(socnav1, rows[0][:100])
+        StarsTrainer(config).fit(socnav1, rows[0][:100])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason='needs a CUDA GPU')
@@ -143,7 +143,7 @@ def test_cuda_fit_matches_the_cpu_fit(socnav1, rows, encoder, variant):
         training={'pretrain_epochs': 1, 'joint_epochs': 1, 'batch_size': 512, 'lr': 1e-3, 'embedding_l2': 0.01})
     fitted = {}
     for device in ('cpu', 'cuda'):
-        recommender = StarsRecommender(config.replace(training={'device': device}))
+        recommender = StarsTrainer(config.replace(training={'device': device}))
         seen = []
         recommender.fit(socnav1, train, on_epoch=lambda stage, epoch: seen.append(
             (next(recommender.model.parameters()).device.type, recommender.predict_rows(socnav1, test))))

@@ -352,11 +352,11 @@ def worker_data() -> RatingData:
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     """Fit ``task``'s model and return its test metrics, z-RMSE and seconds (and, with
     ``curve_at``, the same at those joint epochs under ``curve``)."""
-    from stars_ros.model.training import StarsRecommender
+    from stars_ros.model.training import StarsTrainer
     data = _WORKER_DATA if data is None else data
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()
-    recommender = StarsRecommender(config)
+    recommender = StarsTrainer(config)
     y, actions = data.scores[task.test], data.actions[task.test]
     curve = []
 

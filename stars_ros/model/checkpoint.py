@@ -21,7 +21,7 @@ import torch
 from stars_ros import __version__
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import CheckpointError, ConfigError, StarsError
-from stars_ros.model.training import StarsRecommender, build_model
+from stars_ros.model.training import StarsTrainer, build_model
 
 FORMAT = 'stars_ros.model.checkpoint'
 FORMAT_VERSION = 1
@@ -37,7 +37,7 @@ def _digest(metadata: dict, state: dict) -> str:
     return sha.hexdigest()
 
 
-def save_checkpoint(recommender: StarsRecommender, path, *, data: dict, metrics: dict | None = None,
+def save_checkpoint(recommender: StarsTrainer, path, *, data: dict, metrics: dict | None = None,
                     provenance: dict | None = None) -> str:
     """Write ``recommender`` to ``path`` atomically; returns the checkpoint's digest.
 
@@ -128,7 +128,7 @@ def load_checkpoint(path, with_digest: bool = False):
     metadata = content['metadata']
     try:
         config = ExperimentConfig.from_dict(metadata['config'])
-        recommender = StarsRecommender(config)
+        recommender = StarsTrainer(config)
         recommender.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
         model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
                             len(metadata['scene_keys']), len(metadata['actions']))

@@ -45,7 +45,7 @@ class Predictor:
     """Scores scenes with a trained model.
 
     Args:
-        recommender (StarsRecommender): fitted model and vocabularies.
+        recommender (StarsTrainer): fitted model and vocabularies.
         metadata (dict): the checkpoint's metadata (config, provenance, metrics).
         digest (str): the checkpoint's SHA-256 digest, its fingerprint.
     """

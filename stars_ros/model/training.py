@@ -1,4 +1,7 @@
-"""Fit and apply a StARS (or base) model on rating data: ``StarsRecommender``.
+"""Fit and apply a StARS (or base) model on rating data: ``StarsTrainer``.
+
+(The public, Surprise/LightFM-shaped class is ``stars_ros.StarsRecommender``, the front door
+in ``stars_ros/recommender.py``; this module is the machinery behind it and the offline programs.)
 
 Training is two-step, as published: (1) ``pretrain_epochs`` of the encoder with a
 temporary linear head on per-action z-scored targets; (2) ``joint_epochs`` of the whole
@@ -95,8 +98,14 @@ class Vocabulary:
         return Vocabulary(self.keys + tuple(k for k in dict.fromkeys(keys) if k not in self._rows))
 
 
-class StarsRecommender:
-    """A model plus the vocabularies that map ids to its rows (LightFM/Surprise shape).
+class StarsTrainer:
+    """The training side of a StARS model: the ``StarsModel``, the vocabularies that map
+    ids to its rows, and what fits and fine-tunes it on ``RatingData`` rows.
+
+    Named for what it does, training (``fit``, ``fine_tune``, ``extended``), and evaluating
+    on data rows (``predict_rows``, ``evaluate``); it is what a checkpoint stores and what a
+    ``Predictor`` serves. The user-facing API (predict / rank / fold_in by user and scene ids,
+    save / load) is ``stars_ros.StarsRecommender``.
 
     Args:
         config (ExperimentConfig): encoder, model, training and split settings.
@@ -131,11 +140,11 @@ class StarsRecommender:
         self.user_vocabulary, self.scene_vocabulary = Vocabulary(users), Vocabulary(scene_keys)
         self.action_names = tuple(action_names)
 
-    def extended(self, users: Sequence[str] = (), scene_keys: Sequence = ()) -> 'StarsRecommender':
+    def extended(self, users: Sequence[str] = (), scene_keys: Sequence = ()) -> 'StarsTrainer':
         """A copy whose vocabularies also hold ``users`` and ``scene_keys``: the same weights,
         new rows zero (a stranger's), to be set or fine-tuned (``fine_tune``)."""
         model = self.require_model()
-        child = StarsRecommender(self.config)
+        child = StarsTrainer(self.config)
         child.rating_scale = self.rating_scale
         child.set_vocabularies(self.user_vocabulary.extended([str(u) for u in users]).keys,
                                self.scene_vocabulary.extended(scene_keys).keys, self.action_names)
@@ -151,7 +160,7 @@ class StarsRecommender:
 
     # -- training -----------------------------------------------------------------------
     def fit(self, data: RatingData, rows: np.ndarray | None = None,
-            on_epoch: Callable[[str, int], None] | None = None) -> 'StarsRecommender':
+            on_epoch: Callable[[str, int], None] | None = None) -> 'StarsTrainer':
         """Train on ``rows`` of ``data`` (all rows by default); returns self.
 
         ``on_epoch(stage, epoch)`` is called after each epoch ('pretrain' or 'joint',
