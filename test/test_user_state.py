@@ -46,7 +46,7 @@ def test_round_trip_keeps_models_histories_and_dropped_counts(tmp_path):
     assert loaded.fingerprint == FINGERPRINT
     _same_models(loaded.models, models)
     assert loaded.histories == histories and loaded.peers == peers
-    assert not (path.parent / (STATE_FILE + '.tmp')).exists()
+    assert [p.name for p in path.parent.iterdir()] == [STATE_FILE]  # no temporary left
 
 
 def test_a_user_without_history_is_saved_with_an_empty_one(tmp_path):

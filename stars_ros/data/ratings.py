@@ -41,6 +41,7 @@ import numpy as np
 import pandas as pd
 
 from stars_ros.errors import DataError, SceneGraphError
+from stars_ros.files import atomic_write
 from stars_ros.data.scene_graph import FEATURISER_VERSION, featurise
 from stars_ros.data.scene_store import GraphStore, TabularStore
 
@@ -138,9 +139,7 @@ def _cached_graph_store(fingerprint: str, build) -> GraphStore:
     if path is not None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            temporary = path.with_suffix(f'.{os.getpid()}.tmp')
-            store.save(temporary)
-            os.replace(temporary, path)
+            atomic_write(path, store.save)
         except OSError as error:
             log.warning('cannot write feature cache %s: %s', path, error)
     return store

@@ -9,10 +9,8 @@ from __future__ import annotations
 import datetime
 import hashlib
 import json
-import os
 import pickle
 import re
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -21,6 +19,7 @@ import torch
 from stars_ros import __version__
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import CheckpointError, ConfigError, StarsError
+from stars_ros.files import atomic_write
 from stars_ros.model.training import StarsTrainer, build_model
 
 FORMAT = 'stars_ros.model.checkpoint'
@@ -69,11 +68,7 @@ def save_checkpoint(recommender: StarsTrainer, path, *, data: dict, metrics: dic
     digest = _digest(metadata, state)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.name, suffix='.tmp', delete=False) as handle:
-        torch.save({'metadata': metadata, 'state_dict': state, 'digest': digest}, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(handle.name, path)
+    atomic_write(path, lambda handle: torch.save({'metadata': metadata, 'state_dict': state, 'digest': digest}, handle))
     return digest
 
 

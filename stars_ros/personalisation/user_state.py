@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ from typing import Callable, Mapping
 
 from stars_ros import messages
 from stars_ros.errors import StarsError
+from stars_ros.files import atomic_write
 from stars_ros.personalisation.foldin import Rating, UserModel
 
 STATE_FILE = 'user_models.json'
@@ -84,12 +84,8 @@ def save(path: Path, state: dict) -> None:
     """Write ``state`` (``to_dict``) to ``path`` atomically; OSError when the disk refuses."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + '.tmp')
-    with open(tmp, 'w') as handle:
-        handle.write(messages.dumps(state))
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    text = messages.dumps(state).encode()
+    atomic_write(path, lambda handle: handle.write(text))
 
 
 def load(path: Path, fingerprint: str) -> UserState | None:
