@@ -6,7 +6,14 @@ from pathlib import Path
 from setuptools import find_packages, setup
 
 package_name = 'stars_ros'
-version = re.search(r'<version>([^<]+)</version>', Path('package.xml').read_text()).group(1)
+HERE = Path(__file__).resolve().parent
+version = re.search(r'<version>([^<]+)</version>', (HERE / 'package.xml').read_text()).group(1)
+
+
+def requirements(path: Path) -> list:
+    """The pins of a requirements file: its lines less comments and blank lines."""
+    return [pin for line in path.read_text().splitlines() if (pin := line.split('#', 1)[0].strip())]
+
 
 setup(
     name=package_name,
@@ -20,13 +27,12 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.py')),
         ('share/' + package_name + '/models', glob('models/*.pt') + glob('models/*.md')),
     ],
-    install_requires=['setuptools'],
+    install_requires=['setuptools', *requirements(HERE / 'requirements.txt')],
     zip_safe=True,
     maintainer='stars_ros maintainers',
     maintainer_email='maintainers@stars-ros.dev',
     description='StARS personalised ranking of socially appropriate robot actions for ROS 2.',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'ranker = stars_ros.ros.ranker:main',

@@ -1,6 +1,7 @@
 """`colcon build` of the package in a scratch workspace gives the install tree `ros2 run`
 and `ros2 launch` expect: executables in lib/stars_ros, the ament index marker, package.xml,
 config, schemas, launch file and the packaged model in share/stars_ros."""
+import importlib.metadata
 import os
 import shutil
 import subprocess
@@ -54,6 +55,9 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
         assert (share / 'stars_ros' / relative).is_file(), relative
     python_dirs = list((prefix / 'lib').glob('python3*/site-packages/stars_ros'))
     assert python_dirs and (python_dirs[0] / 'ros' / 'ranker.py').is_file()
+    [installed] = importlib.metadata.distributions(name='stars_ros', path=[str(python_dirs[0].parent)])
+    pins = [line.split('#', 1)[0].strip() for line in (REPO / 'requirements.txt').read_text().splitlines()]
+    assert installed.requires == ['setuptools', *filter(None, pins)]  # install_requires, as pip would see them
 
 
 def test_source_install_setup_bash_finds_the_built_package(workspace):

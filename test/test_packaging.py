@@ -1,0 +1,100 @@
+"""What the package declares it needs: every library the code imports is in package.xml
+(by its rosdep key, where rosdep has one) and pinned in a requirements file, and the
+libraries without a rosdep key are the ones package.xml's comment sends to requirements.txt."""
+import ast
+import re
+import sys
+import types
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+ROS = 'ROS'  # provided by a ROS install (requirements-rclpy.txt on a machine without one)
+# import name: (rosdep key or None, pip distribution pinned in requirements*.txt, or ROS)
+LIBRARIES = {
+    'rclpy': ('rclpy', ROS), 'rcl_interfaces': ('rcl_interfaces', ROS), 'std_msgs': ('std_msgs', ROS),
+    'std_srvs': ('std_srvs', ROS), 'diagnostic_msgs': ('diagnostic_msgs', ROS),
+    'ament_index_python': ('ament_index_python', ROS), 'launch': ('launch', ROS), 'launch_ros': ('launch_ros', ROS),
+    'numpy': ('python3-numpy', 'numpy'), 'yaml': ('python3-yaml', 'pyyaml'), 'pandas': ('python3-pandas', 'pandas'),
+    'pydantic': ('python3-pydantic', 'pydantic'), 'scipy': ('python3-scipy', 'scipy'),
+    'matplotlib': ('python3-matplotlib', 'matplotlib'), 'torch': (None, 'torch'),
+    'torch_geometric': (None, 'torch-geometric'), 'numba': (None, 'numba'), 'fastjsonschema': (None, 'fastjsonschema'),
+    'mcap': (None, 'mcap'), 'mcap_ros2': (None, 'mcap-ros2-support'), 'threadpoolctl': (None, 'threadpoolctl'),
+    'ray': (None, 'ray'),  # optional: the Ray executor (requirements-ray.txt)
+}
+TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python3-jsonschema', 'jsonschema'),
+                  'referencing': ('python3-jsonschema', 'jsonschema'),  # jsonschema's own dependency
+                  'rosbags': (None, 'rosbags')}
+OWN = {'stars_ros', 'offline_training', 'conftest', 'ros_helpers', 'mutations', 'test_model', 'test_ranker_core'}
+
+
+def imported(folders) -> set:
+    """Top-level names of the modules imported by the .py files under ``folders``."""
+    names = set()
+    for folder in folders:
+        for path in (REPO / folder).rglob('*.py'):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Import):
+                    names.update(alias.name.split('.')[0] for alias in node.names)
+                elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                    names.add(node.module.split('.')[0])
+    return names - set(sys.stdlib_module_names) - OWN
+
+
+def depends(kind: str) -> set:
+    return {element.text for element in ET.parse(REPO / 'package.xml').getroot().iter(kind)}
+
+
+def pins(*files) -> set:
+    """Distribution names pinned in requirements ``files`` (their ``-r`` includes not followed)."""
+    names = set()
+    for name in files:
+        for line in (REPO / name).read_text().splitlines():
+            line = line.split('#', 1)[0].strip()
+            if line and not line.startswith('-'):
+                names.add(re.split(r'[\[=<>]', line)[0].lower())
+    return names
+
+
+def test_every_library_the_package_imports_is_declared():
+    used = imported(['stars_ros', 'offline_training', 'launch'])
+    assert used <= set(LIBRARIES), f'imported but not in LIBRARIES (declare it): {used - set(LIBRARIES)}'
+    exec_depends, runtime_pins = depends('exec_depend'), pins('requirements.txt', 'requirements-ray.txt')
+    for module in used:
+        key, distribution = LIBRARIES[module]
+        assert key is None or key in exec_depends, f'{module}: <exec_depend>{key}</exec_depend> missing'
+        if distribution is not ROS:
+            assert distribution in runtime_pins, f'{module}: {distribution} is not pinned in requirements.txt'
+    assert 'ros2launch' in exec_depends  # `ros2 launch stars_ros ranker.launch.py`
+
+
+def test_every_library_the_tests_import_is_declared():
+    used = imported(['test']) - imported(['stars_ros', 'offline_training', 'launch'])
+    known = {**LIBRARIES, **TEST_LIBRARIES}
+    assert used <= set(known), f'imported by tests but not declared: {used - set(known)}'
+    declared, dev_pins = depends('test_depend') | depends('exec_depend'), pins(
+        'requirements.txt', 'requirements-ray.txt', 'requirements-dev.txt')
+    for module in used:
+        key, distribution = known[module]
+        assert key is None or key in declared, f'{module}: <test_depend>{key}</test_depend> missing'
+        assert distribution is ROS or distribution in dev_pins, f'{module}: {distribution} is not pinned'
+    assert not depends('exec_depend') & {key for key, _ in TEST_LIBRARIES.values()}, 'a test library at run time'
+
+
+def test_package_xml_names_the_libraries_rosdep_does_not_cover():
+    """Its comment says which libraries requirements.txt installs because rosdep has no key."""
+    text = (REPO / 'package.xml').read_text()
+    for module, (key, distribution) in LIBRARIES.items():
+        if key is None and module != 'ray':
+            assert re.search(rf'\b{re.escape(distribution)}\b', text), f'{distribution} not named in package.xml'
+
+
+def test_install_requires_are_the_runtime_pins(monkeypatch):
+    """setup.py's install_requires: requirements.txt as it stands (setuptools besides)."""
+    captured = {}
+    monkeypatch.setitem(sys.modules, 'setuptools', types.SimpleNamespace(
+        setup=lambda **kwargs: captured.update(kwargs), find_packages=lambda **kwargs: []))
+    exec(compile((REPO / 'setup.py').read_text(), 'setup.py', 'exec'), {'__file__': str(REPO / 'setup.py')})
+    lines = [line.split('#', 1)[0].strip() for line in (REPO / 'requirements.txt').read_text().splitlines()]
+    assert captured['install_requires'] == ['setuptools', *filter(None, lines)]
+    assert all('==' in pin for pin in captured['install_requires'][1:])
