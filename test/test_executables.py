@@ -54,6 +54,45 @@ def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_p
         assert f'  {name} (default {usage._value(default)})\n      {description}\n' in shown.stdout
 
 
+def _run_executable(module: str, argv: list, tmp_path: Path) -> subprocess.CompletedProcess:
+    """``main()`` run as its console script runs it, from an empty folder, ROS_HOME in tmp_path."""
+    cwd = tmp_path / 'cwd'
+    cwd.mkdir(exist_ok=True)
+    env = dict(os.environ, ROS_HOME=str(tmp_path / 'ros_home'), ROS_DOMAIN_ID='231',
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    return subprocess.run([sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())', *argv],
+                          cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+BAD_ROS_ARGS = {  # what a user can get wrong after --ros-args, and the reason the one line gives
+    'no such params file': (['--params-file', 'nowhere/ranker.yaml'], "Couldn't parse params file"),
+    'params file of broken YAML': (['--params-file', '{broken}'], "Couldn't parse params file"),
+    'unknown ROS argument': (['--no-such-option'], "unknown ROS arguments: '--no-such-option'"),
+    'override without a value': (['-p', 'rate'], "Couldn't parse parameter override rule: '-p rate'"),
+    'a value of the wrong type': (['-p', '{numeric}:=[1, 2]'], "expecting type"),
+}
+
+
+@pytest.mark.parametrize('case', BAD_ROS_ARGS)
+@pytest.mark.parametrize('executable', ['ranker', 'scene_publisher', 'replay'])
+def test_ros_args_rcl_refuses_end_in_one_line_on_stderr_and_status_2(executable, case, tmp_path):
+    """What `ros2 run stars_ros EXECUTABLE --ros-args ...` prints when rcl cannot parse the
+    arguments or the node refuses a value: the reason on one line, no traceback, no node."""
+    module = ENTRY_POINTS[executable]
+    broken = tmp_path / 'broken.yaml'
+    broken.write_text('/**:\n  ros__parameters:\n    top_k: [1, "two"\n')
+    numeric = next(name for name, (default, *_) in TABLES[module].items()
+                   if isinstance(default, (int, float)) and not isinstance(default, bool))
+    argv, reason = BAD_ROS_ARGS[case]
+    argv = [arg.format(broken=broken, numeric=numeric) for arg in argv]
+    done = _run_executable(module, ['--ros-args', '-p', "record_folder:=''", *argv], tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout == '' and len(done.stderr.splitlines()) == 1, done.stderr
+    assert done.stderr.startswith(f'{executable}: error: ') and reason in done.stderr, done.stderr
+    assert ', at /' not in done.stderr  # rcl's source locations are left out
+
+
 def test_help_is_asked_for_only_before_ros_args():
     assert usage.asked_for_help(['ranker', '--help']) and usage.asked_for_help(['ranker', '-h'])
     assert usage.asked_for_help(['ranker', '-h', '--ros-args', '-p', 'top_k:=3'])

@@ -2,12 +2,45 @@
 life of a node executable from ``rclpy.init`` to a clean shutdown."""
 from __future__ import annotations
 
+import re
+import sys
 from typing import Callable
 
 import rclpy
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.logging import get_logger
+from rclpy.logging import LoggingSeverity, get_logger, get_logger_level, set_logger_level
+
+USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
+
+
+class CommandLineError(Exception):
+    """``--ros-args`` that rcl cannot parse, or a parameter value the node refuses."""
+
+
+def _rcl_message(error: Exception) -> str:
+    """rcl's message without its source locations (", at /path/arguments.c:415")."""
+    text = re.sub(r', at \S+\.c:\d+', '', str(error))
+    return text.removeprefix('failed to initialize rcl: ')
+
+
+def init(args=None) -> None:
+    """``rclpy.init(args)``; ``--ros-args`` rcl refuses (a params file it cannot open or parse,
+    an override, remap or log level it cannot read, an unknown ROS argument) raise
+    ``CommandLineError`` with rcl's reason. rcl's own "Failed to parse global arguments" log
+    line is held back: the error says more."""
+    previous = get_logger_level('rcl')
+    set_logger_level('rcl', LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args)
+    except _rclpy.UnknownROSArgsError as error:
+        raise CommandLineError(f'unknown ROS arguments: {str(error).strip("[]")}') from None
+    except _rclpy.RCLError as error:
+        raise CommandLineError(_rcl_message(error)) from None
+    finally:
+        if get_logger_level('rcl') == LoggingSeverity.FATAL:  # not set by the arguments (--log-level rcl:=...)
+            set_logger_level('rcl', previous)
 
 
 def spin_until_shutdown(node) -> None:
@@ -28,14 +61,21 @@ def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown
     """``rclpy.init(args)``, ``run(make_node())``, then destroy the node, ``close(node)`` and
     shut ROS down, however it ended. A signal, or one of ``ends`` (exceptions the node ends
     with on purpose), is a normal end; one of ``fatal`` is logged as ``name``'s fatal error
-    and exits with status 1."""
-    rclpy.init(args=args)
+    and exits with status 1. ``--ros-args`` that rcl refuses, and parameter values or names
+    the node refuses while it declares them, print one line, ``name: error: ...``, on stderr
+    and exit with status 2, as a command-line error."""
+    try:
+        init(args)
+    except CommandLineError as error:
+        _usage_error(name, str(error))
     node = None
     try:
         node = make_node()
         run(node)
     except (KeyboardInterrupt, ExternalShutdownException, *ends):
         pass
+    except (ParameterException, NameValidationException) as error:
+        _usage_error(name, str(error))
     except fatal as error:
         get_logger(name).fatal(str(error))
         raise SystemExit(1) from None
@@ -45,3 +85,8 @@ def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown
             if close is not None:
                 close(node)
         rclpy.try_shutdown()
+
+
+def _usage_error(name: str, message: str):
+    print(f'{name}: error: {message}', file=sys.stderr, flush=True)
+    raise SystemExit(USAGE_ERROR)
