@@ -20,6 +20,7 @@ from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
 from stars_ros.model.metrics import regression_report
+from stars_ros.personalisation.prior import estimate_prior
 from stars_ros.model.training import StarsTrainer, split_rows
 
 from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, read_inputs, setup_logging
@@ -80,6 +81,11 @@ def main(argv=None) -> int:
         print(f'error: {error}', file=sys.stderr)
         return 1
     seconds = time.perf_counter() - started
+    if recommender.require_model().personalised:  # the fold-in's prior and noise, kept in the checkpoint
+        prior = estimate_prior(recommender, data, train)
+        recommender.user_prior = prior.to_dict()
+        print(f"personalisation prior: {prior.details}; noise variance (z-scale) per action "
+              f"{[round(float(v), 4) for v in prior.noise]}")
     epochs = config.training.pretrain_epochs + config.training.joint_epochs
     print(f'{label}: trained {epochs} epochs in {seconds:.1f} s ({seconds / max(epochs, 1):.2f} s/epoch)')
     metrics = {}

@@ -61,13 +61,16 @@ class SceneRequest:
 
 @dataclass(frozen=True)
 class Feedback:
-    """One validated /stars/feedback message; exactly one of ``action`` and ``candidate``."""
+    """One validated /stars/feedback message; exactly one of ``action`` and ``candidate``.
+    ``signed``: the message as parsed when it carries ``auth``, what ``feedback_auth``
+    checks and a folded-in rating keeps, so that peers can check it too."""
 
     user_id: str
     scene_id: str
     score: float
     action: str | None = None
     candidate: str | None = None
+    signed: dict | None = None
 
 
 def _draft07(node):
@@ -190,7 +193,7 @@ def _explain(name: str, error) -> str:
 
 
 _SUBJECTS = {'feedback': 'feedback', 'scene_request': 'a scene request', 'scene_graph': 'a scene graph',
-             'ranking': 'a ranking', 'user_model': 'a user model'}
+             'ranking': 'a ranking', 'user_model': 'a user model', 'question_request': 'a question request'}
 
 
 def check(name: str, payload) -> None:
@@ -230,7 +233,28 @@ def parse_feedback(text, max_bytes: int = DEFAULT_MAX_BYTES) -> Feedback:
     if not math.isfinite(score):
         raise BadMessage('non_finite', f"feedback score {payload['score']} is not a finite number",
                          payload['scene_id'])
-    return Feedback(payload['user_id'], payload['scene_id'], score, payload.get('action'), payload.get('candidate'))
+    return Feedback(payload['user_id'], payload['scene_id'], score, payload.get('action'), payload.get('candidate'),
+                    payload if 'auth' in payload else None)
+
+
+@dataclass(frozen=True)
+class QuestionRequest:
+    """One validated stars/question_request: whom to ask, and the scene requests to choose
+    the question from (empty: the scenes the node saw recently), each with its JSON text."""
+
+    user_id: str
+    candidates: tuple = ()
+
+
+def parse_question_request(text, max_bytes: int = DEFAULT_MAX_BYTES) -> QuestionRequest:
+    """Validate a stars/question_request message; its candidates parse as scene requests."""
+    payload = load_json(text, max_bytes)
+    check('question_request', payload)
+    candidates = []
+    for candidate in payload.get('candidates', ()):
+        candidate_text = dumps(candidate)
+        candidates.append((parse_scene_request(candidate_text, max_bytes), candidate_text))
+    return QuestionRequest(payload['user_id'], tuple(candidates))
 
 
 def parse_user_id(text: str) -> str | None:
@@ -243,16 +267,23 @@ def parse_user_id(text: str) -> str | None:
 
 def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool, ranked: Sequence,
                     fingerprint: str, processing_ms: float, action: str | None = None,
-                    personalised_from: int = 0) -> dict:
+                    personalised_from: int = 0, p_first_is_best: float | None = None) -> dict:
     """The /stars/ranking reply (a dict following ranking.schema.json) for ``ranked`` entries
     (``predictor.Ranked``), best first. ``personalised_from`` > 0: the user was scored with an
-    embedding folded in from that many feedback ratings (the field is omitted when 0)."""
+    embedding folded in from that many feedback ratings (the field is omitted when 0).
+    Entries carry ``score_sd`` and the ranking ``p_first_is_best`` where they are computed."""
     key = 'candidate' if request.ranks_scenes else 'action'
+    entries = []
+    for r in ranked:
+        entry = {key: r.name, 'score': r.score, 'rank': r.rank}
+        if r.score_sd is not None:
+            entry['score_sd'] = r.score_sd
+        entries.append(entry)
     reply = {
         'scene_id': request.scene_id,
         'user_id': user_id,
         'known_user': known_user,
-        'ranking': [{key: r.name, 'score': r.score, 'rank': r.rank} for r in ranked],
+        'ranking': entries,
         'fingerprint': fingerprint,
         'processing_ms': processing_ms,
     }
@@ -260,6 +291,8 @@ def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool
         reply['action'] = action
     if personalised_from:
         reply['personalised_from'] = int(personalised_from)
+    if p_first_is_best is not None:
+        reply['p_first_is_best'] = p_first_is_best
     return reply
 
 

@@ -1,12 +1,16 @@
-"""Shared fixtures: the real SocNav1 files and a tiny trained checkpoint."""
+"""Shared fixtures: generated SocNav1-format data, a tiny checkpoint trained on it, and the
+real SocNav1 files for the tests marked ``socnav1`` (skipped, saying why, without them)."""
 import os
 from pathlib import Path
 
 import pytest
 
+from stars_ros.data import synthetic_socnav
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
+from stars_ros.data.scene_source import read_scenes
+from stars_ros.personalisation.prior import estimate_prior
 from stars_ros.model.training import StarsTrainer, split_rows
 
 REPO = Path(__file__).resolve().parents[1]
@@ -21,12 +25,19 @@ def socnav1_path() -> Path:
     return Path(os.environ.get('STARS_SOCNAV1_ROOT', REPO.parent / 'shared' / 'datasets' / 'socnav1'))
 
 
+def pytest_runtest_setup(item):
+    """A test that reads SocNav1 must say so (``@pytest.mark.socnav1``); a marked test is
+    skipped when the files are absent."""
+    marked = item.get_closest_marker('socnav1') is not None
+    if not marked and {'socnav1_root', 'socnav1'} & set(item.fixturenames):
+        pytest.fail('this test reads SocNav1: mark it @pytest.mark.socnav1', pytrace=False)
+    if marked and not (socnav1_path() / 'raw').is_dir():
+        pytest.skip(f'needs SocNav1, not found at {socnav1_path()} (set STARS_SOCNAV1_ROOT)')
+
+
 @pytest.fixture(scope='session')
 def socnav1_root() -> Path:
-    root = socnav1_path()
-    if not (root / 'raw').is_dir():
-        pytest.fail(f'SocNav1 not found at {root}: set STARS_SOCNAV1_ROOT')
-    return root
+    return socnav1_path()
 
 
 @pytest.fixture(scope='session')
@@ -35,10 +46,33 @@ def socnav1(socnav1_root):
 
 
 @pytest.fixture(scope='session')
-def tiny_checkpoint(socnav1, tmp_path_factory):
-    """A small StARS-GCN trained on 1,500 SocNav1 ratings (a few seconds), saved to disk."""
-    train, _ = split_rows(socnav1, 0.2, 0)
-    recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(socnav1, train[:1500])
+def synthetic_root(tmp_path_factory) -> Path:
+    """A SocNav1-format root (``raw/a.jsonl`` … ``raw/l.jsonl``) of generated data: 12
+    annotators, 521 ratings of 272 small scenes, one identifier with two contents."""
+    return synthetic_socnav.write(tmp_path_factory.mktemp('synthetic'), seed=0)
+
+
+@pytest.fixture(scope='session')
+def synthetic(synthetic_root):
+    return load_dataset(synthetic_root)
+
+
+@pytest.fixture(scope='session')
+def synthetic_scenes(synthetic_root) -> list:
+    """Every distinct scene of the generated data (first line of each identifier, in file order)."""
+    scenes = {}
+    for path in sorted((synthetic_root / 'raw').glob('*.jsonl')):
+        for scene in read_scenes(path):
+            scenes.setdefault(scene['identifier'], scene)
+    return list(scenes.values())
+
+
+@pytest.fixture(scope='session')
+def tiny_checkpoint(synthetic, tmp_path_factory):
+    """A small StARS-GCN trained on 80 % of the generated ratings (a second), saved to disk."""
+    train, _ = split_rows(synthetic, 0.2, 0)
+    recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
+    recommender.user_prior = estimate_prior(recommender, synthetic, train).to_dict()
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
-    save_checkpoint(recommender, path, data={'fingerprint': socnav1.fingerprint, 'source': 'socnav1'})
+    save_checkpoint(recommender, path, data={'fingerprint': synthetic.fingerprint, 'source': 'synthetic_socnav'})
     return path

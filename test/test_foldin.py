@@ -20,9 +20,9 @@ def predictor(tiny_checkpoint):
 
 
 @pytest.fixture(scope='module')
-def ratings(socnav1_root):
+def ratings(synthetic_root):
     """40 ratings of annotator e (SocNav1 scenes, scores on [0, 1])."""
-    lines = (socnav1_root / 'raw' / 'e.jsonl').read_text().splitlines()[:40]
+    lines = (synthetic_root / 'raw' / 'e.jsonl').read_text().splitlines()[:40]
     scenes = [json.loads(line) for line in lines]
     return [Rating(s, 'navigate', s['score'] / 100, s['identifier']) for s in scenes]
 
@@ -97,16 +97,17 @@ def test_regularisation_limits(predictor, ratings):
     assert empty.n_ratings == 0 and np.allclose(np.append(empty.p, empty.b), prior)
 
 
-def test_prior_is_the_trained_row_or_the_population_mean(predictor):
+def test_prior_is_the_trained_row_or_the_shrunk_population_mean(predictor):
     foldin = FoldIn(predictor)
     model = predictor.recommender.model
     row = predictor.recommender.user_vocabulary.row('a')
     trained = np.append(model.user_embedding.weight[row].detach().numpy(), model.user_bias.weight[row, 0].item())
     assert np.allclose(foldin.prior('a'), trained, atol=1e-6)
-    population = np.concatenate([model.user_embedding.weight.detach().numpy(),
-                                 model.user_bias.weight.detach().numpy()], axis=1).mean(0)
-    assert np.allclose(foldin.prior('never-seen'), population, atol=1e-6)
-    assert np.allclose(foldin.prior(None), population, atol=1e-6)
+    rows = np.concatenate([model.user_embedding.weight.detach().numpy(), model.user_bias.weight.detach().numpy()], axis=1)
+    weight = foldin.user_prior.details['mean_weight']  # James-Stein, towards the scene-only θ = 0
+    assert 0 <= weight <= 1
+    assert np.allclose(foldin.prior('never-seen'), weight * rows.mean(0), atol=1e-6)
+    assert np.allclose(foldin.prior(None), foldin.prior('never-seen'))
 
 
 def test_folded_in_user_predicts_its_ratings_better(predictor, ratings):

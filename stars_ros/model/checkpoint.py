@@ -22,10 +22,16 @@ from stars_ros.errors import CheckpointError, ConfigError, StarsError
 from stars_ros.files import atomic_write
 from stars_ros.model.training import StarsTrainer, build_model
 
-FORMAT = 'stars_ros.model.checkpoint'
+FORMAT = 'stars_ros.checkpoint'  # a data format's name: it stays when modules move
 FORMAT_VERSION = 1
 _ZIP_MAGIC = b'PK\x03\x04'  # torch.save's format since torch 1.6
 _PICKLE_PROTOCOL = b'\x80'  # the legacy format: a pickle, protocol 2 or later
+
+
+def _tensors(content: dict) -> dict:
+    """The tensors a checkpoint's digest covers: the weights and the personalisation prior."""
+    prior = {f'user_prior.{k}': v for k, v in content.get('user_prior', {}).items()}
+    return {**content['state_dict'], **prior}
 
 
 def _digest(metadata: dict, state: dict) -> str:
@@ -64,11 +70,15 @@ def save_checkpoint(recommender: StarsTrainer, path, *, data: dict, metrics: dic
         'metrics': dict(metrics or {}),
         'provenance': dict(provenance or {}),
     }
-    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    digest = _digest(metadata, state)
+    content = {'metadata': metadata, 'state_dict': {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
+    if recommender.user_prior is not None:
+        prior = dict(recommender.user_prior)
+        metadata['user_prior'] = prior.pop('details', {})
+        content['user_prior'] = prior
+    content['digest'] = digest = _digest(metadata, _tensors(content))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda handle: torch.save({'metadata': metadata, 'state_dict': state, 'digest': digest}, handle))
+    atomic_write(path, lambda handle: torch.save(content, handle))
     return digest
 
 
@@ -111,7 +121,7 @@ def read_checkpoint(path) -> dict:
     if metadata.get('format_version') != FORMAT_VERSION:
         raise CheckpointError(f'{path}: checkpoint format version {metadata.get("format_version")} '
                               f'is not supported (this is version {FORMAT_VERSION})')
-    if _digest(metadata, content['state_dict']) != content['digest']:
+    if _digest(metadata, _tensors(content)) != content['digest']:
         raise CheckpointError(f'{path}: checkpoint digest mismatch: the file is corrupted')
     return content
 
@@ -138,6 +148,8 @@ def load_checkpoint(path, with_digest: bool = False):
     recommender.model = model
     scale = metadata.get('rating_scale')  # absent from checkpoints written before it was kept
     recommender.rating_scale = tuple(scale) if scale is not None else None
+    if 'user_prior' in content:  # absent from checkpoints written before it was kept
+        recommender.user_prior = {**content['user_prior'], 'details': metadata.get('user_prior', {})}
     if with_digest:
         return recommender, metadata, content['digest']
     return recommender, metadata

@@ -1,7 +1,8 @@
 """ROS-free inference: load a checkpoint, rank actions (or alternative scenes) for a user.
 
-Unknown users and scenes are the normal case on a robot: they get p_u = 0, b_u = 0 and
-q_i = 0, b_i = 0, so the prediction is the content term plus population offsets, and
+Unknown users and scenes are the normal case on a robot: a user gets the personalisation
+prior's mean (p_u, b_u) the checkpoint stores (``personalisation.prior``; zero in one without),
+a scene q_i = 0, b_i = 0, so the prediction is the content term plus population offsets, and
 ``Ranking.known_user`` says so (Surprise's fallback-with-a-reason, without an exception).
 
 Users folded in after training (``stars_ros.personalisation.foldin``) are served from an overlay
@@ -22,23 +23,26 @@ from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.errors import SceneGraphError, UnknownActionError
 from stars_ros.model.numpy_model import InferenceModel
 from stars_ros.model.model import UNKNOWN
-from stars_ros.data.scene_graph import featurise
+from stars_ros.data.scene_graph import SceneGraph, featurise
 
 
 @dataclass(frozen=True)
 class Ranked:
     """One ranked entry: an action name (or a candidate scene's label), its score on the
-    rating scale, and its 1-based rank."""
+    rating scale, its 1-based rank, and the score's predictive standard deviation (None
+    where it is not computed)."""
 
     name: str
     score: float
     rank: int
+    score_sd: float | None = None
 
 
-def rank_order(names: Sequence[str], scores) -> list:
-    """``Ranked`` entries of ``names`` by ``scores``, best first."""
+def rank_order(names: Sequence[str], scores, sds=None) -> list:
+    """``Ranked`` entries of ``names`` by ``scores`` (with their ``sds``), best first."""
     order = sorted(range(len(names)), key=lambda k: (-scores[k], k))  # ties keep input order
-    return [Ranked(str(names[k]), float(scores[k]), rank) for rank, k in enumerate(order, 1)]
+    return [Ranked(str(names[k]), float(scores[k]), rank, None if sds is None else float(sds[k]))
+            for rank, k in enumerate(order, 1)]
 
 
 class Predictor:
@@ -59,14 +63,29 @@ class Predictor:
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
         self._inference = InferenceModel(recommender.require_model())
-        self._stranger = (np.zeros(self._inference.dim, dtype=np.float32), np.float32(0.0))
+        self._stranger = self._prior_mean(recommender)
         self._scene_rows = np.array([UNKNOWN], dtype=np.int64)  # broadcasts: no scene id, no q_i
+
+    def _prior_mean(self, recommender) -> tuple:
+        """(p, b_u) a stranger is scored with: the personalisation prior's mean the checkpoint
+        stores (personalisation.prior), else zero (content and population offsets only)."""
+        stored = getattr(recommender, 'user_prior', None)
+        if stored is None or not self._inference.personalised:
+            return np.zeros(self._inference.dim, dtype=np.float32), np.float32(0.0)
+        mean = np.asarray(stored['mean'], dtype=np.float32)
+        return mean[:-1], np.float32(mean[-1])
 
     @classmethod
     def load(cls, path) -> 'Predictor':
         """Raises CheckpointError for a missing, truncated, corrupted or incompatible file."""
         recommender, metadata, digest = load_checkpoint(path, with_digest=True)
         return cls(recommender, metadata, digest)
+
+    @classmethod
+    def from_model(cls, recommender) -> 'Predictor':
+        """A predictor over a fitted ``StarsTrainer`` held in memory, not read from a file:
+        it has no checkpoint, so its metadata is empty and its fingerprint ''."""
+        return cls(recommender, {}, '')
 
     @property
     def inference(self) -> InferenceModel:
@@ -110,15 +129,17 @@ class Predictor:
             self._user_models = {str(k): v for k, v in models.items()}
 
     def _scene_input(self, scenes: Sequence, validate: bool):
-        if self.input_kind == 'graph':
-            return [featurise(scene, validate=validate) for scene in scenes]
+        if self.input_kind == 'graph':  # a SceneGraph is a scene featurised already (a data set's)
+            return [scene if isinstance(scene, SceneGraph) else featurise(scene, validate=validate)
+                    for scene in scenes]
         features = np.asarray(scenes, dtype=np.float32)
         if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
             raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')
         return features
 
     def encode(self, scenes: Sequence, validate: bool = True) -> np.ndarray:
-        """h_i [len(scenes), dim] (float32) of scene-graph dicts or tabular feature rows."""
+        """h_i [len(scenes), dim] (float32) of scene-graph dicts (or featurised ``SceneGraph``)
+        or tabular feature rows."""
         if len(scenes) == 0:
             raise SceneGraphError('no scenes to score')
         return self._inference.encode(self._scene_input(scenes, validate), len(scenes))
@@ -142,6 +163,11 @@ class Predictor:
     def _scene_rows_of(self, scene_ids: Sequence) -> np.ndarray:
         return self.recommender.scene_vocabulary.rows(scene_ids)
 
+    def user_theta(self, user_id) -> np.ndarray:
+        """θ = (p_u, b_u) [dim+1] (float64) that scores ``user_id`` (see ``scores_from_h``)."""
+        p, b = self._user_row(user_id)
+        return np.append(np.asarray(p, dtype=np.float64), float(b))
+
     def _user_row(self, user_id) -> tuple:
         """(p_u, b_u) that scores ``user_id``: folded in, trained, or zero for a stranger."""
         inference = self._inference
@@ -162,6 +188,17 @@ class Predictor:
             raise UnknownActionError(f'unknown actions {unknown}; this model knows {list(self.actions)}')
         return [self._action_index[a] for a in actions]
 
+    def ranking_action(self, action: str | None) -> str:
+        """The action whose score ranks candidate scenes: ``action``, or the model's only one
+        (UnknownActionError when it has several and none is named, or names one it lacks)."""
+        if action is None:
+            if len(self.actions) != 1:
+                raise UnknownActionError(f"say which 'action' ranks the candidate scenes; this model knows "
+                                         f'{list(self.actions)}')
+            return self.actions[0]
+        self.action_columns([action])
+        return action
+
     def rank(self, user_id, scene, candidates: Sequence[str] | None = None, scene_id=None) -> list:
         """Candidate actions (all by default) sorted best first for ``user_id`` in ``scene``."""
         names = list(self.actions if candidates is None else candidates)
@@ -174,11 +211,7 @@ class Predictor:
                     action: str | None = None) -> list:
         """Alternative scenes (e.g. candidate robot placements) sorted best first by the
         score of ``action`` (required when the model has more than one)."""
-        if action is None:
-            if len(self.actions) != 1:
-                raise UnknownActionError(f'say which action ranks the scenes; this model knows {list(self.actions)}')
-            action = self.actions[0]
-        column = self.action_columns([action])[0]
+        column = self.action_columns([self.ranking_action(action)])[0]
         labels = [str(k) for k in range(len(scenes))] if labels is None else list(labels)
         if len(labels) != len(scenes):
             raise ValueError('one label per candidate scene')

@@ -18,6 +18,7 @@ everything after training (checkpoints, fold-in, serving) is the same as for a C
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from typing import Callable, NamedTuple, Sequence
@@ -50,6 +51,25 @@ class TrainingSet(NamedTuple):
     def to(self, device) -> 'TrainingSet':
         return TrainingSet(self.users.to(device), self.items.to(device), self.scenes,
                            self.targets.to(device), self.rated.to(device))
+
+
+@contextlib.contextmanager
+def torch_state_kept():
+    """Put back, on leaving, the process-wide torch state that training sets: the number of
+    threads, the default dtype and the random generators (the CPU's, and CUDA's when CUDA
+    was initialised before). ``fit`` and ``fine_tune`` seed and set threads inside it, so a
+    caller's own torch settings and random stream are as they were."""
+    threads, dtype = torch.get_num_threads(), torch.get_default_dtype()
+    cpu_rng = torch.random.get_rng_state()
+    cuda_rng = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_default_dtype(dtype)
+        torch.random.set_rng_state(cpu_rng)
+        if cuda_rng is not None:
+            torch.cuda.set_rng_state_all(cuda_rng)
 
 
 class NotFittedError(StarsError):
@@ -118,6 +138,7 @@ class StarsTrainer:
         self.scene_vocabulary = Vocabulary()
         self.action_names: tuple = ()
         self.rating_scale: tuple | None = None
+        self.user_prior: dict | None = None  # personalisation.prior.UserPrior.to_dict(), kept by checkpoints
         self.history: dict = {'pretrain': [], 'joint': []}
 
     # -- vocabularies -------------------------------------------------------------------
@@ -165,7 +186,12 @@ class StarsTrainer:
 
         ``on_epoch(stage, epoch)`` is called after each epoch ('pretrain' or 'joint',
         counted from 1), e.g. to score a learning curve; it must not train the model.
+        The seeds and ``training.threads`` apply inside ``fit`` only (``torch_state_kept``).
         """
+        with torch_state_kept():
+            return self._fit(data, rows, on_epoch)
+
+    def _fit(self, data, rows, on_epoch) -> 'StarsTrainer':
         cfg = self.config.training
         device = torch.device(cfg.device)
         if device.type == 'cuda' and not torch.cuda.is_available():
@@ -208,14 +234,16 @@ class StarsTrainer:
 
     def fine_tune(self, data: RatingData, epochs: int, rows: np.ndarray | None = None) -> list:
         """``epochs`` joint epochs on ``rows`` of ``data`` from the current weights (a refit
-        after new users or scenes were added with ``extend``); returns the epoch losses."""
+        after new users or scenes were added with ``extended``); returns the epoch losses.
+        Like ``fit``, it leaves the process's torch state as it found it."""
         model = self.require_model()
         cfg = self.config.training
-        torch.manual_seed(cfg.seed)
-        torch.set_num_threads(cfg.threads)
-        rows = np.arange(len(data)) if rows is None else np.asarray(rows)
-        losses = self._run_epochs('joint', epochs, data, self.training_set(data, rows), model,
-                                  self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2)
+        with torch_state_kept():
+            torch.manual_seed(cfg.seed)
+            torch.set_num_threads(cfg.threads)
+            rows = np.arange(len(data)) if rows is None else np.asarray(rows)
+            losses = self._run_epochs('joint', epochs, data, self.training_set(data, rows), model,
+                                      self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2)
         model.eval()
         return losses
 

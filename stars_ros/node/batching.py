@@ -18,9 +18,10 @@ import numpy as np
 
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.messages import SceneRequest
+from stars_ros.model.model import UNKNOWN
 from stars_ros.model.predictor import rank_order
 
-WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet')  # kinds of problem that are warnings, not errors
+WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet', 'no_question')  # kinds of problem that are warnings, not errors
 
 
 @dataclass(frozen=True)
@@ -44,12 +45,14 @@ class Pending:
 @dataclass(frozen=True)
 class Scored:
     """The ranking of one request (best first, cut to ``top_k``), for candidate scenes the
-    action that ranked them, and h_i of the request's scenes [len(graphs), dim] (float32:
-    feedback on them is folded in without encoding them again)."""
+    action that ranked them, h_i of the request's scenes [len(graphs), dim] (float32:
+    feedback on them is folded in without encoding them again), and the probability that the
+    first entry is truly the best (None without fold-in)."""
 
     ranked: list
     action: str | None
     h: np.ndarray
+    p_first_is_best: float | None = None
 
 
 def _ranking_action(predictor, request: SceneRequest) -> str | None:
@@ -70,8 +73,10 @@ def _ranking_action(predictor, request: SceneRequest) -> str | None:
     return request.action
 
 
-def _score_group(predictor, user_id, members, top_k) -> list:
-    """Scores of ``members`` [(request, action)] of one user and one mode in one pass."""
+def _score_group(predictor, user_id, members, top_k, uncertainty=None) -> list:
+    """Scores of ``members`` [(request, action)] of one user and one mode in one pass; with
+    ``uncertainty`` (personalisation.uncertainty.Uncertainty) each entry's score_sd and the
+    ranking's p_first_is_best too."""
     ranks_scenes = members[0][0].ranks_scenes
     graphs = [graph for request, _ in members for graph in request.graphs]
     scene_ids = None if ranks_scenes else [request.scene_id for request, _ in members]
@@ -82,18 +87,27 @@ def _score_group(predictor, user_id, members, top_k) -> list:
     results, row = [], 0
     for request, action in members:
         if ranks_scenes:
-            block = scores[row:row + len(request.graphs), predictor.action_columns([action])[0]]
-            ranked = rank_order(request.labels, block)
+            names = request.labels
+            columns = predictor.action_columns([action]) * len(names)
+            entry_h, scene_rows = h[row:row + len(names)], np.full(len(names), UNKNOWN)
+            entry_scores = scores[row:row + len(names), columns[0]]
         else:
             names = request.actions or predictor.actions
-            ranked = rank_order(names, scores[row, predictor.action_columns(names)])
-        results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + len(request.graphs)]))
+            columns = predictor.action_columns(names)
+            entry_h = np.repeat(h[row:row + 1], len(names), axis=0)
+            scene_rows = predictor.recommender.scene_vocabulary.rows([request.scene_id] * len(names))
+            entry_scores = scores[row, columns]
+        spread = None if uncertainty is None else uncertainty.spread(predictor, user_id, entry_h, scene_rows, columns)
+        ranked = rank_order(names, entry_scores, None if spread is None else spread.sd)
+        p_first = None if spread is None else spread.p_first_is_best(list(names).index(ranked[0].name))
+        results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + len(request.graphs)], p_first))
         row += len(request.graphs)
     return results
 
 
-def rank_batch(predictor, batch, top_k: int = 0) -> list:
-    """One ``Scored`` or one exception per ``Pending`` of ``batch``, in order."""
+def rank_batch(predictor, batch, top_k: int = 0, uncertainty=None) -> list:
+    """One ``Scored`` or one exception per ``Pending`` of ``batch``, in order (with
+    ``uncertainty``: with each entry's score_sd and the ranking's p_first_is_best)."""
     results = [None] * len(batch)
     groups = {}
     for k, item in enumerate(batch):
@@ -105,12 +119,12 @@ def rank_batch(predictor, batch, top_k: int = 0) -> list:
         groups.setdefault((item.user_id, item.request.ranks_scenes), []).append((k, item.request, action))
     for (user_id, _), members in groups.items():
         try:
-            scored = _score_group(predictor, user_id, [(r, a) for _, r, a in members], top_k)
+            scored = _score_group(predictor, user_id, [(r, a) for _, r, a in members], top_k, uncertainty)
         except StarsError:
             scored = []
             for _, request, action in members:  # find which request spoils the group
                 try:
-                    scored.append(_score_group(predictor, user_id, [(request, action)], top_k)[0])
+                    scored.append(_score_group(predictor, user_id, [(request, action)], top_k, uncertainty)[0])
                 except StarsError as error:
                     scored.append(error)
         for (k, _, _), result in zip(members, scored):

@@ -23,9 +23,10 @@ import time
 from pathlib import Path
 from typing import Callable, Mapping
 
-from stars_ros import messages
-from stars_ros.recording import bag as recording
+from stars_ros import feedback_auth, messages
+from stars_ros import recording
 from stars_ros.errors import CheckpointError, StarsError
+from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
 from stars_ros.model.predictor import Predictor
 from stars_ros.resources import DEFAULT_CHECKPOINT, resolve_checkpoint
@@ -33,7 +34,9 @@ from stars_ros.node.batching import WARNINGS, BusySpans, Pending, PeriodStats, P
 from stars_ros.personalisation.user_state import STATE_FILE
 
 MAX_STRANGERS_REMEMBERED = 10000
-TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model')
+QUESTION_DEPTH = 10  # QoS depth of stars/question_request and stars/question
+TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',
+          'stars/question_request', 'stars/question')
 _INT_MAX = 2 ** 31 - 1
 
 PARAMETERS = {  # name: (default, description, read_only, range)
@@ -61,11 +64,19 @@ PARAMETERS = {  # name: (default, description, read_only, range)
                             'keeps); older ones stay in the MCAP log for the offline refit', True, (1, 1000000)),
     'fold_in_max_users': (1000, 'folded-in users kept; beyond this the one who rated least recently goes back to '
                           'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),
-    'fold_in_regularisation': (1.0, 'ridge weight λ pulling a folded-in user towards the prior '
-                               '(their trained row, else the population mean)', False, (1e-6, 1e6)),
+    'fold_in_regularisation': (0.0, '0: serve the Gaussian posterior of each person (no λ to set: the prior and '
+                               'rating noise come from the checkpoint); > 0: the ridge solve with this λ towards the '
+                               'prior mean instead', False, (0.0, 1e6)),
+    'question_recent_scenes': (32, 'latest remembered scenes a stars/question_request without candidates chooses '
+                               'among; the target set of every question request', False, (1, 4096)),
     'fleet_sharing': (False, 'share folded-in users with the other rankers on stars/user_model (remap it to one '
                       "fleet-wide topic): publish each model with the ratings it was solved from, take in peers' "
                       "ratings and solve each user from everyone's", True, None),
+    'feedback_key_file': ('', 'file of feedback keys, one KEY_ID:HEX_SECRET a line (docs/security.md): feedback, and '
+                          "with fleet sharing the ratings of peers' models, are taken only when one of them signed "
+                          'it; empty: feedback is not authenticated', True, None),
+    'feedback_max_age': (60.0, 'seconds signed feedback stays valid: a stamp further in the past or the future, or '
+                         'a MAC already taken within it, is refused (kind auth)', False, (0.001, 86400.0)),
 }
 
 
@@ -93,20 +104,36 @@ class RankerCore:
                     f'actions {list(self.predictor.actions)})')
         self.user_id, self.problems, self._strangers_reported = None, Problems(), set()
         self.queue = collections.deque()  # Pending requests
+        self.questions = collections.deque()  # QuestionRequests waiting to be answered
         self._fold_in_spans = BusySpans()  # when fold-in work was done (time.time_ns)
         self._period_stats = PeriodStats()  # for the next diagnostics
+        self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
         self.recorder = None
         self.recorder = self._start_recorder(node_name)
         folder = params['record_folder']
         self.personalisation = Personalisation(
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
             Path(folder).expanduser() / STATE_FILE if folder else None, params['flush_interval'],
-            origin=node_name, sharing=params['fleet_sharing'])
+            origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator)
         self._peers_reported = set()  # (peer, fingerprint or λ) warned about once
         self.personalisation.restore()
         self._to_journal = queue.SimpleQueue()  # accepted feedback on its way to the recorder's journal
         self._journal_thread = threading.Thread(target=self._journal_loop, name='stars-ranker-journal', daemon=True)
         self._journal_thread.start()
+
+    def _feedback_authenticator(self):
+        """The checks of signed feedback (``feedback_auth``), None without a key file. A key
+        file that cannot be read raises ConfigError: the node does not start unprotected."""
+        path = self.params['feedback_key_file']
+        if not path:
+            self.logger.warning('feedback_key_file is empty: feedback is not authenticated, anyone who reaches the '
+                                'ROS domain can rate for any person (docs/security.md)')
+            return None
+        keys = feedback_auth.load_keys(path)
+        if feedback_auth.readable_by_others(path):
+            self.logger.warning(f'feedback key file {path} is readable by its group or others: chmod 600 it')
+        self.logger.info(f'feedback is taken only when signed by a key of {path} ({", ".join(keys)})')
+        return feedback_auth.FeedbackAuthenticator(keys, lambda: self.params['feedback_max_age'])
 
     # -- recording -----------------------------------------------------------------------
     def _start_recorder(self, node_name: str):
@@ -123,6 +150,8 @@ class RankerCore:
         depths = {'stars/scene': depth, 'stars/ranking': depth, 'stars/feedback': 100, 'stars/errors': 100}
         qos = {self.topics[topic]: recording.qos_profile(n) for topic, n in depths.items()}
         qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
+        for topic in ('stars/question_request', 'stars/question'):
+            qos[self.topics[topic]] = recording.qos_profile(QUESTION_DEPTH)
         qos[self.topics['stars/user_model']] = recording.qos_profile(
             depth + (self.params['fold_in_max_users'] if self.params['fleet_sharing'] else 0), transient_local=True)
         recorder = recording.Recorder(
@@ -224,6 +253,11 @@ class RankerCore:
         except messages.BadMessage as error:
             self.report(error.kind, str(error), topic, error.scene_id)
             return False
+        if self.authenticator is not None:  # before the journal: refused feedback is recorded as an error only
+            refusal = self.authenticator.check(feedback.signed, self._now())
+            if refusal is not None:
+                self.report('auth', f'feedback refused, not folded in: {refusal}', topic, feedback.scene_id)
+                return False
         if feedback.action is not None and feedback.action not in self.predictor.actions:
             self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
@@ -271,6 +305,33 @@ class RankerCore:
                         f'{error}', topic)
             return False
 
+    def accept_question_request(self, text: str) -> bool:
+        """Queue a stars/question_request; True when it waits to be answered (call ``work``)."""
+        topic = self.topics['stars/question_request']
+        try:
+            request = messages.parse_question_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), topic, error.scene_id)
+            return False
+        self.record('stars/question_request', text)
+        self.questions.append(request)
+        return True
+
+    def _answer_question(self, request: messages.QuestionRequest):
+        try:
+            answer = choose_question(self.personalisation, request.user_id, list(request.candidates),
+                                     self.params['question_recent_scenes'])
+        except NoQuestion as error:
+            self.report('no_question', str(error), self.topics['stars/question_request'])
+            return
+        except StarsError as error:
+            self.report(messages.error_kind(error), f'question request refused: {error}',
+                        self.topics['stars/question_request'])
+            return
+        payload = messages.dumps(answer)
+        self._publish('stars/question', payload)
+        self.record('stars/question', payload)
+
     def _warn_once(self, peer: str, value, detail: str):
         if (peer, value) not in self._peers_reported:
             if len(self._peers_reported) >= MAX_STRANGERS_REMEMBERED:
@@ -310,6 +371,8 @@ class RankerCore:
         try:
             if self.queue:
                 self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
+            elif self.questions:
+                self._answer_question(self.questions.popleft())
             elif intake:
                 started = time.time_ns()
                 try:
@@ -330,7 +393,7 @@ class RankerCore:
                 self._publish_model(to_announce.popitem(last=False)[0])
         except Exception as error:  # noqa: BLE001 - the node must keep serving
             self.report('internal', f'{type(error).__name__}: {error}')
-        return bool(self.queue or intake or pending or to_announce)
+        return bool(self.queue or self.questions or intake or pending or to_announce)
 
     def _solve_next(self):
         solved = self.personalisation.solve_next(self.params['fold_in_min_ratings'],
@@ -348,7 +411,8 @@ class RankerCore:
     def _serve(self, batch: list):
         predictor, top_k = self.predictor, self.params['top_k']
         started = time.time_ns()
-        for item, result in zip(batch, rank_batch(predictor, batch, top_k)):
+        uncertainty = self.personalisation.uncertainty
+        for item, result in zip(batch, rank_batch(predictor, batch, top_k, uncertainty)):
             request = item.request
             if isinstance(result, Exception):
                 self.record('stars/scene', item.text, item.log_time)
@@ -358,7 +422,7 @@ class RankerCore:
             processing_ms = max(0, time.time_ns() - item.received) / 1e6
             payload = messages.dumps(messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
-                result.action, personalised))
+                result.action, personalised, result.p_first_is_best))
             self._publish('stars/ranking', payload)
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
             self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency

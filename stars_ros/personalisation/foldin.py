@@ -1,27 +1,29 @@
-"""Fold a new user into a trained StARS model from a few ratings, in closed form.
+"""Fold a person into a trained StARS model from a few ratings: the exact Gaussian posterior.
 
-With everything but the user fixed, the model's normalised prediction is linear in
+With everything but the person fixed, the model's normalised prediction is linear in
 θ_u = (p_u, b_u):
 
     z(u, i, a) = p_uᵀ(q̄_i ⊙ r_a) + b_u + [h_iᵀ r_a + b_i + b],    q̄_i = q_i + h_i
 
 (q_i = 0, b_i = 0 for scenes unseen in training; the ablations without the residual term
 drop h_iᵀ r_a). For ratings (i_j, a_j, y_j) with z_j = (y_j − μ_a) / σ_a, x_j = [q̄_i ⊙ r_a, 1]
-and c_j the bracket, the fold-in is ridge regression of z_j − c_j on x_j towards a prior θ₀:
+and c_j the bracket, the fold-in treats θ_u as Gaussian: a prior N(m₀, S₀) (``prior``: the
+person's own trained row and covariance when the checkpoint knows them, else the population
+prior) and independent noise z_j − c_j − x_jᵀθ ~ N(0, σ²_{a_j}) give the posterior
 
-    θ_u = argmin Σ_j (x_jᵀθ − (z_j − c_j))² + λ ‖θ − θ₀‖²
-        = (XᵀX + λI)⁻¹ (Xᵀ(z − c) + λθ₀),
+    Λ = S₀⁻¹ + Xᵀ D⁻¹ X,    m = Λ⁻¹ (S₀⁻¹ m₀ + Xᵀ D⁻¹ (z − c)),    D = diag(σ²_a),
 
-one (d+1)×(d+1) solve in float64. θ₀ is the user's own trained row when the checkpoint
-knows them (feedback refines it) and otherwise the population prior, the mean of the
-trained user rows (p, b_u). λ → ∞ returns θ₀; λ → 0 interpolates the ratings when they
-are fewer than d + 1. Encoding a scene is what costs, so h_i is cached per scene object,
-and the ranker node hands over the h its ranking of the rated scene computed
-(``remember``): re-solving a user after one more rating is then one solve.
+one (d+1)×(d+1) Cholesky solve in float64. Its mean is what the node serves, its
+covariance Λ⁻¹ what ``uncertainty`` turns into a score's standard deviation. No λ is set by
+hand; a positive ``regularisation`` λ overrides the posterior with the ridge solve
+argmin ‖Xθ − (z − c)‖² + λ‖θ − m₀‖² (covariance σ̄²(XᵀX + λI)⁻¹, σ̄² the mean noise).
 
-x_j and c_j come from the predictor's ``InferenceModel.linear_form``: the weights and the
-arithmetic the node scores with, not a copy of them. ROS-free: the ranker node, the offline
-refit and the k-shot evaluation all use ``FoldIn``.
+Encoding a scene is what costs, so h_i is cached per scene object, and the ranker node hands
+over the h its ranking of the rated scene computed (``remember``): re-solving a user after
+one more rating is then one solve. x_j and c_j come from the predictor's
+``InferenceModel.linear_form``: the weights and the arithmetic the node scores with, not a
+copy of them. ROS-free: the ranker node, the offline refit, the front door and the k-shot
+evaluation all use ``FoldIn``.
 """
 from __future__ import annotations
 
@@ -33,11 +35,13 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy import linalg
 
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.model.model import UNKNOWN
+from stars_ros.personalisation.prior import UserPrior, prior_of
 
-DEFAULT_REGULARISATION = 1.0
+DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
 DEFAULT_CACHE_SCENES = 4096
 
 
@@ -49,7 +53,8 @@ class Rating:
 
     A ranker names each rating it accepts (``rating_id``, unique; ``stamp``, ROS time ns;
     ``origin``, the node that accepted it), so that robots sharing ratings (``fleet``) count
-    each once and order them alike."""
+    each once and order them alike. With signed feedback (``feedback_auth``), ``feedback``
+    is the signed message it came from and ``rating_id`` its MAC, so peers can check it."""
 
     scene: object
     action: str
@@ -58,12 +63,15 @@ class Rating:
     rating_id: str = ''
     stamp: int = 0
     origin: str = ''
+    feedback: dict | None = None
 
     def to_json(self) -> dict:
         """The rating as the state file and stars/user_model's ``ratings`` hold it."""
         scene = self.scene if isinstance(self.scene, dict) else [float(v) for v in self.scene]
         values = {'id': self.rating_id, 'stamp': int(self.stamp), 'origin': self.origin, 'scene': scene,
                   'action': self.action, 'score': float(self.score)}
+        if self.feedback is not None:
+            values['feedback'] = self.feedback
         return values if self.scene_id is None else {**values, 'scene_id': self.scene_id}
 
     @classmethod
@@ -71,18 +79,22 @@ class Rating:
         """The rating of ``to_json``'s form; ``fallback_id`` names one written before ratings
         had ids."""
         return cls(values['scene'], values['action'], float(values['score']), values.get('scene_id'),
-                   values.get('id') or fallback_id, int(values.get('stamp', 0)), values.get('origin', ''))
+                   values.get('id') or fallback_id, int(values.get('stamp', 0)), values.get('origin', ''),
+                   values.get('feedback'))
 
 
 @dataclass(frozen=True)
 class UserModel:
     """A folded-in user: embedding ``p`` [dim] and offset ``b`` (float64), solved from
-    ``n_ratings`` ratings with ``regularisation`` λ."""
+    ``n_ratings`` ratings, by the Gaussian posterior (``regularisation`` 0) or the ridge
+    override λ; ``covariance`` [dim+1, dim+1] of θ = (p, b) (None: not known, e.g. restored
+    from a state file until it is solved again)."""
 
     p: np.ndarray
     b: float
     n_ratings: int
     regularisation: float
+    covariance: np.ndarray | None = None
 
     def to_json(self) -> dict:
         return {'p_u': [float(v) for v in self.p], 'b_u': float(self.b), 'n_ratings': int(self.n_ratings),
@@ -113,6 +125,18 @@ def rating_from_feedback(feedback, request, actions: Sequence[str]) -> Rating | 
     return Rating(request.graphs[request.labels.index(feedback.candidate)], action, feedback.score, None)
 
 
+def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
+                       prior_precision: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, covariance) of θ given y ~ N(xθ, diag(noise)) and θ ~ N(prior_mean, prior_precision⁻¹)."""
+    x = np.asarray(x, dtype=np.float64)
+    weighted = x / np.asarray(noise, dtype=np.float64)[:, None]
+    precision = prior_precision + weighted.T @ x
+    factor = linalg.cho_factor(precision, lower=True, check_finite=False)
+    mean = linalg.cho_solve(factor, prior_precision @ prior_mean + weighted.T @ np.asarray(y, dtype=np.float64),
+                            check_finite=False)
+    return mean, linalg.cho_solve(factor, np.eye(len(mean)), check_finite=False)
+
+
 def solve_ridge(x: np.ndarray, y: np.ndarray, prior: np.ndarray, regularisation: float) -> np.ndarray:
     """argmin_θ ‖xθ − y‖² + λ‖θ − prior‖² via the normal equations (λ > 0 keeps them regular)."""
     if not regularisation > 0:
@@ -136,6 +160,8 @@ class FoldIn:
 
     Args:
         predictor (Predictor): the model to fold users into; its weights are only read.
+        prior (UserPrior, optional): the population prior and noise; default: the one the
+            checkpoint stores (``prior.prior_of``).
         cache_scenes (int, optional): most encoded scenes, and most ratings' regression rows,
             kept (least recently used go).
         scene_by_scene (bool, optional): encode each scene in a forward pass of its own. A
@@ -149,7 +175,8 @@ class FoldIn:
     run; docs/personalisation.md).
     """
 
-    def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False):
+    def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False,
+                 prior: UserPrior | None = None):
         recommender = predictor.recommender
         model = recommender.require_model()
         if not model.personalised:
@@ -160,15 +187,19 @@ class FoldIn:
         self.actions = tuple(recommender.action_names)
         self._action_index = {a: k for k, a in enumerate(self.actions)}
         self.dim = self.inference.dim
-        self.population = (self._user_row(slice(None)).mean(0) if len(recommender.users)
-                           else np.zeros(self.dim + 1))
+        self.user_prior = prior_of(recommender, self.inference) if prior is None else prior
+        self.population = self.user_prior.mean
+        self.noise = self.user_prior.noise
+        self._population_precision = np.linalg.inv(self.user_prior.covariance)
+        self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
         self._cache = collections.OrderedDict()
         self._cache_scenes = cache_scenes
         self.scene_by_scene = scene_by_scene
         self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
         self._lock = threading.Lock()
-        solve_ridge(np.ones((1, self.dim + 1)), np.zeros(1), self.population, 1.0)  # a process's first
-        # LAPACK solve costs milliseconds: paid at load, not by the first feedback
+        gaussian_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
+                           self._population_precision)  # a process's first LAPACK solve costs
+        # milliseconds: paid at load, not by the first feedback
 
     def _user_row(self, row) -> np.ndarray:
         """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
@@ -179,8 +210,31 @@ class FoldIn:
     def prior(self, user_id=None) -> np.ndarray:
         """θ₀ = (p, b_u): the user's trained row if the checkpoint knows them, else the
         population mean."""
+        return self.prior_distribution(user_id)[0]
+
+    def prior_distribution(self, user_id=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(mean, covariance, precision) of θ before any feedback: the trained row with the
+        covariance of their training ratings for a person the checkpoint knows, else the
+        population prior."""
         row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
-        return self.population.copy() if row == UNKNOWN else self._user_row(row)
+        prior = self.user_prior
+        if row == UNKNOWN:
+            return self.population.copy(), prior.covariance, self._population_precision
+        if prior.user_covariance is None:
+            return self._user_row(row), prior.covariance, self._population_precision
+        with self._lock:
+            precision = self._precisions.get(row)
+        if precision is None:
+            precision = np.linalg.inv(prior.user_covariance[row])
+            with self._lock:
+                self._precisions[row] = precision
+                while len(self._precisions) > self._cache_scenes:
+                    self._precisions.popitem(last=False)
+        return self._user_row(row), prior.user_covariance[row], precision
+
+    def covariance(self, user_id=None) -> np.ndarray:
+        """Cov θ of ``user_id`` before any feedback (``prior_distribution``)."""
+        return self.prior_distribution(user_id)[1]
 
     def action_index(self, actions: Sequence[str]) -> np.ndarray:
         unknown = sorted({a for a in actions if a not in self._action_index})
@@ -238,15 +292,21 @@ class FoldIn:
             return np.asarray(prior, dtype=np.float64).copy()
         return solve_ridge(x, np.asarray(z) - np.asarray(c), prior, regularisation)
 
-    def fit(self, ratings: Sequence[Rating], user_id=None,
-            regularisation: float = DEFAULT_REGULARISATION) -> UserModel:
-        """The user's (p_u, b_u) from ``ratings``, regularised towards ``prior(user_id)``."""
-        prior = self.prior(user_id)
+    def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:
+        """The user's posterior θ = (p_u, b_u) from ``ratings`` (see the module docstring);
+        a positive ``regularisation`` λ: the ridge solve towards the prior mean instead."""
+        mean, covariance, precision = self.prior_distribution(user_id)
+        lam = float(regularisation or 0.0)
         if not ratings:
-            return UserModel(prior[:-1], float(prior[-1]), 0, regularisation)
+            return UserModel(mean[:-1], float(mean[-1]), 0, lam, covariance)
         x, y = self.regression(ratings)
-        theta = solve_ridge(x, y, prior, regularisation)
-        return UserModel(theta[:-1], float(theta[-1]), len(ratings), regularisation)
+        if lam > 0:
+            theta = solve_ridge(x, y, mean, lam)
+            covariance = float(self.noise.mean()) * np.linalg.inv(x.T @ x + lam * np.eye(len(theta)))
+        else:
+            theta, covariance = gaussian_posterior(x, y, self.noise[self.action_index([r.action for r in ratings])],
+                                                   mean, precision)
+        return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)
 
     def regression(self, ratings: Sequence[Rating]) -> tuple:
         """(x [n, dim+1], y = z − c [n]) of ``ratings``, the rows ``design`` gives, each

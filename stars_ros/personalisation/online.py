@@ -27,6 +27,7 @@ from stars_ros.personalisation import fleet
 from stars_ros import messages
 from stars_ros.personalisation import user_state
 from stars_ros.errors import StarsError, UnknownActionError
+from stars_ros.personalisation.uncertainty import Uncertainty
 from stars_ros.personalisation.foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
 
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
@@ -56,6 +57,15 @@ class SceneMemory:
         remembered = self._scenes.get(scene_id)
         if remembered is not None and remembered[0] is text:
             remembered[1] = (predictor, h)
+
+    def recent(self, count: int) -> list:
+        """[(scene_id, request text, (predictor, h) or None)] of the ``count`` latest, newest first."""
+        latest = []
+        for scene_id in reversed(self._scenes):
+            if len(latest) == count:
+                break
+            latest.append((scene_id, *self._scenes[scene_id]))
+        return latest
 
     def get(self, scene_id: str) -> tuple:
         """(request text, (predictor, h) or None); (None, None) for a scene not remembered."""
@@ -88,14 +98,17 @@ class Personalisation:
         origin (str, optional): the node's name, which its ratings carry.
         sharing (bool, optional): fleet sharing: solve each user from their own and their
             peers' ratings (``fleet``), each scene encoded on its own.
+        authenticator (feedback_auth.FeedbackAuthenticator, optional): feedback is signed
+            (the node has checked it): each rating keeps its signed message and is named by
+            its MAC, and a peer's rating is taken only when it passes ``check_rating``.
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
                  logger=None, state_path: Path | None = None, flush_interval: float = 1.0,
-                 scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False):
+                 scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False, authenticator=None):
         self.histories = FeedbackHistories(max_ratings, max_users)
         self.peers = fleet.PeerRatings(max_ratings, max_users)
-        self.origin, self.sharing = origin, sharing
+        self.origin, self.sharing, self.authenticator = origin, sharing, authenticator
         self.scenes = SceneMemory(scene_memory)
         self.pending = collections.OrderedDict()  # users to re-solve, longest waiting first
         self.to_announce = collections.OrderedDict()  # users whose model peers are to be sent again
@@ -104,6 +117,7 @@ class Personalisation:
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
+        self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
         self.state_path = state_path
         self._writer = None if state_path is None else user_state.StateWriter(
             state_path, self.state, flush_interval, lambda text: report('recording', text))
@@ -121,6 +135,7 @@ class Personalisation:
         keep only the feedback it did not absorb; everyone with a history left waits to be
         re-solved against the new model."""
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
+        self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
         for user_id in [*self.histories.absorb(absorbed), *self.peers.snapshot()]:
             self.pending[user_id] = None
@@ -133,7 +148,9 @@ class Personalisation:
         rating = self._rating(feedback, max_bytes)
         if isinstance(rating, str):
             return rating
-        rating = dataclasses.replace(rating, rating_id=fleet.new_rating_id(), stamp=stamp, origin=self.origin)
+        signed = feedback.signed if self.authenticator is not None else None
+        rating = dataclasses.replace(rating, rating_id=signed['auth']['mac'] if signed else fleet.new_rating_id(),
+                                     stamp=stamp, origin=self.origin, feedback=signed)
         self._forget(self.histories.add(feedback.user_id, rating))
         self.pending[feedback.user_id] = None
         return None
@@ -159,12 +176,21 @@ class Personalisation:
     def add_peer_ratings(self, user_id: str, entries: list, peer: str = '') -> bool:
         """Stage the ``ratings`` of a peer's stars/user_model message (fleet sharing) that this
         node does not hold yet; True when some wait in ``intake`` (call ``take_in_next``).
-        UnknownActionError, and nothing is staged, when one names an action the model lacks."""
+        UnknownActionError, and nothing is staged, when one names an action the model lacks;
+        with signed feedback, BadMessage ``auth`` when the message carries no ratings or one
+        of the new ones fails ``check_rating``."""
         foldin = self.foldin
         if foldin is None:
             return False
+        if self.authenticator is not None and not entries:
+            raise messages.BadMessage('auth', 'it carries no ratings: with feedback_key_file set, a peer model is '
+                                      'taken only with the signed ratings it was solved from')
         held = self._held(user_id)
         new = list({e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}.values())
+        for rating in new if self.authenticator is not None else ():
+            refusal = self.authenticator.check_rating(user_id, rating)
+            if refusal is not None:
+                raise messages.BadMessage('auth', refusal)
         if not new:
             return False
         for rating in new:
@@ -227,10 +253,11 @@ class Personalisation:
                                            self.solved_from.get(user_id, []))
 
     # -- the solve -----------------------------------------------------------------------
-    def solve_next(self, min_ratings: int = 1, regularisation: float = 1.0) -> tuple[str, UserModel] | None:
+    def solve_next(self, min_ratings: int = 1, regularisation: float = 0.0) -> tuple[str, UserModel] | None:
         """Re-solve the user who has waited longest from their history against the current
-        model: (user_id, the model now served for them), or None when there was nothing to
-        solve (no one waiting, no fold-in with this model, fewer than ``min_ratings``)."""
+        model (the Gaussian posterior; a positive ``regularisation``: the ridge override):
+        (user_id, the model now served for them), or None when there was nothing to solve
+        (no one waiting, no fold-in with this model, fewer than ``min_ratings``)."""
         if not self.pending:
             return None
         user_id = self.pending.popitem(last=False)[0]
@@ -295,13 +322,17 @@ class Personalisation:
         if state is None:
             return
         evicted = set(self.histories.restore(state.histories))
+        if self.authenticator is not None:  # a replay across a restart is still a replay
+            self.authenticator.remember(r.feedback for ratings, _ in state.histories.values() for r in ratings
+                                        if r.feedback is not None)
         for user_id, ratings in state.peers.items():
             evicted.update(self.peers.add(user_id, ratings))
         restored = {u: m for u, m in state.models.items() if u not in evicted}
         self.solved_from.update({u: self.ratings(u) for u in restored})
         self.predictor.set_user_models(restored)
-        if self.sharing:  # solved again from what was kept, in case the last solve did not reach the file
-            self.pending.update(dict.fromkeys(restored))
+        self.pending.update(dict.fromkeys(restored))  # solved again: the state file keeps no posterior
+        # covariance (served from the prior's until then), and with fleet sharing the last solve may
+        # not have reached the file
         self._logger.info(f'restored {len(state.models)} folded-in users from {self.state_path}')
 
     def _save(self) -> None:

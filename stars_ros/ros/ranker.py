@@ -1,8 +1,8 @@
 """The ranker node: personalised rankings of robot actions (or candidate scenes) per scene.
 
-Subscribes ``stars/scene``, ``stars/user_id`` (transient local) and ``stars/feedback``;
-publishes ``stars/ranking``, ``stars/errors``, ``stars/user_model`` (transient local) and
-``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
+Subscribes ``stars/scene``, ``stars/user_id`` (transient local), ``stars/feedback`` and
+``stars/question_request``; publishes ``stars/ranking``, ``stars/errors``, ``stars/question``,
+``stars/user_model`` (transient local) and ``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
 ``stars/user_model`` (its peers', and its own, which changes nothing) and sends every
 folded-in user again when a subscriber joins that topic (``stars_ros.personalisation.fleet``). See README.md
 ("The ranker node") and docs/personalisation.md. Run with ``ros2 run stars_ros ranker`` or
@@ -18,7 +18,7 @@ their turn. Handing requests to a worker thread cost more in waiting for the GIL
 group, so a multi-threaded executor keeps this order too.
 
 The work itself, ROS-free, is ``stars_ros.node.core.RankerCore``; this module declares the
-parameters (``ranker_core.PARAMETERS``), creates the topics, the service and the timers,
+parameters (``node.core.PARAMETERS``), creates the topics, the service and the timers,
 and passes messages to and from the core.
 """
 from __future__ import annotations
@@ -38,8 +38,8 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 
-from stars_ros.errors import CheckpointError
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.errors import CheckpointError, ConfigError
+from stars_ros.node.core import PARAMETERS, QUESTION_DEPTH, TOPICS, RankerCore
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 
@@ -79,6 +79,7 @@ class RankerNode(Node):
         reliable = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        questions = QoSProfile(depth=QUESTION_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         sharing = self.params['fleet_sharing']
         # a robot that joins late gets the last models; with fleet sharing the history also
         # holds a re-send of every user (``_on_model_subscriber``) until the newcomer has it
@@ -87,6 +88,7 @@ class RankerNode(Node):
         self.publishers_by_topic = {
             'stars/ranking': self.create_publisher(String, 'stars/ranking', reliable),
             'stars/errors': self.create_publisher(String, 'stars/errors', 100),
+            'stars/question': self.create_publisher(String, 'stars/question', questions),
             'stars/user_model': self.create_publisher(String, 'stars/user_model', models, event_callbacks=(
                 PublisherEventCallbacks(matched=self._on_model_subscriber) if sharing else None))}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -96,6 +98,7 @@ class RankerNode(Node):
         self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
         self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data), latched)
         self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
+        self.create_subscription(String, 'stars/question_request', self._on_question_request, questions)
         if sharing:
             self.create_subscription(String, 'stars/user_model', self._on_user_model, models)
         self.create_service(Trigger, '~/reload', self._on_reload)
@@ -142,6 +145,10 @@ class RankerNode(Node):
         if self.core.accept_feedback(msg.data):
             self._more_work.trigger()
 
+    def _on_question_request(self, msg: String):
+        if self.core.accept_question_request(msg.data):
+            self._more_work.trigger()
+
     def _on_user_model(self, msg: String):
         if self.core.accept_user_model(msg.data):
             self._more_work.trigger()
@@ -180,7 +187,7 @@ def main(args=None):
     if usage.print_help_if_asked('ranker', __doc__, PARAMETERS,
                                  'ros2 run stars_ros ranker --ros-args -p checkpoint:=model.pt -p top_k:=3', args):
         return
-    run_node('ranker', RankerNode, _serve, (CheckpointError,), args, close=RankerNode.close)
+    run_node('ranker', RankerNode, _serve, (CheckpointError, ConfigError), args, close=RankerNode.close)
 
 
 if __name__ == '__main__':

@@ -1,0 +1,101 @@
+"""Which question the ranker asks a person: the (scene, action) whose rating would most reduce
+the expected predictive variance over the scenes the robot meets (``uncertainty``'s
+A-optimal criterion), answered on stars/question. ROS-free; ``RankerCore`` calls it.
+
+The candidates are the scene requests of a stars/question_request, or without them the
+``recent_scenes`` latest scenes the node remembers (``SceneMemory``): each action of an
+action-ranking request, each candidate scene of a candidate-scenes request under the action
+that ranks them. The target set is the candidates together with those remembered scenes
+whose encodings the node already holds, so the question serves what the robot sees. The
+candidates of a request are remembered as scenes the node has seen, so that the person's
+answer, sent as ordinary feedback, is folded in.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stars_ros import messages
+from stars_ros.errors import StarsError
+from stars_ros.model.model import UNKNOWN
+
+
+class NoQuestion(StarsError):
+    """Nothing to ask about: no candidates given and no usable scene remembered."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One question: rate ``action`` in scene ``scene_id`` (its candidate ``candidate``)."""
+
+    scene_id: str
+    action: str
+    candidate: str | None
+    x: np.ndarray  # [dim+1]: the row of the linear form this rating would add
+    c: float
+    column: int
+
+
+def candidates_of(predictor, request: messages.SceneRequest, h: np.ndarray) -> list:
+    """The questions one scene request offers, from its scenes' encodings ``h`` [len(graphs), dim]."""
+    h = np.asarray(h, dtype=np.float64)
+    if request.ranks_scenes:
+        action = predictor.ranking_action(request.action)
+        columns = np.full(len(request.labels), predictor.action_columns([action])[0])
+        x, c = predictor.inference.linear_form(h, np.full(len(columns), UNKNOWN), columns)
+        return [Candidate(request.scene_id, action, label, x[k], float(c[k]), int(columns[k]))
+                for k, label in enumerate(request.labels)]
+    names = list(request.actions or predictor.actions)
+    columns = np.asarray(predictor.action_columns(names))
+    rows = predictor.recommender.scene_vocabulary.rows([request.scene_id] * len(names))
+    x, c = predictor.inference.linear_form(np.repeat(h[:1], len(names), axis=0), rows, columns)
+    return [Candidate(request.scene_id, name, None, x[k], float(c[k]), int(columns[k])) for k, name in enumerate(names)]
+
+
+def choose_question(personalisation, user_id: str, requests: list, recent_scenes: int) -> dict:
+    """The stars/question reply for ``user_id`` over ``requests`` [(SceneRequest, text)]
+    (empty: the remembered scenes); raises StarsError when there is nothing to ask about."""
+    predictor, uncertainty = personalisation.predictor, personalisation.uncertainty
+    if uncertainty is None:
+        raise StarsError('this checkpoint has no fold-in (no users), so there is no question to choose')
+    memory = personalisation.scenes
+    remembered = memory.recent(recent_scenes)
+    offered, targets = [], []
+    for request, text in requests:
+        h = predictor.encode(request.graphs, validate=False)  # parse_scene_request validated them
+        memory.received(request.scene_id, text)
+        memory.ranked(request.scene_id, text, predictor, h)
+        offered += candidates_of(predictor, request, h)
+    for scene_id, text, encoded in remembered:
+        request = messages.parse_scene_request(text)
+        mine = encoded is not None and encoded[0] is predictor
+        if not requests or mine:
+            try:
+                found = candidates_of(predictor, request, encoded[1] if mine else
+                                      predictor.encode(request.graphs, validate=False))
+            except StarsError:  # e.g. candidate scenes that do not say which action ranks them
+                continue
+            targets += found
+            if not requests:
+                offered += found
+    if not offered:
+        raise NoQuestion('no scene to ask about: the request has no candidates and the node has seen no scene '
+                         'it can ask about yet')
+    targets = targets + offered if requests else targets
+    covariance = uncertainty.covariance(user_id, predictor.user_model(user_id))
+    target_rows = (np.stack([t.x for t in targets]), np.array([t.column for t in targets]))
+    gains = uncertainty.variance_reduction([(q.x[None], np.array([q.column])) for q in offered], target_rows,
+                                           covariance)
+    best = offered[int(np.argmax(gains))]
+    theta = predictor.user_theta(user_id)
+    z = float(best.x @ theta + best.c)
+    score = float(predictor.recommender.clip(predictor.inference.to_rating_scale(np.array([z]),
+                                                                                 np.array([best.column])))[0])
+    reply = {'user_id': user_id, 'scene_id': best.scene_id, 'action': best.action,
+             'expected_variance_reduction': float(gains.max()), 'score': score,
+             'score_sd': float(uncertainty.rating_sd(best.x[None], np.array([best.column]), covariance)[0]),
+             'candidates': len(offered), 'targets': len(targets), 'fingerprint': predictor.fingerprint}
+    if best.candidate is not None:
+        reply['candidate'] = best.candidate
+    return reply

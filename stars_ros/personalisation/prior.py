@@ -1,0 +1,167 @@
+"""The Gaussian prior of a person's θ_u = (p_u, b_u), estimated from a fitted model (empirical Bayes).
+
+With everything but the person fixed, the normalised prediction is linear in θ_u
+(``InferenceModel.linear_form``: z = xᵀθ + c), so a Gaussian prior and Gaussian rating noise
+give an exact Gaussian posterior after any number of ratings (``foldin``). This module
+estimates what that needs from the trained people and their training ratings:
+
+- **Covariance Σ₀**: the spread of the trained rows θ_u, shrunk by Ledoit–Wolf towards a
+  scaled identity. With a dozen trained people and d + 1 = 65 dimensions the sample covariance
+  has rank ≤ U − 1: most directions would get zero variance, i.e. a certainty no one has.
+  Ledoit–Wolf is closed form, needs no tuning, is always positive definite, and fills the
+  directions the trained people did not vary in with the average variance. (A diagonal plus
+  low-rank fit needs a rank chosen on data this small; Ledoit–Wolf picks its shrinkage from
+  the data by a consistent estimate of the optimal one.) b_u is rescaled to the average p
+  variance before shrinking and back after, so the identity target fits both.
+- **Mean μ₀**: the mean trained row, shrunk towards θ = 0 (the scene-only prediction every
+  stranger got before) by the positive-part James–Stein factor: from U people the mean is
+  itself uncertain, and its estimate with Σ₀/U error is shrunk as far as that error warrants.
+- **Noise σ²_a**: per action, the mean squared training residual on the z-scale.
+- **Known people**: each trained person starts from their own row with the posterior
+  covariance (Σ₀⁻¹ + XᵀD⁻¹X)⁻¹ of their training ratings.
+
+A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
+written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its user rows, assumes
+σ²_a = 1 (the z-scale's own variance: a conservative guess) and says so.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from stars_ros.model.numpy_model import InferenceModel
+
+log = logging.getLogger(__name__)
+DEFAULT_NOISE = 1.0  # z-scale noise variance assumed when a checkpoint stores none
+
+
+@dataclass(frozen=True)
+class UserPrior:
+    """N(mean, covariance) over θ = (p_u, b_u) [dim+1] (float64), the z-scale noise variance
+    per action ``noise`` [actions], and for trained people ``user_covariance``
+    [users, dim+1, dim+1] (None: they start from Σ₀ around their row). ``details`` says how
+    it was estimated."""
+
+    mean: np.ndarray
+    covariance: np.ndarray
+    noise: np.ndarray
+    user_covariance: np.ndarray | None = None
+    details: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """Tensors and plain values, as a weights-only checkpoint holds them."""
+        values = {'mean': torch.from_numpy(self.mean.copy()), 'covariance': torch.from_numpy(self.covariance.copy()),
+                  'noise': torch.from_numpy(self.noise.copy()), 'details': dict(self.details)}
+        if self.user_covariance is not None:
+            values['user_covariance'] = torch.from_numpy(self.user_covariance.astype(np.float32))
+        return values
+
+    @classmethod
+    def from_dict(cls, values: dict) -> 'UserPrior':
+        def array(name):
+            return np.asarray(values[name].numpy() if torch.is_tensor(values[name]) else values[name], dtype=np.float64)
+        users = array('user_covariance') if values.get('user_covariance') is not None else None
+        return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})))
+
+
+def ledoit_wolf(rows: np.ndarray) -> tuple[np.ndarray, float]:
+    """(covariance, shrinkage) of ``rows`` [n, p] by Ledoit & Wolf (2004): the sample
+    covariance (1/n) shrunk towards μI, μ its mean variance, by the estimated optimal weight."""
+    x = rows - rows.mean(0)
+    n, p = x.shape
+    sample = x.T @ x / n
+    mu = np.trace(sample) / p
+    x2 = x ** 2
+    beta = (np.sum(x2.T @ x2) / n - np.sum(sample ** 2)) / (p * n)
+    delta = np.sum((sample - mu * np.eye(p)) ** 2) / p
+    shrinkage = 0.0 if delta == 0 else float(np.clip(beta / delta, 0.0, 1.0))
+    return (1 - shrinkage) * sample + shrinkage * mu * np.eye(p), shrinkage
+
+
+def population(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(μ₀, Σ₀, details) from trained rows θ_u [users, dim+1]; see the module docstring."""
+    users, size = rows.shape
+    if users < 2:  # no spread to estimate: unit variance on the z-scale in every coordinate
+        return np.zeros(size), np.eye(size), {'covariance': 'identity (fewer than 2 trained users)',
+                                              'mean': 'zero', 'users': int(users)}
+    p_var = rows[:, :-1].var(0).mean()
+    b_var = rows[:, -1].var()
+    scale = np.ones(size)
+    if b_var > 0 and p_var > 0:
+        scale[-1] = np.sqrt(p_var / b_var)
+    covariance, shrinkage = ledoit_wolf(rows * scale)
+    covariance = covariance / np.outer(scale, scale)
+    mean = rows.mean(0)
+    spread = np.trace(covariance) / size / users  # variance of each coordinate of the mean estimate
+    norm = float(mean @ mean)
+    mean_weight = 1.0 if size <= 2 or norm == 0 else max(0.0, 1.0 - (size - 2) * spread / norm)
+    return mean * mean_weight, covariance, {'covariance': 'ledoit-wolf', 'shrinkage': round(float(shrinkage), 6),
+                                            'mean': 'james-stein towards 0', 'mean_weight': round(float(mean_weight), 6),
+                                            'users': int(users)}
+
+
+def user_rows(inference) -> np.ndarray:
+    """θ = (p_u, b_u) [users, dim+1] (float64) of a model's trained people."""
+    return np.concatenate([inference.user_rows, inference.user_offsets[:, None]], axis=1).astype(np.float64)
+
+
+def encode_all(fitted, data) -> np.ndarray:
+    """h_i of every scene of ``data`` [n_scenes, dim] (float64) under ``fitted``'s encoder."""
+    model = fitted.require_model()
+    parts = []
+    with torch.no_grad():
+        for start in range(0, len(data.scene_keys), 512):
+            index = torch.arange(start, min(start + 512, len(data.scene_keys)))
+            parts.append(model.encode(data.store.batch(index).to(model.device)).double().cpu().numpy())
+    return np.concatenate(parts)
+
+
+def rows_design(fitted, inference, data, rows: np.ndarray, h: np.ndarray) -> tuple:
+    """(x [n, dim+1], c [n], z [n]) of ``rows`` of ``data``: the linear form of each rating's
+    normalised prediction in θ (``InferenceModel.linear_form``) and its z-scored score; ``h``
+    is ``encode_all``'s."""
+    items = data.item_keys(fitted.config.model.item_key)
+    scenes, actions = data.scenes[rows], data.actions[rows]
+    x, c = inference.linear_form(h[scenes], fitted.scene_vocabulary.rows([items[s] for s in scenes]), actions)
+    return x, c, inference.to_z(data.scores[rows], actions)
+
+
+def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None) -> UserPrior:
+    """The prior of a model ``fitted`` (``stars_ros.model.training``'s training class) on
+    ``rows`` of ``data`` (RatingData); see the module docstring. ``h``: ``encode_all``'s, if
+    already computed."""
+    inference = InferenceModel(fitted.require_model())
+    trained = user_rows(inference)
+    mean, covariance, details = population(trained)
+    rows = np.asarray(rows)
+    x, c, z = rows_design(fitted, inference, data, rows, encode_all(fitted, data) if h is None else h)
+    users, actions = fitted.user_vocabulary.rows(list(data.users[rows])), data.actions[rows]
+    residual = z - (np.einsum('nd,nd->n', x, trained[users]) + c)
+    noise = np.ones(len(inference.target_mean))
+    for a in range(len(noise)):
+        if (actions == a).any():
+            noise[a] = float(np.mean(residual[actions == a] ** 2))
+    precision = np.linalg.inv(covariance)
+    user_covariance = np.empty((len(trained), len(mean), len(mean)))
+    for row in range(len(trained)):
+        mine = users == row
+        user_covariance[row] = np.linalg.inv(precision + (x[mine] / noise[actions[mine], None]).T @ x[mine])
+    details = {**details, 'noise': 'mean squared z-residual of the training ratings, per action',
+               'ratings': int(len(rows))}
+    return UserPrior(mean, covariance, noise, user_covariance, details)
+
+
+def prior_of(recommender, inference) -> UserPrior:
+    """The prior a checkpoint stores, else one estimated from its user rows (with a warning)."""
+    stored = getattr(recommender, 'user_prior', None)
+    if stored is not None:
+        return UserPrior.from_dict(stored)
+    mean, covariance, details = population(user_rows(inference))
+    log.warning('this checkpoint stores no personalisation prior: its population prior is estimated from the '
+                f'trained user rows and the rating noise assumed to be {DEFAULT_NOISE} on the z-scale; '
+                'score_sd is conservative until the model is trained again')
+    noise = np.full(len(inference.target_mean), DEFAULT_NOISE)
+    return UserPrior(mean, covariance, noise, None, {**details, 'noise': f'assumed {DEFAULT_NOISE} (not stored)'})

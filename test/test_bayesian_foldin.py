@@ -1,0 +1,155 @@
+"""The Bayesian fold-in's math by hand, its prior, its uncertainty and question criterion, and
+the prior's round trip through a checkpoint (on the generated data's tiny checkpoint)."""
+import logging
+
+import numpy as np
+import pytest
+
+from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint
+from stars_ros.model.predictor import Predictor
+from stars_ros.personalisation import prior as prior_module
+from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, solve_ridge
+from stars_ros.personalisation.prior import UserPrior, ledoit_wolf, population
+from stars_ros.personalisation.uncertainty import Uncertainty
+
+
+def test_posterior_is_the_textbook_closed_form_on_a_two_dimensional_toy():
+    # x = [[1, 0], [1, 1]], y = [1, 2], noise variances [1, 0.5], prior N(0, diag(2, 1)).
+    # By hand: XᵀD⁻¹X = [[3, 2], [2, 2]], Λ = [[3.5, 2], [2, 3]], det Λ = 6.5,
+    # Λ⁻¹ = [[3, −2], [−2, 3.5]] / 6.5, XᵀD⁻¹y = [5, 4], mean = Λ⁻¹ [5, 4] = [7, 4] / 6.5.
+    mean, covariance = gaussian_posterior(np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([1.0, 2.0]),
+                                          np.array([1.0, 0.5]), np.zeros(2), np.diag([0.5, 1.0]))
+    assert mean == pytest.approx([7 / 6.5, 4 / 6.5], abs=1e-12)
+    assert covariance == pytest.approx(np.array([[3.0, -2.0], [-2.0, 3.5]]) / 6.5, abs=1e-12)
+
+
+def test_a_flat_prior_gives_least_squares_and_a_sharp_one_the_prior_mean():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(12, 3)), rng.normal(size=12)
+    prior_mean = np.array([0.3, -0.2, 0.5])
+    flat, _ = gaussian_posterior(x, y, np.ones(12), prior_mean, 1e-10 * np.eye(3))
+    assert flat == pytest.approx(np.linalg.lstsq(x, y, rcond=None)[0], abs=1e-7)
+    sharp, covariance = gaussian_posterior(x, y, np.ones(12), prior_mean, 1e10 * np.eye(3))
+    assert sharp == pytest.approx(prior_mean, abs=1e-8)
+    assert np.abs(covariance).max() < 1e-9
+
+
+def test_ledoit_wolf_keeps_the_trace_and_is_positive_definite_with_fewer_rows_than_dimensions():
+    rows = np.random.default_rng(1).normal(size=(8, 20)) * np.linspace(0.5, 2.0, 20)
+    covariance, shrinkage = ledoit_wolf(rows)
+    sample = np.cov(rows, rowvar=False, bias=True)
+    assert 0 < shrinkage <= 1
+    assert np.trace(covariance) == pytest.approx(np.trace(sample))
+    assert np.linalg.eigvalsh(sample).min() < 1e-10 < np.linalg.eigvalsh(covariance).min()
+
+
+def test_the_population_mean_is_shrunk_towards_zero_as_far_as_its_own_error_warrants():
+    rng = np.random.default_rng(2)
+    far = rng.normal(size=(10, 6)) * 0.1 + 5.0  # a mean far beyond its error: kept
+    assert population(far)[2]['mean_weight'] > 0.99
+    centred = rng.normal(size=(10, 6))
+    centred -= centred.mean(0) - 0.01  # a mean well within its error: shrunk away
+    mean, _, details = population(centred)
+    assert details['mean_weight'] == 0 and not mean.any()
+
+
+@pytest.fixture(scope='module')
+def predictor(tiny_checkpoint):
+    return Predictor.load(tiny_checkpoint)
+
+
+def test_the_checkpoint_keeps_the_prior_and_the_fold_in_uses_it(tiny_checkpoint, predictor):
+    content = read_checkpoint(tiny_checkpoint)
+    assert set(content['user_prior']) >= {'mean', 'covariance', 'noise', 'user_covariance'}
+    assert content['metadata']['user_prior']['covariance'] == 'ledoit-wolf'
+    foldin = FoldIn(predictor)
+    stored = UserPrior.from_dict(content['user_prior'])
+    assert foldin.population == pytest.approx(stored.mean)
+    assert (foldin.noise > 0).all() and (foldin.noise < 1).all()  # training residuals are below the z-scale's variance
+    known = predictor.recommender.users[0]
+    assert foldin.covariance(known) == pytest.approx(stored.user_covariance[0])
+    assert np.trace(foldin.covariance(known)) < np.trace(foldin.covariance('stranger'))
+
+
+def test_an_older_checkpoint_without_a_prior_still_loads_and_says_so(tiny_checkpoint, caplog):
+    recommender, _ = load_checkpoint(tiny_checkpoint)
+    recommender.user_prior = None  # what a checkpoint written before the prior was kept gives
+    with caplog.at_level(logging.WARNING, logger=prior_module.__name__):
+        foldin = FoldIn(Predictor.from_model(recommender))
+    assert 'stores no personalisation prior' in caplog.text
+    assert (foldin.noise == prior_module.DEFAULT_NOISE).all()
+
+
+def ratings_of(scenes, count):
+    return [Rating(scene, 'navigate', 0.1 + 0.08 * k, scene['identifier']) for k, scene in enumerate(scenes[:count])]
+
+
+def test_fold_in_is_the_posterior_of_its_design_and_ridge_stays_an_override(predictor, synthetic_scenes):
+    foldin = FoldIn(predictor)
+    ratings = ratings_of(synthetic_scenes, 5)
+    model = foldin.fit(ratings, 'newcomer')
+    x, y = foldin.regression(ratings)
+    mean, covariance, precision = foldin.prior_distribution('newcomer')
+    expected, expected_covariance = gaussian_posterior(x, y, foldin.noise[np.zeros(5, dtype=int)], mean, precision)
+    assert np.append(model.p, model.b) == pytest.approx(expected)
+    assert model.covariance == pytest.approx(expected_covariance)
+    assert model.regularisation == 0
+    ridge = foldin.fit(ratings, 'newcomer', regularisation=3.0)
+    assert np.append(ridge.p, ridge.b) == pytest.approx(solve_ridge(x, y, mean, 3.0))
+    empty = foldin.fit([], 'newcomer')
+    assert np.append(empty.p, empty.b) == pytest.approx(mean) and empty.n_ratings == 0
+
+
+def test_robots_holding_the_same_ratings_serve_bit_identical_posteriors(tiny_checkpoint, synthetic_scenes):
+    ratings = ratings_of(synthetic_scenes, 6)
+    first = FoldIn(Predictor.load(tiny_checkpoint), scene_by_scene=True).fit(ratings, 'shared')
+    second = FoldIn(Predictor.load(tiny_checkpoint), scene_by_scene=True).fit(ratings, 'shared')
+    assert np.array_equal(first.p, second.p) and first.b == second.b
+    assert np.array_equal(first.covariance, second.covariance)
+
+
+def test_score_sd_shrinks_with_feedback_and_is_the_hand_formula(predictor, synthetic_scenes):
+    foldin = FoldIn(predictor)
+    uncertainty = Uncertainty(foldin)
+    h = predictor.encode(synthetic_scenes[20:21]).astype(np.float64)
+    x, _ = predictor.inference.linear_form(h, np.array([-1]), np.array([0]))
+    before = uncertainty.rating_sd(x, np.array([0]), uncertainty.covariance('newcomer'))[0]
+    model = foldin.fit(ratings_of(synthetic_scenes, 10), 'newcomer')
+    after = uncertainty.rating_sd(x, np.array([0]), uncertainty.covariance('newcomer', model))[0]
+    by_hand = np.sqrt(x[0] @ model.covariance @ x[0] + foldin.noise[0]) * predictor.inference.target_std[0]
+    assert after == pytest.approx(by_hand)
+    assert after < before
+    floor = np.sqrt(foldin.noise[0]) * predictor.inference.target_std[0]  # the rating noise stays
+    assert after > floor
+
+
+def test_p_first_is_best_is_one_for_a_sure_gap_and_a_half_for_a_tie():
+    class Stub:
+        dim = 1
+        noise = np.array([0.1])
+
+        class inference:  # noqa: N801 - stands in for InferenceModel
+            target_std, target_mean = np.array([1.0]), np.array([0.0])
+    uncertainty = Uncertainty(Stub())
+    x = np.array([[1.0, 0.0], [0.0, 1.0]])
+    actions = np.zeros(2, dtype=int)
+    sure = uncertainty.p_first_is_best(x, np.array([0.0, 0.0]), actions, np.array([5.0, 0.0]), 0.01 * np.eye(2), 0)
+    tie = uncertainty.p_first_is_best(x, np.array([0.0, 0.0]), actions, np.array([1.0, 1.0]), np.eye(2), 0)
+    assert sure == 1.0
+    assert tie == pytest.approx(0.5, abs=0.06)
+
+
+def test_the_question_that_teaches_most_is_the_one_along_the_targets_uncertainty():
+    class Stub:
+        dim = 1
+        noise = np.array([0.5])
+
+        class inference:  # noqa: N801
+            target_std, target_mean = np.array([2.0]), np.array([0.0])
+    uncertainty = Uncertainty(Stub())
+    covariance = np.diag([4.0, 0.25])
+    targets = (np.array([[1.0, 0.0], [1.0, 0.0]]), np.zeros(2, dtype=int))  # both load on θ₀ only
+    along, across = (np.array([[1.0, 0.0]]), np.zeros(1, dtype=int)), (np.array([[0.0, 1.0]]), np.zeros(1, dtype=int))
+    gains = uncertainty.variance_reduction([along, across], targets, covariance)
+    # by hand: asking x = e₀: k_t = 4 for both targets, innovation 4 + 0.5; 2 · 4 · 16 / 4.5; across: k_t = 0
+    assert gains == pytest.approx([2 * 4 * 16 / 4.5, 0.0])
