@@ -37,7 +37,7 @@ import torch
 from mcap.exceptions import McapError
 
 from stars_ros import messages
-from stars_ros.recording import bag as recording
+from stars_ros import recording
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.data.ratings import RatingData, load_dataset
 from stars_ros.errors import StarsError
@@ -84,25 +84,16 @@ def _topic(name: str) -> str | None:
     return None
 
 
-def _decode_string(data: bytes) -> str:
-    """std_msgs/String from CDR bytes (4-byte encapsulation header, uint32 length, text, NUL)."""
-    order = 'little' if data[1] & 1 else 'big'
-    length = int.from_bytes(data[4:8], order)
-    return bytes(data[8:8 + length]).rstrip(b'\0').decode('utf-8')
-
-
 def read_log_file(path: Path, found: LogRatings) -> list:
     """(topic, text, log_time) of one MCAP file; a damaged file gives what precedes the damage."""
     try:
         return list(recording.read_messages(path))
     except (McapError, EOFError, ValueError, OSError, RuntimeError, KeyError, AssertionError) as error:
         try:
-            _, channels, records, _, damage = recording._salvage(path)
+            salvaged, damage = recording.salvage_messages(path)
         except OSError as second:
             found.problem('unreadable file', f'{path}: {second}')
             return []
-        salvaged = [(channels[m.channel_id].topic, _decode_string(m.data), m.log_time) for m in records
-                    if m.channel_id in channels]
         found.problem('truncated or damaged file', f'{path}: {damage or error}; {len(salvaged)} messages before '
                       'the damage were read')
         return salvaged
@@ -113,8 +104,7 @@ def log_files(paths) -> list:
     files = []
     for path in map(Path, paths):
         if path.is_dir():
-            found = recording._mcap_files(path)
-            files.append((path, found))
+            files.append((path, recording.bag_files(path)))
         else:
             files.append((path, [path]))
     return files
@@ -198,17 +188,6 @@ def _store(parent_kind: str, scenes: list):
     return TabularStore(np.asarray(scenes, dtype=np.float32), [])
 
 
-def _concat(first, second):
-    if isinstance(first, TabularStore):
-        return TabularStore(torch.cat([first.features, second.features]).numpy(), first.feature_names)
-    store = GraphStore.__new__(GraphStore)
-    store._set(x=torch.cat([first.x, second.x]), edge_index=torch.cat([first.edge_index, second.edge_index], 1),
-               edge_type=torch.cat([first.edge_type, second.edge_type]),
-               node_counts=torch.cat([first.node_counts, second.node_counts]),
-               edge_counts=torch.cat([first.edge_counts, second.edge_counts]))
-    return store
-
-
 def feedback_data(recommender: StarsTrainer, ratings: dict, original: RatingData | None) -> RatingData:
     """The feedback ratings as RatingData (scenes keyed by their training key when they
     have one, else by content), appended to ``original`` when given."""
@@ -235,8 +214,8 @@ def feedback_data(recommender: StarsTrainer, ratings: dict, original: RatingData
     offset = len(original.scene_keys)
     return RatingData(np.concatenate([original.users, users]), np.concatenate([original.scenes, scene_rows + offset]),
                       np.concatenate([original.actions, actions]), np.concatenate([original.scores, scores]),
-                      list(original.scene_keys) + keys, _concat(original.store, store), recommender.action_names,
-                      original.fingerprint, original.source)
+                      list(original.scene_keys) + keys, type(store).concatenate([original.store, store]),
+                      recommender.action_names, original.fingerprint, original.source)
 
 
 def fine_tune(recommender: StarsTrainer, data: RatingData, epochs: int) -> list:

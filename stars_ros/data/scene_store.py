@@ -104,6 +104,17 @@ class GraphStore:
         store._set(**torch.load(path, weights_only=True))
         return store
 
+    @classmethod
+    def concatenate(cls, stores: Sequence['GraphStore']) -> 'GraphStore':
+        """One store of the graphs of ``stores``, in order (row indices of the second start
+        after the first's last): a data set extended by new scenes keeps its rows."""
+        store = cls.__new__(cls)
+        store._set(x=torch.cat([s.x for s in stores]), edge_index=torch.cat([s.edge_index for s in stores], 1),
+                   edge_type=torch.cat([s.edge_type for s in stores]),
+                   node_counts=torch.cat([s.node_counts for s in stores]),
+                   edge_counts=torch.cat([s.edge_counts for s in stores]))
+        return store
+
     def __len__(self) -> int:
         return len(self.node_counts)
 
@@ -132,6 +143,11 @@ class TabularStore:
     def __init__(self, features: np.ndarray, feature_names: Sequence[str]):
         self.features = torch.as_tensor(np.asarray(features, dtype=np.float32))
         self.feature_names = tuple(feature_names)
+
+    @classmethod
+    def concatenate(cls, stores: Sequence['TabularStore']) -> 'TabularStore':
+        """One store of the rows of ``stores``, in order, named as the first names its columns."""
+        return cls(torch.cat([s.features for s in stores]).numpy(), stores[0].feature_names)
 
     def __len__(self) -> int:
         return self.features.shape[0]

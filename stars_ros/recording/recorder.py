@@ -1,0 +1,256 @@
+"""The recorder: String messages of the node's topics into one bag (``bag``), feedback
+through the journal first (``journal``), from the threads that serve requests.
+
+Every ``flush_interval`` seconds a thread of its own writes out the chunk in progress,
+fsyncs it and rewrites metadata.yaml, so a hard kill loses at most that interval; the fsyncs
+run outside the lock the serving threads record under. Disk errors never raise to the
+caller: they are reported through ``on_event`` and retried at each flush, and feedback that
+could not be journaled is kept in memory until it can. ``close`` writes block YAML, as
+rosbag2 does, and repairs a file that a failure left unfinished (``recovery.recover``).
+"""
+from __future__ import annotations
+
+import datetime
+import os
+import threading
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+from stars_ros.recording.bag import PID_FILE, McapFile, encode_string, metadata_text, write_metadata
+from stars_ros.recording.journal import JOURNAL, FeedbackJournal
+from stars_ros.recording.recovery import recover
+
+
+class Recorder:
+    """Writes String messages of the given topics into one rosbag2-layout MCAP bag.
+
+    Args:
+        folder (str or Path): where the bag directory is created.
+        topics (dict): topic name -> offered QoS (``qos_profile()``), the topics to record.
+        rotation_bytes (int, optional): start a new file once one reaches this size.
+            (default: 64 MiB)
+        flush_interval (float, optional): seconds between flushes; a hard kill loses at most
+            this much. (default: 1.0)
+        name (str, optional): bag directory name. (default: ``stars_<UTC time>``)
+        custom (dict, optional): kept in metadata.yaml ``custom_data`` and in each file.
+        on_event (callable, optional): ``on_event(level, text)`` with level ``'error'`` or
+            ``'info'`` for disk failures and recoveries; called from any thread.
+    """
+
+    def __init__(self, folder, topics: dict, *, rotation_bytes: int = 64 << 20, flush_interval: float = 1.0,
+                 name: str | None = None, custom: dict | None = None,
+                 on_event: Callable[[str, str], None] | None = None):
+        if rotation_bytes < 4096:
+            raise ValueError('rotation_bytes must be at least 4096')
+        if not flush_interval > 0:
+            raise ValueError('flush_interval must be positive')
+        stamp = datetime.datetime.now(datetime.timezone.utc).strftime('%Y_%m_%d-%H_%M_%S')
+        self.name = name or f'stars_{stamp}'
+        self.path = Path(folder).expanduser() / self.name
+        self.topics = dict(topics)
+        self.rotation_bytes = rotation_bytes
+        self.flush_interval = flush_interval
+        self.custom = dict(custom or {})
+        self.error: str | None = None
+        self.dropped = 0
+        self._on_event = on_event or (lambda level, text: None)
+        self._chunk_size = min(1 << 20, rotation_bytes // 8)
+        self._lock = threading.RLock()
+        self._sync_lock = threading.Lock()  # orders metadata writes; taken after _lock, never before it
+        self._metadata_generation = self._metadata_written = 0
+        self._files: list = []
+        self._file: McapFile | None = None
+        self._journal = FeedbackJournal(self.path / JOURNAL)
+        self._unrecorded: list = []  # journaled feedback not yet in an MCAP file
+        self._closed = False
+        self._damaged = False
+        self._stop = threading.Event()
+        with self._lock:
+            self._open()
+        self._flusher = threading.Thread(target=self._flush_loop, name='stars-recorder-flush', daemon=True)
+        self._flusher.start()
+
+    # -- state -----------------------------------------------------------------------------
+    @property
+    def pending_feedback(self) -> int:
+        """Accepted feedback that is not yet journaled on disk (kept in memory, retried)."""
+        return self._journal.unsaved
+
+    @property
+    def files(self) -> list:
+        with self._lock:
+            return [self.path / f.path for f in self._files]
+
+    def _fail(self, error: Exception, doing: str, lose_file: bool = True):
+        message = f'recording to {self.path} failed while {doing}: {error}'
+        first = self.error is None
+        self.error = message
+        if lose_file and self._file is not None:
+            self._damaged = True  # the file is left unfinished: close() repairs it
+            try:
+                self._file.stream.close()
+            except OSError:
+                pass
+            self._file = None
+        if first:
+            self._on_event('error', message)
+
+    def _open(self):
+        """Create the bag directory, journal and next file; on failure stay in error state."""
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            (self.path / PID_FILE).write_text(f'{os.getpid()}\n')
+            self._journal.open()
+            path = self.path / f'{self.name}_{len(self._files)}.mcap'
+            self._file = McapFile(path, self.topics, self._chunk_size, self.custom)
+            self._files.append(self._file.stats)
+            self._write_metadata(self._metadata_snapshot())
+        except OSError as error:
+            self._fail(error, 'opening the bag')
+            return
+        self._retry_feedback()
+        self._check_healthy()
+
+    def _check_healthy(self):
+        if self.error is not None and self._file is not None and self._journal.healthy:
+            self.error = None
+            self._on_event('info', f'recording to {self.path} works again')
+
+    # -- writing ---------------------------------------------------------------------------
+    def write(self, topic: str, text: str, log_time: int) -> bool:
+        """Record ``text`` on ``topic`` at ``log_time`` (ns); False if it could not be."""
+        data = encode_string(text)
+        with self._lock:
+            if self._closed or self._file is None:
+                self.dropped += 1
+                return False
+            try:
+                self._file.write(topic, data, log_time)
+                if self._file.size() >= self.rotation_bytes:
+                    self._rotate()
+            except OSError as error:
+                self._fail(error, 'writing')
+                self.dropped += 1
+                return False
+            return True
+
+    def write_feedback(self, topic: str, text: str, log_time: int) -> bool:
+        """Record feedback: journaled and fsync'd before returning True; kept in memory and
+        retried at each flush when the disk refuses it, so it is never silently lost. The
+        journal's fsync runs outside the lock ``write`` takes, so other messages are recorded
+        meanwhile. Not to be called once ``close`` has begun."""
+        entry = {'topic': topic, 'log_time': log_time, 'data': text}
+        saved, failure = self._journal.save(entry)
+        with self._lock:
+            if failure is not None:
+                self._fail(failure, 'journaling feedback', lose_file=False)
+            self._unrecorded += saved
+            self._record_journaled()
+        return any(done is entry for done in saved)
+
+    def _retry_feedback(self):
+        """Journal the feedback that waits for the disk, then record what is journaled."""
+        saved, failure = self._journal.retry()
+        self._unrecorded += saved
+        if failure is not None:
+            self._fail(failure, 'journaling feedback', lose_file=False)
+        self._record_journaled()
+
+    def _record_journaled(self):
+        """Journaled feedback into the MCAP file, oldest first, while the file takes it."""
+        while self._unrecorded and self._file is not None:
+            entry = self._unrecorded[0]
+            if not self.write(entry['topic'], entry['data'], entry['log_time']):
+                return
+            self._unrecorded.pop(0)
+
+    def _rotate(self):
+        self._file.finish()
+        self._file = None
+        self._open()
+
+    def flush(self):
+        """Write out the chunk in progress, fsync it and rewrite metadata.yaml; retry a failed
+        disk. Called every ``flush_interval`` by a background thread. The fsyncs run outside
+        the lock, on a duplicate of the file descriptor, so the threads that record (the
+        ranker's request path) never wait for the disk."""
+        synced = None
+        with self._lock:
+            if self._closed:
+                return
+            if self._file is None:
+                self._open()
+            if self._file is not None:
+                try:
+                    self._file.flush()
+                    synced = (self._file, os.dup(self._file.stream.fileno()), self._metadata_snapshot())
+                except OSError as error:
+                    self._fail(error, 'flushing')
+            self._retry_feedback()
+            self._check_healthy()
+        if synced is None:
+            return
+        file, descriptor, metadata = synced
+        failure = None
+        try:
+            os.fsync(descriptor)
+            self._write_metadata(metadata)
+        except OSError as error:
+            failure = error
+        finally:
+            os.close(descriptor)
+        if failure is not None:
+            with self._lock:
+                if self._file is file:
+                    self._fail(failure, 'flushing')
+
+    def _metadata_snapshot(self) -> tuple:
+        """(generation, copies of the files' statistics so far); call with the lock held."""
+        self._metadata_generation += 1
+        return self._metadata_generation, [replace(f, topics=dict(f.topics)) for f in self._files]
+
+    def _write_metadata(self, snapshot: tuple, interim: bool = True):
+        """Write ``snapshot`` unless a newer one is already on disk (the flusher writes its
+        snapshot after releasing the lock, so a rotation may have overtaken it)."""
+        generation, files = snapshot
+        text = metadata_text(files, self.topics, self.custom, interim)
+        with self._sync_lock:
+            if generation > self._metadata_written:
+                write_metadata(self.path, text)
+                self._metadata_written = generation
+
+    def _flush_loop(self):
+        while not self._stop.wait(self.flush_interval):
+            self.flush()
+
+    def close(self) -> list:
+        """Finish the current file, write metadata.yaml and remove the pid marker. Returns
+        the feedback entries that could not be journaled (to be logged by the caller)."""
+        self._stop.set()
+        if self._flusher is not threading.current_thread():
+            self._flusher.join()
+        with self._lock:
+            if self._closed:
+                return self._journal.waiting()
+            self._retry_feedback()
+            self._closed = True
+            try:
+                if self._file is not None:
+                    self._file.finish()
+                    self._file = None
+                self._journal.close()
+                if self._damaged:
+                    recover(self.path)
+                elif self._files:
+                    self._write_metadata(self._metadata_snapshot(), interim=False)
+                (self.path / PID_FILE).unlink(missing_ok=True)
+            except OSError as error:
+                self._fail(error, 'closing')
+            return self._journal.waiting()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
