@@ -93,6 +93,12 @@ def test_ros_args_rcl_refuses_end_in_one_line_on_stderr_and_status_2(executable,
     assert ', at /' not in done.stderr  # rcl's source locations are left out
 
 
+def test_scene_publisher_names_the_source_file_it_did_not_find(tmp_path):
+    done = _run_executable('stars_ros.ros.scene_publisher', ['--ros-args', '-p', 'source:=raw/a.jsonl'], tmp_path)
+    assert done.returncode == 1 and len(done.stderr.splitlines()) == 1, done.stderr
+    assert f"source {tmp_path / 'cwd' / 'raw' / 'a.jsonl'}: no such file" in done.stderr
+
+
 def test_help_is_asked_for_only_before_ros_args():
     assert usage.asked_for_help(['ranker', '--help']) and usage.asked_for_help(['ranker', '-h'])
     assert usage.asked_for_help(['ranker', '-h', '--ros-args', '-p', 'top_k:=3'])

@@ -281,7 +281,9 @@ def test_scene_publisher_feeds_the_ranker(node, socnav1_root, tmp_path):
             ({'count': 3, 'seed': 4, 'user_id': KNOWN_USER, 'scene_id_prefix': 'rnd-', 'rate': 20.0}, 'rnd-')]
     for params, prefix in runs:
         publisher = start_node('stars_ros.ros.scene_publisher', domain_id(0), params, tmp_path / f'{prefix}.log')
-        assert publisher.wait(timeout=60) == 0, (tmp_path / f'{prefix}.log').read_text()
+        log = tmp_path / f'{prefix}.log'
+        assert publisher.wait(timeout=60) == 0, log.read_text()
+        assert f"published {prefix}0 for user {params['user_id']} on /stars/scene (1 in all)" in log.read_text()
     assert client.wait(lambda: all(client.ranking_for(f'pub-{k}') for k in range(4))
                        and all(client.ranking_for(f'rnd-{k}') for k in range(3)), 30)
     assert all(client.ranking_for(f'pub-{k}')['user_id'] == 'a' for k in range(4))
@@ -303,6 +305,7 @@ def test_replay_reruns_a_recorded_session(node, scenes, tmp_path):
     replay = start_node('stars_ros.ros.replay', domain_id(0), {'bag': tmp_path / 'session', 'rate': 1.0},
                         tmp_path / 'replay.log')
     assert replay.wait(timeout=60) == 0, (tmp_path / 'replay.log').read_text()
+    assert 'played a message on /stars/user_id (1 in all)' in (tmp_path / 'replay.log').read_text()
     assert 'replayed 6 messages' in (tmp_path / 'replay.log').read_text()
     assert client.wait(lambda: all(client.ranking_for(f'replayed-{k}') for k in range(5)), 30)
     assert {client.ranking_for(f'replayed-{k}')['user_id'] for k in range(5)} == {'c'}

@@ -3,7 +3,8 @@
 Re-running a session against a new checkpoint is: start the ranker with that checkpoint,
 then replay the old bag's ``/stars/scene`` and ``/stars/user_id``; the new rankings are
 recorded by the ranker as usual. Each topic is published with the QoS it was recorded
-with (so user ids stay latched) and can be remapped like any topic.
+with (so user ids stay latched) and can be remapped like any topic. It logs what it played
+at most every 5 s.
 
     ros2 run stars_ros replay --ros-args -p bag:=$HOME/.ros/stars_ros/records/stars_2026_01_01-12_00_00 -p rate:=2.0
 """
@@ -21,6 +22,8 @@ from std_msgs.msg import String
 from stars_ros.recording.bag import bag_topics, read_messages
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
+
+LOG_PERIOD = 5.0  # seconds between two lines saying what was played
 
 PARAMETERS = {  # name: (default, description)
     'bag': ('', 'bag folder or MCAP file to play'),
@@ -72,6 +75,8 @@ class Replay(Node):
                     time.sleep(delay)
             self._outputs[topic].publish(String(data=text))
             played += 1
+            self.get_logger().info(f'played a message on {self._outputs[topic].topic_name} ({played} in all)',
+                                   throttle_duration_sec=LOG_PERIOD)
         for publisher in self._outputs.values():
             publisher.wait_for_all_acked(Duration(seconds=5))
         self.get_logger().info(f'replayed {played} messages from {self.bag}')

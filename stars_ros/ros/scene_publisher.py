@@ -2,14 +2,16 @@
 
 Scenes come from a JSONL file (SocNav1 lines as they are) or are generated at random;
 with ``placements`` > 0 each message asks to rank that many alternative robot placements
-of the scene instead of the model's actions. Publishes ``stars/scene``.
+of the scene instead of the model's actions. Publishes ``stars/scene`` and logs what it
+published at most every 5 s. A relative ``source`` is taken from the folder the node starts in.
 
-    ros2 run stars_ros scene_publisher --ros-args -p source:=raw/a.jsonl -p user_id:=a -p rate:=5.0
+    ros2 run stars_ros scene_publisher --ros-args -p source:=$STARS_SOCNAV1_ROOT/raw/a.jsonl -p user_id:=a -p rate:=5.0
 """
 from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
@@ -23,8 +25,10 @@ from stars_ros.data.scene_source import PLACEMENTS, random_scene, read_scenes, s
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
 
+LOG_PERIOD = 5.0  # seconds between two lines saying what was published
+
 PARAMETERS = {  # name: (default, description)
-    'source': ('', 'JSONL file of scenes; empty: random scenes'),
+    'source': ('', 'JSONL file of scenes (relative: to the folder the node starts in); empty: random scenes'),
     'user_id': ('', 'user id put in every request; empty: none'),
     'rate': (2.0, 'requests per second'),
     'count': (0, 'requests to publish before exiting; 0: no end'),
@@ -48,6 +52,10 @@ class ScenePublisher(Node):
         if not rate > 0 or self.count < 0 or not 0 <= self.placements <= len(PLACEMENTS):
             raise ValueError(f'need rate > 0, count >= 0 and placements in 0..{len(PLACEMENTS)}')
         self.rng = np.random.default_rng(seed)
+        if self.source:
+            self.source = str(Path(self.source).expanduser().absolute())
+            if not Path(self.source).is_file():
+                raise DataError(f'source {self.source}: no such file')
         self.scenes = read_scenes(self.source) if self.source else None
         self.sent = 0
         self.publisher = self.create_publisher(String, 'stars/scene',
@@ -68,15 +76,18 @@ class ScenePublisher(Node):
             self.publisher.wait_for_all_acked(Duration(seconds=5))
             self.get_logger().info(f'published {self.sent} scene requests')
             raise SystemExit(0)
-        payload = scene_request(f'{self.prefix}{self.sent}', self._next_scene(), self.user_id or None,
-                                self.placements)
+        scene_id = f'{self.prefix}{self.sent}'
+        payload = scene_request(scene_id, self._next_scene(), self.user_id or None, self.placements)
         self.publisher.publish(String(data=json.dumps(payload)))
         self.sent += 1
+        self.get_logger().info(f"published {scene_id}{f' for user {self.user_id}' if self.user_id else ''} on "
+                               f'{self.publisher.topic_name} ({self.sent} in all)', throttle_duration_sec=LOG_PERIOD)
 
 
 def main(args=None):
     if usage.print_help_if_asked('scene_publisher', __doc__, PARAMETERS, 'ros2 run stars_ros scene_publisher '
-                                 '--ros-args -p source:=raw/a.jsonl -p user_id:=a -p rate:=5.0 -p count:=10', args):
+                                 '--ros-args -p source:=$STARS_SOCNAV1_ROOT/raw/a.jsonl -p user_id:=a -p rate:=5.0 '
+                                 '-p count:=10', args):
         return
     run_node('scene_publisher', ScenePublisher, fatal=(DataError, OSError, ValueError), args=args,
              ends=(SystemExit,))  # _tick's end once count requests are out
