@@ -13,12 +13,11 @@ from typing import NamedTuple
 
 import torch
 
-from stars_ros.data.ratings import RatingData, load_dataset
+from stars_ros.data.ratings import RatingData, load_dataset, socnav1_root
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.protocol import fit_executor
 
-DEFAULT_SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT',
-                                      Path(__file__).resolve().parents[1].parent / 'shared' / 'datasets' / 'socnav1'))
+DEFAULT_SOCNAV1 = socnav1_root()
 
 
 def setup_logging(verbose: bool) -> None:

@@ -31,3 +31,7 @@ class ConfigError(StarsError):
 
 class TrainingDivergedError(StarsError):
     """Parameters became non-finite during training: lower the learning rate."""
+
+
+class UnknownSceneError(StarsError):
+    """A scene named by id is not in the data the ids are looked up in (give its content)."""

@@ -1,6 +1,5 @@
 """Shared fixtures: generated SocNav1-format data, a tiny checkpoint trained on it, and the
 real SocNav1 files for the tests marked ``socnav1`` (skipped, saying why, without them)."""
-import os
 from pathlib import Path
 
 import pytest
@@ -8,7 +7,7 @@ import pytest
 from stars_ros.data import synthetic_socnav
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.data.ratings import load_dataset
+from stars_ros.data.ratings import load_dataset, socnav1_root as default_socnav1_root
 from stars_ros.data.scene_source import read_scenes
 from stars_ros.personalisation.prior import estimate_prior
 from stars_ros.model.training import StarsTrainer, split_rows
@@ -22,7 +21,7 @@ TINY_CONFIG = {
 
 
 def socnav1_path() -> Path:
-    return Path(os.environ.get('STARS_SOCNAV1_ROOT', REPO.parent / 'shared' / 'datasets' / 'socnav1'))
+    return default_socnav1_root()
 
 
 def pytest_runtest_setup(item):

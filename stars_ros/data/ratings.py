@@ -98,12 +98,35 @@ class RatingData:
         return self.store.kind
 
 
-def load_dataset(root) -> RatingData:
-    """Load a SocNav1 root or a generic-format root, whichever ``root`` holds."""
-    root = Path(root)
-    if (root / 'annotations.csv').exists():
+def socnav1_root() -> Path:
+    """Where SocNav1 is read from by default: ``STARS_SOCNAV1_ROOT``, else
+    ``../shared/datasets/socnav1`` beside the repository. The one place that says so (the
+    offline programs, the demo and the tests take their default from here)."""
+    default = Path(__file__).resolve().parents[3] / 'shared' / 'datasets' / 'socnav1'
+    return Path(os.environ.get('STARS_SOCNAV1_ROOT') or default)
+
+
+DATASETS = {'socnav1': socnav1_root}  # names load_dataset knows -> their root
+LOADERS = ('socnav1', 'generic')
+
+
+def load_dataset(path_or_name, kind: str | None = None) -> RatingData:
+    """Load a data set by name (``'socnav1'``: at ``socnav1_root()``) or from a folder.
+
+    A folder holding ``annotations.csv`` is read in the generic format, one holding
+    ``raw/*.jsonl`` (or ``*.jsonl``) as SocNav1; ``kind`` ('socnav1' or 'generic') says
+    which instead of looking. Raises DataError for anything else, naming the file and line
+    of a fault."""
+    if kind is not None and kind not in LOADERS:
+        raise ValueError(f'unknown kind {kind!r}; choices: {list(LOADERS)}')
+    name = str(path_or_name).lower()
+    root = DATASETS[name]() if name in DATASETS and not Path(path_or_name).exists() else Path(path_or_name)
+    if not root.is_dir():
+        known = f" (or one of the names {sorted(DATASETS)})" if name not in DATASETS else ' (set STARS_SOCNAV1_ROOT)'
+        raise DataError(f'{root}: no such data folder{known}')
+    if kind == 'generic' or (kind is None and (root / 'annotations.csv').exists()):
         return load_generic(root)
-    if (root / 'raw').is_dir() or sorted(root.glob('*.jsonl')):
+    if kind == 'socnav1' or (root / 'raw').is_dir() or sorted(root.glob('*.jsonl')):
         return load_socnav1(root)
     raise DataError(f'{root}: neither a SocNav1 root (raw/*.jsonl) nor a generic root (annotations.csv)')
 

@@ -122,6 +122,12 @@ class GraphStore:
     def feature_dim(self) -> int:
         return self.x.shape[1]
 
+    def scene(self, index: int) -> SceneGraph:
+        """Row ``index`` as the featurised graph it was stored from (``Predictor.score`` takes it)."""
+        nodes = slice(int(self.node_starts[index]), int(self.node_starts[index] + self.node_counts[index]))
+        edges = slice(int(self.edge_starts[index]), int(self.edge_starts[index] + self.edge_counts[index]))
+        return SceneGraph(self.x[nodes].numpy(), self.edge_index[:, edges].numpy(), self.edge_type[edges].numpy())
+
     def batch(self, indices: torch.Tensor) -> GraphBatch:
         node_counts = self.node_counts[indices]
         edge_counts = self.edge_counts[indices]
@@ -155,6 +161,10 @@ class TabularStore:
     @property
     def feature_dim(self) -> int:
         return self.features.shape[1]
+
+    def scene(self, index: int) -> np.ndarray:
+        """Row ``index``'s features [features] (float32), as ``Predictor.score`` takes a scene."""
+        return self.features[index].numpy()
 
     def batch(self, indices: torch.Tensor) -> torch.Tensor:
         return self.features[indices]

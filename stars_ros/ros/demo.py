@@ -36,11 +36,11 @@ from stars_ros.errors import StarsError
 from stars_ros.model.predictor import Predictor
 from stars_ros.recording.bag import read_messages
 from stars_ros.resources import resolve_checkpoint
+from stars_ros.data.ratings import socnav1_root
 from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes
 from stars_ros.personalisation.user_state import STATE_FILE
 
-SOCNAV1 = Path(os.environ.get('STARS_SOCNAV1_ROOT', Path(__file__).resolve().parents[3] / 'shared' / 'datasets'
-                              / 'socnav1'))
+SOCNAV1 = socnav1_root()
 
 
 def parse_args(argv=None):

@@ -1,0 +1,234 @@
+"""The Python front door, ``stars_ros.StarsRecommender``: the README's example run verbatim,
+and the API's contract on tiny generated data sets (a second or less each)."""
+import math
+import pickle
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from stars_ros import Prediction, StarsRecommender, load_dataset
+from stars_ros.data import crowd_data, synthetic_socnav
+from stars_ros.data.ratings import socnav1_root
+from stars_ros.errors import DataError, UnknownActionError, UnknownSceneError
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.training import NotFittedError
+
+REPO = Path(__file__).resolve().parents[1]
+TABULAR = {'encoder': {'name': 'mlp', 'hidden': 16, 'layers': 1}, 'model': {'dim': 8},
+           'training': {'pretrain_epochs': 2, 'joint_epochs': 3, 'lr': 1.0e-2, 'batch_size': 32, 'threads': 1}}
+GRAPH = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 8},
+         'training': {'pretrain_epochs': 1, 'joint_epochs': 2, 'lr': 3.0e-3, 'batch_size': 64, 'threads': 1}}
+
+
+def readme_example() -> str:
+    text = (REPO / 'README.md').read_text()
+    section = text.split('\n## Python front door\n', 1)[1].split('\n## ', 1)[0]
+    found = re.search(r'```python\n(.*?)```', section, re.S)
+    assert found, 'README.md: the "Python front door" section has no ```python block'
+    return found.group(1)
+
+
+@pytest.mark.socnav1
+def test_readme_example_runs_verbatim(tmp_path, monkeypatch):
+    """The README's block as written, on SocNav1, in a scratch folder holding its config."""
+    if not (socnav1_root() / 'raw').is_dir():
+        pytest.skip(f'needs SocNav1, not found at {socnav1_root()} (set STARS_SOCNAV1_ROOT)')
+    (tmp_path / 'config').mkdir()
+    shutil.copy(REPO / 'config' / 'quickstart.yaml', tmp_path / 'config')
+    monkeypatch.chdir(tmp_path)
+    namespace = {}
+    exec(compile(readme_example(), 'README.md (Python front door)', 'exec'), namespace)
+    assert (tmp_path / 'model.pt').exists()
+
+
+@pytest.fixture(scope='module')
+def tabular(tmp_path_factory):
+    """Generic-format data: 8 raters, 24 scenes of 5 features, 2 actions, scores 1-5."""
+    annotations, scenes = crowd_data.generate(crowd_data.CrowdShape(users=8, scenes=24, features=5,
+                                                                    raters_per_scene=4, latent=2), seed=1)
+    root = tmp_path_factory.mktemp('tabular')
+    annotations[annotations.action.isin(['vacuum', 'mop'])].to_csv(root / 'annotations.csv', index=False)
+    scenes.to_csv(root / 'scenes.csv', index=False)
+    return load_dataset(root)
+
+
+@pytest.fixture(scope='module')
+def graphs(tmp_path_factory):
+    """SocNav1-format data: 5 annotators, 60 small scene graphs."""
+    shape = synthetic_socnav.SocNavShape(users=5, scene_pairs=30, ratings=100, min_ratings=10)
+    return load_dataset(synthetic_socnav.write(tmp_path_factory.mktemp('graphs'), shape, seed=2))
+
+
+@pytest.fixture(scope='module')
+def fitted(tabular):
+    return StarsRecommender(TABULAR).fit(tabular)
+
+
+def rows_of(data, user=None):
+    """(user, scene id) of the data's ratings, ``user``'s only when given."""
+    return [(u, data.scene_keys[s]) for u, s in zip(data.users, data.scenes) if user in (None, u)]
+
+
+def test_fit_returns_self_and_takes_a_config_object_yaml_or_dict(tabular):
+    recommender = StarsRecommender(ExperimentConfig.from_dict(TABULAR))
+    assert recommender.fit(tabular, np.arange(40)) is recommender
+    assert set(recommender.users) <= set(tabular.users[:40].tolist())
+    assert StarsRecommender(REPO / 'config' / 'quickstart.yaml').config.model.dim == 8
+    assert 'not fitted' in repr(StarsRecommender())
+
+
+def test_predict_before_fit_says_to_fit_or_load():
+    with pytest.raises(NotFittedError, match='fit'):
+        StarsRecommender(TABULAR).predict('u', 's000', 'mop')
+
+
+@pytest.mark.parametrize('kind', ['tabular', 'graphs'])
+def test_predict_is_the_score_rank_gives(kind, request, fitted):
+    data = request.getfixturevalue(kind)
+    recommender = fitted if kind == 'tabular' else StarsRecommender(GRAPH).fit(data)
+    user, scene = rows_of(data)[0]
+    content = data.store.scene(0) if kind == 'tabular' else None
+    for who, where in [(user, scene), ('stranger', scene)] + ([(user, list(content))] if content is not None else []):
+        ranking = recommender.rank(who, where)
+        assert [r.rank for r in ranking] == list(range(1, len(recommender.actions) + 1))
+        assert [r.score for r in ranking] == sorted((r.score for r in ranking), reverse=True)
+        for entry in ranking:
+            prediction = recommender.predict(who, where, entry.name)
+            assert isinstance(prediction, float) and prediction == entry.score == prediction.est
+            assert prediction.details == ranking.details
+            low, high = data.scale
+            assert low <= prediction <= high
+
+
+def test_unknown_user_and_scene_fall_back_and_say_so(fitted, tabular):
+    user, scene = rows_of(tabular)[0]
+    content = list(tabular.store.scene(tabular.scene_keys.index(scene)))
+    known = fitted.predict(user, scene, 'mop')
+    assert 'reason' not in known.details and known.details['known_user'] and known.details['known_scene']
+    assert known.user == user and known.scene == scene and known.action == 'mop'
+    assert fitted.predict('stranger', scene, 'mop').details['reason'] == 'unknown user'
+    assert fitted.predict(None, scene, 'mop').details['reason'] == 'unknown user'
+    as_content = fitted.predict(user, content, 'mop')  # content carries no id: no q_i, b_i
+    assert as_content.details['reason'] == 'unknown scene' and as_content.scene is None
+    assert fitted.predict('stranger', content, 'mop').details['reason'] == 'unknown user; unknown scene'
+    # the fallback is the predictor's one stranger (the prior's mean p_u, b_u), whatever the id
+    assert fitted.predict('stranger', content, 'mop') == fitted.predict('another stranger', content, 'mop')
+    assert fitted.rank('stranger', scene).details['reason'] == 'unknown user'
+
+
+def test_a_base_model_has_no_user_or_scene_term_to_fall_back_from(tabular):
+    base = StarsRecommender(ExperimentConfig.from_dict(TABULAR).replace(model={'variant': 'base'})).fit(tabular)
+    user, scene = rows_of(tabular)[0]
+    assert 'reason' not in base.predict('stranger', list(tabular.store.scene(0)), 'mop').details
+    assert base.predict('stranger', scene, 'mop') == base.predict(user, scene, 'mop')
+
+
+def test_scene_ids_the_data_lacks_and_unknown_actions_are_refused(fitted, tabular):
+    with pytest.raises(UnknownSceneError, match="no scene 'nowhere'"):
+        fitted.predict('u', 'nowhere', 'mop')
+    with pytest.raises(UnknownActionError):
+        fitted.predict('u', tabular.scene_keys[0], 'juggle')
+
+
+def test_an_identifier_with_two_contents_asks_which(graphs):
+    recommender = StarsRecommender(GRAPH).fit(graphs)
+    doubled = [key for key in graphs.scene_keys if '#' in key]
+    assert len(doubled) == 2
+    with pytest.raises(UnknownSceneError, match='2 different contents'):
+        recommender.predict('a', doubled[0].split('#')[0], 'navigate')
+    assert recommender.predict('a', doubled[0], 'navigate').details['known_scene'] in (True, False)
+
+
+@pytest.mark.parametrize('kind', ['tabular', 'graphs'])
+def test_fold_in_changes_that_users_predictions_and_no_one_elses(kind, request):
+    data = request.getfixturevalue(kind)
+    recommender = StarsRecommender(TABULAR if kind == 'tabular' else GRAPH).fit(data)
+    action = data.action_names[0]
+    scenes = list(dict.fromkeys(scene for _, scene in rows_of(data)))[:6]
+    other = str(data.users[0])
+    before = {who: [recommender.predict(who, s, action) for s in scenes] for who in ('newcomer', other)}
+    high = data.scale[1]
+    assert recommender.fold_in('newcomer', [(s, action, high) for s in scenes[:3]]) is recommender
+    after = {who: [recommender.predict(who, s, action) for s in scenes] for who in ('newcomer', other)}
+    assert after[other] == before[other]
+    assert all(a > b for a, b in zip(after['newcomer'], before['newcomer']))  # rated high: scored higher
+    assert after['newcomer'][0].details['folded_in'] == 3 and 'reason' not in after['newcomer'][0].details
+    assert recommender.rank('newcomer', scenes[0])[0].score == max(
+        recommender.predict('newcomer', scenes[0], a) for a in recommender.actions)
+    # the front door serves through its predictor, as the node does
+    assert recommender.predictor.personalised_from('newcomer') == 3
+    assert recommender.fold_in('newcomer', []).predict('newcomer', scenes[0], action) == before['newcomer'][0]
+
+
+def test_fold_in_checks_its_ratings(fitted, tabular):
+    scene = tabular.scene_keys[0]
+    for bad in [(scene, 'mop'), (scene, 'mop', 'high'), (scene, 'mop', 9.0), (scene, 'mop', math.nan)]:
+        with pytest.raises(ValueError, match='rating 0'):
+            fitted.fold_in('x', [bad])
+    with pytest.raises(ValueError, match='user id'):
+        fitted.fold_in(None, [(scene, 'mop', 3.0)])
+
+
+def test_save_and_load_give_identical_predictions(fitted, tabular, tmp_path):
+    digest = fitted.save(tmp_path / 'model.pt')
+    loaded = StarsRecommender.load(tmp_path / 'model.pt', data=tabular)
+    assert loaded.fingerprint == digest and fitted.fingerprint == ''
+    assert loaded.config == fitted.config and loaded.users == fitted.users and loaded.actions == fitted.actions
+    content = list(tabular.store.scene(3))
+    for user, scene in rows_of(tabular)[:20] + [('stranger', tabular.scene_keys[0]), ('stranger', content)]:
+        for action in fitted.actions:
+            assert loaded.predict(user, scene, action) == fitted.predict(user, scene, action)
+            assert loaded.predict(user, scene, action).details == fitted.predict(user, scene, action).details
+        assert loaded.rank(user, scene) == fitted.rank(user, scene)
+    without_data = StarsRecommender.load(tmp_path / 'model.pt')
+    assert without_data.predict('stranger', content, 'mop') == fitted.predict('stranger', content, 'mop')
+    with pytest.raises(UnknownSceneError, match='no data to look ids up in'):
+        without_data.predict('stranger', tabular.scene_keys[0], 'mop')
+    assert loaded.save(tmp_path / 'again.pt') == StarsRecommender.load(tmp_path / 'again.pt').fingerprint
+
+
+def test_fit_leaves_torch_global_state_as_it_found_it(tabular):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the config trains with 1
+    try:
+        torch.manual_seed(1234)
+        state = torch.random.get_rng_state()
+        StarsRecommender(TABULAR).fit(tabular)
+        assert torch.get_num_threads() == 2
+        assert torch.equal(torch.random.get_rng_state(), state)
+        assert torch.get_default_dtype() == torch.float32
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_a_prediction_is_a_float_that_keeps_its_details_through_pickle(fitted, tabular):
+    prediction = fitted.predict('stranger', tabular.scene_keys[0], 'mop')
+    assert isinstance(prediction, Prediction) and float(prediction) + 0.0 == prediction.est
+    copy = pickle.loads(pickle.dumps(prediction))
+    assert copy == prediction and copy.details == prediction.details and copy.user == 'stranger'
+    assert 'unknown user' in repr(prediction)
+
+
+def test_the_front_door_imports_from_the_package_root():
+    import stars_ros
+    assert {'StarsRecommender', 'load_dataset'} <= set(dir(stars_ros))
+    with pytest.raises(AttributeError):
+        stars_ros.no_such_name  # noqa: B018
+
+
+def test_load_dataset_by_name_reads_socnav1_where_the_setting_says(tmp_path, monkeypatch):
+    root = synthetic_socnav.write(tmp_path / 'elsewhere', synthetic_socnav.SocNavShape(users=3, scene_pairs=6,
+                                                                                         ratings=20, min_ratings=4))
+    monkeypatch.setenv('STARS_SOCNAV1_ROOT', str(root))
+    assert socnav1_root() == root
+    assert load_dataset('socnav1').source == str(root / 'raw')
+    assert load_dataset(root, kind='socnav1').fingerprint == load_dataset('SocNav1').fingerprint
+    monkeypatch.setenv('STARS_SOCNAV1_ROOT', str(tmp_path / 'missing'))
+    with pytest.raises(DataError, match='STARS_SOCNAV1_ROOT'):
+        load_dataset('socnav1')
+    with pytest.raises(ValueError, match='unknown kind'):
+        load_dataset(root, kind='csv')
