@@ -11,6 +11,7 @@ SCENE = {'humans': [{'id': 1, 'xPos': 50, 'yPos': 80, 'orientation': 10}], 'obje
          'room': [[-300, -300], [300, -300], [300, 300], [-300, 300], [-300, -300]]}
 
 
+@pytest.mark.socnav1
 def test_socnav1_counts_match_its_readme(socnav1):
     assert len(socnav1) == 9280
     assert sorted(set(socnav1.users.tolist())) == list('abcdefghijkl')
@@ -20,8 +21,11 @@ def test_socnav1_counts_match_its_readme(socnav1):
     assert socnav1.scores.mean() == pytest.approx(0.571, abs=5e-4)
     # 5,735 identifiers; the one with two contents becomes two scenes
     assert len(socnav1.scene_keys) == 5736
+    assert len(set(socnav1.item_keys('prefix'))) == 4904  # the paper's count of SocNav1 scenes
+    assert socnav1.item_keys('prefix')[socnav1.scene_keys.index('01892 A')] == '01892'
 
 
+@pytest.mark.socnav1
 def test_identifier_with_two_contents_becomes_two_scenes(socnav1):
     variants = [k for k in socnav1.scene_keys if k.startswith('01998 A')]
     assert len(variants) == 2 and all('#' in k for k in variants)
@@ -31,6 +35,7 @@ def test_identifier_with_two_contents_becomes_two_scenes(socnav1):
     assert any('01998 A' in note for note in socnav1.notes)
 
 
+@pytest.mark.socnav1
 def test_shared_identifier_is_one_scene(socnav1):
     counts = np.bincount(socnav1.scenes)
     assert counts.max() == 4  # README: up to 4 annotators per identifier
@@ -136,14 +141,30 @@ def test_unknown_root(tmp_path):
         load_dataset(tmp_path)
 
 
-def test_feature_cache_round_trip_and_damage(socnav1_root, socnav1, tmp_path, monkeypatch):
+def test_generated_data_loads_as_socnav1_does(synthetic):
+    assert len(synthetic) == 521 and sorted(set(synthetic.users.tolist())) == list('abcdefghijkl')
+    assert synthetic.action_names == ('navigate',) and synthetic.scale == (0.0, 1.0)
+    assert synthetic.scores.min() >= 0 and synthetic.scores.max() <= 1 and synthetic.scores.std() > 0.1
+    assert np.bincount(synthetic.scenes).max() > 1  # people rate scenes in common
+    assert len(set(synthetic.item_keys('prefix'))) < len(synthetic.scene_keys)  # "00007 A" and "00007 B"
+
+
+def test_generated_identifier_with_two_contents_becomes_two_scenes(synthetic):
+    variants = [k for k in synthetic.scene_keys if '#' in k]
+    assert len(variants) == 2 and variants[0].split('#')[0] == variants[1].split('#')[0]
+    raters = [set(synthetic.users[synthetic.scenes == synthetic.scene_keys.index(k)].tolist()) for k in variants]
+    assert all(raters) and not raters[0] & raters[1]  # each rating kept, on the content its rater saw
+    assert len(synthetic.notes) == 1 and variants[0].split('#')[0] in synthetic.notes[0]
+
+
+def test_feature_cache_round_trip_and_damage(synthetic_root, synthetic, tmp_path, monkeypatch):
     monkeypatch.setenv('STARS_ROS_CACHE', str(tmp_path / 'cache'))
-    first = load_dataset(socnav1_root)
+    first = load_dataset(synthetic_root)
     cached = list((tmp_path / 'cache').glob('graphs-v*.pt'))
     assert len(cached) == 1
-    second = load_dataset(socnav1_root)
-    assert torch.equal(second.store.x, socnav1.store.x)
+    second = load_dataset(synthetic_root)
+    assert torch.equal(second.store.x, synthetic.store.x)
     assert torch.equal(second.store.edge_index, first.store.edge_index)
     cached[0].write_bytes(b'damaged')
-    third = load_dataset(socnav1_root)
-    assert torch.equal(third.store.edge_type, socnav1.store.edge_type)
+    third = load_dataset(synthetic_root)
+    assert torch.equal(third.store.edge_type, synthetic.store.edge_type)

@@ -50,6 +50,7 @@ def test_serving_equals_pyg_on_random_scenes(name, options):
     assert np.allclose(alone, sparse, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.socnav1
 @pytest.mark.parametrize('name, options', CASES)
 def test_serving_equals_pyg_on_socnav1_scenes(name, options, socnav1):
     store = socnav1.store

@@ -10,7 +10,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.evaluation.ray_executor import RayExecutor, fit_slots
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.protocol import FitFailure, FitTask, fit_executor, fit_outcome, run_fits
+from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = ['--quick', '--backbones', 'gcn']
@@ -50,10 +50,10 @@ def ray_address():
 
 
 @pytest.fixture(scope='module')
-def pool_run(socnav1_root, tmp_path_factory):
+def pool_run(synthetic_root, tmp_path_factory):
     """``evaluate --quick`` on two worker processes: the reference the Ray runs must equal."""
     out = tmp_path_factory.mktemp('pool')
-    assert evaluate.main([*QUICK, '--jobs', '2', '--data-root', str(socnav1_root), '--out', str(out)]) == 0
+    assert evaluate.main([*QUICK, '--jobs', '2', '--data-root', str(synthetic_root), '--out', str(out)]) == 0
     return out
 
 
@@ -79,18 +79,18 @@ def assert_same_scores(found: dict, expected: dict) -> None:
 
 
 def tiny_task(name: str, train: np.ndarray) -> FitTask:
-    """A small StARS-GCN fit of one epoch each, on ``train``, scored on rows 400-599."""
+    """A small StARS-GCN fit of one epoch each, on ``train``, scored on rows 300-449."""
     experiment = ExperimentConfig.from_dict({
         'encoder': {'name': 'gcn', 'hidden': 8, 'layers': 1}, 'model': {'dim': 8, 'variant': 'stars'},
         'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'lr': 3e-3, 'threads': 1, 'seed': 0}})
-    return FitTask(name, '0:0', 'final', experiment.to_dict(), train, np.arange(400, 600))
+    return FitTask(name, '0:0', 'final', experiment.to_dict(), train, np.arange(300, 450))
 
 
-def test_ray_runs_the_grid_to_the_process_pools_records(socnav1_root, tmp_path, ray_address, pool_run):
+def test_ray_runs_the_grid_to_the_process_pools_records(synthetic_root, tmp_path, ray_address, pool_run):
     """Every fit a Ray task, as many in flight as the instance's 2 CPUs hold: the same fits
     and scores as two worker processes."""
     out = tmp_path / 'ray'
-    assert evaluate.main([*QUICK, '--executor', 'ray', '--data-root', str(socnav1_root), '--out', str(out)]) == 0
+    assert evaluate.main([*QUICK, '--executor', 'ray', '--data-root', str(synthetic_root), '--out', str(out)]) == 0
     assert_same_scores(records(out), records(pool_run))
     written = yaml.safe_load((out / 'config.yaml').read_text())
     assert written['jobs'] == 2 and written['executor'] == {
@@ -98,12 +98,12 @@ def test_ray_runs_the_grid_to_the_process_pools_records(socnav1_root, tmp_path, 
     assert '| GCN StARS |' in (out / 'tables.md').read_text()
 
 
-def test_a_fit_that_raises_on_a_ray_worker_is_named_and_the_others_finish(socnav1, ray_address, caplog):
+def test_a_fit_that_raises_on_a_ray_worker_is_named_and_the_others_finish(synthetic, ray_address, caplog):
     """A fit with no rows to train on raises in its worker: it comes back as a failure with
     that error, logged by name with the worker's traceback, and the fits beside it finish."""
-    rows = np.arange(400)
+    rows = np.arange(300)
     waiting = [(tiny_task('first', rows),), (tiny_task('no rows', rows[:0]),), (tiny_task('third', rows[::2]),)]
-    outcomes = {item[0].model: scores for item, scores in run_fits(RayExecutor(socnav1), waiting, 2)}
+    outcomes = {item[0].model: scores for item, scores in run_fits(RayExecutor(synthetic), waiting, 2)}
     assert outcomes['no rows'] == FitFailure('ValueError: no training rows')
     assert all(0 < outcomes[name]['mse'] < 1 for name in ('first', 'third'))
     failure, = (r for r in caplog.records if r.name == 'stars_ros.evaluation.protocol')
@@ -132,13 +132,13 @@ def test_a_ray_task_whose_worker_dies_runs_again(ray_address, tmp_path):
     assert isinstance(outcome, FitFailure) and outcome.error.startswith('WorkerCrashedError: ')
 
 
-def test_dead_worker_processes_fail_the_fits_left_and_the_run_goes_on(socnav1):
+def test_dead_worker_processes_fail_the_fits_left_and_the_run_goes_on(synthetic):
     """The process pool cannot replace a worker that died: the fits not finished by then
     come back as failures, none of them raises."""
     others = set(multiprocessing.active_children())
-    waiting = [(tiny_task(f'fit {i}', np.arange(400)),) for i in range(4)]
+    waiting = [(tiny_task(f'fit {i}', np.arange(300)),) for i in range(4)]
     outcomes = []
-    for _, scores in run_fits(fit_executor(socnav1, 2, 1), waiting, 2):
+    for _, scores in run_fits(fit_executor(synthetic, 2, 1), waiting, 2):
         if not outcomes:  # the first fit is done, the second may be; the last two cannot be
             for worker in set(multiprocessing.active_children()) - others:
                 os.kill(worker.pid, signal.SIGKILL)
@@ -149,25 +149,25 @@ def test_dead_worker_processes_fail_the_fits_left_and_the_run_goes_on(socnav1):
 
 
 @pytest.mark.slow
-def test_a_killed_ray_run_resumes_without_refitting_what_it_finished(socnav1_root, tmp_path, ray_address, pool_run):
+def test_a_killed_ray_run_resumes_without_refitting_what_it_finished(synthetic_root, tmp_path, ray_address, pool_run):
     """The driver of a run on a Ray cluster killed after some fits; a new driver with
     --resume runs only the fits left and ends with the records of an uninterrupted run."""
     out = tmp_path / 'killed'
     with (tmp_path / 'log.txt').open('w') as log:
         driver = subprocess.Popen(
             [sys.executable, '-m', 'offline_training.evaluate', *QUICK, '--executor', 'ray', '--ray-address',
-             ray_address, '--data-root', str(socnav1_root), '--out', str(out)],
+             ray_address, '--data-root', str(synthetic_root), '--out', str(out)],
             cwd=REPO, env={**os.environ, 'PYTHONPATH': str(REPO)}, stdout=log, stderr=log)
-        deadline = time.monotonic() + 240
-        while len(records(out) if (out / 'records.jsonl').exists() else ()) < 10:  # 2 population means + 8 fits
-            assert driver.poll() is None and time.monotonic() < deadline, (tmp_path / 'log.txt').read_text()[-3000:]
-            time.sleep(0.05)
+
+        def ten_records_or_ended():  # 2 population means + 8 fits
+            return driver.poll() is not None or (out / 'records.jsonl').exists() and len(records(out)) >= 10
+        assert wait_for(ten_records_or_ended, 240) and driver.poll() is None, (tmp_path / 'log.txt').read_text()[-3000:]
         driver.kill()
         driver.wait()
     kept = records(out)
     kept_fits = {key: entry for key, entry in kept.items() if entry.get('variant') != 'population_mean'}
     assert len(kept) < len(records(pool_run))  # killed before the end
-    assert evaluate.main([*QUICK, '--executor', 'ray', '--resume', '--data-root', str(socnav1_root),
+    assert evaluate.main([*QUICK, '--executor', 'ray', '--resume', '--data-root', str(synthetic_root),
                           '--out', str(out)]) == 0
     resumed = json.loads((out / 'results.json').read_text())
     assert resumed['timing']['resumed_fits'] == len(kept_fits)
@@ -177,7 +177,7 @@ def test_a_killed_ray_run_resumes_without_refitting_what_it_finished(socnav1_roo
     assert_same_scores(final, records(pool_run))
 
 
-def test_the_core_imports_without_ray_and_asking_for_it_names_the_requirements(socnav1_root, tmp_path):
+def test_the_core_imports_without_ray_and_asking_for_it_names_the_requirements(synthetic_root, tmp_path):
     child = '''
 import importlib.abc, json, sys
 
@@ -195,7 +195,7 @@ imported = 'ray' in sys.modules
 status = evaluate.main(['--quick', '--executor', 'ray', '--data-root', sys.argv[1], '--out', sys.argv[2]])
 print(json.dumps({'imported': imported, 'status': status}))
 '''
-    done = subprocess.run([sys.executable, '-c', child, str(socnav1_root), str(tmp_path / 'out')], cwd=REPO,
+    done = subprocess.run([sys.executable, '-c', child, str(synthetic_root), str(tmp_path / 'out')], cwd=REPO,
                           capture_output=True, text=True, timeout=300)
     assert json.loads(done.stdout.splitlines()[-1]) == {'imported': False, 'status': 2}, done.stderr[-2000:]
     assert 'pip install -r requirements-ray.txt' in done.stderr

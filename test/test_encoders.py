@@ -30,18 +30,18 @@ def test_instance_passes_through():
     assert resolve_encoder(encoder) is encoder
 
 
-def scene_input(kind, socnav1):
+def scene_input(kind, synthetic):
     if kind == 'graph':
-        return socnav1.store.batch(torch.tensor([0, 5, 9])), socnav1.store.feature_dim
+        return synthetic.store.batch(torch.tensor([0, 5, 9])), synthetic.store.feature_dim
     return TabularStore(torch.randn(3, 6).numpy(), [f'f{k}' for k in range(6)]).batch(torch.arange(3)), 6
 
 
 @pytest.mark.parametrize('variant', ['base', 'stars'])
 @pytest.mark.parametrize('name', GRAPH_BACKBONES + TABULAR_BACKBONES)
-def test_every_encoder_in_both_variants(name, variant, socnav1):
+def test_every_encoder_in_both_variants(name, variant, synthetic):
     """Contract every backbone keeps: output shape, finite values, gradients reach φθ."""
     kind = 'graph' if name in GRAPH_BACKBONES else 'tabular'
-    inputs, feature_dim = scene_input(kind, socnav1)
+    inputs, feature_dim = scene_input(kind, synthetic)
     config = ExperimentConfig.from_dict({'encoder': {'name': name, 'hidden': 16, 'layers': 2},
                                          'model': {'variant': variant, 'dim': 8}})
     model = build_model(config, feature_dim, kind, n_users=4, n_scenes=5, n_actions=3)

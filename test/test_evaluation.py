@@ -1,4 +1,5 @@
-"""Evaluation protocol: folds, selection, sweep, and the quick CLI run end to end on SocNav1."""
+"""Evaluation protocol: folds, selection, sweep, and the quick CLI run end to end, on generated
+SocNav1-format data."""
 import csv
 import dataclasses
 import json
@@ -29,14 +30,14 @@ def _check_partition(folds, rows):
         assert np.array_equal(np.sort(np.concatenate([fold.train, fold.test])), np.sort(rows))
 
 
-def test_rows_protocol_keeps_an_examples_actions_together(socnav1):
+def test_rows_protocol_keeps_an_examples_actions_together(synthetic):
     """Multi-action data: the rows protocol deals examples (user, scene), not ratings."""
-    data = dataclasses.replace(socnav1, actions=np.arange(len(socnav1)) % 3,
-                               users=np.repeat(socnav1.users[::3], 3)[:len(socnav1)],
-                               scenes=np.repeat(socnav1.scenes[::3], 3)[:len(socnav1)],
+    data = dataclasses.replace(synthetic, actions=np.arange(len(synthetic)) % 3,
+                               users=np.repeat(synthetic.users[::3], 3)[:len(synthetic)],
+                               scenes=np.repeat(synthetic.scenes[::3], 3)[:len(synthetic)],
                                action_names=('a', 'b', 'c'))
     examples = data.examples
-    assert len(np.unique(examples)) == len(range(0, len(socnav1), 3))
+    assert len(np.unique(examples)) == len(range(0, len(synthetic), 3))
     folds = make_folds(data, 'rows', 5, seed=0)
     _check_partition(folds, np.arange(len(data)))
     for fold in folds:
@@ -63,25 +64,25 @@ def test_grouped_folds_keep_groups_together_and_balance_sizes():
 
 
 @pytest.mark.parametrize('protocol, key', [('cold-scene', 'scenes'), ('cold-user', 'users')])
-def test_cold_folds_on_socnav1_never_share_a_group(socnav1, protocol, key):
-    groups = getattr(socnav1, key)
-    folds = make_folds(socnav1, protocol, 5, seed=0)
-    _check_partition(folds, np.arange(len(socnav1)))
+def test_cold_folds_never_share_a_group(synthetic, protocol, key):
+    groups = getattr(synthetic, key)
+    folds = make_folds(synthetic, protocol, 5, seed=0)
+    _check_partition(folds, np.arange(len(synthetic)))
     for fold in folds:
         assert not set(groups[fold.train].tolist()) & set(groups[fold.test].tolist())
-        inner = make_folds(socnav1, protocol, 2, seed=[0, 1], rows=fold.train)
+        inner = make_folds(synthetic, protocol, 2, seed=[0, 1], rows=fold.train)
         _check_partition(inner, fold.train)
         for part in inner:
             assert not set(groups[part.train].tolist()) & set(groups[part.test].tolist())
     if protocol == 'cold-user':
-        assert {len(set(socnav1.users[f.test].tolist())) for f in folds} <= {1, 2, 3, 4}
+        assert {len(set(synthetic.users[f.test].tolist())) for f in folds} <= {1, 2, 3, 4}
 
 
-def test_rows_protocol_shares_scenes_between_train_and_test(socnav1):
-    fold = make_folds(socnav1, 'rows', 5, seed=0)[0]
-    assert set(socnav1.scenes[fold.train].tolist()) & set(socnav1.scenes[fold.test].tolist())
+def test_rows_protocol_shares_scenes_between_train_and_test(synthetic):
+    fold = make_folds(synthetic, 'rows', 5, seed=0)[0]
+    assert set(synthetic.scenes[fold.train].tolist()) & set(synthetic.scenes[fold.test].tolist())
     with pytest.raises(ValueError, match='cold-user'):
-        make_folds(socnav1, 'cold-users', 5, seed=0)
+        make_folds(synthetic, 'cold-users', 5, seed=0)
 
 
 def test_sweep_samples_are_nested_without_replacement():
@@ -116,7 +117,7 @@ def test_shipped_configs_parse_and_quick_merges():
     assert (gat.encoder.name, gat.encoder.hidden, gat.encoder.options) == ('gat', 16, {'heads': 4})
 
 
-def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(socnav1, monkeypatch):
+def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(synthetic, monkeypatch):
     """A fake fit whose inner error is lowest for (50, 100) only under StARS, and, within
     the search space, for lr 1e-3 under base and embedding_l2 0.1 under StARS; inner fits
     sharing a start T1 are one fit scored along the way."""
@@ -144,7 +145,7 @@ def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(socnav1, mo
                                        'grid': [[10, 60], [10, 100], [50, 100], [100, 100]],
                                        'search': {'base': {'lr': [3e-4, 1e-3]}, 'stars': {'embedding_l2': [0.01, 0.1]}},
                                        'fractions': [0.5, 1.0], 'baselines': ['population_mean', 'mf']})
-    result = run_protocol(socnav1, config, 'rows')
+    result = run_protocol(synthetic, config, 'rows')
     final = {(r['model'], r['fold']): (r['T1'], r['T2'], json.dumps(r['settings'])) for r in result.final()}
     folds = ('0:0', '0:1', '0:2')
     assert {final['GCN StARS', f] for f in folds} == {(50, 100, '{"embedding_l2": 0.1}')}
@@ -166,7 +167,7 @@ def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(socnav1, mo
     assert timing['by_stage']['inner'] == pytest.approx(len(inner) * 1.1)
 
 
-def test_ablations_follow_the_stars_choice_of_each_fold(socnav1, monkeypatch):
+def test_ablations_follow_the_stars_choice_of_each_fold(synthetic, monkeypatch):
     from offline_training import evaluate
 
     def fake_fit(task, data=None):
@@ -182,7 +183,7 @@ def test_ablations_follow_the_stars_choice_of_each_fold(socnav1, monkeypatch):
         'folds': 2, 'grid': [[1, 2]], 'backbones': {'gcn': {}}, 'baselines': [],
         'search': {'stars': {'embedding_l2': [0.01, 0.1]}}, 'ablation_backbones': ['gcn'],
         'ablations': ['user_bias', 'stars_no_q', 'stars_prefix']})
-    result = run_protocol(socnav1, config, 'rows')
+    result = run_protocol(synthetic, config, 'rows')
     final = {r['model']: r for r in result.final()}
     assert set(final) == {'GCN base', 'GCN StARS', 'GCN user offsets only', 'GCN StARS without q_i',
                           'GCN StARS, items keyed by prefix'}
@@ -200,12 +201,12 @@ def test_ablations_follow_the_stars_choice_of_each_fold(socnav1, monkeypatch):
 
 
 @pytest.mark.slow
-def test_quick_cli_end_to_end(socnav1_root, tmp_path):
+def test_quick_cli_end_to_end(synthetic_root, tmp_path):
     out = tmp_path / 'quick'
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     done = subprocess.run(
         [sys.executable, '-m', 'offline_training.evaluate', '--quick', '--backbones', 'gcn,gat', '--jobs', '2',
-         '--data-root', str(socnav1_root), '--protocol', 'cold-scene', '--out', str(out)],
+         '--data-root', str(synthetic_root), '--protocol', 'cold-scene', '--out', str(out)],
         cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads((out / 'results.json').read_text())
@@ -228,25 +229,25 @@ def test_quick_cli_end_to_end(socnav1_root, tmp_path):
     assert len((out / 'records.jsonl').read_text().splitlines()) == len(results['records']) + len(results['inner'])
 
 
-def test_learning_curve_point_is_the_fit_with_that_many_epochs(socnav1):
+def test_learning_curve_point_is_the_fit_with_that_many_epochs(synthetic):
     """A curve point at T2 = k equals a separate fit with (T1, k): the curve only watches."""
-    rows = np.arange(0, len(socnav1), 7)
-    fold = make_folds(socnav1, 'rows', 2, 0, rows)[0]
+    rows = np.arange(0, len(synthetic), 7)
+    fold = make_folds(synthetic, 'rows', 2, 0, rows)[0]
     experiment = ExperimentConfig.from_dict({
         'encoder': {'name': 'gcn', 'hidden': 8, 'layers': 1}, 'model': {'dim': 8, 'variant': 'stars'},
         'training': {'pretrain_epochs': 1, 'joint_epochs': 4, 'lr': 3e-3, 'threads': 1, 'seed': 0}})
     curve = run_fit(FitTask('m', '0:0', 'curve', experiment.to_dict(), fold.train, fold.test, curve_at=(2, 4)),
-                    socnav1)['curve']
+                    synthetic)['curve']
     assert [point['epoch'] for point in curve] == [2, 4]
     shorter = experiment.replace(training={'joint_epochs': 2})
-    alone = run_fit(FitTask('m', '0:0', 'final', shorter.to_dict(), fold.train, fold.test), socnav1)
+    alone = run_fit(FitTask('m', '0:0', 'final', shorter.to_dict(), fold.train, fold.test), synthetic)
     assert 'curve' not in alone
     for metric in ('mse', 'pearson_r', 'ccc'):
         assert curve[0][metric] == pytest.approx(alone[metric], rel=1e-6)
 
 
 @pytest.mark.slow
-def test_learning_curve_cli_writes_its_results(socnav1_root, tmp_path):
+def test_learning_curve_cli_writes_its_results(synthetic_root, tmp_path):
     protocol = tmp_path / 'protocol.yaml'
     protocol.write_text(yaml.safe_dump({
         'name': 'tiny', 'folds': 2, 'grid': [[1, 2]], 'backbones': {'gcn': {}}, 'baselines': [],
@@ -258,7 +259,7 @@ def test_learning_curve_cli_writes_its_results(socnav1_root, tmp_path):
         'joint_epochs': 2, 'every': 1, 'settings': {'a': {'lr': 3e-3}, 'b': {'lr': 1e-3, 'embedding_l2': 0.01}}}))
     out = tmp_path / 'out'
     done = subprocess.run([sys.executable, '-m', 'offline_training.learning_curve', '--config', str(config),
-                           '--data-root', str(socnav1_root), '--jobs', '2', '--out', str(out)],
+                           '--data-root', str(synthetic_root), '--jobs', '2', '--out', str(out)],
                           cwd=REPO, env={**os.environ, 'PYTHONPATH': str(REPO)}, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -273,12 +274,12 @@ def test_learning_curve_cli_writes_its_results(socnav1_root, tmp_path):
     bad = tmp_path / 'bad.yaml'
     bad.write_text(yaml.safe_dump({'protocol': 'protocol.yaml'}))
     refused = subprocess.run([sys.executable, '-m', 'offline_training.learning_curve', '--config', str(bad),
-                              '--data-root', str(socnav1_root), '--out', str(tmp_path / 'refused')], cwd=REPO, capture_output=True, text=True,
+                              '--data-root', str(synthetic_root), '--out', str(tmp_path / 'refused')], cwd=REPO, capture_output=True, text=True,
                              env={**os.environ, 'PYTHONPATH': str(REPO)}, timeout=120)
     assert refused.returncode == 2 and f'{bad}: backbone: required key missing' in refused.stderr
 
 
-def test_device_option_reaches_every_fit_and_the_results(socnav1_root, tmp_path, monkeypatch):
+def test_device_option_reaches_every_fit_and_the_results(synthetic_root, tmp_path, monkeypatch):
     """``--device`` overrides the config for every fit (a fake fit: no GPU needed) and is
     recorded in config.yaml, machine.json and tables.md."""
     from offline_training import evaluate
@@ -292,17 +293,17 @@ def test_device_option_reaches_every_fit_and_the_results(socnav1_root, tmp_path,
 
     monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
     out = tmp_path / 'device'
-    assert evaluate.main(['--quick', '--backbones', 'gat', '--device', 'cuda:1', '--data-root', str(socnav1_root),
+    assert evaluate.main(['--quick', '--backbones', 'gat', '--device', 'cuda:1', '--data-root', str(synthetic_root),
                           '--out', str(out)]) == 0
     assert devices and set(devices) == {'cuda:1'}
     written = yaml.safe_load((out / 'config.yaml').read_text())
     assert written['device'] == 'cuda:1' and written['experiment']['training']['device'] == 'cuda:1'
     assert json.loads((out / 'machine.json').read_text())['device'] == 'cuda:1'
     assert 'training on cuda:1' in (out / 'tables.md').read_text()
-    assert evaluate.main(['--quick', '--device', 'gpu', '--data-root', str(socnav1_root), '--out', str(out)]) == 2
+    assert evaluate.main(['--quick', '--device', 'gpu', '--data-root', str(synthetic_root), '--out', str(out)]) == 2
 
 
-def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(socnav1_root, tmp_path, monkeypatch):
+def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(synthetic_root, tmp_path, monkeypatch):
     """A run stopped after some fits (records.jsonl cut short), resumed: only the missing
     fits run, and the results equal an uninterrupted run's."""
     from offline_training import evaluate
@@ -318,7 +319,7 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(socnav1_root, t
                 'curve': [{'epoch': t, 'z_rmse': score + t / 1000} for t in task.curve_at]}
 
     monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
-    args = ['--quick', '--backbones', 'gat', '--data-root', str(socnav1_root)]
+    args = ['--quick', '--backbones', 'gat', '--data-root', str(synthetic_root)]
     whole, part = tmp_path / 'whole', tmp_path / 'part'
     assert evaluate.main([*args, '--out', str(whole)]) == 0
     all_fits = list(ran)
@@ -343,7 +344,7 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(socnav1_root, t
     assert evaluate.main([*args, '--out', str(part), '--resume', '--device', 'cuda']) == 2  # other settings
 
 
-def test_failed_fits_are_named_and_stop_only_what_needs_them(socnav1, monkeypatch):
+def test_failed_fits_are_named_and_stop_only_what_needs_them(synthetic, monkeypatch):
     """An inner fit that raises leaves its fold without a choice (so without the final fits
     of StARS and of the ablation following it); a final fit that raises is missing alone; a
     fit that diverges is a result, recorded with its error. Everything else completes."""
@@ -361,7 +362,7 @@ def test_failed_fits_are_named_and_stop_only_what_needs_them(socnav1, monkeypatc
     config = ProtocolConfig.from_dict({'folds': 2, 'grid': [[1, 1], [0, 2]], 'backbones': {'gcn': {}},
                                        'baselines': ['population_mean'], 'ablation_backbones': ['gcn'],
                                        'ablations': ['user_bias']})
-    result = run_protocol(socnav1, config, 'rows')
+    result = run_protocol(synthetic, config, 'rows')
     assert [(f['fit'], f['error']) for f in result.failed] == [
         ('GCN base fold 0:0 final (T1, T2) = (1, 1)', 'RuntimeError: injected'),
         ('GCN StARS fold 0:1 inner fold 0 (T1, T2) = (1, 1)', 'RuntimeError: injected'),
@@ -376,7 +377,7 @@ def test_failed_fits_are_named_and_stop_only_what_needs_them(socnav1, monkeypatc
     assert not [e for e in result.inner if (e['model'], e['fold'], e['inner_fold']) == ('GCN StARS', '0:1', 0)]
 
 
-def test_a_run_with_failed_fits_ends_without_tables_and_resume_runs_them(socnav1_root, tmp_path, monkeypatch,
+def test_a_run_with_failed_fits_ends_without_tables_and_resume_runs_them(synthetic_root, tmp_path, monkeypatch,
                                                                            capsys):
     """A run over a finished one, in which an inner fit raises: status 1, the fit named,
     the earlier tables removed, no new ones. --resume runs that fit and the final fits its
@@ -396,7 +397,7 @@ def test_a_run_with_failed_fits_ends_without_tables_and_resume_runs_them(socnav1
 
     monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
     out = tmp_path / 'out'
-    args = ['--quick', '--backbones', 'gat', '--data-root', str(socnav1_root), '--out', str(out)]
+    args = ['--quick', '--backbones', 'gat', '--data-root', str(synthetic_root), '--out', str(out)]
     assert evaluate.main(args) == 0
     whole = (out / 'results.json').read_text()
     broken.add(('GAT StARS', '0:1', 'inner', 1))

@@ -21,8 +21,8 @@ USER = 'visitor'
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:8]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'h.jsonl')[:8]
 
 
 def _robot(name, checkpoint, folder='', **params):

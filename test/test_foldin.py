@@ -21,7 +21,7 @@ def predictor(tiny_checkpoint):
 
 @pytest.fixture(scope='module')
 def ratings(synthetic_root):
-    """40 ratings of annotator e (SocNav1 scenes, scores on [0, 1])."""
+    """Annotator e's first ratings, at most 40 (SocNav1-format scenes, scores on [0, 1])."""
     lines = (synthetic_root / 'raw' / 'e.jsonl').read_text().splitlines()[:40]
     scenes = [json.loads(line) for line in lines]
     return [Rating(s, 'navigate', s['score'] / 100, s['identifier']) for s in scenes]
@@ -44,9 +44,10 @@ def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings):
         rows = (torch.tensor(user.p, dtype=torch.float32).expand(10, -1), torch.full((10, 1), user.b))
         torch_scores = predictor.recommender.predict_scores_from_h([None] * 10, keys, model.encode(batch), rows)
     assert np.allclose(foldin.predict(user, ratings[:10]), torch_scores[:, 0], atol=1e-5)
-    zero = UserModel(np.zeros(foldin.dim), 0.0, 0, 1.0)  # p = 0, b = 0: the stranger's prediction
+    mean = np.asarray(predictor.recommender.user_prior['mean'], dtype=np.float64)
+    prior_mean = UserModel(mean[:-1], float(mean[-1]), 0, 1.0)  # the prior's mean: the stranger's prediction
     stranger = predictor.score('stranger', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
-    assert np.allclose(foldin.predict(zero, ratings[:10]), stranger, atol=1e-5)
+    assert np.allclose(foldin.predict(prior_mean, ratings[:10]), stranger, atol=1e-5)
 
 
 def test_design_reproduces_the_model_for_a_trained_user(predictor, ratings):

@@ -69,15 +69,20 @@ def test_linear_form_is_the_scoring_arithmetic_in_the_user(variant):
     assert np.allclose(inference.to_rating_scale(c, actions), stranger[np.arange(4), actions], atol=1e-5)
 
 
-def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoint, socnav1_root):
+def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoint, synthetic_root):
     predictor = Predictor.load(tiny_checkpoint)
     recommender = predictor.recommender
-    scenes = read_scenes(socnav1_root / 'raw' / 'b.jsonl')[:60]
+    scenes = read_scenes(synthetic_root / 'raw' / 'b.jsonl')[:60]
     keys = [s['identifier'] for s in scenes]  # training scenes: their q_i and b_i apply
     assert sum(k in recommender.scene_vocabulary for k in keys) > 10
     batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
-    for user in (recommender.users[0], 'nobody'):
-        expected = recommender.predict_scores([user] * len(scenes), keys, batch)
-        assert np.allclose(predictor.score(user, scenes, keys), expected, atol=1e-5)
-    assert np.allclose(predictor.score('nobody', scenes),
-                       recommender.predict_scores(['nobody'] * len(scenes), [None] * len(scenes), batch), atol=1e-5)
+    expected = recommender.predict_scores([recommender.users[0]] * len(scenes), keys, batch)
+    assert np.allclose(predictor.score(recommender.users[0], scenes, keys), expected, atol=1e-5)
+    mean = torch.as_tensor(recommender.user_prior['mean'], dtype=torch.float32)  # a stranger gets the prior's mean
+    stranger = (mean[:-1].expand(len(scenes), -1), mean[-1:].expand(len(scenes), 1))
+    with torch.no_grad():
+        h = recommender.model.encode(batch)
+        for scene_keys in (keys, [None] * len(scenes)):
+            expected = recommender.predict_scores_from_h([None] * len(scenes), scene_keys, h, stranger)
+            assert np.allclose(predictor.score('nobody', scenes, scene_keys), expected, atol=1e-5)
+    assert np.abs(mean).max() > 0  # the prior's mean is not the zero row an unknown user has in the table

@@ -15,8 +15,8 @@ SCHEMAS = ('scene_graph', 'scene_request', 'ranking', 'feedback')
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'a.jsonl')[:20]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'a.jsonl')[:20]
 
 
 @pytest.fixture(scope='module')
@@ -32,7 +32,7 @@ def test_schemas_are_valid_2020_12():
         jsonschema.Draft202012Validator.check_schema(messages.load_schema(name))
 
 
-def test_socnav1_line_parses(scenes):
+def test_socnav1_format_line_parses(scenes):
     text = json.dumps({'scene_id': 's1', 'user_id': 'g', 'graph': scenes[0]})
     request = messages.parse_scene_request(text)
     assert (request.scene_id, request.user_id, request.graphs, request.ranks_scenes) == ('s1', 'g', (scenes[0],), False)

@@ -40,8 +40,8 @@ def predictor(tiny_checkpoint):
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:6]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'h.jsonl')[:6]
 
 
 def _personalisation(predictor, log, max_ratings=200, max_users=1000, **kwargs):

@@ -13,8 +13,8 @@ def predictor(tiny_checkpoint):
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    with open(socnav1_root / 'raw' / 'a.jsonl') as handle:
+def scenes(synthetic_root):
+    with open(synthetic_root / 'raw' / 'a.jsonl') as handle:
         return [json.loads(next(handle)) for _ in range(5)]
 
 
@@ -60,13 +60,13 @@ def test_missing_checkpoint_is_a_checkpoint_error(tmp_path):
         Predictor.load(tmp_path / 'none.pt')
 
 
-def test_predictor_matches_training_scale(predictor, socnav1):
+def test_predictor_matches_training_scale(predictor, synthetic):
     """Predictor on a raw scene == recommender on the featurised dataset row (same user)."""
-    rows = np.flatnonzero(socnav1.users == 'a')[:3]
-    expected = predictor.recommender.predict_rows(socnav1, rows)
-    keys = [socnav1.scene_keys[s] for s in socnav1.scenes[rows]]
+    rows = np.flatnonzero(synthetic.users == 'a')[:3]
+    expected = predictor.recommender.predict_rows(synthetic, rows)
+    keys = [synthetic.scene_keys[s] for s in synthetic.scenes[rows]]
     raw = {}
-    with open(socnav1.source + '/a.jsonl') as handle:
+    with open(synthetic.source + '/a.jsonl') as handle:
         for line in handle:
             scene = json.loads(line)
             raw[scene['identifier']] = scene

@@ -38,8 +38,8 @@ class Node:
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:4]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'h.jsonl')[:4]
 
 
 def _core(node, checkpoint, **params):

@@ -17,8 +17,8 @@ QOS = recording.qos_profile()
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'f.jsonl')[:30]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'f.jsonl')[:30]
 
 
 def _write_session(folder, scenes, name='session', extra=()):

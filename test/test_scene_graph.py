@@ -112,6 +112,7 @@ def test_semantic_errors(bad, message):
         featurise(scene(**bad))
 
 
+@pytest.mark.socnav1
 def test_every_socnav1_scene_featurises(socnav1):
     # load_dataset featurised every distinct scene; check the store is consistent
     assert len(socnav1.store) == len(socnav1.scene_keys)

@@ -1,4 +1,4 @@
-"""Short real training runs on SocNav1 (seconds each)."""
+"""Short real training runs on generated SocNav1-format data (a second or less each)."""
 import dataclasses
 
 import numpy as np
@@ -14,107 +14,108 @@ SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim':
 
 
 @pytest.fixture(scope='module')
-def rows(socnav1):
-    train, test = split_rows(socnav1, 0.2, 0)
+def rows(synthetic):
+    train, test = split_rows(synthetic, 0.2, 0)
     return train[:2000], test[:500]
 
 
-def test_split_is_seeded_disjoint_and_by_example(socnav1):
-    train, test = split_rows(socnav1, 0.2, 7)
-    assert not set(train) & set(test) and len(train) + len(test) == len(socnav1)
-    assert len(test) == round(0.2 * len(socnav1))  # SocNav1: one rating per example
-    assert np.array_equal(test, split_rows(socnav1, 0.2, 7)[1])
-    assert not np.array_equal(test, split_rows(socnav1, 0.2, 8)[1])
-    three = dataclasses.replace(socnav1, actions=np.arange(len(socnav1)) % 3, action_names=('a', 'b', 'c'),
-                                users=np.repeat(socnav1.users[::3], 3)[:len(socnav1)],
-                                scenes=np.repeat(socnav1.scenes[::3], 3)[:len(socnav1)])
+def test_split_is_seeded_disjoint_and_by_example(synthetic):
+    train, test = split_rows(synthetic, 0.2, 7)
+    assert not set(train) & set(test) and len(train) + len(test) == len(synthetic)
+    assert len(test) == round(0.2 * len(synthetic))  # one action: one rating per example
+    assert np.array_equal(test, split_rows(synthetic, 0.2, 7)[1])
+    assert not np.array_equal(test, split_rows(synthetic, 0.2, 8)[1])
+    three = dataclasses.replace(synthetic, actions=np.arange(len(synthetic)) % 3, action_names=('a', 'b', 'c'),
+                                users=np.repeat(synthetic.users[::3], 3)[:len(synthetic)],
+                                scenes=np.repeat(synthetic.scenes[::3], 3)[:len(synthetic)])
     train, test = split_rows(three, 0.2, 7)
     assert not set(three.examples[train].tolist()) & set(three.examples[test].tolist())
 
 
-def test_stars_and_its_ablations_start_exactly_where_base_ends(socnav1, rows):
+def test_stars_and_its_ablations_start_exactly_where_base_ends(synthetic, rows):
     """The hand-over: after the same pre-training, a personalised model with no joint epoch
     yet predicts what the scene-only model predicts."""
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 2, 'joint_epochs': 0})
-    base = StarsTrainer(config.replace(model={'variant': 'base'})).fit(socnav1, train).predict_rows(socnav1, test)
+    base = StarsTrainer(config.replace(model={'variant': 'base'})).fit(synthetic, train).predict_rows(synthetic, test)
     for variant in ('stars', 'base_user_bias', 'stars_no_q'):
-        started = StarsTrainer(config.replace(model={'variant': variant})).fit(socnav1, train)
-        np.testing.assert_allclose(started.predict_rows(socnav1, test), base, atol=1e-6)
+        started = StarsTrainer(config.replace(model={'variant': variant})).fit(synthetic, train)
+        np.testing.assert_allclose(started.predict_rows(synthetic, test), base, atol=1e-6)
 
 
-def test_ablations_keep_their_missing_parts_at_zero(socnav1, rows):
+def test_ablations_keep_their_missing_parts_at_zero(synthetic, rows):
     train, _ = rows
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 1, 'joint_epochs': 2})
     for variant, absent in (('base_user_bias', ('user_embedding', 'scene_embedding', 'scene_bias')),
                             ('stars_no_q', ('scene_embedding',)),
                             ('user_bias', ('user_embedding', 'scene_embedding', 'scene_bias'))):
-        model = StarsTrainer(config.replace(model={'variant': variant})).fit(socnav1, train[:600]).model
+        model = StarsTrainer(config.replace(model={'variant': variant})).fit(synthetic, train[:600]).model
         for name in absent:
             assert getattr(model, name).weight.abs().sum() == 0, (variant, name)
         assert model.user_bias.weight.abs().sum() > 0
 
 
-def test_predictions_stay_on_the_rating_scale(socnav1, rows):
+def test_predictions_stay_on_the_rating_scale(synthetic, rows):
     train, test = rows
     recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(
-        training={'pretrain_epochs': 1, 'joint_epochs': 1})).fit(socnav1, train[:500])
+        training={'pretrain_epochs': 1, 'joint_epochs': 1})).fit(synthetic, train[:500])
     assert recommender.rating_scale == (0.0, 1.0)
     with torch.no_grad():
         recommender.model.bias.fill_(40.0)  # far above the scale
-    assert np.all(recommender.predict_rows(socnav1, test) == 1.0)
+    assert np.all(recommender.predict_rows(synthetic, test) == 1.0)
 
 
-def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(socnav1):
-    prefixes = socnav1.item_keys('prefix')
-    assert len(set(prefixes)) == 4904  # the paper's count of SocNav1 scenes
-    merged = [prefixes[i] for i, key in enumerate(socnav1.scene_keys) if key.startswith('01892 ')]
-    assert merged == ['01892', '01892']  # "01892 A" and "01892 B": different scenes, one prefix
+def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(synthetic):
+    prefixes = synthetic.item_keys('prefix')
+    assert prefixes == [key.split(' ')[0] for key in synthetic.scene_keys]
+    pairs = {p for p in prefixes if prefixes.count(p) > 1}  # "00007 A" and "00007 B" both rated
+    assert pairs and len(set(prefixes)) < len(synthetic.scene_keys)
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 0, 'joint_epochs': 1})
-    rows = np.arange(len(socnav1))
-    by_identifier = StarsTrainer(config).fit(socnav1, rows)
-    by_prefix = StarsTrainer(config.replace(model={'item_key': 'prefix'})).fit(socnav1, rows)
-    assert len(by_identifier.scene_keys) == len(socnav1.scene_keys) and len(by_prefix.scene_keys) == 4904
+    rows = np.arange(len(synthetic))
+    by_identifier = StarsTrainer(config).fit(synthetic, rows)
+    by_prefix = StarsTrainer(config.replace(model={'item_key': 'prefix'})).fit(synthetic, rows)
+    assert len(by_identifier.scene_keys) == len(synthetic.scene_keys)
+    assert sorted(by_prefix.scene_keys) == sorted(set(prefixes))
     with pytest.raises(DataError, match="item keying 'room'"):
-        socnav1.item_keys('room')
+        synthetic.item_keys('room')
 
 
 @pytest.mark.parametrize('variant', ['stars', 'base', 'mf'])
-def test_training_lowers_the_loss_and_beats_the_mean(socnav1, rows, variant):
+def test_training_lowers_the_loss_and_beats_the_mean(synthetic, rows, variant):
     train, test = rows
     recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(model={'variant': variant}))
-    recommender.fit(socnav1, train)
+    recommender.fit(synthetic, train)
     joint = recommender.history['joint']
     assert joint[-1] < joint[0]
     assert len(recommender.history['pretrain']) == (0 if variant == 'mf' else 2)
-    metrics = recommender.evaluate(socnav1, test)
-    mean_mse = float(np.mean((socnav1.scores[test] - socnav1.scores[train].mean()) ** 2))
+    metrics = recommender.evaluate(synthetic, test)
+    mean_mse = float(np.mean((synthetic.scores[test] - synthetic.scores[train].mean()) ** 2))
     if variant != 'mf':  # content models must beat the global mean already
         assert metrics['mse'] < mean_mse
     assert metrics['n'] == len(test)
 
 
-def test_training_is_deterministic(socnav1, rows):
+def test_training_is_deterministic(synthetic, rows):
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL)
-    first = StarsTrainer(config).fit(socnav1, train[:800]).predict_rows(socnav1, test)
-    second = StarsTrainer(config).fit(socnav1, train[:800]).predict_rows(socnav1, test)
+    first = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
+    second = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
     assert np.array_equal(first, second)
 
 
-def test_vocabularies_come_from_training_rows_only(socnav1, rows):
+def test_vocabularies_come_from_training_rows_only(synthetic, rows):
     train, _ = rows
     recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(
-        training={'pretrain_epochs': 0, 'joint_epochs': 1})).fit(socnav1, train[:300])
-    assert set(recommender.users) == set(socnav1.users[train[:300]].tolist())
-    assert len(recommender.scene_keys) == len(set(socnav1.scenes[train[:300]].tolist()))
+        training={'pretrain_epochs': 0, 'joint_epochs': 1})).fit(synthetic, train[:300])
+    assert set(recommender.users) == set(synthetic.users[train[:300]].tolist())
+    assert len(recommender.scene_keys) == len(set(synthetic.scenes[train[:300]].tolist()))
 
 
-def test_divergence_is_reported(socnav1, rows):
+def test_divergence_is_reported(synthetic, rows):
     config = ExperimentConfig.from_dict(SMALL).replace(training={'lr': 1e30, 'grad_clip': 1e30,
                                                                  'pretrain_epochs': 1, 'joint_epochs': 1})
     with pytest.raises(TrainingDivergedError, match='lower the learning rate'):
-        StarsTrainer(config).fit(socnav1, rows[0][:500])
+        StarsTrainer(config).fit(synthetic, rows[0][:500])
 
 
 def test_predict_before_fit():
@@ -123,16 +124,16 @@ def test_predict_before_fit():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason='checks the message torch gives without a GPU')
-def test_cuda_device_without_a_gpu_is_a_config_error(socnav1, rows):
+def test_cuda_device_without_a_gpu_is_a_config_error(synthetic, rows):
     config = ExperimentConfig.from_dict(SMALL).replace(training={'device': 'cuda'})
     with pytest.raises(ConfigError, match='torch sees no CUDA GPU'):
-        StarsTrainer(config).fit(socnav1, rows[0][:100])
+        StarsTrainer(config).fit(synthetic, rows[0][:100])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason='needs a CUDA GPU')
 @pytest.mark.parametrize('encoder, variant', [('gcn', 'stars'), ('gat', 'base'), ('gat', 'mf'),
                                               ('rgcn', 'stars'), ('ggnn', 'stars')])
-def test_cuda_fit_matches_the_cpu_fit(socnav1, rows, encoder, variant):
+def test_cuda_fit_matches_the_cpu_fit(synthetic, rows, encoder, variant):
     """The same seeded fit on the GPU and the CPU: mid-training predictions (made on the GPU
     through on_epoch) and final ones agree to 1e-4, and the model comes back on the CPU.
     Two optimiser steps only (one batch per epoch), so rounding differences between the
@@ -145,10 +146,10 @@ def test_cuda_fit_matches_the_cpu_fit(socnav1, rows, encoder, variant):
     for device in ('cpu', 'cuda'):
         recommender = StarsTrainer(config.replace(training={'device': device}))
         seen = []
-        recommender.fit(socnav1, train, on_epoch=lambda stage, epoch: seen.append(
-            (next(recommender.model.parameters()).device.type, recommender.predict_rows(socnav1, test))))
+        recommender.fit(synthetic, train, on_epoch=lambda stage, epoch: seen.append(
+            (next(recommender.model.parameters()).device.type, recommender.predict_rows(synthetic, test))))
         assert {t.device.type for t in recommender.model.state_dict().values()} == {'cpu'}
-        fitted[device] = (seen, recommender.predict_rows(socnav1, test), recommender.history)
+        fitted[device] = (seen, recommender.predict_rows(synthetic, test), recommender.history)
     (cpu_seen, cpu_final, cpu_history), (gpu_seen, gpu_final, gpu_history) = fitted['cpu'], fitted['cuda']
     assert {d for d, _ in gpu_seen} == {'cuda'} and len(gpu_seen) == len(cpu_seen)
     for (_, on_cpu), (_, on_gpu) in zip(cpu_seen, gpu_seen):

@@ -17,7 +17,7 @@ robot to the closest person (6 m when there is none), ``crowding_i`` the number 
 within 3 m divided by 3, ``t_u`` how much a person minds crowds, ``b_u`` their leniency and
 ``ε`` rater noise. Every person rates at least ``min_ratings`` scenes, the rest follow a
 gamma-distributed activity, and a scene is rated by up to a few people. As in SocNav1, one
-identifier (the first person's first) carries two different scene contents, rated by different people.
+identifier (the last person's last) carries two different scene contents, rated by different people.
 Everything follows from ``seed``. It checks that the paths behave; it is not a benchmark.
 """
 from __future__ import annotations
@@ -88,7 +88,7 @@ def generate(shape: SocNavShape = SocNavShape(), seed: int = 0) -> dict:
     for user, name in enumerate(names):
         chosen = rng.choice(len(pool), size=counts[user], replace=False)
         lines[name] = [rated(pool[k], user) for k in chosen]
-    twin = {'identifier': lines[names[0]][0]['identifier'], **random_scene(rng, shape.max_humans, shape.max_objects)}
+    twin = {'identifier': lines[names[-1]][-1]['identifier'], **random_scene(rng, shape.max_humans, shape.max_objects)}
     stranger_to_it = next(user for user, name in enumerate(names)
                           if all(s['identifier'] != twin['identifier'] for s in lines[name]))
     lines[names[stranger_to_it]].append(rated(twin, stranger_to_it))

@@ -185,7 +185,8 @@ def _serve(node: RankerNode):
 
 def main(args=None):
     if usage.print_help_if_asked('ranker', __doc__, PARAMETERS,
-                                 'ros2 run stars_ros ranker --ros-args -p checkpoint:=model.pt -p top_k:=3', args):
+                                 'ros2 run stars_ros ranker --ros-args -p checkpoint:='
+                                 '$(ros2 pkg prefix --share stars_ros)/models/socnav1_gat_stars.pt -p top_k:=3', args):
         return
     run_node('ranker', RankerNode, _serve, (CheckpointError, ConfigError), args, close=RankerNode.close)
 
