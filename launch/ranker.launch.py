@@ -1,6 +1,7 @@
 """Launch the ranker with the packaged defaults (config/ranker.yaml).
 
-    ros2 launch stars_ros ranker.launch.py checkpoint:=/path/to/model.pt record_folder:=/tmp/stars
+    ros2 launch stars_ros ranker.launch.py record_folder:=/tmp/stars top_k:=3
+    ros2 launch stars_ros ranker.launch.py checkpoint:=$(ros2 pkg prefix --share stars_ros)/models/socnav1_gat_stars.pt
     ros2 launch stars_ros ranker.launch.py record:=false
     ros2 launch stars_ros ranker.launch.py namespace:=robot1 fleet_sharing:=true fleet_topic:=/fleet/user_model
 

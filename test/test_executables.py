@@ -1,6 +1,7 @@
 """What a new user meets first: every executable's --help, where recordings go by default,
 the node defaults file and the launch file agreeing with the node, the demo's own state."""
 import importlib.util
+import itertools
 import os
 import re
 import subprocess
@@ -133,6 +134,32 @@ def test_ranker_yaml_holds_the_node_defaults():
     for name, value in values.items():
         default = PARAMETERS[name][0]
         assert (type(value), value) == (type(default), default), name
+
+
+def readme_parameter_table() -> dict:
+    """The README's table of the ranker's parameters: name -> (default cell, set-at cell)."""
+    lines = (REPO / 'README.md').read_text().splitlines()
+    start = lines.index('| parameter | default | set at | meaning |') + 2
+    rows = {}
+    for line in itertools.takewhile(lambda line: line.startswith('|'), lines[start:]):
+        name, default, set_at = (cell.strip() for cell in line.strip('|').split('|')[:3])
+        rows[name.strip('`')] = (default.strip('`'), set_at)
+    return rows
+
+
+def test_the_readme_parameter_table_is_the_nodes():
+    """One row per parameter, in PARAMETERS order, with its default (as -p or a params file
+    writes it) and whether it can change while the node runs; config/ranker.yaml holds the
+    same defaults (test above)."""
+    table = readme_parameter_table()
+    assert list(table) == list(PARAMETERS)
+    for name, (default, set_at) in table.items():
+        value, _, read_only, _ = PARAMETERS[name]
+        if name == 'record_folder':
+            assert default == '$ROS_HOME/stars_ros/records'  # the value depends on the environment
+        else:
+            assert (type(yaml.safe_load(default)), yaml.safe_load(default)) == (type(value), value), name
+        assert set_at == ('start' if read_only else 'any time'), name
 
 
 class _Recorded:
