@@ -55,6 +55,14 @@ def test_unknown_action_and_bad_scene(predictor, scenes):
         predictor.rank('a', {'humans': []})
 
 
+def test_the_ranking_action_is_the_named_one_or_the_only_one(predictor, scenes):
+    assert predictor.ranking_action(None) == predictor.ranking_action('navigate') == 'navigate'
+    with pytest.raises(UnknownActionError, match=r"unknown actions \['dance'\]"):
+        predictor.ranking_action('dance')
+    with pytest.raises(UnknownActionError, match='dance'):
+        predictor.rank_scenes('a', scenes, action='dance')
+
+
 def test_missing_checkpoint_is_a_checkpoint_error(tmp_path):
     with pytest.raises(CheckpointError):
         Predictor.load(tmp_path / 'none.pt')

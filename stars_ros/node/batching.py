@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stars_ros.errors import StarsError, UnknownActionError
+from stars_ros.errors import StarsError
 from stars_ros.messages import SceneRequest
 from stars_ros.model.model import UNKNOWN
 from stars_ros.model.predictor import rank_order
@@ -58,19 +58,10 @@ class Scored:
 def _ranking_action(predictor, request: SceneRequest) -> str | None:
     """Check the request's action names against the model; the action that ranks candidate
     scenes (None for action ranking)."""
-    if not request.ranks_scenes:
-        unknown = [a for a in request.actions or () if a not in predictor.actions]
-        if unknown:
-            raise UnknownActionError(f'unknown actions {unknown}; this model knows {list(predictor.actions)}')
-        return None
-    if request.action is None:
-        if len(predictor.actions) != 1:
-            raise UnknownActionError(f"say which 'action' ranks the candidate scenes; this model knows "
-                                     f'{list(predictor.actions)}')
-        return predictor.actions[0]
-    if request.action not in predictor.actions:
-        raise UnknownActionError(f"unknown action '{request.action}'; this model knows {list(predictor.actions)}")
-    return request.action
+    if request.ranks_scenes:
+        return predictor.ranking_action(request.action)
+    predictor.action_columns(request.actions or ())
+    return None
 
 
 def _score_group(predictor, user_id, members, top_k, uncertainty=None) -> list:
