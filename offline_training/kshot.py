@@ -1,36 +1,34 @@
-"""k-shot personalisation on held-out annotators: unpersonalised vs fold-in vs retraining.
+"""k-shot personalisation of new people: unpersonalised vs Bayesian fold-in (three ways of
+choosing the questions) vs full retraining, with the calibration of the predictive intervals.
 
     python -m offline_training.kshot --config config/socnav1_gat.yaml \
-        --data-root ../shared/datasets/socnav1 --out results/kshot_socnav1 [--quick]
+        --data-root ../shared/datasets/socnav1 --out results/kshot-socnav1-bayes [--quick]
 
-Leave-annotators-out folds (annotators shuffled with each of ``--seeds`` and dealt into
-``--folds`` groups; several seeds give several such partitions). Per fold a model is trained
-on the other annotators. For every held-out annotator a
-seeded pool of ``--pool`` ratings is set aside as "revealable", revealed in a fixed order;
-the remaining ratings are the test rows, the same for every k, so the curves compare across
-k. For each k the held-out annotators are scored three ways:
+Leave-people-out folds (people shuffled with each of ``--seeds`` and dealt into ``--folds``
+groups). Per fold a model is trained on the other people's examples, less a seeded
+``--known-test`` share of them kept for the known people's calibration. For every held-out
+person ``stars_ros.evaluation.kshot`` sets aside a seeded pool of ``--pool`` examples (one
+person's ratings of one scene, every action; fewer for a person with fewer examples, who then
+covers only the k it allows, and a person with one example is left out and counted); their
+other examples are the test rows, the same for every k and strategy. Per k each fold's
+covered people are scored:
 
-- ``unpersonalised``: p_u = 0, b_u = 0 (what the node does for a stranger);
-- ``fold-in``: (p_u, b_u) solved in closed form (stars_ros.personalisation.foldin) from the first k revealed
-  ratings, towards the population prior (the mean trained user row, as the node does);
-- ``fold-in (zero prior)``: the same towards p_u = 0, b_u = 0, i.e. towards the
-  unpersonalised model (equal to it at k = 0);
-- ``retrained``: the whole model trained again from scratch on the fold's training rows plus
-  the first k revealed ratings of each held-out annotator (k = 0 is the fold's model).
+- ``unpersonalised``: the scene-only model (p_u = 0, b_u = 0);
+- ``fold-in (<strategy>)``: the node's default, the Gaussian posterior from the first k
+  answers the strategy asked for (``random``: the pool's seeded order; ``uncertainty``: largest
+  predictive variance; ``active``: the A-optimal expected variance reduction over the pool).
+  k = 0 is the population prior's mean, what the node serves a stranger;
+- ``ridge λ=<--ridge-lambda> (random)``: the ridge solve the node did before the posterior;
+- ``retrained``: the whole model trained again on the fold's rows plus the first k random
+  answers of each held-out person (k = 0 is the fold's model).
 
-λ: one value per prior and seed, chosen on the seed's first fold's held-out annotators
-using their revealable pools only (fold in from the first k of the pool, score the rest of
-the pool; mean MSE over the k of ``--ks`` with 0 < k < pool); no test row takes part. (The
-training annotators are no use for this: the model fitted their ratings, which favours a
-tiny λ.) As a check, not used for any choice, the fold-in MSE of every λ of the grid on the
-test rows is reported too.
-
-Metrics (MSE, r, CCC on the rating scale) are pooled over the fold's held-out test rows,
-then given as mean ± sd over folds (of all seeds). Writes results.json, results.md and
-kshot.png. The fits are independent of each other: ``--jobs`` runs them in worker
-processes (one torch thread each, sharing the GPU with ``--device cuda``), ``--executor ray``
-as Ray tasks. A fold any of whose fits fails (raises, or its worker dies) is left out and
-named with the error; the run then ends with status 1.
+Metrics (MSE, r, CCC on the rating scale, scores clipped as served) are pooled over a fold's
+covered test rows, then given as mean ± sd over folds. Calibration: the share of test ratings
+inside the central 50/80/90/95 % predictive intervals, for new people at each k (random
+order) and for known people (their held-out examples, each scored from their trained row and
+its covariance), pooled over folds. Writes results.json, results.md and kshot.png. Fits run
+in worker processes with ``--jobs`` (one torch thread each) or as Ray tasks (``--executor
+ray``); a fold any of whose fits fails is left out and named, and the run ends with status 1.
 """
 from __future__ import annotations
 
@@ -47,18 +45,18 @@ import torch
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.protocol import FitFailure, fit_outcome, worker_data
-from stars_ros.evaluation.kshot import LAMBDA_GRID, PRIORS, Design, annotator_folds, choose_regularisation, reveal_pools
+from stars_ros.evaluation.kshot import LEVELS, STRATEGIES, Design, annotator_folds, coverage, known_split, reveal_pools
 from stars_ros.model.metrics import regression_report
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.model.training import StarsTrainer
+from stars_ros.personalisation.prior import estimate_prior
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, pyplot, read_inputs,
                      save_png, setup_logging)
 
-METHODS = ('unpersonalised', 'fold-in', 'fold-in (zero prior)', 'retrained')
 METRICS = ('mse', 'pearson_r', 'ccc')
 NAMES = {'mse': 'MSE', 'pearson_r': 'Pearson r', 'ccc': 'CCC'}
-QUICK = {'folds': 2, 'ks': [0, 2, 5], 'epochs': [1, 2], 'max_train_rows': 1500,
+QUICK = {'folds': 2, 'ks': [0, 1, 2, 5], 'epochs': [1, 2], 'max_train_rows': 1500,
          'experiment': {'encoder': {'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
                         'training': {'lr': 3e-3}}}
 
@@ -71,10 +69,17 @@ def parse_args(argv=None):
     parser.add_argument('--folds', type=int, default=4, help='annotator folds (default: %(default)s)')
     parser.add_argument('--seeds', type=int, nargs='+', default=[0],
                         help='seeds of folds and revealed pools, one partition of the annotators each (default: 0)')
-    parser.add_argument('--pool', type=int, default=20, help='revealable ratings per held-out annotator')
-    parser.add_argument('--ks', type=int, nargs='+', default=[0, 1, 2, 5, 10, 20], help='revealed ratings')
+    parser.add_argument('--pool', type=int, default=20, help='revealable examples per held-out person (default: %(default)s)')
+    parser.add_argument('--ks', type=int, nargs='+', default=[0, 1, 2, 3, 5, 10, 20],
+                        help='answered questions (examples) (default: %(default)s)')
+    parser.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=['random'],
+                        help='how questions are chosen (default: random; the first one listed is the one retrained)')
+    parser.add_argument('--known-test', type=float, default=0.2,
+                        help="share of the training people's examples held out for their calibration (default: %(default)s)")
+    parser.add_argument('--ridge-lambda', type=float, default=1.0,
+                        help='λ of the ridge fold-in shown beside the posterior (default: %(default)s, the node\'s '
+                             'former default)')
     parser.add_argument('--epochs', type=int, nargs=2, metavar=('T1', 'T2'), help='override the config epochs')
-    parser.add_argument('--regularisation', type=float, help='fold-in λ (default: chosen on fold 0, see above)')
     parser.add_argument('--max-train-rows', type=int, help='subsample each fold\'s training rows (seeded)')
     parser.add_argument('--device', help="train on this device ('cpu', 'cuda'; default: the config's)")
     parser.add_argument('--quick', action='store_true',
@@ -94,8 +99,8 @@ def configure(args) -> ExperimentConfig:
     training = {'threads': 1, **({'device': args.device} if args.device else {})}
     if args.epochs:
         training.update(pretrain_epochs=args.epochs[0], joint_epochs=args.epochs[1])
-    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2:
-        raise StarsError(f'ks must lie in 0..{args.pool} and folds must be at least 2')
+    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2 or not 0 <= args.known_test < 1:
+        raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2 and --known-test in [0, 1)')
     return config.replace(training=training)
 
 
@@ -110,6 +115,7 @@ def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, 
     predictions = recommender.predict_rows(data, test)
     if keep:
         recommender.model.cpu()
+        recommender.user_prior = estimate_prior(recommender, data, train).to_dict()  # as a checkpoint stores it
     return {'seconds': seconds, 'predictions': predictions, 'recommender': recommender if keep else None}
 
 
@@ -118,27 +124,88 @@ def report(data, rows, predictions) -> dict:
 
 
 def plan_folds(args, data) -> list:
-    """(seed, fold id, held-out annotators, training rows, reveal pools, test rows) of every
-    fold of every seed."""
+    """(seed, fold id, held-out people, training rows, {person: Person}, left out, known test
+    rows) of every fold of every seed."""
     plan = []
     for seed in args.seeds:
         for fold_id, held in enumerate(annotator_folds(data.users, args.folds, seed)):
             train = np.flatnonzero(~np.isin(data.users, held))
+            train, known = known_split(data, train, args.known_test, seed)
             if args.max_train_rows and len(train) > args.max_train_rows:
                 train = np.sort(np.random.default_rng([seed, fold_id]).choice(train, args.max_train_rows,
                                                                               replace=False))
-            pools = reveal_pools(data, held, args.pool, seed)
-            test = np.sort(np.concatenate([pools[name][1] for name in held]))
-            plan.append((seed, fold_id, held, train, pools, test))
+            people, left_out = reveal_pools(data, held, args.pool, seed)
+            plan.append((seed, fold_id, held, train, people, left_out, known))
     return plan
 
 
 def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
-    """The training rows at ``k``: the fold's, plus the first k revealed of each held-out annotator."""
-    _, _, held, train, pools, _ = fold
+    """The training rows at ``k``: the fold's, plus each held-out person's first k random answers."""
+    _, _, _, train, people, _, _ = fold
     if k == 0:
         return train
-    return np.sort(np.concatenate([train, *(pools[name][0][:k] for name in held)]))
+    return np.sort(np.concatenate([train, *(person.rows(range(min(k, len(person.pool)))) for person in people.values())]))
+
+
+def test_rows(people: dict, k: int) -> tuple[list, np.ndarray]:
+    """(people who cover k, their test rows)."""
+    covered = sorted(name for name, person in people.items() if len(person.pool) >= k)
+    rows = np.concatenate([people[name].test for name in covered]) if covered else np.zeros(0, dtype=np.int64)
+    return covered, np.sort(rows)
+
+
+def score_fold(args, data, design: Design, fold: tuple, outcomes: dict) -> tuple[list, dict]:
+    """(records, calibration samples) of one fold whose fits are ``outcomes`` {k: fit}."""
+    seed, fold_id, held, _, people, _, known = fold
+    orders = {(name, strategy): design.reveal_order(person, strategy, max(args.ks))
+              for name, person in people.items() for strategy in args.strategies}
+    methods = [f'fold-in ({s})' for s in args.strategies]
+    ridge = f'ridge λ={args.ridge_lambda:g} ({args.strategies[0]})'
+    records, calibration = [], {'new': {}, 'known': None}
+    for k in sorted(args.ks):
+        covered, rows = test_rows(people, k)
+        if not len(rows):
+            continue
+        entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
+                 'unpersonalised': report(data, rows, design.predict(rows, None))}
+        predictions = {method: np.zeros(len(data)) for method in [*methods, ridge]}
+        samples = {'y': [], 'mean': [], 'sd': []}
+        for name in covered:
+            person = people[name]
+            for strategy, method in zip(args.strategies, methods):
+                answered = person.rows(orders[name, strategy][:k])
+                theta, covariance = design.posterior(answered)
+                predictions[method][person.test] = design.predict(person.test, theta)
+                if strategy == args.strategies[0]:
+                    mean, sd = design.predictive(person.test, theta, covariance)
+                    samples['y'].append(data.scores[person.test])
+                    samples['mean'].append(mean)
+                    samples['sd'].append(sd)
+                    if k:
+                        ridge_theta, _ = design.posterior(answered, regularisation=args.ridge_lambda)
+                        predictions[ridge][person.test] = design.predict(person.test, ridge_theta)
+                    else:
+                        predictions[ridge][person.test] = predictions[method][person.test]
+        for method, values in predictions.items():
+            entry[method] = report(data, rows, values[rows])
+        entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)])
+        calibration['new'][k] = {key: np.concatenate(v) for key, v in samples.items()}
+        records.append(entry)
+    if len(known):
+        users = np.asarray(data.users[known])
+        means, sds = np.zeros(len(known)), np.zeros(len(known))
+        for name in sorted(set(users.tolist())):
+            mine = users == name
+            theta, covariance = design.posterior(np.zeros(0, dtype=np.int64), user_id=name)
+            means[mine], sds[mine] = design.predictive(known[mine], theta, covariance)
+        calibration['known'] = {'y': data.scores[known], 'mean': means, 'sd': sds}
+    return records, calibration
+
+
+def fold_test(fold: tuple) -> np.ndarray:
+    """Every test row of a fold's held-out people (what each fit predicts), sorted."""
+    people = fold[4]
+    return np.sort(np.concatenate([person.test for person in people.values()]))
 
 
 def run(args, config, data, fits, log=print) -> dict:
@@ -151,14 +218,16 @@ def run(args, config, data, fits, log=print) -> dict:
     def submit(folds):  # the largest fits first, so that the last wave is short
         order = sorted(((fold, k) for fold in folds for k in sorted(args.ks)), key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
-            submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold[5], k == 0)
+            submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
+                                                         k == 0)
 
     if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
         submit(plan)
-    records, timings, regularisation, selection, folds, failed = [], [], {}, {}, {}, []
+    records, timings, folds, failed, left_out = [], [], {}, [], {}
+    pooled = {'new': {}, 'known': []}
     try:
         for fold in plan:
-            seed, fold_id, held, train, pools, test = fold
+            seed, fold_id, held, train, people, skipped, known = fold
             if fits.jobs == 1:
                 submit([fold])
             outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')
@@ -171,57 +240,50 @@ def run(args, config, data, fits, log=print) -> dict:
                                                                           f"{f['error']}" for f in lost))
                 continue
             folds.setdefault(str(seed), []).append(held)
+            left_out.update({f'{seed}:{name}': count for name, count in skipped.items()})
             base = outcomes[0]
-            timings.append({'seed': seed, 'fold': fold_id, 'k': 0, 'seconds': round(base['seconds'], 1),
-                            'n_train': len(train)})
-            log(f'seed {seed} fold {fold_id} (held out {held}): base model on {len(train)} ratings in '
-                f"{base['seconds']:.0f} s")
-            design = Design(base['recommender'], data)
-            if str(seed) not in regularisation:
-                if args.regularisation:
-                    regularisation[str(seed)] = {method: args.regularisation for method in PRIORS}
-                else:
-                    chosen = {method: choose_regularisation(design, pools, args.ks, prior)
-                              for method, prior in PRIORS.items()}
-                    regularisation[str(seed)] = {method: lam for method, (lam, _) in chosen.items()}
-                    selection[str(seed)] = {method: scores for method, (_, scores) in chosen.items()}
-                    log(f'seed {seed}: fold-in λ {regularisation[str(seed)]} (chosen on the revealable pools of '
-                        f'fold {fold_id}: {selection[str(seed)]})')
-            lambdas = regularisation[str(seed)]
-            unpersonalised = report(data, test, design.predict(test, None))
-            for k in sorted(args.ks):
-                entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'n_test': len(test),
-                         'unpersonalised': unpersonalised, 'mse_by_lambda': {}}
-                for method, prior in PRIORS.items():
-                    by_lambda = {}
-                    for candidate in sorted({lambdas[method], *LAMBDA_GRID}):
-                        predictions = np.zeros(len(data))
-                        for name in held:
-                            revealed, rows = pools[name]
-                            predictions[rows] = design.predict(rows, design.fold_in(revealed[:k], candidate, prior))
-                        by_lambda[candidate] = report(data, test, predictions[test])
-                    entry[method] = by_lambda[lambdas[method]]
-                    entry['mse_by_lambda'][method] = {str(lam): r['mse'] for lam, r in by_lambda.items()}
-                retrained = outcomes[k]
-                if k:
-                    timings.append({'seed': seed, 'fold': fold_id, 'k': k, 'seconds': round(retrained['seconds'], 1),
-                                    'n_train': len(fit_rows_of(fold, k))})
-                entry['retrained'] = report(data, test, retrained['predictions'])
-                records.append(entry)
-                log(f'seed {seed} fold {fold_id} k={k}: MSE ' + '  '.join(f"{m} {entry[m]['mse']:.4f}"
-                                                                         for m in METHODS))
+            for k, outcome in outcomes.items():
+                timings.append({'seed': seed, 'fold': fold_id, 'k': k, 'seconds': round(outcome['seconds'], 1),
+                                'n_train': len(fit_rows_of(fold, k))})
+            log(f'seed {seed} fold {fold_id} ({len(people)} held out, {len(skipped)} left out): base model on '
+                f"{len(train)} ratings in {base['seconds']:.0f} s")
+            fold_records, calibration = score_fold(args, data, Design(base['recommender'], data), fold, outcomes)
+            records += fold_records
+            for k, samples in calibration['new'].items():
+                pooled['new'].setdefault(k, []).append(samples)
+            if calibration['known'] is not None:
+                pooled['known'].append(calibration['known'])
+            for entry in fold_records:
+                log(f"seed {seed} fold {fold_id} k={entry['k']}: MSE " + '  '.join(
+                    f"{m} {entry[m]['mse']:.4f}" for m in methods_of(entry)))
             if args.on_fold:
-                args.on_fold(records, timings, regularisation, selection, folds, failed)
+                args.on_fold(records, timings, folds, failed, left_out, calibration_table(pooled))
     finally:
         executor.shutdown(cancel_futures=True)
-    return {'records': records, 'fits': timings, 'regularisation': regularisation, 'selection': selection,
-            'folds': folds, 'failed': failed}
+    return {'records': records, 'fits': timings, 'folds': folds, 'failed': failed, 'left_out': left_out,
+            'calibration': calibration_table(pooled)}
+
+
+def methods_of(entry: dict) -> list:
+    """The scored methods of a record, in table order."""
+    return [key for key in entry if isinstance(entry[key], dict) and 'mse' in entry[key]]
+
+
+def calibration_table(pooled: dict) -> dict:
+    """{'new': {k: {level: coverage}}, 'known': {level: coverage}, 'n': ...} pooled over folds."""
+    def cover(parts):
+        y, mean, sd = (np.concatenate([p[key] for p in parts]) for key in ('y', 'mean', 'sd'))
+        return {**coverage(y, mean, sd), 'n': int(len(y)), 'mean_sd': float(np.mean(sd))}
+    table = {'new': {str(k): cover(parts) for k, parts in sorted(pooled['new'].items())}}
+    if pooled['known']:
+        table['known'] = cover(pooled['known'])
+    return table
 
 
 def summarise(records: list) -> dict:
     """{method: {k: {metric: [mean, sd, n_folds]}}}"""
     summary = {}
-    for method in METHODS:
+    for method in methods_of(records[0]) if records else []:
         summary[method] = {}
         for k in sorted({r['k'] for r in records}):
             values = {m: [r[method][m] for r in records if r['k'] == k] for m in METRICS}
@@ -229,57 +291,73 @@ def summarise(records: list) -> dict:
     return summary
 
 
-def gap_share(summary: dict, k: int, method: str = 'fold-in') -> float | None:
-    """Share of the MSE gap between k = 0 unpersonalised and retraining at ``k`` that
-    ``method`` at ``k`` recovers (None when k was not run or there is no gap)."""
-    if k not in summary[method] or 0 not in summary['unpersonalised']:
-        return None
-    start = summary['unpersonalised'][0]['mse'][0]
-    gap = start - summary['retrained'][k]['mse'][0]
-    return None if abs(gap) < 1e-12 else (start - summary[method][k]['mse'][0]) / gap
+def goals(summary: dict, strategies: list, ks: list) -> dict:
+    """The issue's goals, measured: never worse than unpersonalised at any k >= 1 (mean over
+    folds, each strategy), and the fewest active questions reaching random's MSE at k = 10."""
+    never_worse = {method: all(summary[method][k]['mse'][0] <= summary['unpersonalised'][k]['mse'][0]
+                               for k in ks if k >= 1 and k in summary[method])
+                   for method in summary if method.startswith('fold-in')}
+    out = {'never_worse': never_worse}
+    if 'active' in strategies and 10 in summary.get('fold-in (random)', {}):
+        target = summary['fold-in (random)'][10]['mse'][0]
+        reached = [k for k in sorted(summary['fold-in (active)']) if summary['fold-in (active)'][k]['mse'][0] <= target]
+        out['active_questions_to_match_random_at_10'] = reached[0] if reached else None
+    return out
 
 
 def write_results(folder: Path, result: dict, header: dict) -> dict:
     summary = summarise(result['records'])
-    top = max(summary['fold-in']) if summary['fold-in'] else 0
-    shares = {method: gap_share(summary, top, method) for method in PRIORS}
-    payload = {**header, 'regularisation': result['regularisation'], 'regularisation_selection': result['selection'],
-               'folds': result['folds'], 'records': result['records'], 'fits': result['fits'],
-               'failed': result['failed'],
-               'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()},
-               'gap_share': {'k': top, **shares}}
+    ks = sorted(summary.get('unpersonalised', {}))
+    checks = goals(summary, header['strategies'], ks) if summary else {}
+    payload = {**header, 'folds': result['folds'], 'left_out': result['left_out'], 'records': result['records'],
+               'fits': result['fits'], 'failed': result['failed'], 'calibration': result['calibration'],
+               'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()}, 'goals': checks}
     (folder / 'results.json').write_text(json.dumps(payload, indent=1))
     partitions = '; '.join(f'seed {seed}: {folds}' for seed, folds in result['folds'].items())
-    lines = ["# k-shot personalisation on held-out annotators", '', f"`{header['command']}`", '',
-             f"{len(result['records']) // max(1, len(header['ks']))} folds of held-out annotators ({partitions}); "
-             f"{header['pool']} revealable ratings per held-out annotator; fold-in λ by seed "
-             f"{result['regularisation']}; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "
+    covered = {k: sorted({(r['seed'], name) for r in result['records'] if r['k'] == k for name in r['covered']})
+               for k in ks}
+    lines = ['# k-shot personalisation of new people', '', f"`{header['command']}`", '',
+             f"{len({(r['seed'], r['fold']) for r in result['records']})} folds of held-out people ({partitions}); "
+             f"pools of up to {header['pool']} examples per person; {len(result['left_out'])} people left out for "
+             f"having a single example; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "
              'Mean ± sd over folds.', '',
-             '| k | method | MSE | Pearson r | CCC |', '| --- | --- | --- | --- | --- |']
-    for k in sorted(summary['fold-in']):
-        for method in METHODS:
-            cells = [f'{s[0]:.4f} ± {s[1]:.4f}' for s in (summary[method][k][m] for m in METRICS)]
-            lines.append(f'| {k} | {method} | ' + ' | '.join(cells) + ' |')
-    for method, share in shares.items():
-        if share is not None:
-            lines += ['', f'{method} at k={top} recovers {100 * share:.0f}% of the MSE gap between the '
-                          f'unpersonalised model (k=0) and full retraining at k={top}.']
-    ks = sorted(summary['fold-in'])
-    for method in PRIORS:
-        lambdas = sorted({float(lam) for r in result['records'] for lam in r['mse_by_lambda'][method]})
-        lines += ['', f'Check, not used for any choice: {method} MSE on the test rows for every λ of the grid '
-                      '(mean over folds).', '', '| λ | ' + ' | '.join(f'k={k}' for k in ks) + ' |',
-                  '| --- |' + ' --- |' * len(ks)]
-        for lam in lambdas:
-            cells = [np.mean([r['mse_by_lambda'][method][str(lam)] for r in result['records'] if r['k'] == k])
-                     for k in ks]
-            lines.append(f'| {lam:g} | ' + ' | '.join(f'{v:.4f}' for v in cells) + ' |')
+             '| k | people covered | method | MSE | Pearson r | CCC |', '| --- | --- | --- | --- | --- | --- |']
+    for k in ks:
+        for method in summary:
+            if k in summary[method]:
+                cells = [f'{s[0]:.4f} ± {s[1]:.4f}' for s in (summary[method][k][m] for m in METRICS)]
+                lines.append(f'| {k} | {len(covered[k])} | {method} | ' + ' | '.join(cells) + ' |')
+    calibration = result['calibration']
+    levels = [str(level) for level in LEVELS]
+    lines += ['', f"Calibration: share of held-out ratings inside the central predictive intervals "
+                  f"(new people: {header['strategies'][0]} questions; pooled over folds).", '',
+              '| people | k | ratings | mean score_sd | ' + ' | '.join(f'{float(l):.0%}' for l in levels) + ' |',
+              '| --- | --- | --- | --- |' + ' --- |' * len(levels)]
+    rows = [('new', k, calibration['new'][k]) for k in calibration.get('new', {})]
+    if 'known' in calibration:
+        rows.append(('known', '–', calibration['known']))
+    for who, k, cells in rows:
+        lines.append(f"| {who} | {k} | {cells['n']} | {cells['mean_sd']:.4f} | "
+                     + ' | '.join(f'{100 * cells[l]:.1f}' for l in levels) + ' |')
+    if checks:
+        lines += ['', 'Goals:', '']
+        for method, held in checks['never_worse'].items():
+            lines.append(f"- {method} at or below unpersonalised MSE at every k ≥ 1: {'met' if held else 'NOT met'}")
+        if 'active_questions_to_match_random_at_10' in checks:
+            reached = checks['active_questions_to_match_random_at_10']
+            lines.append(f'- active questions needed to reach random\'s MSE at k = 10: '
+                         f"{reached if reached is not None else 'not reached'} (goal ≤ 5: "
+                         f"{'met' if reached is not None and reached <= 5 else 'NOT met'})")
+        worst = max((abs(100 * cells[l] - 100 * float(l)) for _, _, cells in rows for l in levels), default=0.0)
+        lines.append(f"- interval coverage within ±5 points of nominal: {'met' if worst <= 5 else 'NOT met'} "
+                     f'(largest gap {worst:.1f} points)')
     fit_seconds = [f['seconds'] for f in result['fits']]
-    lines += ['', f"{len(fit_seconds)} fits, {np.mean(fit_seconds):.0f} s each on average, "
+    lines += ['', f"{len(fit_seconds)} fits, {np.mean(fit_seconds) if fit_seconds else 0:.0f} s each on average, "
                   f"{header.get('seconds', 0):.0f} s in all (one torch thread each, {header['jobs']} at a time, "
                   f"on {header['config']['training']['device']})."]
     (folder / 'results.md').write_text('\n'.join(lines) + '\n')
-    plot(folder / 'kshot.png', summary)
+    if summary:
+        plot(folder / 'kshot.png', summary)
     return payload
 
 
@@ -288,7 +366,7 @@ def plot(path: Path, summary: dict) -> None:
 
     figure, axes = plt.subplots(1, len(METRICS), figsize=(13, 3.6))
     for axis, metric in zip(axes, METRICS):
-        for method in METHODS:
+        for method in summary:
             ks = sorted(summary[method])
             means = np.array([summary[method][k][metric][0] for k in ks])
             sds = np.array([summary[method][k][metric][1] for k in ks])
@@ -318,13 +396,14 @@ def main(argv=None) -> int:
     header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
+              'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,
               'executor': fits.settings, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),
               'epochs': [config.training.pretrain_epochs, config.training.joint_epochs]}
 
-    def on_fold(records, timings, regularisation, selection, folds, failed):  # partial results survive a stop
-        write_results(folder, {'records': records, 'fits': timings, 'regularisation': regularisation,
-                               'selection': selection, 'folds': folds, 'failed': failed},
+    def on_fold(records, timings, folds, failed, left_out, calibration):  # partial results survive a stop
+        write_results(folder, {'records': records, 'fits': timings, 'folds': folds, 'failed': failed,
+                               'left_out': left_out, 'calibration': calibration},
                       {**header, 'seconds': time.perf_counter() - started, 'complete': False})
     args.on_fold = on_fold
     try:
@@ -332,7 +411,7 @@ def main(argv=None) -> int:
     except StarsError as error:
         print(f'error: {error}', file=sys.stderr)
         return 1
-    payload = write_results(folder, result, {**header, 'seconds': time.perf_counter() - started,
+    write_results(folder, result, {**header, 'seconds': time.perf_counter() - started,
                                              'complete': not result['failed']})
     print((folder / 'results.md').read_text())
     if result['failed']:
@@ -340,11 +419,6 @@ def main(argv=None) -> int:
                          *(f"  seed {f['seed']} fold {f['fold']} k={f['k']}: {f['error']}" for f in result['failed'])]),
               file=sys.stderr)
         return 1
-    shares = payload['gap_share']
-    for method in PRIORS:
-        if shares[method] is not None:
-            print(f"{method} at k={shares['k']} recovers {100 * shares[method]:.1f}% of the k=0 -> "
-                  'full retraining MSE gap')
     return 0
 
 

@@ -1,76 +1,132 @@
-"""k-shot evaluation: folds and pools are sound, and the quick run writes every output."""
+"""k-shot evaluation on the generated SocNav1-format data: folds and pools are dealt by example,
+people too small for a pool are left out and counted, the strategies ask only pool examples,
+and the quick run writes every output with comparable curves and its calibration."""
 import json
 
 import numpy as np
 import pytest
 
 from offline_training import kshot
-from stars_ros.evaluation.kshot import annotator_folds, reveal_pools
+from stars_ros.evaluation.kshot import Design, annotator_folds, coverage, known_split, reveal_pools
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.training import StarsTrainer
+from stars_ros.personalisation.prior import estimate_prior
+from conftest import TINY_CONFIG
 
 
-def test_annotator_folds_and_pools_partition_the_data(socnav1):
-    folds = annotator_folds(socnav1.users, 3, seed=0)
-    names = sorted(set(socnav1.users.tolist()))
-    assert sorted(n for fold in folds for n in fold) == names and [len(f) for f in folds] == [4, 4, 4]
-    assert folds == annotator_folds(socnav1.users, 3, seed=0) != annotator_folds(socnav1.users, 3, seed=1)
-    pools = reveal_pools(socnav1, folds[0], 20, seed=0)
-    for name, (revealed, test) in pools.items():
-        rows = np.flatnonzero(socnav1.users == name)
-        assert len(revealed) == 20 and not set(revealed) & set(test)
-        assert sorted(np.concatenate([revealed, test])) == sorted(rows)
+def test_pools_are_whole_examples_and_small_people_are_left_out(synthetic):
+    folds = annotator_folds(synthetic.users, 3, seed=0)
+    assert sorted(n for fold in folds for n in fold) == sorted(set(synthetic.users.tolist()))
+    assert folds == annotator_folds(synthetic.users, 3, seed=0) != annotator_folds(synthetic.users, 3, seed=1)
+    examples = synthetic.examples
+    people, left_out = reveal_pools(synthetic, sorted(set(synthetic.users.tolist())), 20, seed=0)
+    for name, person in people.items():
+        rows = np.flatnonzero(synthetic.users == name)
+        count = len(np.unique(examples[rows]))
+        assert len(person.pool) == min(20, count - 1)
+        assert all(len(np.unique(examples[rows_of])) == 1 for rows_of in person.pool)  # one example each
+        pooled = person.rows(range(len(person.pool)))
+        assert not set(pooled) & set(person.test)
+        assert sorted(np.concatenate([pooled, person.test])) == sorted(rows)
+        assert not set(examples[pooled]) & set(examples[person.test])  # an example is never split
+    assert all(count == 1 for count in left_out.values())
 
 
-def test_quick_run_writes_tables_plot_and_comparable_curves(socnav1_root, tmp_path, capsys):
+def test_the_known_split_holds_out_whole_examples(synthetic):
+    rows = np.arange(len(synthetic))
+    train, held = known_split(synthetic, rows, 0.25, seed=0)
+    assert sorted(np.concatenate([train, held])) == list(rows)
+    assert not set(synthetic.examples[train]) & set(synthetic.examples[held])
+
+
+@pytest.fixture(scope='module')
+def design(synthetic):
+    recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic)
+    recommender.user_prior = estimate_prior(recommender, synthetic, np.arange(len(synthetic))).to_dict()
+    return Design(recommender, synthetic)
+
+
+def test_strategies_ask_only_pool_examples_each_once(design, synthetic):
+    people, _ = reveal_pools(synthetic, ['a', 'b', 'c'], 8, seed=0)
+    for person in people.values():
+        for strategy in ('random', 'uncertainty', 'active'):
+            order = design.reveal_order(person, strategy, 6)
+            assert len(order) == min(6, len(person.pool)) and len(set(order)) == len(order)
+            assert set(order) <= set(range(len(person.pool)))
+        assert design.reveal_order(person, 'random', 6) == list(range(min(6, len(person.pool))))
+
+
+def test_the_first_active_question_is_the_one_with_the_largest_expected_variance_reduction(design, synthetic):
+    people, _ = reveal_pools(synthetic, ['b'], 8, seed=0)
+    person = people['b']
+    _, covariance = design.posterior(np.zeros(0, dtype=np.int64))
+    blocks = [design.rows(rows) for rows in person.pool]
+    targets = (np.concatenate([b[0] for b in blocks]), np.concatenate([b[3] for b in blocks]))
+    gains = design.uncertainty.variance_reduction([(b[0], b[3]) for b in blocks], targets, covariance)
+    assert design.reveal_order(person, 'active', 1) == [int(np.argmax(gains))]
+
+
+def test_coverage_counts_ratings_inside_the_central_intervals():
+    y = np.array([0.0, 0.5, 1.0, 3.0])
+    result = coverage(y, np.zeros(4), np.ones(4))  # |y| <= z: 50 % z = 0.674, 80 % 1.28, 90 % 1.64, 95 % 1.96
+    assert result == {'0.5': 0.5, '0.8': 0.75, '0.9': 0.75, '0.95': 0.75}
+
+
+def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(synthetic_root, tmp_path, capsys):
     out = tmp_path / 'kshot'
-    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(socnav1_root), '--out', str(out),
-                       '--quick']) == 0
+    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out', str(out),
+                       '--quick', '--strategies', 'random', 'active']) == 0
     assert {'results.json', 'results.md', 'kshot.png'} <= {p.name for p in out.iterdir()}
     results = json.loads((out / 'results.json').read_text())
-    assert results['complete'] and results['ks'] == [0, 2, 5] and len(results['folds']['0']) == 2
+    assert results['complete'] and results['ks'] == [0, 1, 2, 5] and len(results['folds']['0']) == 2
     for fold in (0, 1):
         records = [r for r in results['records'] if r['fold'] == fold]
-        assert len({r['n_test'] for r in records}) == 1  # the same test rows for every k
         zero = records[0]
         assert zero['k'] == 0
-        assert abs(zero['fold-in (zero prior)']['mse'] - zero['unpersonalised']['mse']) < 1e-9
         assert abs(zero['retrained']['mse'] - zero['unpersonalised']['mse']) < 1e-6  # k = 0 is the fold's model
-        assert len({json.dumps(r['unpersonalised']) for r in records}) == 1
-    assert set(results['regularisation']['0']) == {'fold-in', 'fold-in (zero prior)'}
-    assert '| 5 | retrained |' in (out / 'results.md').read_text()
-    assert 'of the k=0 -> full retraining MSE gap' in capsys.readouterr().out
+        assert zero['fold-in (random)'] == zero['fold-in (active)']  # no question asked yet: the prior mean
+        for record in records:  # the same test rows for every k the same people cover
+            if record['covered'] == zero['covered']:
+                assert record['n_test'] == zero['n_test'] and record['unpersonalised'] == zero['unpersonalised']
+    calibration = results['calibration']
+    assert set(calibration['new']) == {'0', '1', '2', '5'} and calibration['known']['n'] > 0
+    assert set(results['goals']['never_worse']) == {'fold-in (random)', 'fold-in (active)'}
+    text = (out / 'results.md').read_text()
+    assert '| 5 |' in text and 'retrained' in text and '| known |' in text
+    assert 'at or below unpersonalised MSE at every k ≥ 1' in capsys.readouterr().out
 
 
 @pytest.mark.slow
-def test_fits_in_worker_processes_give_what_inline_fits_give(socnav1_root, tmp_path):
+def test_fits_in_worker_processes_give_what_inline_fits_give(synthetic_root, tmp_path):
     """Two seeds' folds with their fits in 2 worker processes, then all inline: same records."""
     runs = {}
     for jobs in (2, 1):
         out = tmp_path / f'jobs{jobs}'
-        assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(socnav1_root), '--out', str(out),
+        assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out', str(out),
                            '--quick', '--seeds', '0', '1', '--jobs', str(jobs)]) == 0
         runs[jobs] = json.loads((out / 'results.json').read_text())
     assert set(runs[2]['folds']) == {'0', '1'}
     assert [(r['seed'], r['fold'], r['k']) for r in runs[2]['records']] == \
-        [(seed, fold, k) for seed in (0, 1) for fold in (0, 1) for k in (0, 2, 5)]  # --quick's ks
+        [(seed, fold, k) for seed in (0, 1) for fold in (0, 1) for k in (0, 1, 2, 5)]  # --quick's ks
     for parallel, inline in zip(runs[2]['records'], runs[1]['records']):
-        assert parallel['retrained'] == inline['retrained'] and parallel['fold-in'] == inline['fold-in']
+        assert parallel['retrained'] == inline['retrained'] and parallel['fold-in (random)'] == inline['fold-in (random)']
     assert runs[2]['jobs'] == 2 and runs[2]['seeds'] == [0, 1]
 
 
-def test_a_fold_whose_fit_fails_is_left_out_and_named(socnav1_root, tmp_path, monkeypatch, capsys):
-    """The fourth fit (fold 1's retraining at k = 5, the largest first) raises: fold 0 is
-    reported, fold 1 is named with the error and left out, and the run ends with status 1."""
+def test_a_fold_whose_fit_fails_is_left_out_and_named(synthetic_root, tmp_path, monkeypatch, capsys):
+    """The fifth fit (fold 1's retraining at k = 5: fold 0's four come first, each fold's
+    largest first) raises: fold 0 is reported, fold 1 is named and left out, status 1."""
     calls, fit_rows = [], kshot.fit_rows
 
-    def failing_fourth(*args, **kwargs):
+    def failing_fifth(*args, **kwargs):
         calls.append(args)
-        if len(calls) == 4:
+        if len(calls) == 5:
             raise RuntimeError('injected')
         return fit_rows(*args, **kwargs)
 
-    monkeypatch.setattr(kshot, 'fit_rows', failing_fourth)
+    monkeypatch.setattr(kshot, 'fit_rows', failing_fifth)
     out = tmp_path / 'kshot'
-    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(socnav1_root), '--out', str(out),
+    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out', str(out),
                        '--quick']) == 1
     results = json.loads((out / 'results.json').read_text())
     assert not results['complete'] and {r['fold'] for r in results['records']} == {0}

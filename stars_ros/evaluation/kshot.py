@@ -1,22 +1,38 @@
-"""The k-shot design: held-out annotators, their revealable ratings, and fold-in from them.
+"""The k-shot design: held-out people, their revealable examples, the order in which they are
+asked (random, uncertainty, active), and the Bayesian fold-in from what they answered.
 
-Library side of ``offline_training.kshot`` (which trains the models and writes the tables):
-annotators dealt into leave-out folds, a seeded pool of revealable ratings per held-out
-annotator (the rest are test rows, the same for every k), the fold-in design of dataset rows
-under one fitted model, and the choice of the fold-in λ on the revealable pools alone, so no
-test row takes part in it.
+Library side of ``offline_training.kshot`` (which trains the models and writes the tables).
+Everything is dealt by example (one person's ratings of one scene, every action), as the rows
+protocol deals its folds: a person's pool holds examples, a question reveals one whole
+example, and the test rows are the person's other examples, the same for every k and every
+strategy, so the curves compare. A person with fewer than two examples is left out (counted);
+one with fewer than ``pool + 1`` gets a smaller pool and covers only the k it allows.
+
+Strategies choose the next question from the person's unrevealed pool examples, given the
+posterior after the answers so far:
+
+- ``random``: the pool's seeded order (the default, comparable with earlier runs);
+- ``uncertainty``: the example whose ratings have the largest summed predictive variance;
+- ``active``: the example whose answer most reduces the summed predictive variance over the
+  whole pool (``Uncertainty.variance_reduction``: the A-optimal criterion the node uses).
+
+Neither looks at a test row or at an answer before it is given.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-import torch
+from scipy import stats as scipy_stats
 
 from stars_ros.errors import StarsError
-from stars_ros.personalisation.foldin import FoldIn
 from stars_ros.model.predictor import Predictor
+from stars_ros.personalisation.foldin import FoldIn, gaussian_posterior, solve_ridge
+from stars_ros.personalisation.prior import encode_all, rows_design
+from stars_ros.personalisation.uncertainty import Uncertainty
 
-PRIORS = {'fold-in': 'population', 'fold-in (zero prior)': 'zero'}
-LAMBDA_GRID = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
+STRATEGIES = ('random', 'uncertainty', 'active')
+LEVELS = (0.5, 0.8, 0.9, 0.95)  # central predictive intervals whose coverage is measured
 
 
 def annotator_folds(users: np.ndarray, k: int, seed: int) -> list:
@@ -28,64 +44,109 @@ def annotator_folds(users: np.ndarray, k: int, seed: int) -> list:
     return [sorted(part.tolist()) for part in np.array_split(order, k)]
 
 
-def reveal_pools(data, annotators, pool: int, seed: int) -> dict:
-    """annotator -> (revealable rows in reveal order, test rows); seeded per annotator."""
-    pools = {}
-    for name in annotators:
+@dataclass(frozen=True)
+class Person:
+    """A held-out person: their pool examples in the seeded random order (each the array of
+    its rows) and their test rows."""
+
+    pool: tuple
+    test: np.ndarray
+
+    def rows(self, examples) -> np.ndarray:
+        """The rows of pool examples ``examples`` (indices into ``pool``)."""
+        return np.concatenate([self.pool[e] for e in examples]) if len(examples) else np.zeros(0, dtype=np.int64)
+
+
+def reveal_pools(data, people, pool: int, seed: int) -> tuple[dict, dict]:
+    """({person: Person}, {person left out: their example count}); seeded per person."""
+    examples = data.examples
+    pools, left_out = {}, {}
+    for name in people:
         rows = np.flatnonzero(data.users == name)
-        rng = np.random.default_rng([seed, sum(map(ord, name))])
-        order = rng.permutation(rows)
-        if len(order) <= pool:
-            raise StarsError(f'annotator {name} has {len(order)} ratings, needs more than --pool {pool}')
-        pools[name] = (order[:pool], np.sort(order[pool:]))
-    return pools
+        ids = np.unique(examples[rows])
+        size = min(pool, len(ids) - 1)
+        if size < 1:
+            left_out[name] = int(len(ids))
+            continue
+        order = np.random.default_rng([seed, sum(map(ord, name))]).permutation(ids)
+        chosen = [rows[examples[rows] == e] for e in order[:size]]
+        pools[name] = Person(tuple(chosen), np.sort(rows[~np.isin(examples[rows], order[:size])]))
+    return pools, left_out
 
 
-def encode_all(recommender, data) -> np.ndarray:
-    """h_i of every scene in ``data`` [n_scenes, dim] under the fitted model."""
-    rows = []
-    with torch.no_grad():
-        for start in range(0, len(data.scene_keys), 512):
-            index = torch.arange(start, min(start + 512, len(data.scene_keys)))
-            rows.append(recommender.model.encode(data.store.batch(index)).double().numpy())
-    return np.concatenate(rows)
+def known_split(data, rows: np.ndarray, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(training rows, held-out rows) of ``rows``: a seeded ``fraction`` of their examples held
+    out, so that known people's calibration is measured on ratings the model did not fit."""
+    examples = data.examples[rows]
+    ids = np.unique(examples)
+    held = np.random.default_rng([seed, 7]).permutation(ids)[:int(round(fraction * len(ids)))]
+    out = np.isin(examples, held)
+    return rows[~out], rows[out]
 
 
 class Design:
-    """Fold-in designs of dataset rows under one fitted model (h encoded once)."""
+    """Fold-in and predictive distributions of dataset rows under one fitted model (every
+    scene encoded once)."""
 
-    def __init__(self, recommender, data):
-        self.foldin = FoldIn(Predictor(recommender, {}, ''))
-        self.data = data
-        self.h = encode_all(recommender, data)
+    def __init__(self, fitted, data):
+        self.fitted, self.data = fitted, data
+        self.foldin = FoldIn(Predictor.from_model(fitted))
+        self.uncertainty = Uncertainty(self.foldin)
+        self.inference = self.foldin.inference
+        self.h = encode_all(fitted, data)
 
     def rows(self, rows: np.ndarray) -> tuple:
-        data = self.data
-        x, c = self.foldin.design_from_h(self.h[data.scenes[rows]], [data.scene_keys[s] for s in data.scenes[rows]],
-                                         data.actions[rows])
-        return x, c, self.foldin.to_z(data.scores[rows], data.actions[rows])
+        """(x, c, z, actions) of dataset ``rows``."""
+        x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
+        return x, c, z, self.data.actions[rows]
+
+    def posterior(self, rows: np.ndarray, user_id=None, regularisation: float | None = None) -> tuple:
+        """(θ mean, covariance) after the ratings of ``rows`` (none: the prior of ``user_id``,
+        the population's for a new person); a positive ``regularisation``: the ridge solve."""
+        mean, covariance, precision = self.foldin.prior_distribution(user_id)
+        if len(rows) == 0:
+            return mean, covariance
+        x, c, z, actions = self.rows(rows)
+        if regularisation:
+            theta = solve_ridge(x, z - c, mean, regularisation)
+            return theta, float(self.foldin.noise.mean()) * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta)))
+        return gaussian_posterior(x, z - c, self.foldin.noise[actions], mean, precision)
 
     def predict(self, rows: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
-        x, c, _ = self.rows(rows)
+        """Rating-scale predictions of ``rows``, clipped as served; θ None: the scene-only
+        model (p_u = 0, b_u = 0)."""
+        x, c, _, actions = self.rows(rows)
         z = c if theta is None else x @ theta + c
-        return self.foldin.to_rating_scale(z, self.data.actions[rows])
+        return self.fitted.clip(self.inference.to_rating_scale(z, actions))
 
-    def fold_in(self, rows: np.ndarray, regularisation: float, prior: str) -> np.ndarray:
-        theta = self.foldin.population.copy() if prior == 'population' else np.zeros(self.foldin.dim + 1)
-        return theta if len(rows) == 0 else self.foldin.solve(*self.rows(rows), theta, regularisation)
+    def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray) -> tuple:
+        """(mean, sd) of the Gaussian predictive distribution of ``rows`` on the rating scale (unclipped)."""
+        x, c, _, actions = self.rows(rows)
+        return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
+
+    def reveal_order(self, person: Person, strategy: str, count: int) -> list:
+        """The first ``count`` pool examples ``strategy`` asks about, in order."""
+        if strategy == 'random':
+            return list(range(min(count, len(person.pool))))
+        if strategy not in STRATEGIES:
+            raise StarsError(f"unknown strategy '{strategy}'; choose from {list(STRATEGIES)}")
+        blocks = [self.rows(rows) for rows in person.pool]
+        targets = (np.concatenate([b[0] for b in blocks]), np.concatenate([b[3] for b in blocks]))
+        asked = []
+        while len(asked) < min(count, len(person.pool)):
+            _, covariance = self.posterior(person.rows(asked))
+            remaining = [e for e in range(len(person.pool)) if e not in asked]
+            if strategy == 'uncertainty':
+                gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance) ** 2)
+                         for e in remaining]
+            else:
+                gains = self.uncertainty.variance_reduction([(blocks[e][0], blocks[e][3]) for e in remaining], targets,
+                                                            covariance)
+            asked.append(remaining[int(np.argmax(gains))])
+        return asked
 
 
-def choose_regularisation(design: Design, pools: dict, ks, prior: str) -> tuple:
-    """λ of LAMBDA_GRID with the lowest mean MSE on the revealable pools alone: fold in
-    from the first k of each pool, score the rest of that pool (0 < k < pool size)."""
-    data = design.data
-    scores = {}
-    for regularisation in LAMBDA_GRID:
-        errors = []
-        for revealed, _ in pools.values():
-            for k in [k for k in ks if 0 < k < len(revealed)] or [len(revealed) // 2]:
-                rest = revealed[k:]
-                predicted = design.predict(rest, design.fold_in(revealed[:k], regularisation, prior))
-                errors.append(np.mean((predicted - data.scores[rest]) ** 2))
-        scores[regularisation] = float(np.mean(errors))
-    return min(scores, key=scores.get), scores
+def coverage(y: np.ndarray, mean: np.ndarray, sd: np.ndarray) -> dict:
+    """{level: share of ``y`` inside the central interval of N(mean, sd²)} for ``LEVELS``."""
+    return {str(level): float(np.mean(np.abs(y - mean) <= scipy_stats.norm.ppf(0.5 + level / 2) * sd))
+            for level in LEVELS}
