@@ -29,7 +29,7 @@ def rate(function, scenes, repeats=3):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
-    parser.add_argument('--out', default='results/featurise.json')
+    parser.add_argument('--out', default=str(Path(__file__).resolve().parents[1] / 'results' / 'featurise.json'))
     args = parser.parse_args()
     torch.set_num_threads(1)
     scenes = [json.loads(line) for path in sorted(Path(args.data_root, 'raw').glob('*.jsonl'))

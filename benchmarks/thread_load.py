@@ -53,11 +53,12 @@ def seconds_per_epoch(args, threads: int, policy: str | None, busy: bool) -> flo
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--config', default='config/socnav1_gat.yaml')
+    repo = Path(__file__).resolve().parents[1]
+    parser.add_argument('--config', default=str(repo / 'config' / 'socnav1_gat.yaml'))
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--epochs', type=int, default=3)
     parser.add_argument('--timeout', type=int, default=900, help='seconds one condition may take')
-    parser.add_argument('--out', default='results/thread_load.json')
+    parser.add_argument('--out', default=str(repo / 'results' / 'thread_load.json'))
     args = parser.parse_args()
     conditions = [(1, None), (2, None), (2, 'PASSIVE')]
     rows = []

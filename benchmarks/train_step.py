@@ -9,6 +9,7 @@ includes the GPU's work. Tells whether a GPU pays for these small graphs before 
 """
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from stars_ros.model.training import StarsTrainer
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
-    parser.add_argument('--config', default='config/eval_socnav1.yaml')
+    parser.add_argument('--config', default=str(Path(__file__).resolve().parents[1] / 'config' / 'eval_socnav1.yaml'))
     parser.add_argument('--backbone', default='gat')
     parser.add_argument('--variant', default='stars', choices=['base', 'stars'])
     parser.add_argument('--devices', default='cuda,cpu', help='comma-separated, timed in this order')
