@@ -23,6 +23,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/config/security', glob('config/security/*.xml')),
         ('share/' + package_name + '/msg_schemas', glob('msg_schemas/*.json')),
         ('share/' + package_name + '/launch', glob('launch/*.py')),
         ('share/' + package_name + '/models', glob('models/*.pt') + glob('models/*.md')),

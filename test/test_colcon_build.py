@@ -51,7 +51,7 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
     for relative in ('package.xml', 'config/ranker.yaml', 'config/socnav1_gat.yaml', 'launch/ranker.launch.py',
                      'msg_schemas/scene_graph.schema.json', 'msg_schemas/scene_request.schema.json',
                      'msg_schemas/ranking.schema.json', 'msg_schemas/feedback.schema.json',
-                     'models/socnav1_gat_stars.pt', 'models/README.md'):
+                     'models/socnav1_gat_stars.pt', 'models/README.md', 'config/security/ranker.policy.xml'):
         assert (share / 'stars_ros' / relative).is_file(), relative
     python_dirs = list((prefix / 'lib').glob('python3*/site-packages/stars_ros'))
     assert python_dirs and (python_dirs[0] / 'ros' / 'ranker.py').is_file()

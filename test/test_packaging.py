@@ -24,7 +24,9 @@ LIBRARIES = {
 }
 TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python3-jsonschema', 'jsonschema'),
                   'referencing': ('python3-jsonschema', 'jsonschema'),  # jsonschema's own dependency
-                  'rosbags': (None, 'rosbags')}
+                  'rosbags': (None, 'rosbags'),
+                  'sros2': ('sros2', ROS),  # a ROS package; without ROS, from ../shared/vendor/ (requirements-dev.txt)
+                  'lxml': ('python3-lxml', 'lxml')}
 OWN = {'stars_ros', 'offline_training', 'conftest', 'ros_helpers', 'mutations', 'test_model', 'test_ranker_core'}
 
 
