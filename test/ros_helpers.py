@@ -30,8 +30,8 @@ RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-DOMAINS_PER_BLOCK = 12
-FIRST_DOMAIN, BLOCKS = 100, 10  # domains 100..219: clear of the default 0 and of Fast DDS's limit
+DOMAINS_PER_BLOCK = 14
+FIRST_DOMAIN, BLOCKS = 100, 9  # domains 100..225: clear of the default 0 and of Fast DDS's limit (232)
 _reserved = {}
 
 
@@ -54,7 +54,7 @@ def reserve_block() -> int:
 
 
 def domain_id(offset: int) -> int:
-    """This process's ROS domain number ``offset`` (0..11) of its reserved block."""
+    """This process's ROS domain number ``offset`` (0..13) of its reserved block."""
     if not 0 <= offset < DOMAINS_PER_BLOCK:
         raise ValueError(f'domain offset {offset} outside 0..{DOMAINS_PER_BLOCK - 1}')
     return reserve_block() + offset
