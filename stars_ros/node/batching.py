@@ -1,5 +1,5 @@
 """Rank a batch of queued scene requests with one model snapshot, and keep the figures the
-ranker reports (``BusySpans``, ``PeriodStats``, ``Problems``); ``ranker_core`` uses them.
+ranker reports (``BusySpans``, ``PeriodStats``, ``Problems``); ``stars_ros.node.core`` uses them.
 
 ROS-free. When scenes arrive faster than they are scored, the node scores everything
 queued (up to ``max_batch``) in one call, and requests of the same user are encoded in one
