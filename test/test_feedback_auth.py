@@ -92,6 +92,9 @@ def test_the_signed_form_is_hmac_sha256_of_the_sorted_compact_fields_and_stamp()
                               'mac': hmac.new(SECRET_A, canonical, hashlib.sha256).hexdigest()}
     assert {k: v for k, v in signed.items() if k != 'auth'} == fields
     assert messages.parse_feedback(json.dumps(signed)).signed == signed
+    docs_vector = {'user_id': 'alice', 'scene_id': 's1', 'action': 'navigate', 'score': 0.8}  # docs/security.md
+    assert feedback_auth.mac(bytes(range(32)), docs_vector, 1_700_000_000_000_000_000) == (
+        'f92ff2d26c8b0fcdd01ef546cb590251f34ac754ca1f931cd27a362ff2dce582')
 
 
 def test_key_files_take_comments_and_several_keys_and_name_a_bad_line_without_its_secret(key_file, tmp_path):
