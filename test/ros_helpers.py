@@ -102,6 +102,12 @@ class RosClient:
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self._spinner.start()
 
+    def collect(self, topic: str, qos) -> list:
+        """A list that gathers the JSON of every std_msgs/String on ``topic`` (``wait`` sees it grow)."""
+        store = []
+        self.node.create_subscription(String, topic, self._keep(store, json.loads), qos)
+        return store
+
     def _keep(self, store, convert):
         def callback(msg):
             with self._changed:

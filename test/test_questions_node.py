@@ -1,0 +1,65 @@
+"""The ranker node, started for real on loopback DDS with the generated data's tiny checkpoint:
+every ranking entry carries score_sd, a question request is answered on stars/question with
+a scene the node then takes feedback on, and a bad one is refused on stars/errors."""
+import json
+import signal
+
+import pytest
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from ros_helpers import RosClient, domain_id, start_node, stop
+from stars_ros import messages
+from stars_ros.data.scene_source import scene_request
+
+pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
+QUESTIONS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture
+def ranker(tiny_checkpoint, synthetic_scenes, tmp_path):
+    """A ranker of its own (fresh state) and a client that also listens on stars/question."""
+    domain = domain_id(12)
+    client = RosClient(domain)
+    questions = client.collect('/stars/question', QUESTIONS)
+    asker = client.node.create_publisher(String, '/stars/question_request', QUESTIONS)
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint,
+                                                          'record_folder': tmp_path / 'records'}, tmp_path / 'ranker.log')
+    try:
+        client.wait_ready(process, 90, scene_request('probe', synthetic_scenes[0]))
+        yield process, client, asker, questions
+        assert process.poll() is None, 'the ranker died during the test'
+        assert stop(process, signal.SIGINT) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()
+
+
+def test_rankings_carry_score_sd_and_questions_are_answered(ranker, synthetic_scenes):
+    process, client, asker, questions = ranker
+    client.scene(scene_request('seen', synthetic_scenes[5], 'newcomer'))
+    assert client.wait(lambda: client.ranking_for('seen') is not None, 30)
+    ranking = client.ranking_for('seen')
+    messages.check('ranking', ranking)
+    assert all(entry['score_sd'] > 0 for entry in ranking['ranking']) and 'p_first_is_best' in ranking
+
+    offered = [scene_request(f'ask-{k}', scene) for k, scene in enumerate(synthetic_scenes[30:34])]
+    asker.publish(String(data=json.dumps({'user_id': 'newcomer', 'candidates': offered})))
+    assert client.wait(lambda: len(questions) == 1, 30), 'no answer on stars/question'
+    answer = questions[0]
+    messages.check('question', answer)
+    assert answer['scene_id'] in {f'ask-{k}' for k in range(4)} and answer['candidates'] == 4
+
+    client.feedback({'user_id': 'newcomer', 'scene_id': answer['scene_id'], 'action': answer['action'], 'score': 0.2})
+
+    def personalised(attempt):  # the solve runs once no scene waits: ask again until it is served
+        scene_id = f'after-{attempt}'
+        client.scene(scene_request(scene_id, synthetic_scenes[5], 'newcomer'))
+        return client.wait(lambda: (client.ranking_for(scene_id) or {}).get('personalised_from') == 1, 2)
+    assert any(personalised(attempt) for attempt in range(15)), 'the answer was not folded in'
+
+    asker.publish(String(data='{"candidates": "none"}'))
+    assert client.wait(lambda: any(e['topic'] == '/stars/question_request' for e in client.errors), 30)
+    refusal = next(e for e in client.errors if e['topic'] == '/stars/question_request')
+    assert refusal['kind'] == 'schema' and process.poll() is None
