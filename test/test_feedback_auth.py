@@ -331,6 +331,40 @@ def test_signed_ratings_travel_the_fleet_and_forged_peer_models_are_refused(tiny
     robot_b.close()
 
 
+def test_a_fuzz_of_a_peer_model_never_crashes_and_takes_nothing_forged(tiny_checkpoint, synthetic_scenes, key_file):
+    clock = Clock()
+    (node_a, robot_a), (node_b, robot_b) = _fleet(tiny_checkpoint, key_file, clock, 'robot_a', 'robot_b')
+    _rank(robot_a, synthetic_scenes[0])
+    robot_a.accept_feedback(_signed(_feedback(synthetic_scenes[0])))
+    _drain(robot_a)
+    [genuine] = node_a.on('stars/user_model')
+    rng = random.Random(2727)
+    for _ in range(300):
+        text = mutate(genuine, rng)
+        try:
+            payload = json.loads(text)
+        except (ValueError, RecursionError):
+            payload = None
+        robot_b.accept_user_model(text)
+        _drain(robot_b)
+        model = robot_b.predictor.user_model(USER)
+        if model is not None:  # taken: then what the signature binds is the genuine rating's (docs/security.md
+            # says what it does not bind: the scene content, the accepting robot, the stamp within the window)
+            [rating] = robot_b.personalisation.ratings(USER)
+            bound = ('id', 'feedback', 'score', 'action', 'scene_id')
+            assert {k: rating.to_json().get(k) for k in bound} == {k: genuine['ratings'][0].get(k) for k in bound}
+            assert payload['user_id'] == USER, text[:300]
+            robot_b.personalisation.peers.drop(USER)
+            robot_b.predictor.set_user_model(USER, None)
+    huge = copy.deepcopy(genuine)
+    huge['ratings'][0]['score'] = 10 ** 400  # JSON takes the integer, no float holds it
+    assert robot_b.accept_user_model(json.dumps(huge)) is False
+    assert node_b.on('stars/errors')[-1]['kind'] == 'non_finite'
+    assert 'internal' not in {e['kind'] for e in node_b.on('stars/errors')}
+    robot_a.close()
+    robot_b.close()
+
+
 def test_a_peer_without_a_key_file_is_refused_by_one_with_it(tiny_checkpoint, synthetic_scenes, key_file):
     clock = Clock()
     [(node_open, unsigned)] = _fleet(tiny_checkpoint, '', clock, 'open')

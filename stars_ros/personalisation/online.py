@@ -186,7 +186,10 @@ class Personalisation:
             raise messages.BadMessage('auth', 'it carries no ratings: with feedback_key_file set, a peer model is '
                                       'taken only with the signed ratings it was solved from')
         held = self._held(user_id)
-        new = list({e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}.values())
+        try:
+            new = list({e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}.values())
+        except OverflowError:  # an integer the schema takes but no float holds: refused, not a crash
+            raise messages.BadMessage('non_finite', 'a rating holds a number too large for a float') from None
         for rating in new if self.authenticator is not None else ():
             refusal = self.authenticator.check_rating(user_id, rating)
             if refusal is not None:
