@@ -49,7 +49,7 @@ sys.path.insert(0, str(REPO / 'test'))
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
 from stars_ros import messages  # noqa: E402
-from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
+from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, solve_ridge  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
@@ -65,9 +65,9 @@ def percentiles(values) -> dict:
 def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict:
     """ms per update by rating count, as in the node: the newly rated scene's request text is
     parsed again, its h is the one its ranking computed (handed to the fold-in's cache), and
-    the user is re-solved from all their ratings so far. Reference, same run: the solve
-    building every rating's regression row again (``design`` + ``solve``, as ``fit`` did
-    before it kept the rows)."""
+    the user is re-solved from all their ratings so far (``regularisation`` 0: the Gaussian
+    posterior, the node's default; > 0: the ridge override). Reference, same run: the solve
+    building every rating's regression row again (``design`` and the same solve)."""
     times, rebuilt = {}, {}
     messages.validator('scene_request')  # compiled once per process: the node has done it before any feedback
     for user, scenes in scenes_by_user.items():
@@ -83,7 +83,10 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
             model = foldin.fit(ratings, user, regularisation)
             times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
             started = time.perf_counter()
-            theta = foldin.solve(*foldin.design(ratings), foldin.prior(user), regularisation)
+            x, c, z = foldin.design(ratings)
+            mean, _, precision = foldin.prior_distribution(user)
+            theta = (solve_ridge(x, z - c, mean, regularisation) if regularisation else
+                     gaussian_posterior(x, z - c, foldin.noise[np.zeros(len(z), dtype=int)], mean, precision)[0])
             rebuilt.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
             assert np.allclose(theta, np.append(model.p, model.b), atol=1e-8)
     return {'update_ms': {n: percentiles(v) for n, v in times.items()},
@@ -319,7 +322,9 @@ def main(argv=None) -> int:
     parser.add_argument('--users', type=int, default=10, help='most annotators streaming ratings (part 1)')
     parser.add_argument('--ratings', type=int, default=200,
                         help='ratings each streams (part 1; annotators with fewer are left out)')
-    parser.add_argument('--regularisation', type=float, default=1.0)
+    parser.add_argument('--regularisation', type=float, default=0.0,
+                        help="fold-in λ; 0 (default, the node's): the Gaussian posterior")
+    parser.add_argument('--no-live', action='store_true', help='part 1 only (no node started)')
     parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per condition")
     parser.add_argument('--blocks', type=int, default=6,
                         help='rounds of blocks (one block of each condition per round) into which they are split')
@@ -346,8 +351,8 @@ def main(argv=None) -> int:
         update, reference = offline['update_ms'][n], offline['reference_solve_rebuilding_rows_ms'][n]
         print(f'{n:3d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms; reference, the '
               f'solve rebuilding every row: p50 {reference["p50"]:.3f} ms p99 {reference["p99"]:.3f} ms')
-    node = live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], args)
-    for gap in args.gaps:
+    node = {} if args.no_live else live(args.checkpoint, read_scenes(raw / 'b.jsonl')[:300], args)
+    for gap in [] if args.no_live else args.gaps:
         figures = node[f'gap_{gap:g}']
         for phase in CONDITIONS:
             latency = figures[phase]['other_latency_ms']
