@@ -157,7 +157,7 @@ class FeedbackAuthenticator:
         mismatch = (
             'its id is not its MAC' if rating.rating_id != auth['mac'] else
             f"its feedback is of user '{signed['user_id']}'" if signed['user_id'] != user_id else
-            'its score is not its feedback\'s' if rating.score != float(signed['score']) else
+            'its score is not its feedback\'s' if rating.score != signed['score'] else  # no float(): it may overflow
             'its action is not its feedback\'s' if 'action' in signed and rating.action != signed['action'] else
             'its scene id is not its feedback\'s' if rating.scene_id not in (None, signed['scene_id']) else
             'it was received further than feedback_max_age from its signing'
