@@ -4,6 +4,7 @@
     ros2 launch stars_ros ranker.launch.py checkpoint:=$(ros2 pkg prefix --share stars_ros)/models/socnav1_gat_stars.pt
     ros2 launch stars_ros ranker.launch.py record:=false
     ros2 launch stars_ros ranker.launch.py namespace:=robot1 fleet_sharing:=true fleet_topic:=/fleet/user_model
+    ros2 launch stars_ros ranker.launch.py feedback_key_file:=/etc/stars/keys.txt
 
 Leave ``checkpoint`` empty to serve the packaged SocNav1 GAT-StARS model and
 ``record_folder`` empty for the node's default, ``$ROS_HOME/stars_ros/records``. A robot
@@ -25,6 +26,7 @@ OPTIONAL = {  # launch argument = node parameter; empty (the default): the node'
     'record_folder': 'folder for the MCAP recordings; empty: the node default $ROS_HOME/stars_ros/records',
     'top_k': 'publish only the best k entries of each ranking; empty: the node default (0: all)',
     'fleet_sharing': 'true: share folded-in users on stars/user_model; empty: the node default (false)',
+    'feedback_key_file': 'keys that sign feedback (docs/security.md); empty: feedback is not authenticated',
 }
 
 
