@@ -9,7 +9,7 @@ import pytest
 
 from stars_ros import messages
 from stars_ros import recording
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.personalisation.user_state import STATE_FILE
 
@@ -140,3 +140,17 @@ def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoin
         assert topic in recorded, topic
     assert recorded.count('/stars/scene') == 2
     assert list(json.loads((tmp_path / STATE_FILE).read_text())['users']) == ['newcomer']
+    offered = recording.bag_topics(core.recorder.path)
+    depths = topic_qos(core.params)
+    for topic in set(recorded):  # the bag offers what the node subscribed and published with
+        depth, latched = depths[topic[1:]]
+        assert offered[topic]['depth'] == depth
+        assert offered[topic]['durability'] == ('transient_local' if latched else 'volatile')
+
+
+def test_every_topic_has_its_qos_and_shared_models_keep_every_user():
+    params = {name: spec[0] for name, spec in PARAMETERS.items()}
+    alone = topic_qos({**params, 'fleet_sharing': False})
+    assert set(alone) == set(TOPICS)
+    shared = topic_qos({**params, 'fleet_sharing': True, 'fold_in_max_users': 50})
+    assert shared['stars/user_model'] == (alone['stars/user_model'][0] + 50, True)

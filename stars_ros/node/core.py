@@ -34,10 +34,23 @@ from stars_ros.node.batching import WARNINGS, BusySpans, Pending, PeriodStats, P
 from stars_ros.personalisation.user_state import STATE_FILE
 
 MAX_STRANGERS_REMEMBERED = 10000
-QUESTION_DEPTH = 10  # QoS depth of stars/question_request and stars/question
 TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',
           'stars/question_request', 'stars/question')
 _INT_MAX = 2 ** 31 - 1
+
+
+
+def topic_qos(params: Mapping) -> dict:
+    """topic -> (depth, latched) of every topic of TOPICS, all reliable: what the rclpy
+    adapter subscribes and publishes with and the recorder offers again (``ros2 bag play``).
+    A robot that joins late gets the last user models; with fleet sharing the history also
+    holds a re-send of every user until the newcomer has it."""
+    depth = params['queue_depth']
+    models = depth + (params['fold_in_max_users'] if params['fleet_sharing'] else 0)
+    return {'stars/scene': (depth, False), 'stars/ranking': (depth, False), 'stars/feedback': (100, False),
+            'stars/errors': (100, False), 'stars/user_id': (1, True), 'stars/user_model': (models, True),
+            'stars/question_request': (10, False), 'stars/question': (10, False)}
+
 
 PARAMETERS = {  # name: (default, description, read_only, range)
     'checkpoint': ('', f'checkpoint file; empty: the packaged {DEFAULT_CHECKPOINT}. Read again by ~/reload',
@@ -146,14 +159,8 @@ class RankerCore:
                 self.logger.warning(f'recovered {bag} left by a hard kill: {recording.recover(bag)}')
         except (OSError, ValueError) as error:
             self.report('recording', f'could not recover old bags in {folder}: {error}')
-        depth = self.params['queue_depth']
-        depths = {'stars/scene': depth, 'stars/ranking': depth, 'stars/feedback': 100, 'stars/errors': 100}
-        qos = {self.topics[topic]: recording.qos_profile(n) for topic, n in depths.items()}
-        qos[self.topics['stars/user_id']] = recording.qos_profile(1, transient_local=True)
-        for topic in ('stars/question_request', 'stars/question'):
-            qos[self.topics[topic]] = recording.qos_profile(QUESTION_DEPTH)
-        qos[self.topics['stars/user_model']] = recording.qos_profile(
-            depth + (self.params['fold_in_max_users'] if self.params['fleet_sharing'] else 0), transient_local=True)
+        qos = {self.topics[topic]: recording.qos_profile(depth, latched)
+               for topic, (depth, latched) in topic_qos(self.params).items()}
         recorder = recording.Recorder(
             folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
             custom={'node': node_name, 'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},

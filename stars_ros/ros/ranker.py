@@ -39,7 +39,7 @@ from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 
 from stars_ros.errors import CheckpointError, ConfigError
-from stars_ros.node.core import PARAMETERS, QUESTION_DEPTH, TOPICS, RankerCore
+from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 
@@ -76,31 +76,27 @@ class RankerNode(Node):
         # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
         # cores the executor, the DDS threads and the node's neighbours need
         threadpool_limits(1, user_api='blas')
-        reliable = QoSProfile(depth=self.params['queue_depth'], reliability=ReliabilityPolicy.RELIABLE)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        questions = QoSProfile(depth=QUESTION_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        qos = {topic: QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+               for topic, (depth, latched) in topic_qos(self.params).items()}
         sharing = self.params['fleet_sharing']
-        # a robot that joins late gets the last models; with fleet sharing the history also
-        # holds a re-send of every user (``_on_model_subscriber``) until the newcomer has it
-        models = QoSProfile(depth=self.params['queue_depth'] + (self.params['fold_in_max_users'] if sharing else 0),
-                            reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.publishers_by_topic = {
-            'stars/ranking': self.create_publisher(String, 'stars/ranking', reliable),
-            'stars/errors': self.create_publisher(String, 'stars/errors', 100),
-            'stars/question': self.create_publisher(String, 'stars/question', questions),
-            'stars/user_model': self.create_publisher(String, 'stars/user_model', models, event_callbacks=(
-                PublisherEventCallbacks(matched=self._on_model_subscriber) if sharing else None))}
+            topic: self.create_publisher(String, topic, qos[topic], event_callbacks=(
+                PublisherEventCallbacks(matched=self._on_model_subscriber)  # re-sends every user to a newcomer
+                if sharing and topic == 'stars/user_model' else None))
+            for topic in ('stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model')}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
                                self.get_fully_qualified_name(), self._publish, self.get_logger(),
                                lambda: self.get_clock().now().nanoseconds)
-        self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, reliable)
-        self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data), latched)
-        self.create_subscription(String, 'stars/feedback', self._on_feedback, 100)
-        self.create_subscription(String, 'stars/question_request', self._on_question_request, questions)
+        self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, qos['stars/scene'])
+        self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data),
+                                 qos['stars/user_id'])
+        self.create_subscription(String, 'stars/feedback', self._on_feedback, qos['stars/feedback'])
+        self.create_subscription(String, 'stars/question_request', self._on_question_request,
+                                 qos['stars/question_request'])
         if sharing:
-            self.create_subscription(String, 'stars/user_model', self._on_user_model, models)
+            self.create_subscription(String, 'stars/user_model', self._on_user_model, qos['stars/user_model'])
         self.create_service(Trigger, '~/reload', self._on_reload)
         self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
         self._more_work = self.create_guard_condition(self._work)
