@@ -29,11 +29,4 @@ def resolve_encoder(query, *args, **kwargs) -> Encoder:
     return cls(*args, **kwargs)
 
 
-def encoder_class(name: str) -> type:
-    cls = ENCODERS.get(normalise_name(name))
-    if cls is None:
-        raise ValueError(f"Could not resolve '{name}' among choices {sorted(ENCODERS)}")
-    return cls
-
-
-__all__ = ['Encoder', 'ENCODERS', 'register', 'resolve_encoder', 'encoder_class', 'normalise_name']
+__all__ = ['Encoder', 'ENCODERS', 'register', 'resolve_encoder', 'normalise_name']
