@@ -1,5 +1,6 @@
-"""The core works without ROS: every module of stars_ros outside stars_ros/ros/ imports in a
-process where rclpy and the ROS message packages cannot be imported."""
+"""The core works without ROS: every module of stars_ros outside stars_ros/ros/, and the front
+door (``from stars_ros import StarsRecommender``), import in a process where rclpy and the ROS
+message packages cannot be imported."""
 import json
 import subprocess
 import sys
@@ -23,6 +24,7 @@ class NoRos(importlib.abc.MetaPathFinder):
 
 sys.meta_path.insert(0, NoRos())
 import stars_ros
+from stars_ros import StarsRecommender, load_dataset  # noqa: F401 - the front door, without ROS
 
 found = [m.name for m in pkgutil.walk_packages(stars_ros.__path__, 'stars_ros.') if not m.name.endswith('.__main__')]
 core = [name for name in found if name != 'stars_ros.ros' and not name.startswith('stars_ros.ros.')]
