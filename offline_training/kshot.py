@@ -20,7 +20,8 @@ covered people are scored:
   k = 0 is the population prior's mean, what the node serves a stranger;
 - ``ridge λ=<--ridge-lambda> (random)``: the ridge solve the node did before the posterior;
 - ``retrained``: the whole model trained again on the fold's rows plus the first k random
-  answers of each held-out person (k = 0 is the fold's model).
+  answers of each held-out person (k = 0 is the fold's model), at every k or those of
+  ``--retrain-ks``.
 
 Metrics (MSE, r, CCC on the rating scale, scores clipped as served) are pooled over a fold's
 covered test rows, then given as mean ± sd over folds. Calibration: the share of test ratings
@@ -74,6 +75,8 @@ def parse_args(argv=None):
                         help='answered questions (examples) (default: %(default)s)')
     parser.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=['random'],
                         help='how questions are chosen (default: random; the first one listed is the one retrained)')
+    parser.add_argument('--retrain-ks', type=int, nargs='+',
+                        help='the ks at which the model is also retrained (default: every k; 0 is always fitted)')
     parser.add_argument('--known-test', type=float, default=0.2,
                         help="share of the training people's examples held out for their calibration (default: %(default)s)")
     parser.add_argument('--ridge-lambda', type=float, default=1.0,
@@ -188,7 +191,8 @@ def score_fold(args, data, design: Design, fold: tuple, outcomes: dict) -> tuple
                         predictions[ridge][person.test] = predictions[method][person.test]
         for method, values in predictions.items():
             entry[method] = report(data, rows, values[rows])
-        entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)])
+        if k in outcomes:
+            entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)])
         calibration['new'][k] = {key: np.concatenate(v) for key, v in samples.items()}
         records.append(entry)
     if len(known):
@@ -200,6 +204,11 @@ def score_fold(args, data, design: Design, fold: tuple, outcomes: dict) -> tuple
             means[mine], sds[mine] = design.predictive(known[mine], theta, covariance)
         calibration['known'] = {'y': data.scores[known], 'mean': means, 'sd': sds}
     return records, calibration
+
+
+def retrained_ks(args) -> list:
+    """The ks whose fits run: 0 (the fold's model) and those of ``--retrain-ks`` (default: all)."""
+    return sorted({0, *(args.ks if args.retrain_ks is None else [k for k in args.retrain_ks if k in args.ks])})
 
 
 def fold_test(fold: tuple) -> np.ndarray:
@@ -216,7 +225,7 @@ def run(args, config, data, fits, log=print) -> dict:
     submitted = {}
 
     def submit(folds):  # the largest fits first, so that the last wave is short
-        order = sorted(((fold, k) for fold in folds for k in sorted(args.ks)), key=lambda f: -len(fit_rows_of(*f)))
+        order = sorted(((fold, k) for fold in folds for k in retrained_ks(args)), key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
                                                          k == 0)
@@ -231,7 +240,7 @@ def run(args, config, data, fits, log=print) -> dict:
             if fits.jobs == 1:
                 submit([fold])
             outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')
-                        for k in sorted(args.ks)}
+                        for k in retrained_ks(args)}
             lost = [{'seed': seed, 'fold': fold_id, 'k': k, 'error': outcome.error}
                     for k, outcome in outcomes.items() if isinstance(outcome, FitFailure)]
             if lost:
@@ -285,7 +294,7 @@ def summarise(records: list) -> dict:
     summary = {}
     for method in methods_of(records[0]) if records else []:
         summary[method] = {}
-        for k in sorted({r['k'] for r in records}):
+        for k in sorted({r['k'] for r in records if method in r}):
             values = {m: [r[method][m] for r in records if r['k'] == k] for m in METRICS}
             summary[method][k] = {m: [*mean_sd(v), len(v)] for m, v in values.items()}
     return summary
@@ -397,6 +406,7 @@ def main(argv=None) -> int:
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
               'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,
+              'retrain_ks': retrained_ks(args),
               'executor': fits.settings, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),
               'epochs': [config.training.pretrain_epochs, config.training.joint_epochs]}

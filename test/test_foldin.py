@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from stars_ros import messages
-from stars_ros.personalisation.foldin import FeedbackHistories, FoldIn, Rating, UserModel, solve_ridge
+from stars_ros.personalisation.foldin import FoldIn, Rating, UserModel, solve_ridge
+from stars_ros.personalisation.histories import FeedbackHistories
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore
@@ -191,7 +192,7 @@ def test_user_model_message_follows_its_schema(predictor, ratings):
     messages.check('user_model', payload)
     assert UserModel.from_json(payload).n_ratings == 3
     with pytest.raises(messages.BadMessage):
-        messages.check('user_model', {**payload, 'regularisation': 0})
+        messages.check('user_model', {**payload, 'regularisation': -1.0})  # 0 is the posterior, a λ is positive
 
 
 def _rated(k):

@@ -19,12 +19,11 @@ ROS-free: ``Personalisation`` keeps a ``PeerRatings`` and the node only carries 
 """
 from __future__ import annotations
 
-import collections
-import threading
 import uuid
 from typing import Iterable, Sequence
 
 from stars_ros.personalisation.foldin import Rating
+from stars_ros.personalisation.histories import BoundedUsers
 
 
 def new_rating_id() -> str:
@@ -39,15 +38,9 @@ def solve_set(own: Sequence[Rating], peers: Iterable[Rating], max_ratings: int) 
     return sorted(union.values(), key=lambda r: (r.stamp, r.rating_id))[-max_ratings:]
 
 
-class PeerRatings:
-    """The ratings peers shared, per user: at most ``max_ratings`` per user (the most
-    recent by stamp) and ``max_users`` users (the one who rated least recently goes).
-    Thread-safe (the state writer reads it)."""
-
-    def __init__(self, max_ratings: int, max_users: int):
-        self.max_ratings, self.max_users = max_ratings, max_users
-        self._users = collections.OrderedDict()  # user -> {rating id: Rating}
-        self._lock = threading.Lock()
+class PeerRatings(BoundedUsers):
+    """The ratings peers shared, per user (rating id -> Rating): the most recent
+    ``max_ratings`` by stamp, of the ``max_users`` users who rated most recently."""
 
     def known(self, user_id: str) -> set:
         with self._lock:
@@ -66,10 +59,7 @@ class PeerRatings:
             if len(kept) > self.max_ratings:
                 recent = sorted(kept.values(), key=lambda r: (r.stamp, r.rating_id))[-self.max_ratings:]
                 self._users[user_id] = {r.rating_id: r for r in recent}
-            evicted = []
-            while len(self._users) > self.max_users:
-                evicted.append(self._users.popitem(last=False)[0])
-            return evicted
+            return self._evict()
 
     def discard(self, user_id: str, ratings: Sequence[Rating]) -> None:
         with self._lock:

@@ -5,7 +5,7 @@ checkpoint reload, and the scene memory that feedback is matched against.
 Accepted feedback on a scene the node ranked (its request text and the h its ranking
 computed, remembered in a bounded LRU map, ``SceneMemory``: strings and arrays cost the
 garbage collector little, parsed JSON would cost it much more) is added to that user's
-history (bounded: foldin.FeedbackHistories), and the user waits in ``pending``. The node
+history (bounded: histories.FeedbackHistories), and the user waits in ``pending``. The node
 calls ``solve_next`` when no scene waits, one user per turn, so the ranking of others waits
 for at most one solve (timings in docs/personalisation.md). The result goes into the
 predictor's overlay (swapped whole) and into the state file (``user_state``), which a
@@ -28,7 +28,8 @@ from stars_ros import messages
 from stars_ros.personalisation import user_state
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.personalisation.uncertainty import Uncertainty
-from stars_ros.personalisation.foldin import FeedbackHistories, FoldIn, Rating, UserModel, rating_from_feedback
+from stars_ros.personalisation.foldin import FoldIn, Rating, UserModel, rating_from_feedback
+from stars_ros.personalisation.histories import FeedbackHistories
 
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
 

@@ -40,7 +40,7 @@ class UserStateError(StarsError):
 @dataclass(frozen=True)
 class UserState:
     """Folded-in users: ``models`` user -> foldin.UserModel, ``histories`` user -> (ratings,
-    ratings dropped), as ``foldin.FeedbackHistories.snapshot`` gives them, and ``peers``
+    ratings dropped), as ``histories.FeedbackHistories.snapshot`` gives them, and ``peers``
     user -> [Rating] that peers shared (``fleet``)."""
 
     fingerprint: str
