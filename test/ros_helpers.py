@@ -25,6 +25,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
+from stars_ros import recording
+from stars_ros.recording.journal import read_journal
+from waiting import wait_for
+
 REPO = Path(__file__).resolve().parents[1]
 RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -138,16 +142,17 @@ class RosClient:
     def wait_ready(self, process, timeout: float, probe: dict):
         """Wait until ``process`` answers ``probe`` (a valid request) end to end."""
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+
+        def discovered_or_exited():
+            return process.poll() is not None or bool(
+                self.scene_pub.get_subscription_count()
+                and self.node.count_publishers(f'{self.namespace}/stars/ranking'))
+        while wait_for(discovered_or_exited, deadline - time.monotonic()):
             if process.poll() is not None:
                 raise RuntimeError(f'node exited with {process.returncode}')
-            if self.scene_pub.get_subscription_count() and self.node.count_publishers(
-                    f'{self.namespace}/stars/ranking'):
-                self.scene(probe)
-                if self.wait(lambda: self.ranking_for(probe['scene_id']) is not None, 2.0):
-                    return
-            else:
-                time.sleep(0.2)
+            self.scene(probe)
+            if self.wait(lambda: self.ranking_for(probe['scene_id']) is not None, 2.0):
+                return
         raise TimeoutError('node did not answer in time')
 
     def call(self, service: str, timeout: float = 30.0):
@@ -172,6 +177,13 @@ class RosClient:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def journaled_feedback(bag: Path) -> list:
+    """The feedback messages a ranker's bag holds in its journal on disk now (a positive
+    sign that the node took them in)."""
+    path = bag / recording.JOURNAL
+    return [json.loads(entry['data']) for entry in read_journal(path)] if path.exists() else []
 
 
 def stop(process: subprocess.Popen, signal_number, timeout: float = 30.0) -> int:

@@ -22,8 +22,8 @@ MODELS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durabili
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:12]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'h.jsonl')[:12]
 
 
 def _robot(name, domain, checkpoint, tmp_path):

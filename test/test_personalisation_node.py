@@ -7,13 +7,13 @@ their scores agree to float rounding; the test allows 1e-5 on the [0, 1] scale.
 """
 import json
 import signal
-import time
 
 import pytest
 from std_msgs.msg import String
 
 from offline_training import refit
-from ros_helpers import RELIABLE, RosClient, domain_id, start_node, stop
+from ros_helpers import RELIABLE, RosClient, domain_id, journaled_feedback, start_node, stop
+from waiting import wait_for
 from stars_ros import recording
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.model.predictor import Predictor
@@ -27,8 +27,8 @@ START_TIMEOUT = 90
 
 
 @pytest.fixture(scope='module')
-def scenes(socnav1_root):
-    return read_scenes(socnav1_root / 'raw' / 'h.jsonl')[:20]
+def scenes(synthetic_root):
+    return read_scenes(synthetic_root / 'raw' / 'h.jsonl')[:20]
 
 
 def _start(domain, checkpoint, folder, log):
@@ -43,7 +43,7 @@ def _latest(client, scene_id):
 
 
 def _rank(client, scenes, tag):
-    """Rank scenes 0..5 for USER (scene ids are the SocNav1 identifiers, so q_i applies);
+    """Rank scenes 0..5 for USER (scene ids are the data set's identifiers, so q_i applies);
     returns {identifier: reply}."""
     before = len(client.rankings)
     for scene in scenes[:6]:
@@ -54,6 +54,11 @@ def _rank(client, scenes, tag):
 
 def _score(reply):
     return reply['ranking'][0]['score']
+
+
+def _ranker_values(diagnostics) -> dict:
+    """The key-values of the ranker's status in one /diagnostics message ({} if it has none)."""
+    return next(({v.key: v.value for v in s.values} for s in diagnostics.status if s.name.endswith(': ranker')), {})
 
 
 def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkpoint, scenes, tmp_path):
@@ -139,18 +144,29 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
 
 
 def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, scenes, tmp_path):
+    """The feedback is taken (journaled) and still nothing is folded in: no user model is
+    published, the rankings after it are the stranger's, and the diagnostics that follow
+    them count no folded-in user."""
     domain = domain_id(8)
     client = RosClient(domain)
+    models = []
+    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
     process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
-                                                      'fold_in': False}, tmp_path / 'ranker.log')
+                                                      'fold_in': False, 'diagnostics_period': 0.2},
+                         tmp_path / 'ranker.log')
     try:
         client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': scenes[19]})
         before = _rank(client, scenes, 'stranger')
-        client.feedback({'user_id': USER, 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0})
-        time.sleep(1.0)
+        feedback = {'user_id': USER, 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0}
+        client.feedback(feedback)
+        bag = next(tmp_path.glob('stars_*'))
+        assert wait_for(lambda: feedback in journaled_feedback(bag), 20), 'the feedback was never taken in'
         after = _rank(client, scenes, 'still a stranger')
         assert all('personalised_from' not in r for r in after.values())
         assert all(abs(_score(after[k]) - _score(before[k])) < 1e-6 for k in before)  # batching may round
+        reports = len(client.diagnostics)
+        assert client.wait(lambda: len(client.diagnostics) >= reports + 2, 10)  # periods after those rankings
+        assert _ranker_values(client.diagnostics[-1])['folded_in_users'] == '0' and not models
         assert client.set_parameters('/ranker', {'fold_in_min_ratings': 0})[0].successful is False
         assert stop(process, signal.SIGINT) == 0
     finally:
@@ -208,12 +224,16 @@ def test_diagnostics_count_the_rankings_that_waited_behind_fold_in(tiny_checkpoi
             client.scene({'scene_id': f'other-{k}', 'user_id': 'other', 'graph': scenes[6 + k % 10]})
         assert client.wait(lambda: all(client.ranking_for(f'other-{k}') for k in range(20)), 30)
         assert all(client.ranking_for(f'other-{k}')['processing_ms'] > 0 for k in range(20))
-        time.sleep(0.6)  # the periods with the burst are reported
-        periods = [{v.key: v.value for v in s.values} for d in client.diagnostics for s in d.status
-                   if s.name.endswith(': ranker')]
-        assert sum(int(p['period.fold_in_updates']) for p in periods) >= 3  # one user per solve at least
-        delayed = [p for p in periods if int(p['period.rankings_delayed_by_fold_in'])]
-        assert delayed, periods
+
+        def periods():
+            with client._changed:
+                return [_ranker_values(d) for d in client.diagnostics if _ranker_values(d)]
+
+        def burst_reported():  # the three raters solved, and rankings that waited for it
+            return sum(int(p['period.fold_in_updates']) for p in periods()) >= 3 and any(
+                int(p['period.rankings_delayed_by_fold_in']) for p in periods())
+        assert client.wait(burst_reported, 10), periods()
+        delayed = [p for p in periods() if int(p['period.rankings_delayed_by_fold_in'])]
         for p in delayed:
             assert 0 < float(p['period.fold_in_delay_ms.max']) <= float(p['period.delayed_processing_ms.max'])
             assert float(p['period.delayed_processing_ms.max']) <= float(p['period.processing_ms.max'])

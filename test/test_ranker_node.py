@@ -21,14 +21,13 @@ import yaml
 from std_msgs.msg import String
 
 from mutations import mutate
-from ros_helpers import RosClient, domain_id, ros_env, start_node, stop
+from ros_helpers import RosClient, domain_id, journaled_feedback, ros_env, start_node, stop
 from waiting import wait_for
 from stars_ros import recording
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.recording.journal import read_journal
 from stars_ros.resources import resolve_checkpoint
 from stars_ros.model.training import StarsTrainer, split_rows
 
@@ -120,12 +119,6 @@ def _on_disk(bag, topic) -> list:
     would leave them (complete records only)."""
     return [json.loads(text) for path in recording.bag_files(bag)
             for found, text, _ in recording.salvage_messages(path)[0] if found == topic]
-
-
-def _journaled(bag) -> list:
-    """The feedback messages in the bag's journal on disk now."""
-    path = bag / recording.JOURNAL
-    return [json.loads(entry['data']) for entry in read_journal(path)] if path.exists() else []
 
 
 @pytest.fixture(scope='module')
@@ -461,7 +454,7 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
         assert client.wait(lambda: all(client.ranking_for(f's{k}') for k in range(5)), 30)
         assert client.ranking_for('s0')['user_id'] == KNOWN_USER  # latched before the node existed
         bag = next(tmp_path.glob('stars_*'))
-        assert wait_for(lambda: _journaled(bag) == [feedback], 10), 'the feedback was never journaled'
+        assert wait_for(lambda: journaled_feedback(bag) == [feedback], 10), 'the feedback was never journaled'
         assert stop(process, signal_number) == 0
     finally:
         if process.poll() is None:
@@ -503,7 +496,7 @@ def test_hard_kill_then_recovery_keeps_everything_before_the_last_flush(tiny_che
         assert wait_for(lambda: {f's{k}' for k in range(20)} <= {r['scene_id'] for r in _on_disk(
             bag, '/stars/ranking')}, 10), 'the rankings were never flushed'
         client.feedback({'user_id': KNOWN_USER, 'scene_id': 's2', 'candidate': 'left', 'score': 0.1})
-        assert wait_for(lambda: _journaled(bag), 10), 'the feedback was never journaled'
+        assert wait_for(lambda: journaled_feedback(bag), 10), 'the feedback was never journaled'
         process.kill()  # SIGKILL, right after the feedback was journaled
         process.wait()
     finally:

@@ -3,7 +3,6 @@ another checkpoint's users and corrupted files refused with a reason, the writer
 import dataclasses
 import json
 import re
-import time
 
 import numpy as np
 import pytest
@@ -11,6 +10,7 @@ import pytest
 from stars_ros.personalisation import user_state
 from stars_ros.personalisation.foldin import Rating, UserModel
 from stars_ros.personalisation.user_state import STATE_FILE, StateWriter, UserStateError
+from waiting import wait_for
 
 SCENE = {'identifier': 's1', 'humans': [{'id': 1, 'xPos': 0.5, 'yPos': -1.0, 'orientation': 90}]}
 FINGERPRINT = 'ab' * 32
@@ -117,9 +117,7 @@ def test_the_writer_saves_when_asked_and_once_more_on_close(tmp_path):
     path = tmp_path / STATE_FILE
     writer = StateWriter(path, lambda: next(states), interval=60.0, on_error=pytest.fail)
     writer.request()
-    deadline = time.monotonic() + 30
-    while not path.exists() and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert wait_for(path.exists, 30), 'the first request was never written'
     assert user_state.load(path, FINGERPRINT).histories == {'ann': ([], 0), 'bob': ([], 0)}
     writer.request()  # within the interval: written at its end, or at close
     writer.close()
