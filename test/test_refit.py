@@ -78,7 +78,8 @@ def test_default_regularisation_is_the_one_the_node_logged(tiny_checkpoint, scen
     out = tmp_path / 'refit.pt'
     assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(bag), '--out', str(out)]) == 0
     _, metadata = load_checkpoint(out)
-    assert metadata['provenance']['refit']['regularisation'] == {'newbie': 3.0, 'a': 1.0}
+    assert metadata['provenance']['refit']['regularisation'] == {'newbie': 3.0, 'a': 0.0}  # 0: the posterior
+    assert metadata['user_prior']['covariance'] == 'ledoit-wolf'  # the parent's prior goes with its weights
     parent = Predictor.load(tiny_checkpoint)
     parent.set_user_model('newbie', FoldIn(parent).fit(expected['newbie'], 'newbie', 3.0))
     assert np.allclose(Predictor.load(out).score('newbie', scenes[:3]), parent.score('newbie', scenes[:3]), atol=1e-5)

@@ -220,7 +220,7 @@ class FoldIn:
         prior = self.user_prior
         if row == UNKNOWN:
             return self.population.copy(), prior.covariance, self._population_precision
-        if prior.user_covariance is None:
+        if prior.user_covariance is None or row >= len(prior.user_covariance):  # e.g. a refit's new rows
             return self._user_row(row), prior.covariance, self._population_precision
         with self._lock:
             precision = self._precisions.get(row)
