@@ -1,6 +1,9 @@
-"""Scene stores joined into one keep every scene's rows: a batch of the joined store equals
-the batch of the store the scenes came from."""
+"""Scene stores (stars_ros.data.scene_store): a batch gathers the scenes asked for, in order,
+with their nodes and edges renumbered; a saved store loads back the same; stores joined into
+one keep every scene's rows: a batch of the joined store equals the batch of the store the
+scenes came from."""
 import numpy as np
+import pytest
 import torch
 
 from stars_ros.data.scene_graph import SceneGraph
@@ -33,3 +36,42 @@ def test_concatenated_tabular_stores_keep_rows_and_the_first_names():
     joined = TabularStore.concatenate([first, second])
     assert joined.feature_names == ('a', 'b', 'c')
     assert torch.equal(joined.batch(torch.tensor([2, 0])), torch.tensor([[1.0, 1, 1], [0, 1, 2]]))
+
+
+def _numbered(nodes: int, first: int) -> SceneGraph:
+    """A graph whose node features are its node numbers ``first``, ``first + 1``, … (one
+    column) and whose edges run from every node to its robot, with edge type = source node."""
+    edges = np.array([np.arange(1, nodes), np.zeros(nodes - 1, dtype=np.int64)])
+    return SceneGraph(np.arange(first, first + nodes, dtype=np.float32)[:, None], edges, np.arange(1, nodes))
+
+
+def test_a_batch_gathers_the_graphs_asked_for_in_their_order_and_renumbers_their_nodes():
+    store = GraphStore([_numbered(2, 0), _numbered(3, 10), _numbered(4, 20)])
+    assert len(store) == 3 and store.feature_dim == 1 and store.kind == 'graph'
+    assert store.node_starts.tolist() == [0, 2, 5] and store.edge_starts.tolist() == [0, 1, 3]
+    batch = store.batch(torch.tensor([2, 0]))
+    assert batch.x[:, 0].tolist() == [20, 21, 22, 23, 0, 1]
+    assert batch.batch.tolist() == [0, 0, 0, 0, 1, 1] and batch.root.tolist() == [0, 4] and batch.num_graphs == 2
+    assert batch.edge_index.tolist() == [[1, 2, 3, 5], [0, 0, 0, 4]]  # graph 0's edge 1 -> 0 now 5 -> 4
+    assert batch.edge_type.tolist() == [1, 2, 3, 1]
+    twice = store.batch(torch.tensor([1, 1]))
+    assert twice.x[:, 0].tolist() == [10, 11, 12] * 2 and twice.edge_index.tolist() == [[1, 2, 4, 5], [0, 0, 3, 3]]
+
+
+def test_a_saved_store_loads_back_the_same_batches(tmp_path):
+    store = GraphStore([_numbered(3, 0), _numbered(2, 5)])
+    store.save(tmp_path / 'store.pt')
+    loaded = GraphStore.load(tmp_path / 'store.pt')
+    _same(loaded.batch(torch.tensor([1, 0])), store.batch(torch.tensor([1, 0])))
+
+
+def test_an_empty_graph_store_is_refused():
+    with pytest.raises(ValueError, match='at least one graph'):
+        GraphStore([])
+
+
+def test_a_tabular_batch_is_the_rows_asked_for():
+    store = TabularStore(np.arange(12).reshape(4, 3), ['a', 'b', 'c'])
+    assert (len(store), store.feature_dim, store.kind) == (4, 3, 'tabular')
+    assert store.batch(torch.tensor([3, 0, 3])).tolist() == [[9, 10, 11], [0, 1, 2], [9, 10, 11]]
+    assert store.batch(torch.tensor([0])).dtype == torch.float32
