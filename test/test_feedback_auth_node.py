@@ -14,6 +14,7 @@ import pytest
 from std_msgs.msg import String
 
 from ros_helpers import REPO, RosClient, domain_id, start_node, stop
+from waiting import wait_for
 from stars_ros.data.scene_source import scene_request
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
@@ -85,10 +86,8 @@ def ranker(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
 def test_the_ranker_uses_exactly_what_its_sros2_policy_allows(ranker):
     _, client, _, _ = ranker
     expected = _policy_names()
-    deadline = time.monotonic() + REACH_TIMEOUT
-    while (graph := _graph(client)) != expected and time.monotonic() < deadline:
-        time.sleep(0.2)  # the graph fills in as discovery reports the ranker's endpoints
-    assert graph == expected
+    # the graph fills in as discovery reports the ranker's endpoints
+    assert wait_for(lambda: _graph(client) == expected, REACH_TIMEOUT), (_graph(client), expected)
 
 
 def test_unsigned_feedback_is_refused_and_signed_feedback_from_the_signer_is_folded_in(ranker, synthetic_scenes):
