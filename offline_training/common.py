@@ -15,7 +15,7 @@ import torch
 
 from stars_ros.data.ratings import RatingData, load_dataset, socnav1_root
 from stars_ros.errors import StarsError
-from stars_ros.evaluation.protocol import fit_executor
+from stars_ros.evaluation.executors import fit_executor
 
 DEFAULT_SOCNAV1 = socnav1_root()
 

@@ -36,8 +36,9 @@ import yaml
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import StarsError
-from stars_ros.evaluation.protocol import (DISPLAY, PROTOCOLS, ProtocolConfig, ablation_tests, by_model, model_specs,
-                                  paired_tests, run_protocol, settings_key, sparsity_summary, time_accounting)
+from stars_ros.evaluation.folds import PROTOCOLS
+from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig, model_specs, run_protocol, settings_key
+from stars_ros.evaluation.summaries import ablation_tests, by_model, paired_tests, sparsity_summary, time_accounting
 from stars_ros.evaluation.stats import format_mean_sd, mean_sd
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, cuda_info, label_axis, machine, mean_band,
@@ -399,7 +400,7 @@ def report_failures(folder: Path, result, shown: int = 50) -> None:
 def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging(args.verbose)
-    logging.getLogger('stars_ros.evaluation.protocol').setLevel(logging.INFO)
+    logging.getLogger('stars_ros.evaluation').setLevel(logging.INFO)
     try:
         config = configure(args)
         device = ExperimentConfig.from_dict(config.experiment).training.device

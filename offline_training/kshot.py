@@ -45,7 +45,7 @@ import torch
 
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
-from stars_ros.evaluation.protocol import FitFailure, fit_outcome, worker_data
+from stars_ros.evaluation.executors import FitFailure, fit_outcome, worker_data
 from stars_ros.evaluation.kshot import LEVELS, STRATEGIES, Design, annotator_folds, coverage, known_split, reveal_pools
 from stars_ros.model.metrics import regression_report
 from stars_ros.evaluation.stats import mean_sd

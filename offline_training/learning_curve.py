@@ -29,7 +29,9 @@ from pydantic import Field, PrivateAttr, ValidationInfo, model_validator
 
 from stars_ros.model.config import Int, KeyedError, Section, TrainConfig, read_yaml, validate_under, validated
 from stars_ros.errors import ConfigError, StarsError
-from stars_ros.evaluation.protocol import DISPLAY, FitFailure, FitTask, ProtocolConfig, make_folds, run_fits
+from stars_ros.evaluation.executors import FitFailure, FitTask, run_fits
+from stars_ros.evaluation.folds import make_folds
+from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig
 from stars_ros.evaluation.stats import mean_sd
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, mean_band, pyplot,

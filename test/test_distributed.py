@@ -22,7 +22,7 @@ from offline_training.common import add_executor_options, build_executor
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.evaluation.ray_executor import RayExecutor, fit_slots
 from stars_ros.errors import StarsError
-from stars_ros.evaluation.protocol import FitFailure, FitTask, fit_executor, fit_outcome, run_fits
+from stars_ros.evaluation.executors import FitFailure, FitTask, fit_executor, fit_outcome, run_fits
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -106,7 +106,7 @@ def test_a_fit_that_raises_on_a_ray_worker_is_named_and_the_others_finish(synthe
     outcomes = {item[0].model: scores for item, scores in run_fits(RayExecutor(synthetic), waiting, 2)}
     assert outcomes['no rows'] == FitFailure('ValueError: no training rows')
     assert all(0 < outcomes[name]['mse'] < 1 for name in ('first', 'third'))
-    failure, = (r for r in caplog.records if r.name == 'stars_ros.evaluation.protocol')
+    failure, = (r for r in caplog.records if r.name == 'stars_ros.evaluation.executors')
     assert failure.getMessage() == 'no rows fold 0:0 final (T1, T2) = (1, 1) failed'
     assert 'raised in a Ray worker' in caplog.text  # the worker's traceback
 
@@ -190,6 +190,7 @@ class NoRay(importlib.abc.MetaPathFinder):
 
 sys.meta_path.insert(0, NoRay())
 import stars_ros.evaluation.protocol
+import stars_ros.evaluation.summaries
 from offline_training import evaluate, kshot, learning_curve
 imported = 'ray' in sys.modules
 status = evaluate.main(['--quick', '--executor', 'ray', '--data-root', sys.argv[1], '--out', sys.argv[2]])

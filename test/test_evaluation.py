@@ -13,11 +13,13 @@ import numpy as np
 import pytest
 import yaml
 
-from stars_ros.evaluation import protocol as evaluation
+from stars_ros.evaluation import executors
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError
-from stars_ros.evaluation.protocol import (FitTask, ProtocolConfig, grouped_folds, make_folds, paired_tests, run_fit,
-                                  run_protocol, sweep_samples, time_accounting)
+from stars_ros.evaluation.executors import FitTask, run_fit
+from stars_ros.evaluation.folds import grouped_folds, make_folds, sweep_samples
+from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
+from stars_ros.evaluation.summaries import paired_tests, time_accounting
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -140,7 +142,7 @@ def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(synthetic, 
                 **({'curve': [{'epoch': t2, 'z_rmse': error(pair[0], t2)} for t2 in task.curve_at]}
                    if task.curve_at else {})}
 
-    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
     config = ProtocolConfig.from_dict({'folds': 3, 'backbones': {'gcn': {}}, 'sweep_backbones': ['gcn'],
                                        'grid': [[10, 60], [10, 100], [50, 100], [100, 100]],
                                        'search': {'base': {'lr': [3e-4, 1e-3]}, 'stars': {'embedding_l2': [0.01, 0.1]}},
@@ -178,7 +180,7 @@ def test_ablations_follow_the_stars_choice_of_each_fold(synthetic, monkeypatch):
                 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
                 **({'curve': [{'epoch': t, 'z_rmse': error} for t in task.curve_at]} if task.curve_at else {})}
 
-    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
     config = ProtocolConfig.from_dict({
         'folds': 2, 'grid': [[1, 2]], 'backbones': {'gcn': {}}, 'baselines': [],
         'search': {'stars': {'embedding_l2': [0.01, 0.1]}}, 'ablation_backbones': ['gcn'],
@@ -291,7 +293,7 @@ def test_device_option_reaches_every_fit_and_the_results(synthetic_root, tmp_pat
                 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
                 'curve': [{'epoch': t, 'z_rmse': 0.5} for t in task.curve_at]}
 
-    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
     out = tmp_path / 'device'
     assert evaluate.main(['--quick', '--backbones', 'gat', '--device', 'cuda:1', '--data-root', str(synthetic_root),
                           '--out', str(out)]) == 0
@@ -318,7 +320,7 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(synthetic_root,
                 'z_rmse': score, 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': sum(pair),
                 'curve': [{'epoch': t, 'z_rmse': score + t / 1000} for t in task.curve_at]}
 
-    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
     args = ['--quick', '--backbones', 'gat', '--data-root', str(synthetic_root)]
     whole, part = tmp_path / 'whole', tmp_path / 'part'
     assert evaluate.main([*args, '--out', str(whole)]) == 0
@@ -358,7 +360,7 @@ def test_failed_fits_are_named_and_stop_only_what_needs_them(synthetic, monkeypa
                 **({'error': 'training diverged'} if diverged else {}),
                 **({'curve': [{'epoch': t, 'z_rmse': 0.5} for t in task.curve_at]} if task.curve_at else {})}
 
-    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
     config = ProtocolConfig.from_dict({'folds': 2, 'grid': [[1, 1], [0, 2]], 'backbones': {'gcn': {}},
                                        'baselines': ['population_mean'], 'ablation_backbones': ['gcn'],
                                        'ablations': ['user_bias']})
@@ -395,7 +397,7 @@ def test_a_run_with_failed_fits_ends_without_tables_and_resume_runs_them(synthet
                 'z_rmse': score, 'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
                 'curve': [{'epoch': t, 'z_rmse': score + t / 1000} for t in task.curve_at]}
 
-    monkeypatch.setattr(evaluation, 'run_fit', fake_fit)
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
     out = tmp_path / 'out'
     args = ['--quick', '--backbones', 'gat', '--data-root', str(synthetic_root), '--out', str(out)]
     assert evaluate.main(args) == 0

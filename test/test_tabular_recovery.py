@@ -13,7 +13,8 @@ import pytest
 
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
-from stars_ros.evaluation.protocol import ProtocolConfig, by_model, run_protocol
+from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
+from stars_ros.evaluation.summaries import by_model
 from stars_ros.model.training import StarsTrainer, split_rows
 
 NOISE = 0.2

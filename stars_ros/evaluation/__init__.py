@@ -1,2 +1,3 @@
-"""Offline evaluation: the nested protocol and its folds, fit executors (process pool, Ray),
-statistics, and the k-shot design for new people."""
+"""Offline evaluation: the nested protocol (``protocol``) on its folds (``folds``), its fits
+and where they run (``executors``: inline or a process pool; ``ray_executor``: Ray), what
+the tables are made of (``summaries``, on ``stats``), and the k-shot design for new people."""

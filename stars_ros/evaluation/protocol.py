@@ -12,23 +12,16 @@ Nothing is chosen on rows that are test rows of the outer fold. The sparsity swe
 with the chosen candidate on nested random subsets (``fractions`` of the pool, without
 replacement) and scores them on the same outer test rows; fraction 1.0 is the main result.
 
-A row of the protocol is an *example*: one user's ratings of one scene, every action
-(``RatingData.examples``). Three protocols differ only in how examples are grouped into
-folds: ``rows`` (random examples, as published), ``cold-scene`` (grouped by scene, so no
-test scene is seen in training) and ``cold-user`` (grouped by annotator). Inner folds are
-grouped the same way, so the selection sees the situation it is selecting for; sweep samples
-are drawn over whole examples, so an example's actions never straddle a split. The model
-needs no special case: unseen scenes and users get zero embeddings and offsets.
+Folds are dealt by ``folds`` (rows, cold-scene or cold-user); inner folds are grouped the
+same way, so the selection sees the situation it is selecting for. The model needs no
+special case: unseen scenes and users get zero embeddings and offsets.
 
 Every model of a table is scored on the same folds: the chosen backbones in the ``base``
 and ``stars`` variants, two baselines: ``population_mean`` (the training mean of each
 action) and ``mf`` (biased matrix factorisation, no scene content), and for
 ``ablation_backbones`` the ``ablations`` of StARS, which take the full StARS model's choice
-in each fold so that each differs from it in one part only. Fits are independent
-jobs; with ``jobs > 1`` they run in worker processes (one torch thread each), which on a
-CPU pays better than threads inside one small-graph model. With ``training.device`` 'cuda'
-the workers share the one GPU, each with its own CUDA context. Any other
-``concurrent.futures.Executor`` can run them instead (``stars_ros.evaluation.ray_executor``: Ray tasks).
+in each fold so that each differs from it in one part only. The fits run through
+``executors``, at most ``jobs`` at a time.
 
 A fit that raises, or whose worker dies, is a *failure*: reported by name, never recorded,
 so a resumed run tries it again; the other fits go on. A selection that lost an inner fit
@@ -42,26 +35,23 @@ import itertools
 import json
 import logging
 import math
-import multiprocessing
-import pickle
 import time
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Callable, Literal, NamedTuple, Sequence
+from typing import Annotated, Any, Callable, Literal, Sequence
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from stars_ros.model.config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section, TrainConfig,
-                     read_yaml, validate_under, validated)
 from stars_ros.data.ratings import RatingData
-from stars_ros.errors import ConfigError, TrainingDivergedError
+from stars_ros.errors import ConfigError
+from stars_ros.evaluation.executors import METRICS, FitFailure, FitTask, fit_executor, run_fits
+from stars_ros.evaluation.folds import PROTOCOLS, make_folds, sweep_samples
+from stars_ros.model.config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section,
+                                    TrainConfig, read_yaml, validate_under, validated)
 from stars_ros.model.metrics import regression_report
-from stars_ros.evaluation.stats import corrected_resampled_ttest, holm
 
 log = logging.getLogger(__name__)
 
-PROTOCOLS = ('rows', 'cold-scene', 'cold-user')
-METRICS = ('mse', 'rmse', 'pearson_r', 'ccc')
 BASELINES = ('population_mean', 'mf')
 DISPLAY = {'gcn': 'GCN', 'gin': 'GIN', 'graphsage': 'GraphSAGE', 'ggnn': 'GGNN', 'rgcn': 'RGCN',
            'gat': 'GAT', 'mlp': 'MLP', 'resmlp': 'ResMLP', 'dcnv2': 'DCNv2', 'graceae': 'GraceAE',
@@ -213,245 +203,6 @@ class ProtocolConfig(Section):
         return cls.from_dict(read_yaml(path), read_yaml(overrides_path), source=f'{path} (with {overrides_path})')
 
 
-# -- folds ------------------------------------------------------------------------------
-class Fold(NamedTuple):
-    train: np.ndarray
-    test: np.ndarray
-
-
-def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed) -> list[Fold]:
-    """k folds of ``rows`` such that the rows of one group (``groups[row]``) share a fold.
-
-    Groups are shuffled, then dealt largest first to the fold with the fewest rows so far,
-    which balances the fold sizes when a few groups are large (annotators).
-    """
-    rows = np.asarray(rows)
-    labels, inverse, counts = np.unique(np.asarray(groups)[rows], return_inverse=True, return_counts=True)
-    if not 2 <= k <= len(labels):
-        raise ValueError(f'cannot deal {len(labels)} groups into {k} folds')
-    shuffled = np.random.default_rng(seed).permutation(len(labels))
-    order = shuffled[np.argsort(-counts[shuffled], kind='stable')]
-    fold_of_group = np.empty(len(labels), dtype=np.int64)
-    sizes = np.zeros(k, dtype=np.int64)
-    for group in order:
-        target = int(np.argmin(sizes))
-        fold_of_group[group] = target
-        sizes[target] += counts[group]
-    fold_of_row = fold_of_group[inverse.ravel()]
-    return [Fold(np.sort(rows[fold_of_row != f]), np.sort(rows[fold_of_row == f])) for f in range(k)]
-
-
-def fold_groups(data: RatingData, protocol: str) -> np.ndarray:
-    """The group of every rating that a fold of ``protocol`` keeps together (see PROTOCOLS)."""
-    if protocol == 'rows':
-        return data.examples
-    if protocol == 'cold-scene':
-        return data.scenes
-    if protocol == 'cold-user':
-        return data.users
-    raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
-
-
-def make_folds(data: RatingData, protocol: str, k: int, seed, rows: np.ndarray | None = None) -> list[Fold]:
-    """Folds of ``rows`` (all rows by default) for ``protocol``: examples, scenes or users
-    never straddle a fold."""
-    rows = np.arange(len(data)) if rows is None else np.asarray(rows)
-    return grouped_folds(rows, fold_groups(data, protocol), k, seed)
-
-
-def sweep_samples(pool: np.ndarray, fractions: Sequence[float], seed, groups: np.ndarray | None = None) -> dict:
-    """Nested random subsets of ``pool`` (without replacement), sorted; fraction 1.0 is the
-    pool. With ``groups`` (per rating, e.g. ``data.examples``) whole groups are sampled."""
-    pool = np.asarray(pool)
-    keys = pool if groups is None else np.asarray(groups)[pool]
-    labels, inverse = np.unique(keys, return_inverse=True)
-    rank = np.empty(len(labels), dtype=np.int64)
-    rank[np.random.default_rng(seed).permutation(len(labels))] = np.arange(len(labels))
-    rank_of_row = rank[inverse.ravel()]
-    return {f: np.sort(pool[rank_of_row < max(1, int(round(f * len(labels))))]) for f in fractions}
-
-
-# -- one fit, run in a worker -------------------------------------------------------------
-@dataclass(frozen=True)
-class FitTask:
-    """Train one model on ``train`` rows, score it on ``test`` rows."""
-
-    model: str
-    fold: str
-    stage: str          # 'inner' (selection), 'final' (fraction 1.0) or 'sweep'
-    experiment: dict    # ExperimentConfig mapping with the epochs of this fit
-    train: np.ndarray
-    test: np.ndarray
-    fraction: float = 1.0
-    inner_fold: int = -1
-    curve_at: tuple = ()  # joint epochs at which the test rows are also scored
-    settings: str = '{}'  # the searched settings in the experiment, as settings_key text
-
-    @property
-    def name(self) -> str:
-        """The fit in words, as failures are reported: 'GAT StARS fold 0:1 inner fold 0 (T1, T2) = (10, 100)'."""
-        parts = {'inner': f'inner fold {self.inner_fold}', 'sweep': f'fraction {self.fraction:g}'}
-        settings = '' if self.settings == '{}' else f' {self.settings}'
-        training = self.experiment['training']
-        return (f"{self.model} fold {self.fold} {parts.get(self.stage, self.stage)}{settings} "
-                f"(T1, T2) = ({training['pretrain_epochs']}, {training['joint_epochs']})")
-
-
-@dataclass(frozen=True)
-class FitFailure:
-    """What a fit that raised, or whose worker died, gives instead of scores. Unlike a
-    diverged fit (scores with an ``error``) it is no result: it is never recorded."""
-
-    error: str  # 'ValueError: no training rows'
-
-    @classmethod
-    def of(cls, error: BaseException) -> FitFailure:
-        return cls(f'{type(error).__name__}: {error}')
-
-
-def fit_outcome(future: futures.Future, name: str) -> Any:
-    """The finished ``future``'s result, or a FitFailure carrying its exception (logged
-    with its traceback under the fit's ``name``), so that one failed fit does not end a
-    run of many."""
-    try:
-        return future.result()
-    except Exception as error:  # noqa: BLE001 - any error of a fit is its own, reported by the caller
-        log.warning('%s failed', name, exc_info=error)
-        return FitFailure.of(error)
-
-
-_WORKER_DATA: RatingData | None = None
-
-
-def hold_worker_data(data: RatingData) -> None:
-    """Keep ``data`` for the fits this worker process runs (see ``worker_data``)."""
-    global _WORKER_DATA
-    _WORKER_DATA = data
-
-
-def _init_worker(data_blob: bytes, threads: int) -> None:
-    import torch
-    hold_worker_data(pickle.loads(data_blob))
-    torch.set_num_threads(threads)
-
-
-def normalised_rmse(y, p, actions, target_mean, target_std) -> float:
-    """RMSE of z-scores (per-action mean/std of the training split), macro over actions."""
-    y, p, actions = np.asarray(y, float), np.asarray(p, float), np.asarray(actions)
-    errors = (p - y) / np.asarray(target_std, float)[actions]
-    return float(np.mean([np.sqrt(np.mean(errors[actions == a] ** 2)) for a in np.unique(actions)]))
-
-
-def worker_data() -> RatingData:
-    """The data a ``fit_executor`` worker process holds (for tasks other than ``run_fit``)."""
-    if _WORKER_DATA is None:
-        raise RuntimeError('not in a fit_executor worker')
-    return _WORKER_DATA
-
-
-def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
-    """Fit ``task``'s model and return its test metrics, z-RMSE and seconds (and, with
-    ``curve_at``, the same at those joint epochs under ``curve``)."""
-    from stars_ros.model.training import StarsTrainer
-    data = _WORKER_DATA if data is None else data
-    config = ExperimentConfig.from_dict(task.experiment)
-    started = time.perf_counter()
-    recommender = StarsTrainer(config)
-    y, actions = data.scores[task.test], data.actions[task.test]
-    curve = []
-
-    def scores():
-        predictions = recommender.predict_rows(data, task.test)
-        model = recommender.model
-        return {**regression_report(y, predictions, actions),
-                'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.cpu().numpy(),
-                                          model.target_std.cpu().numpy())}
-
-    def score_curve(stage, epoch):
-        if stage == 'joint' and epoch in task.curve_at:
-            curve.append({'epoch': epoch, **scores()})
-    try:
-        recommender.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
-    except TrainingDivergedError as error:  # one diverged fit must not end a long run
-        return {**{m: math.nan for m in METRICS}, 'n': len(task.test), 'z_rmse': math.inf,
-                'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
-                'error': str(error), **({'curve': []} if task.curve_at else {})}
-    fitted = time.perf_counter()
-    result = scores()
-    predicted = time.perf_counter()
-    model = recommender.model
-    return {**result, 'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
-            'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs,
-            **({'curve': curve} if task.curve_at else {})}
-
-
-def population_mean(data: RatingData, train: np.ndarray, test: np.ndarray) -> dict:
-    """Scores of the constant predictor: each action's training mean."""
-    started = time.perf_counter()
-    means = {a: data.scores[train][data.actions[train] == a].mean() for a in np.unique(data.actions[train])}
-    fallback = data.scores[train].mean()
-    predictions = np.array([means.get(a, fallback) for a in data.actions[test]])
-    # Pearson r of a constant is undefined; rounding in the mean can make it look computable.
-    return {**regression_report(data.scores[test], predictions, data.actions[test]), 'pearson_r': math.nan,
-            'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0}
-
-
-class _InlineExecutor(futures.Executor):
-    """Runs each task at submission, in this process (``jobs == 1``)."""
-
-    def __init__(self, data: RatingData):
-        self.data = data
-
-    def submit(self, fn, /, *args, **kwargs):
-        future = futures.Future()
-        try:
-            future.set_result(fn(*args, data=self.data, **kwargs))
-        except BaseException as error:  # handed to the caller through the future
-            future.set_exception(error)
-        return future
-
-
-def fit_executor(data: RatingData, jobs: int, threads: int) -> futures.Executor:
-    """Where ``run_fit`` tasks run: inline for one job, else ``jobs`` worker processes
-    holding ``data`` and using ``threads`` torch threads each. Workers are spawned, not
-    forked: a forked child cannot use CUDA, a spawned one opens its own context."""
-    if jobs == 1:
-        return _InlineExecutor(data)
-    return futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),
-                                       initializer=_init_worker, initargs=(pickle.dumps(data), threads))
-
-
-def run_fits(executor: futures.Executor, waiting: list, jobs: int,
-             cached: Callable[[FitTask], dict | None] | None = None):
-    """Run the ``(FitTask, *context)`` items of ``waiting`` with at most ``jobs`` in flight,
-    yielding ``(item, scores)`` as each fit finishes. ``waiting`` is read as the run goes, so
-    the caller may put new items in front of it between two results. A task for which
-    ``cached`` returns scores (an earlier run's) is yielded without being run. A fit that
-    raises, or whose worker dies, yields a FitFailure instead of scores; so does every fit
-    submitted after the executor broke (a process pool whose worker died)."""
-    in_flight = {}
-    try:
-        while waiting or in_flight:
-            while waiting and len(in_flight) < jobs:
-                item = waiting.pop(0)
-                scores = cached(item[0]) if cached else None
-                if scores is not None:
-                    yield item, scores
-                    continue
-                try:
-                    in_flight[executor.submit(run_fit, item[0])] = item
-                except futures.BrokenExecutor as error:
-                    yield item, FitFailure.of(error)
-            if not in_flight:
-                continue
-            finished, _ = futures.wait(list(in_flight), return_when=futures.FIRST_COMPLETED)
-            for future in finished:
-                item = in_flight.pop(future)
-                yield item, fit_outcome(future, item[0].name)
-    finally:
-        executor.shutdown(cancel_futures=True)
-
-
 # -- the protocol -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class ModelSpec:
@@ -531,6 +282,206 @@ def _fit_key(model, fold, stage, fraction, inner_fold, t1, t2, settings) -> tupl
     return (model, fold, stage, float(fraction), int(inner_fold), int(t1), int(t2), settings)
 
 
+def population_mean(data: RatingData, train: np.ndarray, test: np.ndarray) -> dict:
+    """Scores of the constant predictor: each action's training mean."""
+    started = time.perf_counter()
+    means = {a: data.scores[train][data.actions[train] == a].mean() for a in np.unique(data.actions[train])}
+    fallback = data.scores[train].mean()
+    predictions = np.array([means.get(a, fallback) for a in data.actions[test]])
+    # Pearson r of a constant is undefined; rounding in the mean can make it look computable.
+    return {**regression_report(data.scores[test], predictions, data.actions[test]), 'pearson_r': math.nan,
+            'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0}
+
+
+class ProtocolRun:
+    """One run of the protocol on ``data`` (see ``run_protocol``): the folds, the queue of
+    fits (at most ``jobs`` in flight, fits unlocked by a finished selection ahead of further
+    selection fits, so complete results appear early) and what came back."""
+
+    def __init__(self, data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
+                 threads: int = 1, on_record: Callable[[dict], None] | None = None, resume: Sequence[dict] = (),
+                 executor: futures.Executor | None = None):
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
+        if jobs < 1 or threads < 1:
+            raise ValueError('jobs and threads must be positive')
+        self.data, self.config, self.protocol = data, config, protocol
+        self.jobs, self.threads, self.on_record = jobs, threads, on_record
+        self.executor = executor
+        self.result = EvaluationResult(protocol, config, jobs=jobs, threads=threads)
+        self.specs = model_specs(config)
+        self.followers = {}  # label -> the specs that take its choice
+        for spec in self.specs:
+            if spec.follows:
+                self.followers.setdefault(spec.follows, []).append(spec)
+        self.swept = {s.label for s in self.specs if (s.backbone in config.sweep_backbones and not s.follows)
+                      or (s.backbone is None and config.sweep_backbones)}
+        self.fractions = sorted(set(config.fractions) | {1.0})
+        self.outer = self._outer_folds()
+        self.earlier = _resumed_fits(resume)
+        self.inner_scores = {}  # (label, fold id) -> {(settings key, (T1, T2)): [z-RMSE per inner fold]}
+        self.waiting = []
+        self.total = 0
+
+    def run(self) -> EvaluationResult:
+        started = time.perf_counter()
+        self._score_population_means()
+        self._queue_selections()
+        self.total = len(self.waiting)
+        fits = run_fits(self.executor or fit_executor(self.data, self.jobs, self.threads), self.waiting, self.jobs,
+                        self._cached if self.earlier else None)
+        for done, ((fit, spec, settings, pair), scores) in enumerate(fits, 1):
+            if isinstance(scores, FitFailure):
+                self.result.failed.append({'fit': fit.name, 'model': spec.label, 'fold': fit.fold, 'stage': fit.stage,
+                                           'fraction': fit.fraction, 'inner_fold': fit.inner_fold,
+                                           'settings': settings, 'T1': pair[0], 'T2': pair[1],
+                                           'error': scores.error})
+            elif fit.stage != 'inner':
+                self._record(spec, fit.fold, fit.fraction, settings, pair, len(fit.train), len(fit.test), scores,
+                             fit.stage)
+                log.info('[%d/%d] %s fold %s fraction %g %s (T1, T2) = %s: %s %.4f (%.1f s)', done, self.total,
+                         spec.label, fit.fold, fit.fraction, settings_key(settings), pair,
+                         self.config.error.upper(), scores[self.config.error], scores['fit_seconds'])
+            else:
+                self._take_selection_fit(done, fit, spec, settings, pair, scores)
+        self.result.unchosen = [{'model': label, 'fold': fold_id} for (label, fold_id), table
+                                in self.inner_scores.items()
+                                if any(len(v) < self.config.inner_folds for v in table.values())]
+        self.result.wall_seconds = time.perf_counter() - started
+        return self.result
+
+    def _outer_folds(self) -> dict:
+        """fold id 'seed:k' -> (outer fold, inner folds of its pool, sweep samples of its pool)."""
+        config, data = self.config, self.data
+        outer = {}
+        for seed in config.seeds:
+            for f, fold in enumerate(make_folds(data, self.protocol, config.folds, seed)):
+                fold_id = f'{seed}:{f}'
+                outer[fold_id] = (fold, make_folds(data, self.protocol, config.inner_folds, [seed, f, 1], fold.train),
+                                  sweep_samples(fold.train, self.fractions, [seed, f, 2], data.examples))
+                self.result.folds.append({'fold': fold_id, 'n_train': len(fold.train), 'n_test': len(fold.test)})
+        return outer
+
+    def _record(self, spec, fold_id, fraction, settings, pair, n_train, n_test, scores, stage):
+        entry = {'protocol': self.protocol, 'model': spec.label, 'backbone': spec.backbone, 'variant': spec.variant,
+                 'fold': fold_id, 'fraction': fraction, 'stage': stage, 'settings': settings,
+                 'T1': pair[0], 'T2': pair[1], 'n_train': n_train, 'n_test': n_test,
+                 **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
+        if 'error' in scores:
+            entry['error'] = scores['error']
+            log.warning('%s fold %s fraction %g: %s', spec.label, fold_id, fraction, scores['error'])
+        self.result.records.append(entry)
+        if self.on_record:
+            self.on_record(entry)
+
+    def _score_population_means(self):
+        """The constant baseline, computed here: it takes no time."""
+        for spec in self.specs:
+            if spec.variant == 'population_mean':
+                for fold_id, (fold, _, samples) in self.outer.items():
+                    for fraction in (self.fractions if spec.label in self.swept else [1.0]):
+                        train = samples[fraction]
+                        self._record(spec, fold_id, fraction, {}, (0, 0), len(train), len(fold.test),
+                                     population_mean(self.data, train, fold.test),
+                                     'final' if fraction == 1.0 else 'sweep')
+
+    def _queue_selections(self):
+        """The inner fits of every model with its own search, one per start T1 (scored at
+        every T2 of the grid); a model with a single candidate takes it at once."""
+        for spec in self.specs:
+            if spec.variant == 'population_mean' or spec.follows:
+                continue
+            candidates = _candidates(self.config, spec)
+            for fold_id, (_, inner, _) in self.outer.items():
+                if len(candidates) == 1:
+                    self.waiting.extend(self._choose(spec, fold_id, *candidates[0], math.nan))
+                    continue
+                self.inner_scores[spec.label, fold_id] = {(settings_key(s), p): [] for s, p in candidates}
+                by_start = {}
+                for settings, (t1, t2) in candidates:
+                    by_start.setdefault((settings_key(settings), t1), (settings, []))[1].append(t2)
+                for (_, t1), (settings, ends) in by_start.items():
+                    pair = (t1, max(ends))
+                    for i, (train, validation) in enumerate(inner):
+                        self.waiting.append((self._task(spec, fold_id, 'inner', settings, pair, train, validation,
+                                                        inner_fold=i, curve_at=tuple(sorted(ends))),
+                                             spec, settings, pair))
+
+    def _take_selection_fit(self, done, fit, spec, settings, pair, scores):
+        """Record an inner fit and its points; once the fold's selection is complete, choose
+        and put the final fits it unlocks at the front of the queue."""
+        entry = {'stage': 'inner', 'model': spec.label, 'variant': spec.variant, 'fold': fit.fold,
+                 'settings': settings, 'T1': pair[0], 'T2': pair[1], 'inner_fold': fit.inner_fold,
+                 'z_rmse': scores['z_rmse'], 'curve': [{'epoch': c['epoch'], 'z_rmse': c['z_rmse']}
+                                                      for c in scores['curve']],
+                 'n_train': len(fit.train), 'n_test': len(fit.test), 'fit_seconds': scores['fit_seconds'],
+                 'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']}
+        self.result.inner.append(entry)
+        if self.on_record:
+            self.on_record(entry)
+        table = self.inner_scores[spec.label, fit.fold]
+        reached = {c['epoch']: c['z_rmse'] for c in entry['curve']}
+        for t2 in fit.curve_at:  # a diverged fit has no curve: every point it owed is lost
+            z_rmse = reached.get(t2, math.inf)
+            table[settings_key(settings), (pair[0], t2)].append(z_rmse)
+            self.result.selection.append({'model': spec.label, 'fold': fit.fold, 'settings': settings_key(settings),
+                                          'T1': pair[0], 'T2': t2, 'inner_fold': fit.inner_fold, 'z_rmse': z_rmse,
+                                          'n_train': len(fit.train), 'n_test': len(fit.test)})
+        log.info('[%d/%d] %s fold %s inner %d %s T1 %d: z-RMSE %s', done, self.total, spec.label, fit.fold,
+                 fit.inner_fold, settings_key(settings), pair[0], {t: round(v, 4) for t, v in reached.items()})
+        if all(len(v) == self.config.inner_folds for v in table.values()):
+            means = {candidate: float(np.mean(v)) for candidate, v in table.items()}
+            best = min(means, key=means.get)  # ties: first candidate
+            log.info('%s fold %s: chose %s (T1, T2) = %s by inner z-RMSE %.4f', spec.label, fit.fold, best[0],
+                     best[1], means[best])
+            unlocked = self._choose(spec, fit.fold, json.loads(best[0]), best[1], means[best])
+            self.waiting[:0] = unlocked
+            self.total += len(unlocked)
+
+    def _choose(self, spec, fold_id, settings, pair, z_rmse) -> list:
+        """Note the choice of ``spec`` (and of those that follow it) in ``fold_id``; the final
+        fits (and sweep) it unlocks."""
+        self.result.choices.append({'model': spec.label, 'fold': fold_id, 'settings': settings, 'T1': pair[0],
+                                    'T2': pair[1], 'inner_z_rmse': z_rmse})
+        self.result.choices.extend({**self.result.choices[-1], 'model': follower.label, 'follows': spec.label}
+                                   for follower in self.followers.get(spec.label, []))
+        fold, _, samples = self.outer[fold_id]
+        items = []
+        for chosen_by in [spec, *self.followers.get(spec.label, [])]:
+            chosen = self.fractions if chosen_by.label in self.swept else [1.0]
+            items += [(self._task(chosen_by, fold_id, 'final' if f == 1.0 else 'sweep', settings, pair, samples[f],
+                                  fold.test, fraction=f), chosen_by, settings, pair) for f in chosen]
+        return items
+
+    def _task(self, spec, fold_id, stage, settings, pair, train, test, **extra) -> FitTask:
+        base = self.config.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
+        experiment = base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1],
+                                            'threads': self.threads}).to_dict()
+        return FitTask(spec.label, fold_id, stage, experiment, train, test, settings=settings_key(settings), **extra)
+
+    def _cached(self, task: FitTask) -> dict | None:
+        """The scores an earlier run recorded for ``task``, if it did."""
+        training = task.experiment['training']
+        found = self.earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
+                                          training['pretrain_epochs'], training['joint_epochs'], task.settings))
+        self.result.resumed += found is not None
+        return found
+
+
+def _resumed_fits(resume: Sequence[dict]) -> dict:
+    """An earlier run's entries by the fit that gave them (the population mean is computed again)."""
+    earlier = {}
+    for entry in resume:
+        if entry.get('variant') == 'population_mean':
+            continue
+        if entry['stage'] == 'inner' and 'curve' not in entry:  # written before curves: one point, at T2
+            entry = {**entry, 'curve': [{'epoch': entry['T2'], 'z_rmse': entry['z_rmse']}]}
+        earlier[_fit_key(entry['model'], entry['fold'], entry['stage'], entry.get('fraction', 1.0),
+                         entry.get('inner_fold', -1), entry['T1'], entry['T2'],
+                         settings_key(entry.get('settings', {})))] = entry
+    return earlier
+
+
 def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
                  threads: int = 1, on_record: Callable[[dict], None] | None = None,
                  resume: Sequence[dict] = (), executor: futures.Executor | None = None) -> EvaluationResult:
@@ -541,253 +492,4 @@ def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows
     fits, at most ``jobs`` at a time (default: ``fit_executor(data, jobs, threads)``); the
     run shuts it down. Failed fits and the selections they stopped are in ``failed`` and
     ``unchosen`` of the result."""
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
-    if jobs < 1 or threads < 1:
-        raise ValueError('jobs and threads must be positive')
-    started = time.perf_counter()
-    result = EvaluationResult(protocol, config, jobs=jobs, threads=threads)
-    specs = model_specs(config)
-    followers = {}
-    for spec in specs:
-        if spec.follows:
-            followers.setdefault(spec.follows, []).append(spec)
-    swept = {s.label for s in specs if (s.backbone in config.sweep_backbones and not s.follows)
-             or (s.backbone is None and config.sweep_backbones)}
-    fractions = sorted(set(config.fractions) | {1.0})
-    examples = data.examples
-
-    outer = {}
-    for seed in config.seeds:
-        for f, fold in enumerate(make_folds(data, protocol, config.folds, seed)):
-            fold_id = f'{seed}:{f}'
-            outer[fold_id] = (fold, make_folds(data, protocol, config.inner_folds, [seed, f, 1], fold.train),
-                              sweep_samples(fold.train, fractions, [seed, f, 2], examples))
-            result.folds.append({'fold': fold_id, 'n_train': len(fold.train), 'n_test': len(fold.test)})
-
-    def record(spec, fold_id, fraction, settings, pair, n_train, n_test, scores, stage):
-        entry = {'protocol': protocol, 'model': spec.label, 'backbone': spec.backbone, 'variant': spec.variant,
-                 'fold': fold_id, 'fraction': fraction, 'stage': stage, 'settings': settings,
-                 'T1': pair[0], 'T2': pair[1], 'n_train': n_train, 'n_test': n_test,
-                 **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
-        if 'error' in scores:
-            entry['error'] = scores['error']
-            log.warning('%s fold %s fraction %g: %s', spec.label, fold_id, fraction, scores['error'])
-        result.records.append(entry)
-        if on_record:
-            on_record(entry)
-
-    for spec in specs:
-        if spec.variant == 'population_mean':
-            for fold_id, (fold, _, samples) in outer.items():
-                for fraction in (fractions if spec.label in swept else [1.0]):
-                    train = samples[fraction]
-                    record(spec, fold_id, fraction, {}, (0, 0), len(train), len(fold.test),
-                           population_mean(data, train, fold.test), 'final' if fraction == 1.0 else 'sweep')
-
-    def experiment(spec, settings, pair):
-        base = config.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
-        return base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1], 'threads': threads}).to_dict()
-
-    # Own queue, at most `jobs` tasks in flight: fits unlocked by a finished selection
-    # jump ahead of further selection fits, so complete results appear early.
-    waiting = []
-    inner_scores = {}
-    earlier = {}
-    for entry in resume:
-        if entry.get('variant') == 'population_mean':  # recomputed: it takes no time
-            continue
-        if entry['stage'] == 'inner' and 'curve' not in entry:  # written before curves: one point, at T2
-            entry = {**entry, 'curve': [{'epoch': entry['T2'], 'z_rmse': entry['z_rmse']}]}
-        earlier[_fit_key(entry['model'], entry['fold'], entry['stage'], entry.get('fraction', 1.0),
-                         entry.get('inner_fold', -1), entry['T1'], entry['T2'],
-                         settings_key(entry.get('settings', {})))] = entry
-
-    def cached(task):
-        training = task.experiment['training']
-        found = earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
-                                     training['pretrain_epochs'], training['joint_epochs'], task.settings))
-        result.resumed += found is not None
-        return found
-
-    def task(spec, fold_id, stage, settings, pair, train, test, **extra):
-        return FitTask(spec.label, fold_id, stage, experiment(spec, settings, pair), train, test,
-                       settings=settings_key(settings), **extra)
-
-    def final_tasks(spec, fold_id, settings, pair):
-        """The final fit (and sweep) of ``spec`` and of the specs that follow its choice."""
-        fold, _, samples = outer[fold_id]
-        items = []
-        for chosen_by in [spec, *followers.get(spec.label, [])]:
-            chosen = fractions if chosen_by.label in swept else [1.0]
-            items += [(task(chosen_by, fold_id, 'final' if f == 1.0 else 'sweep', settings, pair, samples[f],
-                            fold.test, fraction=f), chosen_by, settings, pair) for f in chosen]
-        return items
-
-    def choose(spec, fold_id, settings, pair, z_rmse):
-        result.choices.append({'model': spec.label, 'fold': fold_id, 'settings': settings, 'T1': pair[0],
-                               'T2': pair[1], 'inner_z_rmse': z_rmse})
-        result.choices.extend({**result.choices[-1], 'model': follower.label, 'follows': spec.label}
-                              for follower in followers.get(spec.label, []))
-        return final_tasks(spec, fold_id, settings, pair)
-
-    for spec in specs:
-        if spec.variant == 'population_mean' or spec.follows:
-            continue
-        candidates = _candidates(config, spec)
-        for fold_id, (_, inner, _) in outer.items():
-            if len(candidates) == 1:
-                waiting.extend(choose(spec, fold_id, *candidates[0], math.nan))
-                continue
-            inner_scores[spec.label, fold_id] = {(settings_key(s), p): [] for s, p in candidates}
-            by_start = {}
-            for settings, (t1, t2) in candidates:
-                by_start.setdefault((settings_key(settings), t1), (settings, []))[1].append(t2)
-            for (_, t1), (settings, ends) in by_start.items():
-                pair = (t1, max(ends))  # one fit per start, scored at every T2 of the grid
-                for i, (train, validation) in enumerate(inner):
-                    waiting.append((task(spec, fold_id, 'inner', settings, pair, train, validation, inner_fold=i,
-                                         curve_at=tuple(sorted(ends))), spec, settings, pair))
-    total = len(waiting)
-    fits = run_fits(executor or fit_executor(data, jobs, threads), waiting, jobs, cached if earlier else None)
-    for done, ((fit, spec, settings, pair), scores) in enumerate(fits, 1):
-        if isinstance(scores, FitFailure):
-            result.failed.append({'fit': fit.name, 'model': spec.label, 'fold': fit.fold, 'stage': fit.stage,
-                                  'fraction': fit.fraction, 'inner_fold': fit.inner_fold, 'settings': settings,
-                                  'T1': pair[0], 'T2': pair[1], 'error': scores.error})
-            continue
-        if fit.stage != 'inner':
-            record(spec, fit.fold, fit.fraction, settings, pair, len(fit.train), len(fit.test), scores, fit.stage)
-            log.info('[%d/%d] %s fold %s fraction %g %s (T1, T2) = %s: %s %.4f (%.1f s)', done, total,
-                     spec.label, fit.fold, fit.fraction, settings_key(settings), pair, config.error.upper(),
-                     scores[config.error], scores['fit_seconds'])
-            continue
-        entry = {'stage': 'inner', 'model': spec.label, 'variant': spec.variant, 'fold': fit.fold,
-                 'settings': settings, 'T1': pair[0], 'T2': pair[1], 'inner_fold': fit.inner_fold,
-                 'z_rmse': scores['z_rmse'], 'curve': [{'epoch': c['epoch'], 'z_rmse': c['z_rmse']}
-                                                      for c in scores['curve']],
-                 'n_train': len(fit.train), 'n_test': len(fit.test), 'fit_seconds': scores['fit_seconds'],
-                 'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']}
-        result.inner.append(entry)
-        if on_record:
-            on_record(entry)
-        table = inner_scores[spec.label, fit.fold]
-        reached = {c['epoch']: c['z_rmse'] for c in entry['curve']}
-        for t2 in fit.curve_at:  # a diverged fit has no curve: every point it owed is lost
-            z_rmse = reached.get(t2, math.inf)
-            table[settings_key(settings), (pair[0], t2)].append(z_rmse)
-            result.selection.append({'model': spec.label, 'fold': fit.fold, 'settings': settings_key(settings),
-                                     'T1': pair[0], 'T2': t2, 'inner_fold': fit.inner_fold, 'z_rmse': z_rmse,
-                                     'n_train': len(fit.train), 'n_test': len(fit.test)})
-        log.info('[%d/%d] %s fold %s inner %d %s T1 %d: z-RMSE %s', done, total, spec.label, fit.fold,
-                 fit.inner_fold, settings_key(settings), pair[0], {t: round(v, 4) for t, v in reached.items()})
-        if all(len(v) == config.inner_folds for v in table.values()):
-            means = {candidate: float(np.mean(v)) for candidate, v in table.items()}
-            best = min(means, key=means.get)  # ties: first candidate
-            chosen_settings = json.loads(best[0])
-            log.info('%s fold %s: chose %s (T1, T2) = %s by inner z-RMSE %.4f', spec.label, fit.fold, best[0],
-                     best[1], means[best])
-            unlocked = choose(spec, fit.fold, chosen_settings, best[1], means[best])
-            waiting[:0] = unlocked
-            total += len(unlocked)
-    result.unchosen = [{'model': label, 'fold': fold_id} for (label, fold_id), table in inner_scores.items()
-                       if any(len(v) < config.inner_folds for v in table.values())]
-    result.wall_seconds = time.perf_counter() - started
-    return result
-
-
-# -- summaries --------------------------------------------------------------------------
-def _fold_order(entry: dict) -> tuple:
-    return tuple(int(part) for part in entry['fold'].split(':'))
-
-
-def by_model(records: list) -> dict:
-    """model label -> records sorted by fold, in first-seen order."""
-    grouped = {}
-    for entry in records:
-        grouped.setdefault(entry['model'], []).append(entry)
-    return {label: sorted(entries, key=_fold_order) for label, entries in grouped.items()}
-
-
-def corrected_test(result: EvaluationResult, label: str, reference: str, metric: str) -> dict | None:
-    """``label`` − ``reference`` on ``metric`` over the outer folds (corrected resampled
-    t-test); None when either lacks finite scores."""
-    final = by_model(result.final())
-    if label not in final or reference not in final:
-        return None
-    one, other = final[label], final[reference]
-    if [e['fold'] for e in one] != [e['fold'] for e in other]:
-        raise ValueError(f'{label} and {reference} were scored on different folds')
-    values = ([e[metric] for e in one], [e[metric] for e in other])
-    if not all(math.isfinite(v) for side in values for v in side):
-        return None
-    test = corrected_resampled_ttest(*values, [e['n_train'] for e in one], [e['n_test'] for e in one])
-    return {'metric': metric, 'delta': test.delta, 't': test.t, 'df': test.df, 'p': test.p}
-
-
-def paired_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
-    """StARS − base per backbone and metric; Holm within each metric over the backbones."""
-    tests = []
-    for metric in metrics:
-        family = []
-        for backbone in result.config.backbones:
-            name = DISPLAY.get(backbone, backbone)
-            test = corrected_test(result, f'{name} StARS', f'{name} base', metric)
-            if test is not None:
-                family.append({'backbone': backbone, **test})
-        for entry, adjusted in zip(family, holm([e['p'] for e in family])):
-            entry['p_holm'] = float(adjusted)
-        tests.extend(family)
-    return tests
-
-
-def ablation_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
-    """Every model of an ablation backbone (MF, StARS and its ablations) against that
-    backbone's base, per metric; Holm within each (backbone, metric) over the models."""
-    tests = []
-    labels = [spec.label for spec in model_specs(result.config)]
-    for backbone in result.config.ablation_backbones:
-        name = DISPLAY.get(backbone, backbone)
-        compared = [BASELINE_LABELS['mf'], *(label for label in labels
-                                              if label.startswith(f'{name} ') and label != f'{name} base')]
-        for metric in metrics:
-            family = [{'backbone': backbone, 'model': label, 'reference': f'{name} base', **test}
-                      for label in compared
-                      if (test := corrected_test(result, label, f'{name} base', metric)) is not None]
-            for entry, adjusted in zip(family, holm([e['p'] for e in family])):
-                entry['p_holm'] = float(adjusted)
-            tests.extend(family)
-    return tests
-
-
-def sparsity_summary(result: EvaluationResult) -> dict:
-    """model label -> fraction -> metric -> per-fold values, for swept models."""
-    summary = {}
-    for entry in result.records:
-        summary.setdefault(entry['model'], {}).setdefault(entry['fraction'], {m: [] for m in METRICS})
-        for metric in METRICS:
-            summary[entry['model']][entry['fraction']][metric].append(entry[metric])
-    return {label: dict(sorted(by_fraction.items())) for label, by_fraction in summary.items()
-            if len(by_fraction) > 1}
-
-
-def time_accounting(result: EvaluationResult) -> dict:
-    """Worker seconds by stage and by model, s/epoch on full pools, and the wall time."""
-    stages, models = {}, {}
-    for entry in result.inner + result.records:
-        stage = entry.get('stage', 'inner')
-        seconds = entry['fit_seconds'] + entry['predict_seconds']
-        stages[stage] = stages.get(stage, 0.0) + seconds
-        models.setdefault(entry['model'], {}).setdefault(stage, 0.0)
-        models[entry['model']][stage] += seconds
-    order = [spec.label for spec in model_specs(result.config)]
-    models = {label: models[label] for label in order if label in models}
-    per_epoch = {}
-    for label, entries in by_model([e for e in result.final() if e['epochs']]).items():
-        per_epoch[label] = float(np.mean([e['fit_seconds'] / e['epochs'] for e in entries]))
-    busy = sum(stages.values())
-    return {'wall_seconds': result.wall_seconds, 'worker_seconds': busy, 'jobs': result.jobs,
-            'threads_per_job': result.threads,
-            'utilisation': busy / (result.wall_seconds * result.jobs) if result.wall_seconds and not result.resumed
-            else math.nan, 'resumed_fits': result.resumed,
-            'by_stage': stages, 'by_model': models, 'seconds_per_epoch_full_pool': per_epoch}
+    return ProtocolRun(data, config, protocol, jobs, threads, on_record, resume, executor).run()

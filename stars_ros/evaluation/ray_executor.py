@@ -5,7 +5,7 @@ The evaluation submits its fits through an Executor and keeps its own bounded qu
 a concurrent future, so the queue works unchanged. The data set goes into the object store
 once (``ray.put``) and every task gets its reference; a worker process reads it from the
 store at its first task and keeps it for the next ones (like ``fit_executor``'s workers,
-see ``evaluation.worker_data``). Its scenes are featurised once, at loading: the store
+see ``executors.worker_data``). Its scenes are featurised once, at loading: the store
 holds the graph tensors, so no fit featurises anything.
 
 Each task asks Ray for ``cpus_per_fit`` CPUs and ``gpus_per_fit`` of a GPU (a fraction: a
@@ -26,7 +26,7 @@ import threading
 from collections.abc import Iterable, Mapping
 
 from stars_ros.errors import StarsError
-from stars_ros.evaluation.protocol import hold_worker_data
+from stars_ros.evaluation.executors import hold_worker_data
 
 try:
     import ray
@@ -67,7 +67,7 @@ def fit_slots(nodes: Iterable[Mapping[str, float]], cpus_per_fit: float, gpus_pe
 
 class RayExecutor(futures.Executor):
     """Runs each submitted ``fn(*args, **kwargs)`` as a Ray task in a worker that holds
-    ``data`` (read there with ``evaluation.worker_data``).
+    ``data`` (read there with ``executors.worker_data``).
 
     Connects as ``ray.init(address)`` does: the given address, else ``RAY_ADDRESS``, else a
     cluster started on this machine with ``ray start``, else a new local instance; in a

@@ -1,0 +1,109 @@
+"""What the tables of an evaluation are made of: records by model, the paired tests
+(StARS against base, ablations against base) and the summaries of the sparsity sweep and
+of where the time went."""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from stars_ros.evaluation.executors import METRICS
+from stars_ros.evaluation.protocol import BASELINE_LABELS, DISPLAY, EvaluationResult, model_specs
+from stars_ros.evaluation.stats import corrected_resampled_ttest, holm
+
+
+def _fold_order(entry: dict) -> tuple:
+    return tuple(int(part) for part in entry['fold'].split(':'))
+
+
+def by_model(records: list) -> dict:
+    """model label -> records sorted by fold, in first-seen order."""
+    grouped = {}
+    for entry in records:
+        grouped.setdefault(entry['model'], []).append(entry)
+    return {label: sorted(entries, key=_fold_order) for label, entries in grouped.items()}
+
+
+def corrected_test(result: EvaluationResult, label: str, reference: str, metric: str) -> dict | None:
+    """``label`` − ``reference`` on ``metric`` over the outer folds (corrected resampled
+    t-test); None when either lacks finite scores."""
+    final = by_model(result.final())
+    if label not in final or reference not in final:
+        return None
+    one, other = final[label], final[reference]
+    if [e['fold'] for e in one] != [e['fold'] for e in other]:
+        raise ValueError(f'{label} and {reference} were scored on different folds')
+    values = ([e[metric] for e in one], [e[metric] for e in other])
+    if not all(math.isfinite(v) for side in values for v in side):
+        return None
+    test = corrected_resampled_ttest(*values, [e['n_train'] for e in one], [e['n_test'] for e in one])
+    return {'metric': metric, 'delta': test.delta, 't': test.t, 'df': test.df, 'p': test.p}
+
+
+def paired_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
+    """StARS − base per backbone and metric; Holm within each metric over the backbones."""
+    tests = []
+    for metric in metrics:
+        family = []
+        for backbone in result.config.backbones:
+            name = DISPLAY.get(backbone, backbone)
+            test = corrected_test(result, f'{name} StARS', f'{name} base', metric)
+            if test is not None:
+                family.append({'backbone': backbone, **test})
+        for entry, adjusted in zip(family, holm([e['p'] for e in family])):
+            entry['p_holm'] = float(adjusted)
+        tests.extend(family)
+    return tests
+
+
+def ablation_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
+    """Every model of an ablation backbone (MF, StARS and its ablations) against that
+    backbone's base, per metric; Holm within each (backbone, metric) over the models."""
+    tests = []
+    labels = [spec.label for spec in model_specs(result.config)]
+    for backbone in result.config.ablation_backbones:
+        name = DISPLAY.get(backbone, backbone)
+        compared = [BASELINE_LABELS['mf'], *(label for label in labels
+                                              if label.startswith(f'{name} ') and label != f'{name} base')]
+        for metric in metrics:
+            family = [{'backbone': backbone, 'model': label, 'reference': f'{name} base', **test}
+                      for label in compared
+                      if (test := corrected_test(result, label, f'{name} base', metric)) is not None]
+            for entry, adjusted in zip(family, holm([e['p'] for e in family])):
+                entry['p_holm'] = float(adjusted)
+            tests.extend(family)
+    return tests
+
+
+def sparsity_summary(result: EvaluationResult) -> dict:
+    """model label -> fraction -> metric -> per-fold values, for swept models."""
+    summary = {}
+    for entry in result.records:
+        summary.setdefault(entry['model'], {}).setdefault(entry['fraction'], {m: [] for m in METRICS})
+        for metric in METRICS:
+            summary[entry['model']][entry['fraction']][metric].append(entry[metric])
+    return {label: dict(sorted(by_fraction.items())) for label, by_fraction in summary.items()
+            if len(by_fraction) > 1}
+
+
+def time_accounting(result: EvaluationResult) -> dict:
+    """Worker seconds by stage and by model, s/epoch on full pools, and the wall time."""
+    stages, models = {}, {}
+    for entry in result.inner + result.records:
+        stage = entry.get('stage', 'inner')
+        seconds = entry['fit_seconds'] + entry['predict_seconds']
+        stages[stage] = stages.get(stage, 0.0) + seconds
+        models.setdefault(entry['model'], {}).setdefault(stage, 0.0)
+        models[entry['model']][stage] += seconds
+    order = [spec.label for spec in model_specs(result.config)]
+    models = {label: models[label] for label in order if label in models}
+    per_epoch = {}
+    for label, entries in by_model([e for e in result.final() if e['epochs']]).items():
+        per_epoch[label] = float(np.mean([e['fit_seconds'] / e['epochs'] for e in entries]))
+    busy = sum(stages.values())
+    return {'wall_seconds': result.wall_seconds, 'worker_seconds': busy, 'jobs': result.jobs,
+            'threads_per_job': result.threads,
+            'utilisation': busy / (result.wall_seconds * result.jobs) if result.wall_seconds and not result.resumed
+            else math.nan, 'resumed_fits': result.resumed,
+            'by_stage': stages, 'by_model': models, 'seconds_per_epoch_full_pool': per_epoch}
