@@ -418,7 +418,8 @@ def test_the_packaged_model_ranks_socnav1_scenes_as_its_predictor_does(socnav1, 
             for scene in scenes:
                 client.scene({'scene_id': scene['identifier'], 'user_id': user, 'graph': scene})
             client.scene({**placements, 'user_id': user})
-        wanted = [(s['identifier'], user) for user in ('g', 'stranger') for s in scenes + [{'identifier': 'placements'}]]
+        wanted = [(identifier, user) for user in ('g', 'stranger')
+                  for identifier in [s['identifier'] for s in scenes] + ['placements']]
         assert client.wait(lambda: all(reply(*pair) for pair in wanted), 60)
         for user in ('g', 'stranger'):
             for scene in scenes:

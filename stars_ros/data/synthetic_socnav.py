@@ -17,8 +17,9 @@ robot to the closest person (6 m when there is none), ``crowding_i`` the number 
 within 3 m divided by 3, ``t_u`` how much a person minds crowds, ``b_u`` their leniency and
 ``ε`` rater noise. Every person rates at least ``min_ratings`` scenes, the rest follow a
 gamma-distributed activity, and a scene is rated by up to a few people. As in SocNav1, one
-identifier (the last person's last) carries two different scene contents, rated by different people.
-Everything follows from ``seed``. It checks that the paths behave; it is not a benchmark.
+identifier (the last person's last scene's) carries two different scene contents, rated by
+different people. Everything follows from ``seed``. It checks that the paths behave; it is
+not a benchmark.
 """
 from __future__ import annotations
 
@@ -81,7 +82,8 @@ def generate(shape: SocNavShape = SocNavShape(), seed: int = 0) -> dict:
 
     def rated(scene, user):
         comfort, crowding = scene_factors(scene)
-        value = 0.62 + 0.25 * comfort - 0.1 * crowding * (1 + tastes[user]) + leniency[user] + rng.normal(0, shape.noise)
+        value = (0.62 + 0.25 * comfort - 0.1 * crowding * (1 + tastes[user]) + leniency[user]
+                 + rng.normal(0, shape.noise))
         return {**scene, 'score': int(round(100 * min(max(value, 0.0), 1.0)))}
 
     lines = {}
