@@ -227,12 +227,18 @@ class RankerCore:
         return level, summary, values, kinds
 
     # -- input ---------------------------------------------------------------------------
+    def _parse(self, parse, text: str, topic: str):
+        """``parse(text, max_message_bytes)``, or None once the refusal is reported."""
+        try:
+            return parse(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), topic, error.scene_id)
+            return None
+
     def accept_scene(self, text: str, received: int):
         """Queue a stars/scene request the middleware received at ``received`` (time.time_ns)."""
-        try:
-            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
-        except messages.BadMessage as error:
-            self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
+        request = self._parse(messages.parse_scene_request, text, self.topics['stars/scene'])
+        if request is None:
             return
         log_time = self._now()
         self.personalisation.scenes.received(request.scene_id, text)
@@ -255,10 +261,8 @@ class RankerCore:
         """Journal a stars/feedback message and queue its fold-in; True when a user now waits
         to be re-solved (call ``work``)."""
         topic = self.topics['stars/feedback']
-        try:
-            feedback = messages.parse_feedback(text, self.params['max_message_bytes'])
-        except messages.BadMessage as error:
-            self.report(error.kind, str(error), topic, error.scene_id)
+        feedback = self._parse(messages.parse_feedback, text, topic)
+        if feedback is None:
             return False
         if self.authenticator is not None:  # before the journal: refused feedback is recorded as an error only
             refusal = self.authenticator.check(feedback.signed, self._now())
@@ -314,11 +318,8 @@ class RankerCore:
 
     def accept_question_request(self, text: str) -> bool:
         """Queue a stars/question_request; True when it waits to be answered (call ``work``)."""
-        topic = self.topics['stars/question_request']
-        try:
-            request = messages.parse_question_request(text, self.params['max_message_bytes'])
-        except messages.BadMessage as error:
-            self.report(error.kind, str(error), topic, error.scene_id)
+        request = self._parse(messages.parse_question_request, text, self.topics['stars/question_request'])
+        if request is None:
             return False
         self.record('stars/question_request', text)
         self.questions.append(request)
