@@ -19,7 +19,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import BinaryIO, Iterator
 
 import yaml
 from mcap.exceptions import McapError
@@ -91,13 +91,13 @@ class FileStats:
 
 
 class McapFile:
-    """One file of a bag being written: an MCAP writer with the ros2 profile, a channel per
-    topic (its QoS and type hash in the channel metadata, as rosbag2 writes them) and the
-    file's statistics."""
+    """One file of a bag being written to ``stream``: an MCAP writer with the ros2 profile, a
+    channel per topic (its QoS and type hash in the channel metadata, as rosbag2 writes
+    them) and the statistics of the file ``name``."""
 
-    def __init__(self, path: Path, topics: dict, chunk_size: int, custom: dict):
-        self.stream = open(path, 'wb')
-        self.stats = FileStats(path.name)
+    def __init__(self, stream: BinaryIO, name: str, topics: dict, chunk_size: int, custom: dict):
+        self.stream = stream
+        self.stats = FileStats(name)
         self.topics = topics
         self.writer = McapWriter(self.stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self.writer.start(profile='ros2', library=f'stars_ros {__version__}')
@@ -105,6 +105,11 @@ class McapFile:
         self.channels = {}
         if custom:
             self.writer.add_metadata('stars_ros', {k: str(v) for k, v in custom.items()})
+
+    @classmethod
+    def create(cls, path: Path, topics: dict, chunk_size: int, custom: dict) -> 'McapFile':
+        """A new file at ``path``, which it owns (``finish`` closes it)."""
+        return cls(open(path, 'wb'), path.name, topics, chunk_size, custom)
 
     def write(self, topic: str, data: bytes, log_time: int):
         channel = self.channels.get(topic)
@@ -123,9 +128,14 @@ class McapFile:
     def size(self) -> int:
         return self.stream.tell()
 
+    def end(self):
+        """Write the summary and the closing magic; the stream stays open."""
+        self.writer.finish()
+
     def finish(self):
+        """End the file, fsync it and close it."""
         try:
-            self.writer.finish()
+            self.end()
             self.stream.flush()
             os.fsync(self.stream.fileno())
         finally:

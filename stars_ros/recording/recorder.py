@@ -103,7 +103,7 @@ class Recorder:
             (self.path / PID_FILE).write_text(f'{os.getpid()}\n')
             self._journal.open()
             path = self.path / f'{self.name}_{len(self._files)}.mcap'
-            self._file = McapFile(path, self.topics, self._chunk_size, self.custom)
+            self._file = McapFile.create(path, self.topics, self._chunk_size, self.custom)
             self._files.append(self._file.stats)
             self._write_metadata(self._metadata_snapshot())
         except OSError as error:

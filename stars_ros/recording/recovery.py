@@ -11,6 +11,7 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
+from stars_ros.files import atomic_write
 from stars_ros.recording.bag import (PID_FILE, FileStats, McapFile, bag_files, encode_string, is_finished,
                                      metadata_text, qos_profile, topic_qos, write_metadata)
 from stars_ros.recording.journal import JOURNAL, read_journal
@@ -80,14 +81,7 @@ def recover(bag) -> dict:
         for message in found.messages:
             seen.add((found.channels[message.channel_id].topic, message.log_time, bytes(message.data)))
         if found.damage is not None or not is_finished(path):
-            tmp = path.with_name(path.name + '.tmp')
-            rewritten = McapFile(tmp, topics, 1 << 20, found.custom)
-            for message in found.messages:
-                rewritten.write(found.channels[message.channel_id].topic, bytes(message.data), message.log_time)
-            rewritten.finish()
-            os.replace(tmp, path)
-            rewritten.stats.path = path.name
-            files.append(rewritten.stats)
+            files.append(_rewrite(path, found, topics))
             repaired.append(path.name)
         else:
             stats = FileStats(path.name)
@@ -104,7 +98,7 @@ def recover(bag) -> dict:
     if missing:
         for entry in missing:
             topics.setdefault(entry['topic'], qos_profile())
-        extra = McapFile(bag / f'{bag.name}_{len(files)}.mcap', topics, 1 << 20, custom)
+        extra = McapFile.create(bag / f'{bag.name}_{len(files)}.mcap', topics, 1 << 20, custom)
         for entry in missing:
             extra.write(entry['topic'], encode_string(entry['data']), entry['log_time'])
         extra.finish()
@@ -112,6 +106,20 @@ def recover(bag) -> dict:
     write_metadata(bag, metadata_text(files, topics, custom))
     (bag / PID_FILE).unlink(missing_ok=True)
     return {'repaired': repaired, 'feedback_restored': len(missing), 'messages': sum(f.count for f in files)}
+
+
+def _rewrite(path: Path, found: Salvage, topics: dict) -> FileStats:
+    """Replace the damaged file ``path`` with a finished one of the records ``found`` in it."""
+    written = []
+
+    def write(handle):
+        rewritten = McapFile(handle, path.name, topics, 1 << 20, found.custom)
+        for message in found.messages:
+            rewritten.write(found.channels[message.channel_id].topic, bytes(message.data), message.log_time)
+        rewritten.end()
+        written.append(rewritten.stats)
+    atomic_write(path, write)
+    return written[0]
 
 
 def _alive(pid: int) -> bool:
