@@ -6,7 +6,9 @@ choosing the questions) vs full retraining, with the calibration of the predicti
 
 Leave-people-out folds (people shuffled with each of ``--seeds`` and dealt into ``--folds``
 groups). Per fold a model is trained on the other people's examples, less a seeded
-``--known-test`` share of them kept for the known people's calibration. For every held-out
+``--known-test`` share of them: half of it gives the personalisation prior its noise
+variance (``estimate_prior``'s held-out rows), the other half checks the known people's
+calibration. For every held-out
 person ``stars_ros.evaluation.kshot`` sets aside a seeded pool of ``--pool`` examples (one
 person's ratings of one scene, every action; fewer for a person with fewer examples, who then
 covers only the k it allows, and a person with one example is left out and counted); their
@@ -107,10 +109,11 @@ def configure(args) -> ExperimentConfig:
     return config.replace(training=training)
 
 
-def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, data=None) -> dict:
+def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, noise_rows=None, data=None) -> dict:
     """One fit (in a ``fit_executor`` worker, or inline with ``data``): seconds, predictions
     on ``test``, and with ``keep`` the fitted recommender itself, its model on the CPU, where
-    the fold-in designs are computed."""
+    the fold-in designs are computed, with the personalisation prior a checkpoint keeps (its
+    noise from ``noise_rows``, held-out ratings of the trained people)."""
     data = worker_data() if data is None else data
     started = time.perf_counter()
     recommender = StarsTrainer(ExperimentConfig.from_dict(experiment)).fit(data, train)
@@ -118,7 +121,7 @@ def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, 
     predictions = recommender.predict_rows(data, test)
     if keep:
         recommender.model.cpu()
-        recommender.user_prior = estimate_prior(recommender, data, train).to_dict()  # as a checkpoint stores it
+        recommender.user_prior = estimate_prior(recommender, data, train, noise_rows=noise_rows).to_dict()
     return {'seconds': seconds, 'predictions': predictions, 'recommender': recommender if keep else None}
 
 
@@ -127,24 +130,25 @@ def report(data, rows, predictions) -> dict:
 
 
 def plan_folds(args, data) -> list:
-    """(seed, fold id, held-out people, training rows, {person: Person}, left out, known test
-    rows) of every fold of every seed."""
+    """(seed, fold id, held-out people, training rows, {person: Person}, left out, known
+    people's test rows, their rows for the prior's noise) of every fold of every seed."""
     plan = []
     for seed in args.seeds:
-        for fold_id, held in enumerate(annotator_folds(data.users, args.folds, seed)):
-            train = np.flatnonzero(~np.isin(data.users, held))
-            train, known = known_split(data, train, args.known_test, seed)
+        for fold_id, held_out in enumerate(annotator_folds(data.users, args.folds, seed)):
+            train = np.flatnonzero(~np.isin(data.users, held_out))
+            train, held = known_split(data, train, args.known_test, seed)
+            noise, known = known_split(data, held, 0.5, seed + 1)  # half for the prior's noise, half to check it
             if args.max_train_rows and len(train) > args.max_train_rows:
                 train = np.sort(np.random.default_rng([seed, fold_id]).choice(train, args.max_train_rows,
                                                                               replace=False))
-            people, left_out = reveal_pools(data, held, args.pool, seed)
-            plan.append((seed, fold_id, held, train, people, left_out, known))
+            people, left_out = reveal_pools(data, held_out, args.pool, seed)
+            plan.append((seed, fold_id, held_out, train, people, left_out, known, noise))
     return plan
 
 
 def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
     """The training rows at ``k``: the fold's, plus each held-out person's first k random answers."""
-    _, _, _, train, people, _, _ = fold
+    _, _, _, train, people, _, _, _ = fold
     if k == 0:
         return train
     return np.sort(np.concatenate([train, *(person.rows(range(min(k, len(person.pool)))) for person in people.values())]))
@@ -159,7 +163,7 @@ def test_rows(people: dict, k: int) -> tuple[list, np.ndarray]:
 
 def score_fold(args, data, design: Design, fold: tuple, outcomes: dict) -> tuple[list, dict]:
     """(records, calibration samples) of one fold whose fits are ``outcomes`` {k: fit}."""
-    seed, fold_id, held, _, people, _, known = fold
+    seed, fold_id, held, _, people, _, known, _ = fold
     orders = {(name, strategy): design.reveal_order(person, strategy, max(args.ks))
               for name, person in people.items() for strategy in args.strategies}
     methods = [f'fold-in ({s})' for s in args.strategies]
@@ -228,7 +232,7 @@ def run(args, config, data, fits, log=print) -> dict:
         order = sorted(((fold, k) for fold in folds for k in retrained_ks(args)), key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
-                                                         k == 0)
+                                                         k == 0, fold[7])
 
     if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
         submit(plan)
@@ -236,7 +240,7 @@ def run(args, config, data, fits, log=print) -> dict:
     pooled = {'new': {}, 'known': []}
     try:
         for fold in plan:
-            seed, fold_id, held, train, people, skipped, known = fold
+            seed, fold_id, held, train, people, skipped, known, _ = fold
             if fits.jobs == 1:
                 submit([fold])
             outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')

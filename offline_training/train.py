@@ -82,7 +82,7 @@ def main(argv=None) -> int:
         return 1
     seconds = time.perf_counter() - started
     if recommender.require_model().personalised:  # the fold-in's prior and noise, kept in the checkpoint
-        prior = estimate_prior(recommender, data, train)
+        prior = estimate_prior(recommender, data, train, noise_rows=test)  # noise from the held-out split
         recommender.user_prior = prior.to_dict()
         print(f"personalisation prior: {prior.details}; noise variance (z-scale) per action "
               f"{[round(float(v), 4) for v in prior.noise]}")

@@ -188,19 +188,21 @@ class StarsRecommender:
         self._catalogue = None if data is None else SceneCatalogue(data, trainer.config.model.item_key)
 
     # -- fit, save, load -----------------------------------------------------------------
-    def fit(self, data, rows: Sequence[int] | None = None) -> 'StarsRecommender':
+    def fit(self, data, rows: Sequence[int] | None = None,
+            noise_rows: Sequence[int] | None = None) -> 'StarsRecommender':
         """Train on ``rows`` of ``data`` (a RatingData, or what ``load_dataset`` reads;
         every rating by default); returns self. A personalised variant also gets the
-        fold-in's prior from its training ratings (``personalisation.prior``). Earlier
-        fold-ins are dropped. Leaves torch's threads, default dtype and random state as
-        it found them."""
+        fold-in's prior (``personalisation.prior``), its rating noise from ``noise_rows``
+        (held-out ratings of the trained people) when given, else from the training
+        ratings, which understate it and make score_sd too narrow. Earlier fold-ins are
+        dropped. Leaves torch's threads, default dtype and random state as it found them."""
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
         started = time.perf_counter()
         with torch_state_kept():
             trainer = StarsTrainer(self.config).fit(data, rows)
             if trainer.require_model().personalised:
-                trainer.user_prior = estimate_prior(trainer, data, rows).to_dict()
+                trainer.user_prior = estimate_prior(trainer, data, rows, noise_rows=noise_rows).to_dict()
         self._serve(trainer, Predictor.from_model(trainer), data)
         self._checkpoint = {
             'data': {'fingerprint': data.fingerprint, 'source': data.source, 'n_ratings': len(data),

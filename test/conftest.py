@@ -69,9 +69,9 @@ def synthetic_scenes(synthetic_root) -> list:
 @pytest.fixture(scope='session')
 def tiny_checkpoint(synthetic, tmp_path_factory):
     """A small StARS-GCN trained on 80 % of the generated ratings (a second), saved to disk."""
-    train, _ = split_rows(synthetic, 0.2, 0)
+    train, held_out = split_rows(synthetic, 0.2, 0)
     recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
-    recommender.user_prior = estimate_prior(recommender, synthetic, train).to_dict()
+    recommender.user_prior = estimate_prior(recommender, synthetic, train, noise_rows=held_out).to_dict()
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
     save_checkpoint(recommender, path, data={'fingerprint': synthetic.fingerprint, 'source': 'synthetic_socnav'})
     return path

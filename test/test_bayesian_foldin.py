@@ -5,11 +5,15 @@ import logging
 import numpy as np
 import pytest
 
+from conftest import TINY_CONFIG
 from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation import prior as prior_module
 from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, solve_ridge
-from stars_ros.personalisation.prior import UserPrior, ledoit_wolf, population
+from stars_ros.personalisation.prior import UserPrior, encode_all, estimate_prior, ledoit_wolf, population
 from stars_ros.personalisation.uncertainty import Uncertainty
 
 
@@ -53,6 +57,25 @@ def test_the_population_mean_is_shrunk_towards_zero_as_far_as_its_own_error_warr
     assert details['mean_weight'] == 0 and not mean.any()
 
 
+def test_the_noise_comes_from_held_out_ratings_when_given(synthetic):
+    train, held = split_rows(synthetic, 0.2, 0)
+    fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
+    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    # by the model's own scoring (not the linear form the estimate uses): trained rows, unclipped
+    inference = InferenceModel(fitted.require_model())
+    users = fitted.user_vocabulary.rows(list(synthetic.users[held]))
+    known, users = held[users >= 0], users[users >= 0]
+    items = synthetic.item_keys(fitted.config.model.item_key)
+    scenes = fitted.scene_vocabulary.rows([items[s] for s in synthetic.scenes[known]])
+    h = encode_all(fitted, synthetic)[synthetic.scenes[known]].astype(np.float32)
+    actions = synthetic.actions[known]
+    scores = inference.scores(h, (inference.user_rows[users], inference.user_offsets[users]), scenes)
+    errors = (synthetic.scores[known] - scores[np.arange(len(known)), actions]) / inference.target_std[actions]
+    assert prior.noise[0] == pytest.approx(np.mean(errors ** 2), rel=1e-4)
+    assert 'held-out' in prior.details['noise']
+    assert estimate_prior(fitted, synthetic, train).noise[0] < prior.noise[0]  # training residuals understate it
+
+
 @pytest.fixture(scope='module')
 def predictor(tiny_checkpoint):
     return Predictor.load(tiny_checkpoint)
@@ -65,7 +88,7 @@ def test_the_checkpoint_keeps_the_prior_and_the_fold_in_uses_it(tiny_checkpoint,
     foldin = FoldIn(predictor)
     stored = UserPrior.from_dict(content['user_prior'])
     assert foldin.population == pytest.approx(stored.mean)
-    assert (foldin.noise > 0).all() and (foldin.noise < 1).all()  # training residuals are below the z-scale's variance
+    assert (foldin.noise > 0).all()
     known = predictor.recommender.users[0]
     assert foldin.covariance(known) == pytest.approx(stored.user_covariance[0])
     assert np.trace(foldin.covariance(known)) < np.trace(foldin.covariance('stranger'))

@@ -16,7 +16,11 @@ estimates what that needs from the trained people and their training ratings:
 - **Mean μ₀**: the mean trained row, shrunk towards θ = 0 (the scene-only prediction every
   stranger got before) by the positive-part James–Stein factor: from U people the mean is
   itself uncertain, and its estimate with Σ₀/U error is shrunk as far as that error warrants.
-- **Noise σ²_a**: per action, the mean squared training residual on the z-scale.
+- **Noise σ²_a**: per action, the mean squared z-residual of held-out ratings of the trained
+  people (``noise_rows``: examples the fit did not see, scored from their trained rows),
+  else of the training ratings. Training residuals understate the noise a new person's
+  ratings carry (the model has fitted them): the posterior then trusts a person's first
+  answers too much, and its intervals are too narrow.
 - **Known people**: each trained person starts from their own row with the posterior
   covariance (Σ₀⁻¹ + XᵀD⁻¹X)⁻¹ of their training ratings.
 
@@ -129,28 +133,40 @@ def rows_design(fitted, inference, data, rows: np.ndarray, h: np.ndarray) -> tup
     return x, c, inference.to_z(data.scores[rows], actions)
 
 
-def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None) -> UserPrior:
+def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
+                   noise_rows: np.ndarray | None = None) -> UserPrior:
     """The prior of a model ``fitted`` (``stars_ros.model.training``'s training class) on
-    ``rows`` of ``data`` (RatingData); see the module docstring. ``h``: ``encode_all``'s, if
+    ``rows`` of ``data`` (RatingData); the noise from ``noise_rows`` (held-out ratings of the
+    trained people) when given. See the module docstring. ``h``: ``encode_all``'s, if
     already computed."""
     inference = InferenceModel(fitted.require_model())
     trained = user_rows(inference)
     mean, covariance, details = population(trained)
     rows = np.asarray(rows)
-    x, c, z = rows_design(fitted, inference, data, rows, encode_all(fitted, data) if h is None else h)
+    h = encode_all(fitted, data) if h is None else h
+    x, c, z = rows_design(fitted, inference, data, rows, h)
     users, actions = fitted.user_vocabulary.rows(list(data.users[rows])), data.actions[rows]
-    residual = z - (np.einsum('nd,nd->n', x, trained[users]) + c)
+    held_out = noise_rows is not None and len(noise_rows) > 0
+    if held_out:
+        noise_rows = np.asarray(noise_rows)
+        known = fitted.user_vocabulary.rows(list(data.users[noise_rows]))
+        noise_rows, known = noise_rows[known >= 0], known[known >= 0]
+        noise_x, noise_c, noise_z = rows_design(fitted, inference, data, noise_rows, h)
+        residual, residual_actions = noise_z - (np.einsum('nd,nd->n', noise_x, trained[known]) + noise_c), \
+            data.actions[noise_rows]
+    else:
+        residual, residual_actions = z - (np.einsum('nd,nd->n', x, trained[users]) + c), actions
     noise = np.ones(len(inference.target_mean))
     for a in range(len(noise)):
-        if (actions == a).any():
-            noise[a] = float(np.mean(residual[actions == a] ** 2))
+        if (residual_actions == a).any():
+            noise[a] = float(np.mean(residual[residual_actions == a] ** 2))
     precision = np.linalg.inv(covariance)
     user_covariance = np.empty((len(trained), len(mean), len(mean)))
     for row in range(len(trained)):
         mine = users == row
         user_covariance[row] = np.linalg.inv(precision + (x[mine] / noise[actions[mine], None]).T @ x[mine])
-    details = {**details, 'noise': 'mean squared z-residual of the training ratings, per action',
-               'ratings': int(len(rows))}
+    source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
+    details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows))}
     return UserPrior(mean, covariance, noise, user_covariance, details)
 
 
