@@ -147,7 +147,7 @@ def ranker(node, scenes, predictor, tiny_checkpoint):
     process, client = node
     assert process.poll() is None, 'the shared ranker died in an earlier test'
     client.user_pub.publish(String(data=''))  # empty: nobody
-    assert client.set_parameters('/ranker', {'top_k': 0, 'checkpoint': str(tiny_checkpoint)})[0].successful
+    assert all(r.successful for r in client.set_parameters('/ranker', {'top_k': 0, 'checkpoint': str(tiny_checkpoint)}))
     served = _served_latched_user(client, scenes, None)
     assert served is not None, 'the latched user id was never cleared'
     if served['fingerprint'] != predictor.fingerprint:
