@@ -110,7 +110,7 @@ def log_files(paths) -> list:
     return files
 
 
-def read_logs(paths, actions) -> LogRatings:
+def read_logs(paths, predictor) -> LogRatings:
     """Join feedback with scene requests in every log; see the module docstring."""
     found = LogRatings()
     for log, files in log_files(paths):
@@ -141,7 +141,7 @@ def read_logs(paths, actions) -> LogRatings:
                     continue
                 scenes[request.scene_id] = request
             elif topic == 'stars/feedback':
-                join_feedback(text, scenes, actions, found, log)
+                join_feedback(text, scenes, predictor, found, log)
             elif topic == 'stars/user_model':
                 try:
                     payload = messages.load_json(text, 1 << 30)
@@ -153,20 +153,20 @@ def read_logs(paths, actions) -> LogRatings:
     return found
 
 
-def join_feedback(text: str, scenes: dict, actions, found: LogRatings, log) -> None:
+def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) -> None:
     try:
         feedback = messages.parse_feedback(text, 1 << 30)
     except messages.BadMessage as error:
         found.problem('unusable feedback message', f'{log}: {error}')
         return
-    if feedback.action is not None and feedback.action not in actions:
+    if feedback.action is not None and feedback.action not in predictor.actions:
         found.problem('unknown action', f"{log}: '{feedback.action}' (scene {feedback.scene_id})")
         return
     request = scenes.get(feedback.scene_id)
     if request is None:
         found.problem('feedback for a scene never recorded', f'{log}: scene {feedback.scene_id}')
         return
-    rating = rating_from_feedback(feedback, request, actions)
+    rating = rating_from_feedback(feedback, request, predictor)
     if isinstance(rating, str):
         found.problem('feedback that does not match its scene', f'{log}: {rating}')
         return
@@ -271,7 +271,7 @@ def main(argv=None) -> int:
         return 2
     if args.data_root and args.mode == 'user':
         print('note: --data-root is used by --mode full only; user mode keeps every other parameter fixed')
-    found = read_logs(args.logs, predictor.actions)
+    found = read_logs(args.logs, predictor)
     solved = {}
     for user, ratings in found.ratings.items():
         regularisation = args.regularisation or found.regularisation.get(user, DEFAULT_REGULARISATION)

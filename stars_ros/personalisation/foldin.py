@@ -106,12 +106,12 @@ class UserModel:
                    float(values['regularisation']))
 
 
-def rating_from_feedback(feedback, request, actions: Sequence[str]) -> Rating | str:
+def rating_from_feedback(feedback, request, predictor) -> Rating | str:
     """The Rating a feedback message (messages.Feedback) gives about the scene request it
-    names (messages.SceneRequest), or why it gives none. The node and the offline refit
-    both use this, so they fold in the same ratings: an action's feedback rates the scene
-    (with its q_i when it is a training scene); a candidate's feedback rates that candidate
-    scene under the action that ranked the candidates."""
+    names (messages.SceneRequest) under ``predictor``'s model, or why it gives none. The node
+    and the offline refit both use this, so they fold in the same ratings: an action's
+    feedback rates the scene (with its q_i when it is a training scene); a candidate's
+    feedback rates that candidate scene under the action that ranked the candidates."""
     if feedback.action is not None:
         if request.ranks_scenes:
             return (f"feedback names action '{feedback.action}' but scene '{feedback.scene_id}' "
@@ -119,9 +119,10 @@ def rating_from_feedback(feedback, request, actions: Sequence[str]) -> Rating | 
         return Rating(request.graphs[0], feedback.action, feedback.score, request.scene_id)
     if not request.ranks_scenes or feedback.candidate not in request.labels:
         return f"scene '{feedback.scene_id}' had no candidate '{feedback.candidate}'"
-    action = request.action or (actions[0] if len(actions) == 1 else None)
-    if action is None:
-        return f"scene '{feedback.scene_id}' does not say which action ranked its candidates"
+    try:
+        action = predictor.ranking_action(request.action)  # the one the node ranked them by
+    except UnknownActionError as error:
+        return f"scene '{feedback.scene_id}': {error}"
     return Rating(request.graphs[request.labels.index(feedback.candidate)], action, feedback.score, None)
 
 

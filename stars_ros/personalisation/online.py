@@ -166,7 +166,7 @@ class Personalisation:
             request = messages.parse_scene_request(text, max_bytes)
         except messages.BadMessage as error:
             return f"feedback for scene '{feedback.scene_id}' not folded in: its request no longer passes: {error}"
-        rating = rating_from_feedback(feedback, request, self.predictor.actions)
+        rating = rating_from_feedback(feedback, request, self.predictor)
         if not isinstance(rating, str) and encoded is not None and self.foldin is not None \
                 and encoded[0] is self.foldin.predictor and not self.sharing:  # h from ranking it: the
             # solve need not encode (a shared rating is encoded alone, as its peers encode it)
