@@ -22,9 +22,10 @@ request per scene, user id included) and times scene → ranking:
     under that load. The default rates are the target (300/s) and 1.5 times it.
 The ratios ranker / echo say what the model adds over the middleware floor. Before the
 nodes start, ``in_process`` times the steps of one request on one thread in this process
-(parse and validate, featurise, encode, score, build the reply), with the encoder in its
-serving form (GAT: compiled; the others: dense numpy) and, as a reference measured in the
-same run, in its PyG sparse form.
+(parse and validate, featurise, encode, score, build the reply; the whole request with and
+without score_sd and p_first_is_best, which the node computes for every ranking), with the
+encoder in its serving form (GAT: compiled; the others: dense numpy) and, as a reference
+measured in the same run, in its PyG sparse form.
 """
 from __future__ import annotations
 
@@ -233,21 +234,26 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     from stars_ros.data.scene_graph import featurise
     from stars_ros.data.scene_store import GraphStore
     from stars_ros.node.batching import Pending, rank_batch
+    from stars_ros.personalisation.foldin import FoldIn
+    from stars_ros.personalisation.uncertainty import Uncertainty
 
     torch.set_num_threads(1)
     predictor = Predictor.load(resolve_checkpoint(checkpoint))
     model = predictor.recommender.model
+    uncertainty = Uncertainty(FoldIn(predictor))  # as the node serves: score_sd and p_first_is_best
     steps = {}
 
-    def request_total(text):
+    def request_total(text, spread=uncertainty):
         request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
-        scored = rank_batch(predictor, [Pending(request, 'alice', 0)])[0]
+        scored = rank_batch(predictor, [Pending(request, 'alice', 0)], 0, spread)[0]
         return messages.dumps(messages.ranking_payload(request, 'alice', False, scored.ranked,
-                                                       predictor.fingerprint, 1.0, scored.action, 0))
+                                                       predictor.fingerprint, 1.0, scored.action, 0,
+                                                       scored.p_first_is_best))
 
     serving_encoder = model.encoder.serving_form()
     for k, (_, text) in enumerate(requests(scenes, 'in-process', count)):
         _, total = _timed(lambda: request_total(text))
+        _, without_spread = _timed(lambda: request_total(text, None))
         request, parse = _timed(lambda: messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES))
         graph, featurising = _timed(lambda: featurise(request.graphs[0], validate=False))
         sparse = GraphStore([graph]).batch(torch.arange(1))
@@ -256,7 +262,8 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
             _, encode_sparse = _timed(lambda: model.encode(sparse))
         _, score = _timed(lambda: predictor.score('alice', [request.graphs[0]], validate=False))
         if k >= 50:  # the first are warm-up
-            for name, ms in (('request_total', total), ('parse_validate', parse), ('featurise', featurising),
+            for name, ms in (('request_total', total), ('request_total_without_score_sd', without_spread),
+                             ('parse_validate', parse), ('featurise', featurising),
                              ('encode_serving', encode_serving),
                              ('encode_sparse_reference', encode_sparse),
                              ('featurise_encode_score', score)):
