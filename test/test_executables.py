@@ -136,9 +136,9 @@ def test_ranker_yaml_holds_the_node_defaults():
         assert (type(value), value) == (type(default), default), name
 
 
-def readme_parameter_table() -> dict:
-    """The README's table of the ranker's parameters: name -> (default cell, set-at cell)."""
-    lines = (REPO / 'README.md').read_text().splitlines()
+def documented_parameter_table() -> dict:
+    """docs/parameters.md's table of the ranker's parameters: name -> (default cell, set-at cell)."""
+    lines = (REPO / 'docs' / 'parameters.md').read_text().splitlines()
     start = lines.index('| parameter | default | set at | meaning |') + 2
     rows = {}
     for line in itertools.takewhile(lambda line: line.startswith('|'), lines[start:]):
@@ -147,11 +147,11 @@ def readme_parameter_table() -> dict:
     return rows
 
 
-def test_the_readme_parameter_table_is_the_nodes():
+def test_the_documented_parameter_table_is_the_nodes():
     """One row per parameter, in PARAMETERS order, with its default (as -p or a params file
     writes it) and whether it can change while the node runs; config/ranker.yaml holds the
     same defaults (test above)."""
-    table = readme_parameter_table()
+    table = documented_parameter_table()
     assert list(table) == list(PARAMETERS)
     for name, (default, set_at) in table.items():
         value, _, read_only, _ = PARAMETERS[name]
