@@ -4,9 +4,11 @@ Each test process reserves a block of ROS domains for its lifetime (an exclusive
 file per block), so two runs of the suite on one machine never share a domain; each test
 module takes its own domain of the block, and discovery is limited to this machine.
 """
+import contextlib
 import fcntl
 import json
 import os
+import signal
 import tempfile
 import subprocess
 import sys
@@ -194,3 +196,20 @@ def stop(process: subprocess.Popen, signal_number, timeout: float = 30.0) -> int
         process.kill()
         process.wait()
         raise
+
+
+@contextlib.contextmanager
+def running_ranker(domain: int, params: dict, log_path: Path, probe: dict, timeout: float = 90.0):
+    """A ranker started for real and a client on its domain: (process, client) once it has
+    answered ``probe``. On leaving, it must still be alive and stop cleanly on SIGINT."""
+    client = RosClient(domain)
+    process = start_node('stars_ros.ros.ranker', domain, params, log_path)
+    try:
+        client.wait_ready(process, timeout, probe)
+        yield process, client
+        assert process.poll() is None, 'the ranker died during the test'
+        assert stop(process, signal.SIGINT) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        client.close()

@@ -4,7 +4,6 @@ by ``python -m stars_ros.sign_feedback``, as a client would publish it; its topi
 services are exactly those its SROS2 policy allows; with a key file it cannot read it does
 not start. test_feedback_auth.py checks every refusal without ROS."""
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -13,7 +12,7 @@ import xml.etree.ElementTree as ET
 import pytest
 from std_msgs.msg import String
 
-from ros_helpers import REPO, RosClient, domain_id, start_node, stop
+from ros_helpers import REPO, domain_id, running_ranker, start_node
 from waiting import wait_for
 from stars_ros.data.scene_source import scene_request
 
@@ -68,19 +67,11 @@ def ranker(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
     key_file.write_text(f'tablet:{SECRET.hex()}\n')
     key_file.chmod(0o600)
     domain = domain_id(13)
-    client = RosClient(domain)
-    process = start_node('stars_ros.ros.ranker', domain, {
-        'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
-        'diagnostics_period': 0.3, 'fleet_sharing': True, 'feedback_key_file': key_file}, folder / 'ranker.log')
-    try:
-        client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe', 'graph': synthetic_scenes[0]})
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
+              'diagnostics_period': 0.3, 'fleet_sharing': True, 'feedback_key_file': key_file}
+    probe = {'scene_id': 'probe', 'graph': synthetic_scenes[0]}
+    with running_ranker(domain, params, folder / 'ranker.log', probe, START_TIMEOUT) as (process, client):
         yield process, client, key_file, folder
-        assert process.poll() is None, 'the ranker died during the tests'
-        assert stop(process, signal.SIGINT) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-        client.close()
 
 
 def test_the_ranker_uses_exactly_what_its_sros2_policy_allows(ranker):

@@ -2,13 +2,12 @@
 every ranking entry carries score_sd, a question request is answered on stars/question with
 a scene the node then takes feedback on, and a bad one is refused on stars/errors."""
 import json
-import signal
 
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from ros_helpers import RosClient, domain_id, start_node, stop
+from ros_helpers import domain_id, running_ranker
 from stars_ros import messages
 from stars_ros.data.scene_source import scene_request
 
@@ -19,21 +18,11 @@ QUESTIONS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 @pytest.fixture
 def ranker(tiny_checkpoint, synthetic_scenes, tmp_path):
     """A ranker of its own (fresh state) and a client that also listens on stars/question."""
-    domain = domain_id(12)
-    client = RosClient(domain)
-    questions = client.collect('/stars/question', QUESTIONS)
-    asker = client.node.create_publisher(String, '/stars/question_request', QUESTIONS)
-    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint,
-                                                          'record_folder': tmp_path / 'records'}, tmp_path / 'ranker.log')
-    try:
-        client.wait_ready(process, 90, scene_request('probe', synthetic_scenes[0]))
-        yield process, client, asker, questions
-        assert process.poll() is None, 'the ranker died during the test'
-        assert stop(process, signal.SIGINT) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-        client.close()
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records'}
+    with running_ranker(domain_id(12), params, tmp_path / 'ranker.log', scene_request('probe', synthetic_scenes[0])) \
+            as (process, client):
+        yield process, client, client.node.create_publisher(String, '/stars/question_request', QUESTIONS), \
+            client.collect('/stars/question', QUESTIONS)
 
 
 def test_rankings_carry_score_sd_and_questions_are_answered(ranker, synthetic_scenes):

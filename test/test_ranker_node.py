@@ -21,7 +21,7 @@ import yaml
 from std_msgs.msg import String
 
 from mutations import mutate
-from ros_helpers import RosClient, domain_id, journaled_feedback, ros_env, start_node, stop
+from ros_helpers import RosClient, domain_id, journaled_feedback, ros_env, running_ranker, start_node, stop
 from waiting import wait_for
 from stars_ros import recording
 from stars_ros.model.checkpoint import save_checkpoint
@@ -125,19 +125,10 @@ def _on_disk(bag, topic) -> list:
 def node(tiny_checkpoint, scenes, tmp_path_factory):
     folder = tmp_path_factory.mktemp('shared_ranker')
     domain = domain_id(0)
-    client = RosClient(domain)
-    process = start_node('stars_ros.ros.ranker', domain, {
-        'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
-        'diagnostics_period': 0.3, 'log_throttle': 1.0}, folder / 'ranker.log')
-    try:
-        client.wait_ready(process, START_TIMEOUT, _probe(scenes))
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
+              'diagnostics_period': 0.3, 'log_throttle': 1.0}
+    with running_ranker(domain, params, folder / 'ranker.log', _probe(scenes), START_TIMEOUT) as (process, client):
         yield process, client
-        assert process.poll() is None, 'the ranker died during the tests'
-        assert stop(process, signal.SIGINT) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-        client.close()
 
 
 @pytest.fixture()
