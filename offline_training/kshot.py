@@ -72,7 +72,8 @@ def parse_args(argv=None):
     parser.add_argument('--folds', type=int, default=4, help='annotator folds (default: %(default)s)')
     parser.add_argument('--seeds', type=int, nargs='+', default=[0],
                         help='seeds of folds and revealed pools, one partition of the annotators each (default: 0)')
-    parser.add_argument('--pool', type=int, default=20, help='revealable examples per held-out person (default: %(default)s)')
+    parser.add_argument('--pool', type=int, default=20,
+                        help='revealable examples per held-out person (default: %(default)s)')
     parser.add_argument('--ks', type=int, nargs='+', default=[0, 1, 2, 3, 5, 10, 20],
                         help='answered questions (examples) (default: %(default)s)')
     parser.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=['random'],

@@ -64,7 +64,7 @@ devices=cpu; [ "$DEVICE" = cpu ] || devices=$DEVICE,cpu
 timeout 180 python3 benchmarks/train_step.py --data-root "$DATA" --backbone gat --devices "$devices" --batches 20
 
 echo "== CUDA tests"
-timeout 300 python3 -m pytest -q -p no:cacheprovider test/test_training.py -k cuda
+timeout 300 python3 -m pytest -q -p no:cacheprovider test/model/test_training.py -k cuda
 tests=$?
 
 echo "== evaluation: $BACKBONES on $DEVICE, ${workers[*]}, limit $EVAL_SECONDS s"

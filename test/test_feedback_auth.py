@@ -20,7 +20,7 @@ from stars_ros import feedback_auth, messages, recording
 from stars_ros.data.scene_source import scene_request
 from stars_ros.errors import ConfigError
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
-from test_ranker_core import Node
+from core_harness import Node
 
 USER = 'visitor'
 SECRET_A, SECRET_B = bytes(range(32)), bytes(range(100, 132))

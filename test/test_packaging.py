@@ -27,7 +27,7 @@ TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python
                   'rosbags': (None, 'rosbags'),
                   'sros2': ('sros2', ROS),  # a ROS package; without ROS, from ../shared/vendor/ (requirements-dev.txt)
                   'lxml': ('python3-lxml', 'lxml')}
-OWN = {'stars_ros', 'offline_training', *(path.stem for path in (REPO / 'test').glob('*.py'))}  # test helpers too
+OWN = {'stars_ros', 'offline_training', *(path.stem for path in (REPO / 'test').rglob('*.py'))}  # test helpers too
 
 
 def imported(folders) -> set:

@@ -7,7 +7,7 @@ the others their dense numpy form) and the StARS scoring is two array products. 
 encoders keep their torch forward: one row through a few layers has no graph bookkeeping
 to save. ``InferenceModel`` holds the one numpy copy of the weights: the Predictor scores
 with it and ``stars_ros.personalisation.foldin`` builds its regression from it (``linear_form``).
-``test/test_inference.py`` checks that the result equals ``StarsModel`` within float32
+``test/model/test_inference.py`` checks that the result equals ``StarsModel`` within float32
 rounding.
 """
 from __future__ import annotations

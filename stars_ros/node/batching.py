@@ -21,7 +21,8 @@ from stars_ros.messages import SceneRequest
 from stars_ros.model.model import UNKNOWN
 from stars_ros.model.predictor import rank_order
 
-WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet', 'no_question')  # kinds of problem that are warnings, not errors
+# kinds of problem that are warnings, not errors
+WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet', 'no_question')
 
 
 @dataclass(frozen=True)

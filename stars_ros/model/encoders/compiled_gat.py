@@ -4,7 +4,7 @@ Scoring one scene of ~20 nodes through numpy array calls would pay each call's f
 about ninety times (projections, per-head attention, softmax, readout); compiled, the same
 arithmetic runs in one call over the scene's edge list (no padding). docs/performance.md
 gives what it buys, measured, with the results file. Training keeps PyG's sparse form;
-``test/test_dense_encoders.py`` checks the kernel against it.
+``test/model/test_dense_encoders.py`` checks the kernel against it.
 
 numba caches the machine code beside this file (or in its user cache where that is not
 writable): the first process compiles for a few seconds, later ones load it in under a

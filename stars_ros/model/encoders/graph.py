@@ -15,7 +15,7 @@ numpy serving form, ``serving_form``, over a snapshot of its weights:
   matrix its layers multiply by, computed once per batch) and ``dense_conv``;
 - GAT runs the whole encoder compiled into one call (``compiled_gat``).
 
-``test/test_dense_encoders.py`` checks every serving form against the PyG form. Both rely
+``test/model/test_dense_encoders.py`` checks every serving form against the PyG form. Both rely
 on what ``featurise`` guarantees: no self loops.
 """
 from __future__ import annotations

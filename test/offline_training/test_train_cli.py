@@ -8,7 +8,7 @@ import yaml
 from stars_ros.model.checkpoint import read_checkpoint
 from stars_ros.model.predictor import Predictor
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_train_writes_checkpoint_with_held_out_metrics(tmp_path, synthetic_root, synthetic):

@@ -7,7 +7,7 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError
 from stars_ros.evaluation.protocol import ProtocolConfig
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / 'config'
+CONFIG_DIR = Path(__file__).resolve().parents[2] / 'config'
 
 
 def test_round_trip():

@@ -7,7 +7,7 @@ import pytest
 
 from stars_ros import messages
 from stars_ros.data.scene_source import placement_candidates, scene_request
-from test_ranker_core import Node, _core
+from core_harness import Node, make_core
 
 
 def _scene(core, scene, user_id, scene_id):
@@ -25,7 +25,7 @@ def _feedback(core, user_id, scene_id, score):
 
 def test_every_entry_carries_score_sd_and_it_shrinks_with_feedback(tiny_checkpoint, synthetic_scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     probe = synthetic_scenes[40]
     _scene(core, probe, 'newcomer', 'probe-0')
     before = node.on('stars/ranking')[-1]
@@ -43,7 +43,7 @@ def test_every_entry_carries_score_sd_and_it_shrinks_with_feedback(tiny_checkpoi
 
 def test_candidate_scenes_carry_the_probability_that_the_first_is_best(tiny_checkpoint, synthetic_scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     candidates = placement_candidates(synthetic_scenes[3], 4)
     core.accept_scene(messages.dumps({'scene_id': 'placements', 'user_id': 'newcomer', 'candidates': candidates}), 0)
     while core.work():
@@ -56,7 +56,7 @@ def test_candidate_scenes_carry_the_probability_that_the_first_is_best(tiny_chec
 
 def test_a_question_request_picks_the_candidate_the_criterion_ranks_first(tiny_checkpoint, synthetic_scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     offered = [scene_request(f'ask-{k}', scene) for k, scene in enumerate(synthetic_scenes[50:56])]
     assert core.accept_question_request(messages.dumps({'user_id': 'newcomer', 'candidates': offered}))
     while core.work():
@@ -82,7 +82,7 @@ def test_a_question_request_picks_the_candidate_the_criterion_ranks_first(tiny_c
 
 def test_without_candidates_the_question_comes_from_recent_scenes_or_is_refused(tiny_checkpoint, synthetic_scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     assert core.accept_question_request(messages.dumps({'user_id': 'newcomer'}))
     while core.work():
         pass
@@ -100,7 +100,7 @@ def test_without_candidates_the_question_comes_from_recent_scenes_or_is_refused(
 
 def test_a_bad_question_request_is_refused_by_kind(tiny_checkpoint):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     assert not core.accept_question_request('{"candidates": []}')
     assert not core.accept_question_request('not json')
     assert [e['kind'] for e in node.on('stars/errors')] == ['schema', 'malformed_json']

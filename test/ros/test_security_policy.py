@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 POLICY = REPO / 'config' / 'security' / 'ranker.policy.xml'
 ENCLAVE = '/stars_ros/ranker'
 SUBSCRIBES = {'stars/scene', 'stars/user_id', 'stars/feedback', 'stars/question_request', 'stars/user_model'}

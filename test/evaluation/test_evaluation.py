@@ -21,7 +21,7 @@ from stars_ros.evaluation.folds import grouped_folds, make_folds, sweep_samples
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
 from stars_ros.evaluation.summaries import paired_tests, time_accounting
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _check_partition(folds, rows):

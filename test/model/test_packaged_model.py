@@ -14,7 +14,7 @@ from stars_ros.model.predictor import Predictor
 from stars_ros.resources import resolve_checkpoint
 
 pytestmark = pytest.mark.socnav1
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope='module')

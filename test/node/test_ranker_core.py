@@ -2,51 +2,21 @@
 process): rankings carry the checkpoint's fingerprint, problems are reported by kind and
 summed up in the diagnostics, feedback is folded in once the queue is empty, a reload that
 fails keeps serving, and a clean close leaves the feedback and the state file on disk."""
-import itertools
 import json
 
 import pytest
 
 from stars_ros import messages
 from stars_ros import recording
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
+from core_harness import Node, make_core
+from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.personalisation.user_state import STATE_FILE
-
-
-class Node:
-    """What the node gives the core: its publishers, its logger and the ROS clock."""
-
-    def __init__(self):
-        self.published, self.lines = [], []
-        self.clock = itertools.count(1_000_000_000, 1000)
-
-    def publish(self, topic, text):
-        self.published.append((topic, json.loads(text)))
-
-    def on(self, topic):
-        return [payload for t, payload in self.published if t == topic]
-
-    def info(self, line):
-        self.lines.append(('info', line))
-
-    def warning(self, line):
-        self.lines.append(('warning', line))
-
-    def error(self, line):
-        self.lines.append(('error', line))
 
 
 @pytest.fixture(scope='module')
 def scenes(synthetic_root):
     return read_scenes(synthetic_root / 'raw' / 'h.jsonl')[:4]
-
-
-def _core(node, checkpoint, **params):
-    values = {name: spec[0] for name, spec in PARAMETERS.items()}
-    values.update({'checkpoint': str(checkpoint), 'record_folder': '', **params})
-    return RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
-                      lambda: next(node.clock))
 
 
 def _scene(core, scene, user_id=None, scene_id=None):
@@ -55,7 +25,7 @@ def _scene(core, scene, user_id=None, scene_id=None):
 
 def test_rankings_carry_the_fingerprint_and_a_stranger_is_warned_once(tiny_checkpoint, scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     for scene in scenes[:2]:
         _scene(core, scene, 'stranger')
     assert core.work() is False
@@ -70,7 +40,7 @@ def test_rankings_carry_the_fingerprint_and_a_stranger_is_warned_once(tiny_check
 
 def test_problems_are_reported_throttled_and_summed_up_in_the_diagnostics(tiny_checkpoint, scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint, queue_depth=1)
+    core = make_core(node, tiny_checkpoint, queue_depth=1)
     assert core.diagnostics()[0] == 'ok'
     core.accept_scene('{"scene_id": "x"', 0)
     core.accept_scene('[]', 0)
@@ -91,7 +61,7 @@ def test_problems_are_reported_throttled_and_summed_up_in_the_diagnostics(tiny_c
 
 def test_feedback_is_folded_in_once_no_scene_waits(tiny_checkpoint, scenes):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     _scene(core, scenes[0], 'newcomer')
     core.work()
     feedback = {'user_id': 'newcomer', 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0}
@@ -114,7 +84,7 @@ def test_feedback_is_folded_in_once_no_scene_waits(tiny_checkpoint, scenes):
 
 def test_a_failed_reload_keeps_serving_the_checkpoint(tiny_checkpoint, tmp_path):
     node = Node()
-    core = _core(node, tiny_checkpoint)
+    core = make_core(node, tiny_checkpoint)
     fingerprint = core.predictor.fingerprint
     core.params['checkpoint'] = str(tmp_path / 'missing.pt')
     succeeded, message = core.reload()
@@ -127,7 +97,7 @@ def test_a_failed_reload_keeps_serving_the_checkpoint(tiny_checkpoint, tmp_path)
 
 def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoint, scenes, tmp_path):
     node = Node()
-    core = _core(node, tiny_checkpoint, record_folder=str(tmp_path), flush_interval=60.0)
+    core = make_core(node, tiny_checkpoint, record_folder=str(tmp_path), flush_interval=60.0)
     _scene(core, scenes[0], 'newcomer')
     core.work()
     core.accept_feedback(messages.dumps({'user_id': 'newcomer', 'scene_id': scenes[0]['identifier'],

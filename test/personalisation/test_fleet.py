@@ -15,7 +15,7 @@ from stars_ros.personalisation.foldin import Rating
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.personalisation.user_state import STATE_FILE
-from test_ranker_core import Node
+from core_harness import Node
 
 USER = 'visitor'
 

@@ -25,7 +25,7 @@ from stars_ros.errors import StarsError
 from stars_ros.evaluation.executors import FitFailure, FitTask, fit_executor, fit_outcome, run_fits
 from waiting import wait_for
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 QUICK = ['--quick', '--backbones', 'gcn']
 METRICS = ('mse', 'rmse', 'pearson_r', 'ccc', 'z_rmse')
 

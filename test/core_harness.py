@@ -1,0 +1,38 @@
+"""What a ranker node gives its ROS-free core, faked in one process: publishers that keep
+what is published, a logger that keeps its lines and a ROS clock that ticks; and a core
+made with the node's defaults. Used by the core's tests and by the fleet's and signing's."""
+import itertools
+import json
+
+from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+
+
+class Node:
+    """What the node gives the core: its publishers, its logger and the ROS clock."""
+
+    def __init__(self):
+        self.published, self.lines = [], []
+        self.clock = itertools.count(1_000_000_000, 1000)
+
+    def publish(self, topic, text):
+        self.published.append((topic, json.loads(text)))
+
+    def on(self, topic):
+        return [payload for t, payload in self.published if t == topic]
+
+    def info(self, line):
+        self.lines.append(('info', line))
+
+    def warning(self, line):
+        self.lines.append(('warning', line))
+
+    def error(self, line):
+        self.lines.append(('error', line))
+
+
+def make_core(node, checkpoint, **params):
+    """A RankerCore on ``checkpoint`` with the node's defaults (no recording), talking to ``node``."""
+    values = {name: spec[0] for name, spec in PARAMETERS.items()}
+    values.update({'checkpoint': str(checkpoint), 'record_folder': '', **params})
+    return RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
+                      lambda: next(node.clock))
