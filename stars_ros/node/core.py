@@ -39,7 +39,6 @@ TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'st
 _INT_MAX = 2 ** 31 - 1
 
 
-
 def topic_qos(params: Mapping) -> dict:
     """topic -> (depth, latched) of every topic of TOPICS, all reliable: what the rclpy
     adapter subscribes and publishes with and the recorder offers again (``ros2 bag play``).
@@ -372,8 +371,9 @@ class RankerCore:
 
     # -- work ----------------------------------------------------------------------------
     def work(self) -> bool:
-        """One batch of queued requests, else one peer rating checked, else one fold-in solve,
-        else one model sent again to peers; True when more work waits."""
+        """One batch of queued requests, else one question answered, else one peer rating
+        checked, else one fold-in solve, else one model sent again to peers; True when more
+        work waits."""
         personalisation = self.personalisation
         pending, to_announce, intake = personalisation.pending, personalisation.to_announce, personalisation.intake
         try:
