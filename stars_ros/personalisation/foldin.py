@@ -287,12 +287,6 @@ class FoldIn:
         return x, c, self.to_z([r.score for r in ratings], actions)
 
     # -- the solve ---------------------------------------------------------------------
-    def solve(self, x, c, z, prior: np.ndarray, regularisation: float) -> np.ndarray:
-        """θ = (p, b_u) [dim+1] from a design (``design`` / ``design_from_h``)."""
-        if len(z) == 0:
-            return np.asarray(prior, dtype=np.float64).copy()
-        return solve_ridge(x, np.asarray(z) - np.asarray(c), prior, regularisation)
-
     def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:
         """The user's posterior θ = (p_u, b_u) from ``ratings`` (see the module docstring);
         a positive ``regularisation`` λ: the ridge solve towards the prior mean instead."""
