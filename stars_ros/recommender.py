@@ -167,10 +167,12 @@ class StarsRecommender:
 
     @property
     def actions(self) -> tuple:
+        """The action names, in the order of the model's score columns."""
         return self.predictor.actions
 
     @property
     def rating_scale(self) -> tuple | None:
+        """(lowest, highest) score a rating can take, which served scores are clipped to (None: unbounded)."""
         return self.predictor.recommender.rating_scale
 
     @property

@@ -33,14 +33,14 @@ class CrowdShape:
 
     users: int = 400
     scenes: int = 600
-    features: int = 29
+    features: int = 29  # columns of scenes.csv
     raters_per_scene: int = 14
-    latent: int = 6
-    taste: float = 0.6
-    leniency: float = 0.35
-    mood: float = 0.3
-    noise: float = 0.35
-    spread: float = 1.1
+    latent: int = 6  # scene factors z_i that tastes interact with
+    taste: float = 0.6  # sd of t_u
+    leniency: float = 0.35  # sd of b_u
+    mood: float = 0.3  # sd of m_ui
+    noise: float = 0.35  # sd of ε
+    spread: float = 1.1  # z-units to points of the 1–5 scale
 
 
 def generate(shape: CrowdShape = CrowdShape(), seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame]:

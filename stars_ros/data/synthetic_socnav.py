@@ -39,14 +39,14 @@ class SocNavShape:
     """Sizes and effect strengths (on the [0, 1] scale before the 0–100 mapping)."""
 
     users: int = 12
-    scene_pairs: int = 160
+    scene_pairs: int = 160  # "NNNNN A" and "NNNNN B" share a prefix
     ratings: int = 520
-    min_ratings: int = 25
+    min_ratings: int = 25  # per person
     max_humans: int = 5
     max_objects: int = 2
-    taste: float = 0.6
-    leniency: float = 0.06
-    noise: float = 0.04
+    taste: float = 0.6  # sd of t_u, how much a person minds crowds
+    leniency: float = 0.06  # sd of b_u
+    noise: float = 0.04  # sd of ε
 
 
 def annotators(count: int) -> list:
