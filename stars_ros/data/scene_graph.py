@@ -159,3 +159,26 @@ def featurise(scene: dict, validate: bool = True) -> SceneGraph:
     edge_index = np.concatenate([edges, edges[::-1]], axis=1)
     edge_type = np.array(types + types, dtype=np.int64)
     return SceneGraph(x=x, edge_index=edge_index, edge_type=edge_type)
+
+
+def entity_nodes(scene: dict) -> list:
+    """(id, kind, node index) of each removable entity of ``scene`` in ``featurise``'s node
+    order: the room ('room'), humans and objects (their own ids), walls ('wall-k', segment k
+    of the polygon) and interactions ('a-b', the sorted pair). The robot is not one: it is
+    where the scene is seen from."""
+    humans = [entity['id'] for entity in scene.get('humans') or ()]
+    objects = [entity['id'] for entity in scene.get('objects') or ()]
+    room = [tuple(point) for point in scene['room']]
+    walls = len(room) - 1 if len(room) > 1 and room[0] == room[-1] else len(room)
+    pairs = sorted({(min(s, t), max(s, t)) for s, t, _ in scene.get('links') or () if s != t})
+    entities = [('room', 'room')] + [(i, 'human') for i in humans] + [(i, 'object') for i in objects]
+    entities += [(f'wall-{k}', 'wall') for k in range(walls)] + [(f'{a}-{b}', 'interaction') for a, b in pairs]
+    return [(entity_id, kind, node) for node, (entity_id, kind) in enumerate(entities, 1)]
+
+
+def without_node(graph: SceneGraph, node: int) -> SceneGraph:
+    """``graph`` with ``node`` and every edge touching it removed (later nodes move up one)."""
+    keep = (graph.edge_index != node).all(axis=0)
+    edge_index = graph.edge_index[:, keep]
+    return SceneGraph(x=np.delete(graph.x, node, axis=0), edge_index=edge_index - (edge_index > node),
+                      edge_type=graph.edge_type[keep])
