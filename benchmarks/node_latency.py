@@ -23,7 +23,8 @@ request per scene, user id included) and times scene → ranking:
 The ratios ranker / echo say what the model adds over the middleware floor. Before the
 nodes start, ``in_process`` times the steps of one request on one thread in this process
 (parse and validate, featurise, encode, score, build the reply; the whole request with and
-without score_sd and p_first_is_best, which the node computes for every ranking), with the
+without score_sd and p_first_is_best, which the node computes for every ranking, and with
+every entry's ``why``, ``"explain": true``: docs/explanations.md), with the
 encoder in its serving form (GAT: compiled; the others: dense numpy) and, as a reference
 measured in the same run, in its PyG sparse form.
 """
@@ -243,9 +244,9 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     uncertainty = Uncertainty(FoldIn(predictor))  # as the node serves: score_sd and p_first_is_best
     steps = {}
 
-    def request_total(text, spread=uncertainty):
+    def request_total(text, spread=uncertainty, explanations=(False, 5)):
         request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
-        scored = rank_batch(predictor, [Pending(request, 'alice', 0)], 0, spread)[0]
+        scored = rank_batch(predictor, [Pending(request, 'alice', 0)], 0, spread, explanations)[0]
         return messages.dumps(messages.ranking_payload(request, 'alice', False, scored.ranked,
                                                        predictor.fingerprint, 1.0, scored.action, 0,
                                                        scored.p_first_is_best))
@@ -254,6 +255,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     for k, (_, text) in enumerate(requests(scenes, 'in-process', count)):
         _, total = _timed(lambda: request_total(text))
         _, without_spread = _timed(lambda: request_total(text, None))
+        _, explained = _timed(lambda: request_total(text, explanations=(True, 5)))
         request, parse = _timed(lambda: messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES))
         graph, featurising = _timed(lambda: featurise(request.graphs[0], validate=False))
         sparse = GraphStore([graph]).batch(torch.arange(1))
@@ -263,6 +265,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
         _, score = _timed(lambda: predictor.score('alice', [request.graphs[0]], validate=False))
         if k >= 50:  # the first are warm-up
             for name, ms in (('request_total', total), ('request_total_without_score_sd', without_spread),
+                             ('request_total_explained', explained),
                              ('parse_validate', parse), ('featurise', featurising),
                              ('encode_serving', encode_serving),
                              ('encode_sparse_reference', encode_sparse),
@@ -284,6 +287,8 @@ def main(argv=None) -> int:
     parser.add_argument('--rates', type=float, nargs='+', default=[300.0, 450.0],
                         help='offered loads of the bursts, one burst each (0: flat out)')
     parser.add_argument('--out', default=str(REPO / 'results' / 'node_latency.json'))
+    parser.add_argument('--explain', action='store_true',
+                        help="the ranker explains every ranking (-p explain:=true: each entry's why)")
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.echo:
@@ -300,6 +305,8 @@ def main(argv=None) -> int:
                   '-p', f'queue_depth:={QUEUE_DEPTH}']
         if args.checkpoint:
             ranker += ['-p', f'checkpoint:={args.checkpoint}']
+        if args.explain:
+            ranker += ['-p', 'explain:=true']
         echo = [sys.executable, str(Path(__file__).resolve()), '--echo']
         served = {}
         try:
@@ -329,6 +336,7 @@ def main(argv=None) -> int:
         'paced_latency_p99': results['ranker']['paced_latency_ms']['p99'] / results['echo']['paced_latency_ms']['p99']}
     results['settings'] = {'latency_count': args.latency_count, 'paced_count': args.paced_count, 'blocks': args.blocks,
                            'paced_period': args.paced_period, 'burst': args.burst, 'rates': args.rates,
+                           'explain': args.explain,
                            'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
                            'machine': machine()}
     for name in ('echo', 'ranker'):

@@ -44,7 +44,8 @@ class SceneRequest:
     """One validated /stars/scene message.
 
     ``graphs`` holds the scene to rank actions in (one graph) or the candidate scenes;
-    ``labels`` is None for action ranking and names the candidate scenes otherwise.
+    ``labels`` is None for action ranking and names the candidate scenes otherwise;
+    ``explain``: each entry is to carry its ``why``.
     """
 
     scene_id: str
@@ -53,6 +54,7 @@ class SceneRequest:
     labels: tuple | None = None
     actions: tuple | None = None
     action: str | None = None
+    explain: bool = False
 
     @property
     def ranks_scenes(self) -> bool:
@@ -217,9 +219,10 @@ def parse_scene_request(text, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneReques
         if len(set(labels)) != len(labels):
             raise BadMessage('schema', 'scene_request message invalid: candidate labels repeat', payload['scene_id'])
         return SceneRequest(payload['scene_id'], user_id, tuple(c['graph'] for c in candidates), labels,
-                            action=payload.get('action'))
+                            action=payload.get('action'), explain=payload.get('explain', False))
     return SceneRequest(payload['scene_id'], user_id, (payload['graph'],),
-                        actions=None if candidates is None else tuple(candidates))
+                        actions=None if candidates is None else tuple(candidates),
+                        explain=payload.get('explain', False))
 
 
 def parse_feedback(text, max_bytes: int = DEFAULT_MAX_BYTES) -> Feedback:
@@ -271,13 +274,16 @@ def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool
     """The /stars/ranking reply (a dict following ranking.schema.json) for ``ranked`` entries
     (``predictor.Ranked``), best first. ``personalised_from`` > 0: the user was scored with an
     embedding folded in from that many feedback ratings (the field is omitted when 0).
-    Entries carry ``score_sd`` and the ranking ``p_first_is_best`` where they are computed."""
+    Entries carry ``score_sd``, ``why`` and the ranking ``p_first_is_best`` where they are computed."""
     key = 'candidate' if request.ranks_scenes else 'action'
     entries = []
     for r in ranked:
         entry = {key: r.name, 'score': r.score, 'rank': r.rank}
         if r.score_sd is not None:
             entry['score_sd'] = r.score_sd
+        if r.why is not None:
+            entry['why'] = {'content': r.why.content, 'personal': r.why.personal, 'scene': r.why.scene,
+                            'entities': [{'id': i, 'kind': kind, 'effect': effect} for i, kind, effect in r.why.entities]}
         entries.append(entry)
     reply = {
         'scene_id': request.scene_id,

@@ -29,19 +29,21 @@ from stars_ros.data.scene_graph import SceneGraph, featurise
 @dataclass(frozen=True)
 class Ranked:
     """One ranked entry: an action name (or a candidate scene's label), its score on the
-    rating scale, its 1-based rank, and the score's predictive standard deviation (None
-    where it is not computed)."""
+    rating scale, its 1-based rank, the score's predictive standard deviation and its
+    explanation (``explain.Why``; each None where it is not computed)."""
 
     name: str
     score: float
     rank: int
     score_sd: float | None = None
+    why: object = None
 
 
-def rank_order(names: Sequence[str], scores, sds=None) -> list:
-    """``Ranked`` entries of ``names`` by ``scores`` (with their ``sds``), best first."""
+def rank_order(names: Sequence[str], scores, sds=None, whys=None) -> list:
+    """``Ranked`` entries of ``names`` by ``scores`` (with their ``sds`` and ``whys``), best first."""
     order = sorted(range(len(names)), key=lambda k: (-scores[k], k))  # ties keep input order
-    return [Ranked(str(names[k]), float(scores[k]), rank, None if sds is None else float(sds[k]))
+    return [Ranked(str(names[k]), float(scores[k]), rank, None if sds is None else float(sds[k]),
+                   None if whys is None else whys[k])
             for rank, k in enumerate(order, 1)]
 
 

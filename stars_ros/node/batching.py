@@ -18,6 +18,7 @@ import numpy as np
 
 from stars_ros.errors import StarsError
 from stars_ros.messages import SceneRequest
+from stars_ros.model.explain import explain, removal_effects
 from stars_ros.model.model import UNKNOWN
 from stars_ros.model.predictor import rank_order
 
@@ -65,10 +66,22 @@ def _ranking_action(predictor, request: SceneRequest) -> str | None:
     return None
 
 
-def _score_group(predictor, user_id, members, top_k, uncertainty=None) -> list:
+def _whys(predictor, user_id, request, entry_h, scene_rows, columns, entities: int) -> list:
+    """``explain.Why`` of each entry of ``request`` (its scenes' removal variants in one pass)."""
+    scene_ids = None if request.ranks_scenes else [request.scene_id]
+    effects = removal_effects(predictor, user_id, request.graphs, scene_ids)
+    if request.ranks_scenes:
+        per_entry = [(found, effect[:, columns[0]]) for found, effect in effects]
+    else:
+        per_entry = [(effects[0][0], effects[0][1][:, column]) for column in columns]
+    return explain(predictor, user_id, entry_h, scene_rows, np.asarray(columns), per_entry, entities)
+
+
+def _score_group(predictor, user_id, members, top_k, uncertainty=None, explanations=None) -> list:
     """Scores of ``members`` [(request, action)] of one user and one mode in one pass; with
     ``uncertainty`` (personalisation.uncertainty.Uncertainty) each entry's score_sd and the
-    ranking's p_first_is_best too."""
+    ranking's p_first_is_best too; with ``explanations`` (explain every request?, entities
+    per why) each entry's why where it or the request asks."""
     ranks_scenes = members[0][0].ranks_scenes
     graphs = [graph for request, _ in members for graph in request.graphs]
     scene_ids = None if ranks_scenes else [request.scene_id for request, _ in members]
@@ -90,16 +103,20 @@ def _score_group(predictor, user_id, members, top_k, uncertainty=None) -> list:
             scene_rows = predictor.recommender.scene_vocabulary.rows([request.scene_id] * len(names))
             entry_scores = scores[row, columns]
         spread = None if uncertainty is None else uncertainty.spread(predictor, user_id, entry_h, scene_rows, columns)
-        ranked = rank_order(names, entry_scores, None if spread is None else spread.sd)
+        explained = explanations is not None and (explanations[0] or request.explain)
+        whys = _whys(predictor, user_id, request, entry_h, scene_rows, columns, explanations[1]) if explained else None
+        ranked = rank_order(names, entry_scores, None if spread is None else spread.sd, whys)
         p_first = None if spread is None else spread.p_first_is_best(list(names).index(ranked[0].name))
         results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + len(request.graphs)], p_first))
         row += len(request.graphs)
     return results
 
 
-def rank_batch(predictor, batch, top_k: int = 0, uncertainty=None) -> list:
+def rank_batch(predictor, batch, top_k: int = 0, uncertainty=None, explanations=None) -> list:
     """One ``Scored`` or one exception per ``Pending`` of ``batch``, in order (with
-    ``uncertainty``: with each entry's score_sd and the ranking's p_first_is_best)."""
+    ``uncertainty``: with each entry's score_sd and the ranking's p_first_is_best; with
+    ``explanations`` = (explain every request?, entities per why): each entry's why where
+    that or its request's ``explain`` asks)."""
     results = [None] * len(batch)
     groups = {}
     for k, item in enumerate(batch):
@@ -111,12 +128,14 @@ def rank_batch(predictor, batch, top_k: int = 0, uncertainty=None) -> list:
         groups.setdefault((item.user_id, item.request.ranks_scenes), []).append((k, item.request, action))
     for (user_id, _), members in groups.items():
         try:
-            scored = _score_group(predictor, user_id, [(r, a) for _, r, a in members], top_k, uncertainty)
+            scored = _score_group(predictor, user_id, [(r, a) for _, r, a in members], top_k, uncertainty,
+                                  explanations)
         except StarsError:
             scored = []
             for _, request, action in members:  # find which request spoils the group
                 try:
-                    scored.append(_score_group(predictor, user_id, [(request, action)], top_k, uncertainty)[0])
+                    scored.append(_score_group(predictor, user_id, [(request, action)], top_k, uncertainty,
+                                                  explanations)[0])
                 except StarsError as error:
                     scored.append(error)
         for (k, _, _), result in zip(members, scored):

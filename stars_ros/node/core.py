@@ -55,6 +55,9 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'checkpoint': ('', f'checkpoint file; empty: the packaged {DEFAULT_CHECKPOINT}. Read again by ~/reload',
                    False, None),
     'top_k': (0, 'publish only the best k entries of each ranking; 0: all', False, (0, _INT_MAX)),
+    'explain': (False, "give every ranking entry its 'why' (the parts of its score and the entities that drive it, "
+                'docs/explanations.md), as a request with "explain": true does', False, None),
+    'explain_entities': (5, "entities a 'why' names, largest |effect| first; 0: all", False, (0, 4096)),
     'record_folder': (str(recording.default_folder()), 'folder for the MCAP bags and user_models.json; default '
                       '$ROS_HOME/stars_ros/records (ROS_HOME: ~/.ros unless set); empty: do not record', True, None),
     'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
@@ -420,7 +423,8 @@ class RankerCore:
         predictor, top_k = self.predictor, self.params['top_k']
         started = time.time_ns()
         uncertainty = self.personalisation.uncertainty
-        for item, result in zip(batch, rank_batch(predictor, batch, top_k, uncertainty)):
+        explanations = (self.params['explain'], self.params['explain_entities'])
+        for item, result in zip(batch, rank_batch(predictor, batch, top_k, uncertainty, explanations)):
             request = item.request
             if isinstance(result, Exception):
                 self.record('stars/scene', item.text, item.log_time)

@@ -124,3 +124,44 @@ def test_every_topic_has_its_qos_and_shared_models_keep_every_user():
     assert set(alone) == set(TOPICS)
     shared = topic_qos({**params, 'fleet_sharing': True, 'fold_in_max_users': 50})
     assert shared['stars/user_model'] == (alone['stars/user_model'][0] + 50, True)
+
+
+def _sums_to_the_score(entry, scale):
+    why = entry['why']
+    total = why['content'] + why['personal'] + why['scene']
+    return abs(min(max(total, scale[0]), scale[1]) - entry['score']) < 1e-5
+
+
+def test_a_request_that_asks_gets_why_on_every_entry_and_the_others_do_not(tiny_checkpoint, scenes):
+    node = Node()
+    core = make_core(node, tiny_checkpoint, explain_entities=3)
+    user = core.predictor.recommender.user_vocabulary.keys[0]
+    explained = {**scene_request('asks', scenes[0], user), 'explain': True}
+    placements = {**scene_request('placements', scenes[1], user, placements=3), 'explain': True}
+    for request in (explained, scene_request('plain', scenes[0], user), placements):
+        core.accept_scene(messages.dumps(request), 0)
+    assert core.work() is False
+    rankings = {r['scene_id']: r for r in node.on('stars/ranking')}
+    for ranking in rankings.values():
+        messages.check('ranking', ranking)
+    assert not any('why' in entry for entry in rankings['plain']['ranking'])
+    assert [e['score'] for e in rankings['plain']['ranking']] == [e['score'] for e in rankings['asks']['ranking']]
+    scale = core.predictor.recommender.rating_scale
+    for scene_id in ('asks', 'placements'):
+        for entry in rankings[scene_id]['ranking']:
+            assert _sums_to_the_score(entry, scale), entry
+            effects = [abs(e['effect']) for e in entry['why']['entities']]
+            assert len(effects) == 3 and effects == sorted(effects, reverse=True)
+    core.close()
+
+
+def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
+    node = Node()
+    core = make_core(node, tiny_checkpoint, explain=True, explain_entities=0)
+    _scene(core, scenes[2], 'stranger')
+    assert core.work() is False
+    [ranking] = node.on('stars/ranking')
+    kinds = {e['kind'] for entry in ranking['ranking'] for e in entry['why']['entities']}
+    assert 'human' in kinds and 'wall' in kinds and 'room' in kinds
+    assert all(_sums_to_the_score(entry, core.predictor.recommender.rating_scale) for entry in ranking['ranking'])
+    core.close()
