@@ -36,3 +36,21 @@ def make_core(node, checkpoint, **params):
     values.update({'checkpoint': str(checkpoint), 'record_folder': '', **params})
     return RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
                       lambda: next(node.clock))
+
+
+def drain(core):
+    """Let ``core`` work until nothing waits (what the node's guard condition does)."""
+    while core.work():
+        pass
+
+
+def published_models(node):
+    """The stars/user_model messages ``node`` published, as text (what peers receive)."""
+    return [json.dumps(p) for p in node.on('stars/user_model')]
+
+
+def deliver(texts, core):
+    """Hand peer messages ``texts`` to ``core`` and let it work; what each accept returned."""
+    changed = [core.accept_user_model(text) for text in texts]
+    drain(core)
+    return changed

@@ -20,7 +20,7 @@ from stars_ros import feedback_auth, messages, recording
 from stars_ros.data.scene_source import scene_request
 from stars_ros.errors import ConfigError
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
-from core_harness import Node
+from core_harness import Node, deliver, drain, published_models
 
 USER = 'visitor'
 SECRET_A, SECRET_B = bytes(range(32)), bytes(range(100, 132))
@@ -56,14 +56,10 @@ def _robot(checkpoint, clock, name='ranker', **params):
     return node, core
 
 
-def _drain(core):
-    while core.work():
-        pass
-
 
 def _rank(core, scene, user=USER):
     core.accept_scene(messages.dumps(scene_request(scene['identifier'], scene, user)), 0)
-    _drain(core)
+    drain(core)
 
 
 def _feedback(scene, score=0.8, user=USER):
@@ -159,7 +155,7 @@ def test_forged_feedback_is_refused_as_auth_journals_nothing_and_changes_no_mode
         assert core.accept_feedback(text) is False, case
         assert len(_errors(node)) == list(forged).index(case) + 1, case
     assert not core.personalisation.pending and core.personalisation.histories.ratings(USER) == []
-    _drain(core)
+    drain(core)
     assert _served(core) is None and not node.on('stars/user_model')
     reasons = [e['message'] for e in _errors(node)]
     assert all(e['topic'] == '/ranker/stars/feedback' and e['level'] == 'error' for e in _errors(node))
@@ -197,7 +193,7 @@ def test_the_window_is_feedback_max_age_either_side_and_a_replay_within_it_is_re
     assert core.accept_feedback(replayed) is False and 'a replay' in _errors(node)[-1]['message']
     first = _signed(_feedback(scenes[0]), stamp=T0 - 5 * SECOND)  # its MAC was let go under the narrow window
     assert core.accept_feedback(first) is False and 'widened' in _errors(node)[-1]['message']
-    _drain(core)
+    drain(core)
     assert core.predictor.user_model(USER).n_ratings == 3
     core.close()
 
@@ -213,8 +209,8 @@ def test_signed_feedback_is_folded_in_exactly_as_unsigned_feedback_and_both_keys
         assert plain.accept_feedback(json.dumps(_feedback(scene, score))) is True
         key_id, secret = ('old', SECRET_A) if k % 2 else ('new', SECRET_B)
         assert signed.accept_feedback(_signed(_feedback(scene, score), key_id, secret)) is True
-        _drain(plain)
-        _drain(signed)
+        drain(plain)
+        drain(signed)
     assert not _errors(node)
     assert np.array_equal(_served(signed), _served(plain))
     ratings = signed.personalisation.histories.ratings(USER)
@@ -249,7 +245,7 @@ def test_a_fuzz_of_the_signed_message_never_crashes_and_takes_nothing_but_the_or
         assert core.accept_feedback(text) is False, text[:200]
     kinds = {e['kind'] for e in node.on('stars/errors')}
     assert 'internal' not in kinds and 'auth' in kinds
-    _drain(core)
+    drain(core)
     assert core.predictor.user_model(USER).n_ratings == 1
     core.close()
 
@@ -261,7 +257,7 @@ def test_a_replay_after_a_restart_is_still_refused(tiny_checkpoint, synthetic_sc
     _rank(core, scene)
     text = _signed(_feedback(scene))
     assert core.accept_feedback(text) is True
-    _drain(core)
+    drain(core)
     core.close()
     clock.now += 10 * SECOND
     node, again = _robot(tiny_checkpoint, clock, feedback_key_file=key_file, record_folder=tmp_path)
@@ -276,14 +272,6 @@ def _fleet(checkpoint, key_file, clock, *names, **params):
             for name in names]
 
 
-def _models(node):
-    return [json.dumps(p) for p in node.on('stars/user_model')]
-
-
-def _deliver(texts, core):
-    changed = [core.accept_user_model(text) for text in texts]
-    _drain(core)
-    return changed
 
 
 def test_signed_ratings_travel_the_fleet_and_forged_peer_models_are_refused(tiny_checkpoint, synthetic_scenes,
@@ -294,8 +282,8 @@ def test_signed_ratings_travel_the_fleet_and_forged_peer_models_are_refused(tiny
     for scene, score in zip(scenes, (0.9, 0.3)):
         _rank(robot_a, scene)
         assert robot_a.accept_feedback(_signed(_feedback(scene, score))) is True
-        _drain(robot_a)
-    genuine = json.loads(_models(node_a)[-1])
+        drain(robot_a)
+    genuine = json.loads(published_models(node_a)[-1])
     assert all(r['id'] == r['feedback']['auth']['mac'] for r in genuine['ratings'])
 
     def forged(change):
@@ -320,12 +308,12 @@ def test_signed_ratings_travel_the_fleet_and_forged_peer_models_are_refused(tiny
         'malformed auth': forged(lambda p, r: r['feedback'].update(auth={'key_id': 'new'})),
     }
     for case, text in cases.items():
-        assert _deliver([text], robot_b) == [False], case
+        assert deliver([text], robot_b) == [False], case
         assert len(_errors(node_b)) == list(cases).index(case) + 1, (case, node_b.on('stars/errors'))
         assert robot_b.predictor.user_model(USER) is None and robot_b.predictor.user_model('someone-else') is None
     assert not robot_b.personalisation.peers.snapshot()
     assert all(e['topic'] == '/robot_b/stars/user_model' for e in _errors(node_b))
-    assert _deliver(_models(node_a), robot_b) == [True, True]  # the genuine ones are taken
+    assert deliver(published_models(node_a), robot_b) == [True, True]  # the genuine ones are taken
     assert np.array_equal(_served(robot_b), _served(robot_a))
     robot_a.close()
     robot_b.close()
@@ -336,7 +324,7 @@ def test_a_fuzz_of_a_peer_model_never_crashes_and_takes_nothing_forged(tiny_chec
     (node_a, robot_a), (node_b, robot_b) = _fleet(tiny_checkpoint, key_file, clock, 'robot_a', 'robot_b')
     _rank(robot_a, synthetic_scenes[0])
     robot_a.accept_feedback(_signed(_feedback(synthetic_scenes[0])))
-    _drain(robot_a)
+    drain(robot_a)
     [genuine] = node_a.on('stars/user_model')
     rng = random.Random(2727)
     for _ in range(300):
@@ -346,7 +334,7 @@ def test_a_fuzz_of_a_peer_model_never_crashes_and_takes_nothing_forged(tiny_chec
         except (ValueError, RecursionError):
             payload = None
         robot_b.accept_user_model(text)
-        _drain(robot_b)
+        drain(robot_b)
         model = robot_b.predictor.user_model(USER)
         if model is not None:  # taken: then what the signature binds is the genuine rating's (docs/security.md
             # says what it does not bind: the scene content, the accepting robot, the stamp within the window)
@@ -371,8 +359,8 @@ def test_a_peer_without_a_key_file_is_refused_by_one_with_it(tiny_checkpoint, sy
     [(node_b, robot_b)] = _fleet(tiny_checkpoint, key_file, clock, 'robot_b')
     _rank(unsigned, synthetic_scenes[0])
     unsigned.accept_feedback(json.dumps(_feedback(synthetic_scenes[0])))
-    _drain(unsigned)
-    assert _deliver(_models(node_open), robot_b) == [False]
+    drain(unsigned)
+    assert deliver(published_models(node_open), robot_b) == [False]
     assert 'carries no signed feedback' in _errors(node_b)[-1]['message']
     assert robot_b.predictor.user_model(USER) is None
     unsigned.close()

@@ -15,7 +15,7 @@ from stars_ros.personalisation.foldin import Rating
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.personalisation.user_state import STATE_FILE
-from core_harness import Node
+from core_harness import Node, deliver, drain, published_models
 
 USER = 'visitor'
 
@@ -35,29 +35,16 @@ def _robot(name, checkpoint, folder='', **params):
     return node, core
 
 
-def _drain(core):
-    while core.work():
-        pass
-
 
 def _rate(node, core, scene, score, user=USER):
     """Rank ``scene`` for ``user`` at this robot, then give feedback on it there."""
     core.accept_scene(messages.dumps(scene_request(scene['identifier'], scene, user)), 0)
-    _drain(core)
+    drain(core)
     core.accept_feedback(json.dumps({'user_id': user, 'scene_id': scene['identifier'], 'action': 'navigate',
                                      'score': score}))
-    _drain(core)
+    drain(core)
 
 
-def _models(node):
-    """The stars/user_model messages ``node`` published, as text (what peers receive)."""
-    return [json.dumps(p) for p in node.on('stars/user_model')]
-
-
-def _deliver(texts, core):
-    changed = [core.accept_user_model(text) for text in texts]
-    _drain(core)
-    return changed
 
 
 def _served(core, user=USER):
@@ -67,7 +54,7 @@ def _served(core, user=USER):
 
 def _ranking(node, core, scene, user=USER):
     core.accept_scene(messages.dumps(scene_request('probe', scene, user)), 0)
-    _drain(core)
+    drain(core)
     return node.on('stars/ranking')[-1]['ranking']
 
 
@@ -89,19 +76,19 @@ def test_feedback_at_one_robot_gives_its_peer_the_same_model_and_ranking(tiny_ch
     node_b, robot_b = _robot('robot_b', tiny_checkpoint)
     for scene, score in zip(scenes[:3], (1.0, 0.9, 0.2)):
         _rate(node_a, robot_a, scene, score)
-    sent = _models(node_a)
+    sent = published_models(node_a)
     assert len(sent) == 3 and [len(json.loads(t)['ratings']) for t in sent] == [1, 2, 3]
     assert json.loads(sent[-1])['origin'] == '/robot_a/ranker'
     assert robot_b.predictor.user_model(USER) is None
-    assert _deliver(sent, robot_b) == [True, True, True]
+    assert deliver(sent, robot_b) == [True, True, True]
     assert np.array_equal(_served(robot_b), _served(robot_a))  # bit for bit
     assert _ranking(node_b, robot_b, scenes[5]) == _ranking(node_a, robot_a, scenes[5])
-    assert [json.loads(t)['n_ratings'] for t in _models(node_b)] == [3]  # three arrived, one solve
+    assert [json.loads(t)['n_ratings'] for t in published_models(node_b)] == [3]  # three arrived, one solve
     # duplicates and a robot's own messages change nothing and start no exchange
     published = len(node_b.published)
-    assert _deliver(sent, robot_b) == [False] * 3 and _deliver(_models(node_b), robot_b) == [False]
+    assert deliver(sent, robot_b) == [False] * 3 and deliver(published_models(node_b), robot_b) == [False]
     assert len(node_b.published) == published
-    assert _deliver(_models(node_b), robot_a) == [False]  # A's ratings coming back
+    assert deliver(published_models(node_b), robot_a) == [False]  # A's ratings coming back
 
 
 def test_simultaneous_feedback_converges_to_one_model_whatever_the_order(tiny_checkpoint, scenes):
@@ -110,19 +97,19 @@ def test_simultaneous_feedback_converges_to_one_model_whatever_the_order(tiny_ch
     _rate(node_a, robot_a, scenes[0], 1.0)
     _rate(node_b, robot_b, scenes[1], 0.1)  # at the same time: neither has heard the other
     _rate(node_b, robot_b, scenes[2], 0.3)
-    from_a, from_b = _models(node_a), _models(node_b)
-    _deliver(from_b, robot_a)
-    _deliver(from_a[::-1], robot_b)
-    _deliver(from_b[::-1] + from_a, robot_c)  # a third robot hears both, in another order
+    from_a, from_b = published_models(node_a), published_models(node_b)
+    deliver(from_b, robot_a)
+    deliver(from_a[::-1], robot_b)
+    deliver(from_b[::-1] + from_a, robot_c)  # a third robot hears both, in another order
     assert np.array_equal(_served(robot_a), _served(robot_b))
     assert np.array_equal(_served(robot_a), _served(robot_c))
     assert robot_a.predictor.user_model(USER).n_ratings == 3
     # each re-published the union once; passing those round changes nothing more
-    last = {name: _models(node)[-1] for name, (node, _) in zip('abc', robots)}
+    last = {name: published_models(node)[-1] for name, (node, _) in zip('abc', robots)}
     assert all(len(json.loads(text)['ratings']) == 3 for text in last.values())
     counts = [len(node.published) for node, _ in robots]
     for (node, core) in robots:
-        _deliver(list(last.values()), core)
+        deliver(list(last.values()), core)
     assert [len(node.published) for node, _ in robots] == counts
 
 
@@ -132,11 +119,11 @@ def test_a_late_robot_gets_every_user_when_it_joins(tiny_checkpoint, scenes):
         _rate(node_a, robot_a, scenes[k], 0.8, user)
     before = len(node_a.published)
     assert robot_a.announce() is True
-    _drain(robot_a)
-    announced = _models(node_a)[-2:]
+    drain(robot_a)
+    announced = published_models(node_a)[-2:]
     assert len(node_a.published) == before + 2 and {json.loads(t)['user_id'] for t in announced} == {'ann', 'bob'}
     node_c, robot_c = _robot('robot_c', tiny_checkpoint)
-    _deliver(announced, robot_c)
+    deliver(announced, robot_c)
     for user in ('ann', 'bob'):
         assert np.array_equal(_served(robot_c, user), _served(robot_a, user))
 
@@ -145,9 +132,9 @@ def test_models_of_another_checkpoint_are_ignored_with_one_warning(tiny_checkpoi
     node_a, robot_a = _robot('robot_a', tiny_checkpoint)
     node_b, robot_b = _robot('robot_b', tiny_checkpoint)
     _rate(node_a, robot_a, scenes[0], 1.0)
-    other = json.loads(_models(node_a)[-1])
+    other = json.loads(published_models(node_a)[-1])
     other['fingerprint'] = 'f' * 64
-    assert _deliver([json.dumps(other)] * 2, robot_b) == [False, False]
+    assert deliver([json.dumps(other)] * 2, robot_b) == [False, False]
     assert robot_b.predictor.user_model(USER) is None
     warnings = [e for e in node_b.on('stars/errors') if e['kind'] == 'fleet']
     assert len(warnings) == 1 and warnings[0]['level'] == 'warning'
@@ -160,7 +147,7 @@ def test_garbage_from_a_peer_is_reported_and_changes_nothing(tiny_checkpoint, sc
     node_b, robot_b = _robot('robot_b', tiny_checkpoint)
     _rate(node_a, robot_a, scenes[0], 1.0)
     _rate(node_a, robot_a, scenes[1], 0.5)
-    good = json.loads(_models(node_a)[-1])
+    good = json.loads(published_models(node_a)[-1])
 
     def variant(change):
         payload = json.loads(json.dumps(good))
@@ -173,13 +160,13 @@ def test_garbage_from_a_peer_is_reported_and_changes_nothing(tiny_checkpoint, sc
         'scene_graph': variant(lambda p: p['ratings'][1]['scene'].update(humans=[{'id': 1}])),
     }
     for kind, text in bad.items():
-        _deliver([text], robot_b)
+        deliver([text], robot_b)
         error = node_b.on('stars/errors')[-1]
         assert error['kind'] in (kind, 'schema') and error['level'] == 'error', (kind, error)
         assert error['topic'] == '/robot_b/stars/user_model'
     assert not robot_b.personalisation.intake and robot_b.personalisation.peers.snapshot() == {}
     assert robot_b.predictor.user_model(USER) is None
-    assert _deliver([json.dumps(good)], robot_b) == [True]  # the good one still goes in whole
+    assert deliver([json.dumps(good)], robot_b) == [True]  # the good one still goes in whole
     assert np.array_equal(_served(robot_b), _served(robot_a))
 
 
@@ -188,15 +175,15 @@ def test_a_restarted_robot_keeps_its_peers_ratings(tiny_checkpoint, scenes, tmp_
     node_b, robot_b = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
     _rate(node_a, robot_a, scenes[0], 1.0)
     _rate(node_b, robot_b, scenes[1], 0.2)
-    _deliver(_models(node_a), robot_b)
+    deliver(published_models(node_a), robot_b)
     served = _served(robot_b)
     robot_b.close()
     state = json.loads((tmp_path / 'b' / STATE_FILE).read_text())
     assert [len(state['users'][USER][k]) for k in ('ratings', 'peer_ratings')] == [1, 1]
     node_b2, robot_b2 = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
-    _drain(robot_b2)
+    drain(robot_b2)
     assert np.array_equal(_served(robot_b2), served)
-    assert _deliver(_models(node_a), robot_b2) == [False]  # known already: nothing was lost
+    assert deliver(published_models(node_a), robot_b2) == [False]  # known already: nothing was lost
     robot_b2.close()
 
 
@@ -207,7 +194,7 @@ def test_a_peer_message_is_taken_in_one_rated_scene_per_turn(tiny_checkpoint, sc
     node_b, robot_b = _robot('robot_b', tiny_checkpoint)
     for scene in scenes[:3]:
         _rate(node_a, robot_a, scene, 0.7)
-    assert robot_b.accept_user_model(_models(node_a)[-1]) is True
+    assert robot_b.accept_user_model(published_models(node_a)[-1]) is True
     for turn in (1, 2):
         assert robot_b.work() is True and robot_b.personalisation.intake[0].encoded == turn
         assert robot_b.personalisation.peers.snapshot() == {}  # nothing kept before all have passed
@@ -216,5 +203,5 @@ def test_a_peer_message_is_taken_in_one_rated_scene_per_turn(tiny_checkpoint, sc
     assert node_b.on('stars/ranking')[-1]['scene_id'] == 'meanwhile' and robot_b.personalisation.intake
     robot_b.work()  # the third scene: the ratings are kept and the user waits for a solve
     assert not robot_b.personalisation.intake and list(robot_b.personalisation.pending) == [USER]
-    _drain(robot_b)
+    drain(robot_b)
     assert np.array_equal(_served(robot_b), _served(robot_a))
