@@ -36,8 +36,8 @@ RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-DOMAINS_PER_BLOCK = 14
-FIRST_DOMAIN, BLOCKS = 100, 9  # domains 100..225: clear of the default 0 and of Fast DDS's limit (232)
+DOMAINS_PER_BLOCK = 18
+FIRST_DOMAIN, BLOCKS = 100, 7  # domains 100..225: clear of the default 0 and of Fast DDS's limit (232)
 _reserved = {}
 
 
