@@ -46,6 +46,8 @@ class FitTask:
     inner_fold: int = -1
     curve_at: tuple = ()  # joint epochs at which the test rows are also scored
     settings: str = '{}'  # the searched settings in the experiment, as settings_key text
+    peer: str = ''        # a peer library (``peers.PEERS``) fitted instead of a StARS model
+    peer_settings: str = '{}'  # its settings, as settings_key text
 
     @property
     def name(self) -> str:
@@ -114,6 +116,9 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     ``curve_at``, the same at those joint epochs under ``curve``)."""
     from stars_ros.model.training import StarsTrainer
     data = worker_data() if data is None else data
+    if task.peer:
+        from stars_ros.evaluation.peers import run_peer
+        return run_peer(task.peer, task.peer_settings, task.experiment, data, task.train, task.test, task.curve_at)
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()
     recommender = StarsTrainer(config)

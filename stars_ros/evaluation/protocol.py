@@ -36,7 +36,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any, Callable, Literal, Sequence
 
 import numpy as np
@@ -44,6 +44,7 @@ from pydantic import Field, field_validator, model_validator
 
 from stars_ros.data.ratings import RatingData
 from stars_ros.errors import ConfigError
+from stars_ros.evaluation import peers
 from stars_ros.evaluation.executors import METRICS, FitFailure, FitTask, fit_executor, run_fits
 from stars_ros.evaluation.folds import PROTOCOLS, make_folds, sweep_samples
 from stars_ros.model.config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section,
@@ -52,11 +53,11 @@ from stars_ros.model.metrics import regression_report
 
 log = logging.getLogger(__name__)
 
-BASELINES = ('population_mean', 'mf')
+BASELINES = ('population_mean', 'mf', *peers.PEERS)
 DISPLAY = {'gcn': 'GCN', 'gin': 'GIN', 'graphsage': 'GraphSAGE', 'ggnn': 'GGNN', 'rgcn': 'RGCN',
            'gat': 'GAT', 'mlp': 'MLP', 'resmlp': 'ResMLP', 'dcnv2': 'DCNv2', 'graceae': 'GraceAE',
            'fttransformer': 'FT-Transformer'}
-BASELINE_LABELS = {'population_mean': 'Population mean', 'mf': 'MF (biased, no content)'}
+BASELINE_LABELS = {'population_mean': 'Population mean', 'mf': 'MF (biased, no content)', **peers.LABELS}
 
 
 # -- configuration ----------------------------------------------------------------------
@@ -75,6 +76,8 @@ def _merge(base: dict, changes: dict) -> dict:
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'dim': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
+#: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.
+PEER_FAMILIES = ('surprise_svd', 'myfm')
 #: StARS ablations: label suffix and the model settings that differ from full StARS.
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
@@ -96,10 +99,13 @@ class ProtocolConfig(Section):
         grid (tuple of (T1, T2)): candidate epoch pairs (T2 >= 1).
         search (dict): family (``base``, ``stars``, ``mf``) -> {setting: [values]}, a product
             of candidate values of SEARCHABLE settings; a family without one uses ``experiment``'s.
+            A peer (``surprise_svd``, ``myfm``) searches its own settings (``peers.SETTINGS``).
         fractions (tuple of float): training fractions of the sparsity sweep.
         backbones (dict): encoder name -> encoder settings that differ from ``experiment``.
         variants (tuple of str): ``base`` and/or ``stars``, trained for every backbone.
-        baselines (tuple of str): ``population_mean`` and/or ``mf``.
+        baselines (tuple of str): ``population_mean``, ``mf`` and the peer libraries
+            (``peers``): ``surprise_svd``, ``myfm``, and ``myfm_encoder`` (one per backbone,
+            on the h_i of the base model that backbone chose in each fold).
         ablations (tuple of str): keys of ABLATIONS, run for ``ablation_backbones``.
         ablation_backbones (tuple of str): backbones that get the ablations.
         sweep_backbones (tuple of str): backbones that get the sparsity sweep (with the
@@ -113,7 +119,7 @@ class ProtocolConfig(Section):
     inner_folds: Annotated[Int, Field(ge=2)] = 2
     seeds: Annotated[tuple[Annotated[Int, Field(ge=0)], ...], Field(min_length=1)] = (0,)
     grid: Annotated[tuple[tuple[Int, Int], ...], Field(min_length=1)] = ((10, 100), (50, 100), (100, 100))
-    search: dict[Literal[FAMILIES], dict[Literal[tuple(SEARCHABLE)], Annotated[list, Field(min_length=1)]]] = \
+    search: dict[Literal[FAMILIES + PEER_FAMILIES], dict[str, Annotated[list, Field(min_length=1)]]] = \
         Field(default_factory=dict)
     fractions: tuple[Annotated[Float, Field(gt=0.0, le=1.0)], ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
     backbones: dict[str, dict[str, Any] | None] = Field(default_factory=lambda: {'gat': {}})
@@ -146,6 +152,9 @@ class ProtocolConfig(Section):
                     raise KeyedError((name, index), f'{backbone!r} is not among backbones {list(self.backbones)}')
         if self.ablation_backbones and 'stars' not in self.variants:
             raise KeyedError(('ablation_backbones',), 'ablations follow the StARS variant: variants must include stars')
+        if 'myfm_encoder' in self.baselines and not (self.backbones and 'base' in self.variants):
+            raise KeyedError(('baselines',), 'myfm_encoder takes the h_i of each backbone\'s base model: it needs '
+                                             'backbones and the base variant')
         if 'mf' in self.baselines and not self.backbones and 'name' not in (self.experiment.get('encoder') or {}):
             raise KeyedError(('baselines',), 'the mf baseline needs a backbone or experiment.encoder.name matching '
                                              'the data')
@@ -155,14 +164,20 @@ class ProtocolConfig(Section):
                            _merge(experiment.encoder.model_dump(), {**(settings or {}), 'name': backbone}))
         sections = {'training': TrainConfig, 'model': ModelConfig}
         for family, space in self.search.items():
+            if family in PEER_FAMILIES:
+                for values in itertools.product(*space.values()):
+                    validate_under(('search', family), peers.SETTINGS[family], dict(zip(space, values)))
+                continue
             for key, values in space.items():
+                if key not in SEARCHABLE:
+                    raise KeyedError(('search', family, key), f'not a searchable setting; choices: {list(SEARCHABLE)}')
                 section = SEARCHABLE[key]
                 for value in values:
                     validate_under(('search', family), sections[section],
                                    {**getattr(experiment, section).model_dump(), key: value})
         try:  # anything left that only a whole model shows
             for spec in model_specs(self):
-                if spec.variant != 'population_mean':
+                if spec.variant not in ('population_mean', *peers.PEERS):
                     for settings in _settings_candidates(self, spec):
                         self.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
         except ConfigError as error:
@@ -217,14 +232,16 @@ class ModelSpec:
 def model_specs(config: ProtocolConfig) -> list[ModelSpec]:
     """Baselines first, then each backbone in its variants (the paper's row order) and its
     ablations."""
-    specs = [ModelSpec(BASELINE_LABELS[b], None, b, 'mf' if b == 'mf' else '') for b in BASELINES
-             if b in config.baselines]
+    specs = [ModelSpec(BASELINE_LABELS[b], None, b, b if b in ('mf', *PEER_FAMILIES) else '') for b in BASELINES
+             if b in config.baselines and b in BASELINE_LABELS]
     for backbone in config.backbones:
         name = DISPLAY.get(backbone, backbone)
         for variant in ('base', 'stars'):
             if variant in config.variants:
                 specs.append(ModelSpec(f"{name} {'StARS' if variant == 'stars' else 'base'}", backbone, variant,
                                        variant))
+        if 'myfm_encoder' in config.baselines and 'base' in config.variants:
+            specs.append(ModelSpec(peers.encoder_label(name), backbone, 'myfm_encoder', follows=f'{name} base'))
         if backbone in config.ablation_backbones:
             for ablation in config.ablations:
                 suffix, model = ABLATIONS[ablation]
@@ -242,7 +259,9 @@ def _settings_candidates(config: ProtocolConfig, spec: ModelSpec) -> list[dict]:
 def _candidates(config: ProtocolConfig, spec: ModelSpec) -> list[tuple[dict, tuple[int, int]]]:
     """(settings, (T1, T2)) worth trying; a content-free model skips pre-training, so only
     distinct T2 matter to it."""
-    if spec.variant == 'mf':
+    if spec.variant in PEER_FAMILIES:  # no epochs to choose
+        pairs = [(0, 0)]
+    elif spec.variant == 'mf':
         pairs = list(dict.fromkeys((0, t2) for _, t2 in config.grid))
     else:
         pairs = list(dict.fromkeys(config.grid))
@@ -305,6 +324,7 @@ class ProtocolRun:
             raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
         if jobs < 1 or threads < 1:
             raise ValueError('jobs and threads must be positive')
+        peers.require(config.baselines)  # before any fit
         self.data, self.config, self.protocol = data, config, protocol
         self.jobs, self.threads, self.on_record = jobs, threads, on_record
         self.executor = executor
@@ -454,6 +474,14 @@ class ProtocolRun:
         return items
 
     def _task(self, spec, fold_id, stage, settings, pair, train, test, **extra) -> FitTask:
+        if spec.variant in PEER_FAMILIES:  # a content-free library: the experiment only carries the seed
+            seed = (self.config.experiment.get('training') or {}).get('seed', 0)
+            experiment = {'training': {'pretrain_epochs': 0, 'joint_epochs': 0, 'seed': seed}}
+            return FitTask(spec.label, fold_id, stage, experiment, train, test, settings=settings_key(settings),
+                           peer=spec.variant, peer_settings=settings_key(settings), **extra)
+        if spec.variant == 'myfm_encoder':  # base's encoder (with base's choice), then myFM's defaults
+            return replace(self._task(ModelSpec(spec.label, spec.backbone, 'base'), fold_id, stage, settings, pair,
+                                      train, test, **extra), peer='myfm_encoder')
         base = self.config.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
         experiment = base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1],
                                             'threads': self.threads}).to_dict()
