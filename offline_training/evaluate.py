@@ -38,7 +38,8 @@ from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.folds import PROTOCOLS
 from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig, model_specs, run_protocol, settings_key
-from stars_ros.evaluation.summaries import ablation_tests, by_model, paired_tests, sparsity_summary, time_accounting
+from stars_ros.evaluation.summaries import (ablation_tests, by_model, grid_edge, paired_tests, peer_tests,
+                                           sparsity_summary, time_accounting)
 from stars_ros.evaluation.stats import format_mean_sd, mean_sd
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, cuda_info, label_axis, machine, mean_band,
@@ -219,15 +220,18 @@ def ablation_table(result, tests: list, error: str) -> list[str]:
 
 
 def tests_table(tests: list, error: str) -> list[str]:
+    """One row per backbone of ``tests``; a column names the reference when the tests carry one."""
     metrics = (error, 'pearson_r', 'ccc')
     present = [m for m in metrics if any(t['metric'] == m for t in tests)]
     if not present:
         return ['(no backbone has both variants: no paired tests)']
     df = tests[0]['df']
-    head = ' | '.join(f'Δ{METRIC_NAMES[m]} | t({df}) | Holm p' for m in present)
-    lines = [f'| Backbone | {head} |', '| --- | ' + ' | '.join('---' for _ in range(3 * len(present))) + ' |']
+    against = any('reference' in t for t in tests)
+    head = ('against | ' if against else '') + ' | '.join(f'Δ{METRIC_NAMES[m]} | t({df}) | Holm p' for m in present)
+    lines = [f'| Backbone | {head} |',
+             '| --- | ' + ' | '.join('---' for _ in range(3 * len(present) + against)) + ' |']
     for backbone in dict.fromkeys(t['backbone'] for t in tests):
-        cells = []
+        cells = [next(t['reference'] for t in tests if t['backbone'] == backbone)] if against else []
         for metric in present:
             found = [t for t in tests if t['backbone'] == backbone and t['metric'] == metric]
             if found:
@@ -314,6 +318,15 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
              'Bouckaert–Frank corrected resampled t-test (variance × (1/k + n_test/n_train)), two-sided; '
              'p Holm-adjusted over the backbones within each metric. '
              f'Negative Δ{METRIC_NAMES[error]} and positive Δr, ΔCCC favour StARS.', '']
+    if header['peer_tests']:
+        lines += ['## StARS − the best peer library', '', *tests_table(header['peer_tests'], error), '',
+                  'Per backbone, the peer with the lowest mean error over the outer folds among the '
+                  'content-free ones and myFM on that backbone\'s h_i; the same test, Holm over the backbones.',
+                  '']
+    edge = grid_edge(result)
+    if edge['choices']:
+        lines += [f"The base and StARS selections chose T2 = {edge['top_T2']}, the top of the grid, in "
+                  f"{edge['at_top']} of {edge['choices']} choices.", '']
     comparison = comparison_table(result, error, config.name)
     if comparison:
         lines += ['## base → StARS at the paper\'s precision', '', *comparison, '']
@@ -464,6 +477,7 @@ def main(argv=None) -> int:
 
     tests = paired_tests(result, (config.error, 'pearson_r', 'ccc'))
     header['ablation_tests'] = ablation_tests(result, (config.error, 'pearson_r', 'ccc'))
+    header['peer_tests'] = peer_tests(result, (config.error, 'pearson_r', 'ccc'))
     timing = {**time_accounting(result), 'load_seconds': load_seconds,
               'load_average_end': [round(v, 2) for v in os.getloadavg()]}
     write_csv(folder / 'folds.csv', [{**r, 'settings': settings_key(r['settings'])} for r in result.records],
@@ -476,7 +490,8 @@ def main(argv=None) -> int:
     (folder / 'results.json').write_text(json.dumps(
         {'command': command, 'protocol': args.protocol, 'config': config.to_dict(), 'folds': result.folds,
          'records': result.records, 'inner': result.inner, 'selection': result.selection,
-         'choices': result.choices, 'tests': tests, 'ablation_tests': header['ablation_tests'], 'timing': timing,
+         'choices': result.choices, 'tests': tests, 'ablation_tests': header['ablation_tests'],
+         'peer_tests': header['peer_tests'], 'grid_edge': grid_edge(result), 'timing': timing,
          'plots': plots, 'git': header['git'], 'machine': header['machine']},
         indent=1, default=_json_default))
     print((folder / 'tables.md').read_text())

@@ -152,15 +152,12 @@ def _encoded_scenes(data: RatingData, train, experiment: dict) -> tuple:
     return encode_all(trainer, data), config.training.pretrain_epochs + config.training.joint_epochs
 
 
-def run_peer(peer: str, settings_text: str, experiment: dict, data: RatingData, train: np.ndarray,
-             test: np.ndarray, curve_at: tuple = ()) -> dict:
-    """Fit ``peer`` on ``train`` rows and score it on ``test`` rows: the record's metrics,
-    the selection's z-RMSE, seconds (``fit_seconds`` covers predicting too; for
-    ``myfm_encoder`` training the encoder) and ``curve`` at ``curve_at`` for an inner fit."""
-    from stars_ros.evaluation.executors import normalised_rmse
+def peer_predictions(peer: str, settings_text: str, experiment: dict, data: RatingData, train: np.ndarray,
+                     test: np.ndarray) -> tuple:
+    """(rating-scale predictions for ``test`` rows, epochs of an encoder trained for them) of
+    ``peer`` fitted on ``train`` rows: no score of a test row is read."""
     settings = settings_of(peer, json.loads(settings_text))
     seed = int(experiment.get('training', {}).get('seed', 0))
-    started = time.perf_counter()
     epochs = 0
     if peer == 'surprise_svd':
         predictions = _surprise_svd(data, train, test, settings, seed)
@@ -172,8 +169,17 @@ def run_peer(peer: str, settings_text: str, experiment: dict, data: RatingData, 
         else:
             features = data.store.features.numpy().astype(np.float64)
         predictions = _myfm(data, train, test, features, settings, seed)
-    if data.scale is not None:
-        predictions = np.clip(predictions, *data.scale)
+    return (predictions if data.scale is None else np.clip(predictions, *data.scale)), epochs
+
+
+def run_peer(peer: str, settings_text: str, experiment: dict, data: RatingData, train: np.ndarray,
+             test: np.ndarray, curve_at: tuple = ()) -> dict:
+    """Fit ``peer`` on ``train`` rows and score it on ``test`` rows: the record's metrics,
+    the selection's z-RMSE, seconds (``fit_seconds`` covers predicting too; for
+    ``myfm_encoder`` training the encoder) and ``curve`` at ``curve_at`` for an inner fit."""
+    from stars_ros.evaluation.executors import normalised_rmse
+    started = time.perf_counter()
+    predictions, epochs = peer_predictions(peer, settings_text, experiment, data, train, test)
     finished = time.perf_counter()
     y, actions = data.scores[test], data.actions[test]
     mean, std = _action_statistics(data, train)

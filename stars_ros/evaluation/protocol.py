@@ -170,7 +170,7 @@ class ProtocolConfig(Section):
                 continue
             for key, values in space.items():
                 if key not in SEARCHABLE:
-                    raise KeyedError(('search', family, key), f'not a searchable setting; choices: {list(SEARCHABLE)}')
+                    raise KeyedError(('search', family, key), f'not an allowed key; choices: {list(SEARCHABLE)}')
                 section = SEARCHABLE[key]
                 for value in values:
                     validate_under(('search', family), sections[section],

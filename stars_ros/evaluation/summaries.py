@@ -1,6 +1,7 @@
 """What the tables of an evaluation are made of: records by model, the paired tests
-(StARS against base, ablations against base) and the summaries of the sparsity sweep and
-of where the time went."""
+(StARS against base, against the best peer library, ablations against base), how often a
+choice sat at the top of the epoch grid, and the summaries of the sparsity sweep and of
+where the time went."""
 from __future__ import annotations
 
 import math
@@ -9,6 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from stars_ros.evaluation.executors import METRICS
+from stars_ros.evaluation.peers import PEERS
 from stars_ros.evaluation.protocol import BASELINE_LABELS, DISPLAY, EvaluationResult, model_specs
 from stars_ros.evaluation.stats import corrected_resampled_ttest, holm
 
@@ -55,6 +57,44 @@ def paired_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]
             entry['p_holm'] = float(adjusted)
         tests.extend(family)
     return tests
+
+
+def best_peer(result: EvaluationResult, backbone: str) -> str | None:
+    """The label of the peer library with the lowest mean error on the outer folds among those
+    a backbone's StARS meets: the content-free ones and myFM on that backbone's h_i."""
+    final = by_model(result.final())
+    means = {spec.label: float(np.mean([e[result.config.error] for e in final[spec.label]]))
+             for spec in model_specs(result.config)
+             if spec.variant in PEERS and spec.backbone in (None, backbone) and spec.label in final}
+    means = {label: value for label, value in means.items() if math.isfinite(value)}
+    return min(means, key=means.get) if means else None
+
+
+def peer_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
+    """StARS − the best peer (``best_peer``) per backbone and metric; Holm within each metric
+    over the backbones."""
+    tests = []
+    for metric in metrics:
+        family = []
+        for backbone in result.config.backbones:
+            peer = best_peer(result, backbone)
+            name = DISPLAY.get(backbone, backbone)
+            if peer is not None and (test := corrected_test(result, f'{name} StARS', peer, metric)) is not None:
+                family.append({'backbone': backbone, 'reference': peer, **test})
+        for entry, adjusted in zip(family, holm([e['p'] for e in family])):
+            entry['p_holm'] = float(adjusted)
+        tests.extend(family)
+    return tests
+
+
+def grid_edge(result: EvaluationResult) -> dict:
+    """How many of the base and StARS choices took the largest T2 of the grid: the grid may
+    end too early when most do."""
+    top = max(t2 for _, t2 in result.config.grid)
+    variants = {spec.label for spec in model_specs(result.config) if spec.variant in ('base', 'stars')
+                and not spec.follows}
+    chosen = [c for c in result.choices if c['model'] in variants]
+    return {'top_T2': top, 'at_top': sum(c['T2'] == top for c in chosen), 'choices': len(chosen)}
 
 
 def ablation_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dict]:
