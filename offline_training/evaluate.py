@@ -36,6 +36,7 @@ import yaml
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import StarsError
+from stars_ros.evaluation import peers
 from stars_ros.evaluation.folds import PROTOCOLS
 from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig, model_specs, run_protocol, settings_key
 from stars_ros.evaluation.summaries import (ablation_tests, by_model, grid_edge, paired_tests, peer_tests,
@@ -90,6 +91,7 @@ def configure(args) -> ProtocolConfig:
         config = ProtocolConfig.from_dict(values)
     if args.device:
         config = ProtocolConfig.from_dict(config.to_dict(), {'experiment': {'training': {'device': args.device}}})
+    peers.require(config.baselines)  # before anything is written: a resumed folder keeps its records
     return config
 
 

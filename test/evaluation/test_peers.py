@@ -1,10 +1,12 @@
 """The peer libraries as protocol baselines: fitted on the training examples only, on the same
 folds as StARS, refused before any fit when missing; the scene summary they read, by hand."""
 import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
+import yaml
 
 from stars_ros import load_dataset
 from stars_ros.data.crowd_data import CrowdShape, write
@@ -26,10 +28,15 @@ SMALL = {'folds': 2, 'grid': [[1, 2]], 'backbones': {'mlp': {}}, 'variants': ['b
 
 
 @pytest.fixture(scope='module')
-def crowd(tmp_path_factory):
+def crowd_root(tmp_path_factory):
     root = tmp_path_factory.mktemp('crowd')
     write(root, CrowdShape(users=30, scenes=24, features=6, raters_per_scene=5), seed=3)
-    return load_dataset(root)
+    return root
+
+
+@pytest.fixture(scope='module')
+def crowd(crowd_root):
+    return load_dataset(crowd_root)
 
 
 def _split(data, seed=0):
@@ -128,3 +135,25 @@ def test_the_scene_summary_by_hand():
     assert summary['room_size'] == pytest.approx(10.0)  # a 10 m × 10 m room
     alone = dict(zip(SUMMARY_FEATURES, summarise(featurise({**scene, 'humans': [], 'links': []}).x)))
     assert alone['humans'] == 0 and alone['nearest_human_distance'] == ABSENT_DISTANCE
+
+
+def test_the_cli_tables_put_the_peers_beside_stars_and_a_missing_library_keeps_a_run(crowd_root, tmp_path,
+                                                                                       monkeypatch):
+    from offline_training import evaluate
+    config = tmp_path / 'peers.yaml'
+    config.write_text(yaml.safe_dump({**SMALL, 'name': 'peers'}))
+    out = tmp_path / 'out'
+    assert evaluate.main(['--config', str(config), '--data-root', str(crowd_root), '--out', str(out)]) == 0
+    tables = (out / 'tables.md').read_text()
+    for row in ('| Surprise SVD (no content) |', '| myFM (scene features) |', '| myFM on MLP base h_i |',
+                '| MLP StARS |', '## StARS − the best peer library', 'chose T2 = 2, the top of the grid, in 4 of 4'):
+        assert row in tables
+    results = json.loads((out / 'results.json').read_text())
+    assert [t['metric'] for t in results['peer_tests']] == ['rmse', 'pearson_r', 'ccc']
+    records = (out / 'records.jsonl').read_text()
+
+    find_spec = peers.importlib.util.find_spec
+    monkeypatch.setattr(peers.importlib.util, 'find_spec', lambda name: None if name == 'surprise' else find_spec(name))
+    assert evaluate.main(['--config', str(config), '--data-root', str(crowd_root), '--out', str(out),
+                          '--resume']) == 2
+    assert (out / 'records.jsonl').read_text() == records  # refused before anything was written
