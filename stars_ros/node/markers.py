@@ -1,0 +1,172 @@
+"""What ``stars/markers`` shows of a ranked request, ROS-free: one ``Marker`` per scene entity
+and per candidate, in REP 103 axes; ``stars_ros.ros.ranker`` turns them into a
+visualization_msgs/MarkerArray (after a DELETEALL, so the markers of the previous scene go).
+
+SocNav1 scenes are in the robot's frame in centimetres with +y ahead, +x to the robot's right
+(``docs/explanations.md``, "Scenes you can look at"); REP 103 is metres, x forward, y left,
+z up. So a point (x, y) cm is (y / 100, −x / 100) m, and a heading of θ degrees (SocNav1
+faces (sin θ, −cos θ), so θ = 0 faces the robot) is the yaw θ + 180° in ROS.
+
+A candidate-scenes request is drawn in the frame of its first candidate (the robot where it
+is, for ``scene_source.placement_candidates``): each candidate's robot pose there is the rigid
+motion that carries its humans, objects and room corners onto the first candidate's.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from stars_ros.data.scene_graph import CENTIMETRES_PER_METRE, entity_nodes
+
+KIND_COLOURS = {'robot': (0.2, 0.3, 0.9, 1.0), 'room': (0.6, 0.6, 0.6, 1.0), 'human': (1.0, 0.75, 0.1, 1.0),
+                'object': (0.55, 0.35, 0.2, 1.0), 'wall': (0.3, 0.3, 0.3, 1.0),
+                'interaction': (0.8, 0.2, 0.8, 1.0)}
+RAISES, LOWERS = (0.1, 0.75, 0.2), (0.9, 0.15, 0.1)  # an entity whose removal lowers / raises the score
+NAMESPACES = {'robot': 'robot', 'room': 'room', 'human': 'humans', 'object': 'objects', 'wall': 'walls',
+              'interaction': 'interactions', 'candidate': 'candidates'}
+
+
+@dataclass(frozen=True)
+class Marker:
+    """One visualization_msgs/Marker, in plain values: ``kind`` names its ``type``
+    (ARROW, CUBE, CYLINDER, LINE_STRIP, LINE_LIST); ``position`` and ``points`` in metres,
+    ``yaw`` in radians (REP 103), ``color`` RGBA in 0..1; ``label`` says what it shows."""
+
+    ns: str
+    id: int
+    kind: str
+    position: tuple = (0.0, 0.0, 0.0)
+    yaw: float = 0.0
+    scale: tuple = (1.0, 1.0, 1.0)
+    color: tuple = (1.0, 1.0, 1.0, 1.0)
+    points: tuple = ()
+    label: str = ''
+
+
+def to_rep103(x_cm: float, y_cm: float) -> tuple:
+    """A SocNav1 point (cm, +y ahead, +x right) in REP 103 metres (x forward, y left)."""
+    return y_cm / CENTIMETRES_PER_METRE, -x_cm / CENTIMETRES_PER_METRE
+
+
+def heading_yaw(degrees: float) -> float:
+    """A SocNav1 orientation (degrees; the entity faces (sin θ, −cos θ)) as a REP 103 yaw in (−π, π]."""
+    yaw = math.radians(degrees) + math.pi
+    return math.atan2(math.sin(yaw), math.cos(yaw))
+
+
+def _pose_in(reference: dict, scene: dict) -> tuple:
+    """(x cm, y cm, rotation rad) of ``scene``'s robot in ``reference``'s frame (SocNav1 axes):
+    the least-squares rigid motion carrying the points both share (humans and objects by id,
+    room corners by index when both rooms have as many) from ``scene`` onto ``reference``.
+    With one shared point it is a shift; with none, the robot is where the reference's is."""
+    def points(s):
+        found = {('e', e['id']): (e['xPos'], e['yPos']) for e in (s.get('humans') or []) + (s.get('objects') or [])}
+        if len(s['room']) == len(reference['room']):
+            found.update({('r', k): tuple(p) for k, p in enumerate(s['room'])})
+        return found
+    ours, theirs = points(scene), points(reference)
+    shared = [k for k in ours if k in theirs]
+    if not shared:
+        return 0.0, 0.0, 0.0
+    a = np.array([ours[k] for k in shared], dtype=np.float64)
+    b = np.array([theirs[k] for k in shared], dtype=np.float64)
+    ca, cb = a.mean(0), b.mean(0)
+    rotation = 0.0
+    if len(shared) > 1:
+        m = (a - ca).T @ (b - cb)
+        rotation = math.atan2(m[0, 1] - m[1, 0], m[0, 0] + m[1, 1])
+    c, s = math.cos(rotation), math.sin(rotation)
+    shift = cb - np.array([[c, -s], [s, c]]) @ ca
+    return float(shift[0]), float(shift[1]), rotation
+
+
+def _effect_style(base: tuple, effect: float | None, largest: float) -> tuple:
+    """(colour, size factor) of an entity with ``effect`` (None: not explained)."""
+    if effect is None or largest <= 0:
+        return base, 1.0
+    weight = abs(effect) / largest
+    return (*(RAISES if effect > 0 else LOWERS), 0.35 + 0.65 * weight), 1.0 + 0.6 * weight
+
+
+def _score_colour(score: float, low: float, high: float) -> tuple:
+    """Red (lowest score of the request) to green (highest)."""
+    t = 1.0 if high <= low else (score - low) / (high - low)
+    return (1.0 - t, 0.2 + 0.6 * t, 0.1, 1.0)
+
+
+def scene_markers(scene: dict, effects: dict | None = None, scene_id: str = 'robot') -> list:
+    """One ``Marker`` per entity of ``scene`` (``scene_graph.entity_nodes``: the room, each
+    human, object, wall segment and interaction) and one for the robot (labelled ``scene_id``,
+    the request's, so a viewer or a test tells scenes apart); ``effects``: entity
+    id -> removal effect (``why``), which tints (green: it raises the score, red: it lowers it)
+    and sizes each entity named by its |effect|."""
+    effects = effects or {}
+    largest = max((abs(e) for e in effects.values()), default=0.0)
+    humans = {h['id']: h for h in scene.get('humans') or []}
+    objects = {o['id']: o for o in scene.get('objects') or []}
+    room = [tuple(p) for p in scene['room']]
+    if len(room) > 1 and room[0] == room[-1]:
+        room = room[:-1]
+    markers = [Marker('robot', 0, 'CYLINDER', (0.0, 0.0, 0.15), 0.0, (0.5, 0.5, 0.3), KIND_COLOURS['robot'],
+                      label=scene_id)]
+    walls = interactions = 0
+    for entity_id, kind, _ in entity_nodes(scene):
+        colour, grow = _effect_style(KIND_COLOURS[kind], effects.get(entity_id), largest)
+        ns, label = NAMESPACES[kind], str(entity_id)
+        if kind == 'room':
+            outline = tuple((*to_rep103(*p), 0.0) for p in room + room[:1])
+            markers.append(Marker(ns, 0, 'LINE_STRIP', scale=(0.02 * grow, 0.0, 0.0), color=colour, points=outline,
+                                  label=label))
+        elif kind in ('human', 'object'):
+            entity = humans[entity_id] if kind == 'human' else objects[entity_id]
+            x, y = to_rep103(entity['xPos'], entity['yPos'])
+            yaw = heading_yaw(entity['orientation'])
+            if kind == 'human':
+                markers.append(Marker(ns, int(entity_id), 'ARROW', (x, y, 0.0), yaw,
+                                      (0.6 * grow, 0.15 * grow, 0.15 * grow), colour, label=label))
+            else:
+                markers.append(Marker(ns, int(entity_id), 'CUBE', (x, y, 0.2), yaw, (0.4 * grow,) * 3, colour,
+                                      label=label))
+        elif kind == 'wall':
+            start, end = room[walls], room[(walls + 1) % len(room)]
+            points = ((*to_rep103(*start), 0.5), (*to_rep103(*end), 0.5))
+            markers.append(Marker(ns, walls, 'LINE_LIST', scale=(0.06 * grow, 0.0, 0.0), color=colour, points=points,
+                                  label=label))
+            walls += 1
+        else:
+            first, second = (int(i) for i in entity_id.split('-'))
+            ends = [humans.get(i) or objects[i] for i in (first, second)]
+            points = tuple((*to_rep103(e['xPos'], e['yPos']), 0.05) for e in ends)
+            markers.append(Marker(ns, interactions, 'LINE_LIST', scale=(0.03 * grow, 0.0, 0.0), color=colour,
+                                  points=points, label=label))
+            interactions += 1
+    return markers
+
+
+def ranking_markers(request, ranked: list) -> list:
+    """The markers of one ranked request (``messages.SceneRequest``, ``predictor.Ranked``
+    entries best first, with their ``why`` when explained): its scene, tinted by the best
+    entry's entity effects, and for candidate scenes one flat disc per candidate at its robot
+    pose, coloured by score (red lowest, green highest), the best one larger and opaque."""
+    best = ranked[0] if ranked else None
+    effects = None if best is None or best.why is None else {i: e for i, _, e in best.why.entities}
+    reference = request.graphs[0]
+    markers = scene_markers(reference, effects, request.scene_id)
+    if not request.ranks_scenes:
+        return markers
+    scores = {r.name: r.score for r in ranked}
+    low, high = min(scores.values(), default=0.0), max(scores.values(), default=0.0)
+    for k, (label, graph) in enumerate(zip(request.labels, request.graphs)):
+        x, y, rotation = _pose_in(reference, graph)
+        position = (*to_rep103(x, y), 0.02)
+        is_best = best is not None and label == best.name
+        size = 0.45 if is_best else 0.3
+        score = scores.get(label)  # None: cut by top_k
+        colour = (0.5, 0.5, 0.5, 0.4) if score is None else _score_colour(score, low, high)
+        if not is_best:
+            colour = (*colour[:3], min(colour[3], 0.6))
+        markers.append(Marker('candidates', k, 'CYLINDER', position, rotation, (size, size, 0.04), colour,
+                              label=f'{label} {score:.3f}' if score is not None else label))
+    return markers

@@ -1,0 +1,101 @@
+"""stars/markers on the wire: ``node.markers.Marker`` lists as visualization_msgs/MarkerArray,
+and the type as a bag stores it (``recording.MessageType``: the ros2msg definition rosbag2
+writes, made from the installed message classes, so it matches the ROS it runs on).
+"""
+from __future__ import annotations
+
+import importlib
+import math
+
+from geometry_msgs.msg import Point
+from rclpy.serialization import serialize_message
+from rosidl_parser import definition
+from visualization_msgs.msg import Marker, MarkerArray
+
+from stars_ros.recording import MessageType
+
+MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
+_BASIC = {'double': 'float64', 'float': 'float32', 'long double': 'float64', 'boolean': 'bool', 'octet': 'byte',
+          'char': 'char', 'wchar': 'wchar'}
+
+
+def _type_text(slot) -> str:
+    """A field type in ros2msg syntax (``float64``, ``string<=10``, ``geometry_msgs/Point[]``)."""
+    if isinstance(slot, definition.BasicType):
+        return _BASIC.get(slot.typename, slot.typename)
+    if isinstance(slot, definition.NamespacedType):
+        return f'{slot.namespaces[0]}/{slot.name}'
+    if isinstance(slot, definition.AbstractGenericString):
+        base = 'wstring' if isinstance(slot, definition.AbstractWString) else 'string'
+        return f'{base}<={slot.maximum_size}' if slot.has_maximum_size() else base
+    inner = _type_text(slot.value_type)
+    if isinstance(slot, definition.Array):
+        return f'{inner}[{slot.size}]'
+    if isinstance(slot, definition.BoundedSequence):
+        return f'{inner}[<={slot.maximum_size}]'
+    return f'{inner}[]'
+
+
+def _nested(slot):
+    while isinstance(slot, definition.AbstractNestedType):
+        slot = slot.value_type
+    return slot if isinstance(slot, definition.NamespacedType) else None
+
+
+def message_definition(message_class) -> str:
+    """The ros2msg text of ``message_class`` and of every type it uses, depth first (each
+    after a line of 80 '=' and ``MSG: pkg/Type``), as rosbag2 stores it in an MCAP schema."""
+    sections, seen = [], set()
+
+    def define(cls):
+        lines, used = [], []
+        for name, slot in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES):
+            lines.append(f'{_type_text(slot)} {name}')
+            nested = _nested(slot)
+            if nested is not None:
+                used.append((nested.namespaces[0], nested.name))
+        header = '' if not sections else '=' * 80 + f"\nMSG: {cls.__module__.split('.')[0]}/{cls.__name__}\n"
+        sections.append(header + '\n'.join(lines) + '\n')
+        for key in used:
+            if key not in seen:
+                seen.add(key)
+                define(getattr(importlib.import_module(f'{key[0]}.msg'), key[1]))
+    define(message_class)
+    return ''.join(sections)
+
+
+def _message(spec, frame_id: str, stamp) -> Marker:
+    marker = Marker(ns=spec.ns, id=spec.id, type=getattr(Marker, spec.kind), action=Marker.ADD, text=spec.label)
+    marker.header.frame_id, marker.header.stamp = frame_id, stamp
+    marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = (float(v) for v in spec.position)
+    marker.pose.orientation.z, marker.pose.orientation.w = math.sin(spec.yaw / 2), math.cos(spec.yaw / 2)
+    marker.scale.x, marker.scale.y, marker.scale.z = (float(v) for v in spec.scale)
+    marker.color.r, marker.color.g, marker.color.b, marker.color.a = (float(v) for v in spec.color)
+    marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in spec.points]
+    return marker
+
+
+def marker_array(markers: list, frame_id: str, stamp) -> MarkerArray:
+    """A DELETEALL (the previous scene's markers go), then one Marker per ``node.markers.Marker``."""
+    clear = Marker(action=Marker.DELETEALL)
+    clear.header.frame_id, clear.header.stamp = frame_id, stamp
+    return MarkerArray(markers=[clear] + [_message(spec, frame_id, stamp) for spec in markers])
+
+
+class MarkerOutput:
+    """What ``RankerCore`` sends stars/markers through (its ``markers_out``): the node's
+    publisher, its clock and ``frame_id`` parameter; ``type_hash`` is the topic's RIHS01 hash
+    (as the middleware reports it for the publisher)."""
+
+    def __init__(self, node, publisher, params: dict, type_hash: str):
+        self.node, self.publisher, self.params = node, publisher, params
+        self.message_type = MessageType(MARKER_ARRAY, message_definition(MarkerArray), type_hash)
+
+    def subscribed(self) -> bool:
+        return self.publisher.get_subscription_count() > 0
+
+    def send(self, markers: list, record: bool):
+        array = marker_array(markers, self.params['frame_id'], self.node.get_clock().now().to_msg())
+        if self.subscribed():
+            self.publisher.publish(array)
+        return serialize_message(array) if record else None
