@@ -25,7 +25,7 @@ nodes start, ``in_process`` times the steps of one request on one thread in this
 (parse and validate, featurise, encode, score, build the reply; the whole request with and
 without score_sd and p_first_is_best, which the node computes for every ranking, and with
 every entry's ``why``, ``"explain": true``: docs/explanations.md; and the stars/markers of an
-explained ranking, built and serialised as a MarkerArray, which the node does after the reply
+explained ranking, built and encoded as a MarkerArray, which the node does after the reply
 for a subscriber or the bag: ``--no-markers`` turns their recording off), with the
 encoder in its serving form (GAT: compiled; the others: dense numpy) and, as a reference
 measured in the same run, in its PyG sparse form.
@@ -228,7 +228,8 @@ def _timed(call):
 
 
 def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
-    """Median ms of each step of one request on one torch thread (see the module docstring)."""
+    """Median ms of each step of one request on one torch thread and one BLAS thread, as the
+    node serves (see the module docstring)."""
     import torch
 
     from stars_ros import messages
@@ -236,16 +237,15 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     from stars_ros.resources import resolve_checkpoint
     from stars_ros.data.scene_graph import featurise
     from stars_ros.data.scene_store import GraphStore
-    from rclpy.clock import Clock
-    from rclpy.serialization import serialize_message
-
     from stars_ros.node.batching import Pending, rank_batch
-    from stars_ros.node.markers import ranking_markers
-    from stars_ros.ros.markers import marker_array
+    from stars_ros.node.markers import encode_marker_array, ranking_markers
     from stars_ros.personalisation.foldin import FoldIn
     from stars_ros.personalisation.uncertainty import Uncertainty
 
+    from threadpoolctl import threadpool_limits
+
     torch.set_num_threads(1)
+    threadpool_limits(1, user_api='blas')  # as the node does; OpenBLAS threads on busy cores slow explained requests
     predictor = Predictor.load(resolve_checkpoint(checkpoint))
     model = predictor.recommender.model
     uncertainty = Uncertainty(FoldIn(predictor))  # as the node serves: score_sd and p_first_is_best
@@ -265,8 +265,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
         _, explained = _timed(lambda: request_total(text, explanations=(True, 5)))
         parsed = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
         ranked = rank_batch(predictor, [Pending(parsed, 'alice', 0)], 0, uncertainty, (True, 5))[0].ranked
-        _, markers = _timed(lambda: serialize_message(marker_array(ranking_markers(parsed, ranked), 'base_link',
-                                                                   Clock().now().to_msg())))
+        _, markers = _timed(lambda: encode_marker_array(ranking_markers(parsed, ranked), 'base_link', 0))
         request, parse = _timed(lambda: messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES))
         graph, featurising = _timed(lambda: featurise(request.graphs[0], validate=False))
         sparse = GraphStore([graph]).batch(torch.arange(1))

@@ -60,7 +60,7 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'explain': (False, "give every ranking entry its 'why' (the parts of its score and the entities that drive it, "
                 'docs/explanations.md), as a request with "explain": true does', False, None),
     'explain_entities': (5, "entities a 'why' names, largest |effect| first; 0: all", False, (0, 4096)),
-    'frame_id': ('base_link', 'frame of the stars/markers (the robot\'s, REP 103 axes: the scene converted from SocNav1 '
+    'frame_id': ('base_link', "frame of stars/markers: the robot's, REP 103 axes (the scene converted from SocNav1 "
                  'centimetres, docs/explanations.md)', False, None),
     'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag even while nobody '
                        'subscribes to it; false: markers are built only for a subscriber', False, None),
@@ -115,9 +115,8 @@ class RankerCore:
         logger: takes ``info``, ``warning`` and ``error`` lines.
         now (callable): the time recorded messages are logged at (ns of ROS time).
         markers_out (optional): where stars/markers go: ``subscribed()`` (does anybody listen?),
-            ``send(markers, record)`` (publish the ``node.markers.Marker`` list to subscribers;
-            with ``record``, return the MarkerArray's CDR bytes) and ``message_type``
-            (``recording.MessageType``); None: no markers.
+            ``publish(data)`` (a visualization_msgs/MarkerArray's CDR bytes) and ``message_type``
+            (``recording.MessageType``, for the bag); None: no markers.
     """
 
     def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
@@ -464,11 +463,15 @@ class RankerCore:
         if out is None:
             return
         record = self.recorder is not None and self.params['record_markers']
-        if not (record or out.subscribed()):
+        subscribed = out.subscribed()
+        if not (record or subscribed):
             return
-        data = out.send(markers.ranking_markers(request, ranked), record)
-        if record and data is not None:
-            self.recorder.write_encoded(self.topics['stars/markers'], data, self._now())
+        stamp = self._now()
+        data = markers.encode_marker_array(markers.ranking_markers(request, ranked), self.params['frame_id'], stamp)
+        if subscribed:
+            out.publish(data)
+        if record:
+            self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
 
     def _report_stranger(self, user_id: str, scene_id: str):
         """Warn once per unknown user and model, not per ranking: strangers are the normal

@@ -1,6 +1,7 @@
 """What ``stars/markers`` shows of a ranked request, ROS-free: one ``Marker`` per scene entity
-and per candidate, in REP 103 axes; ``stars_ros.ros.ranker`` turns them into a
-visualization_msgs/MarkerArray (after a DELETEALL, so the markers of the previous scene go).
+and per candidate, in REP 103 axes, and the visualization_msgs/MarkerArray they make (after a
+DELETEALL, so the markers of the previous scene go) as CDR bytes, which the node publishes as
+they are and the bag records (``encode_marker_array``; a test checks them against rclpy's).
 
 SocNav1 scenes are in the robot's frame in centimetres with +y ahead, +x to the robot's right
 (``docs/explanations.md``, "Scenes you can look at"); REP 103 is metres, x forward, y left,
@@ -14,16 +15,20 @@ motion that carries its humans, objects and room corners onto the first candidat
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 
 import numpy as np
 
 from stars_ros.data.scene_graph import CENTIMETRES_PER_METRE, entity_nodes
+from stars_ros.recording.bag import CDR_LITTLE_ENDIAN
 
 KIND_COLOURS = {'robot': (0.2, 0.3, 0.9, 1.0), 'room': (0.6, 0.6, 0.6, 1.0), 'human': (1.0, 0.75, 0.1, 1.0),
                 'object': (0.55, 0.35, 0.2, 1.0), 'wall': (0.3, 0.3, 0.3, 1.0),
                 'interaction': (0.8, 0.2, 0.8, 1.0)}
 RAISES, LOWERS = (0.1, 0.75, 0.2), (0.9, 0.15, 0.1)  # an entity whose removal lowers / raises the score
+TYPES = {'ARROW': 0, 'CUBE': 1, 'SPHERE': 2, 'CYLINDER': 3, 'LINE_STRIP': 4, 'LINE_LIST': 5}  # Marker.type
+ADD, DELETEALL = 0, 3  # Marker.action
 NAMESPACES = {'robot': 'robot', 'room': 'room', 'human': 'humans', 'object': 'objects', 'wall': 'walls',
               'interaction': 'interactions', 'candidate': 'candidates'}
 
@@ -56,7 +61,7 @@ def heading_yaw(degrees: float) -> float:
     return math.atan2(math.sin(yaw), math.cos(yaw))
 
 
-def _pose_in(reference: dict, scene: dict) -> tuple:
+def robot_pose_in(reference: dict, scene: dict) -> tuple:
     """(x cm, y cm, rotation rad) of ``scene``'s robot in ``reference``'s frame (SocNav1 axes):
     the least-squares rigid motion carrying the points both share (humans and objects by id,
     room corners by index when both rooms have as many) from ``scene`` onto ``reference``.
@@ -159,7 +164,7 @@ def ranking_markers(request, ranked: list) -> list:
     scores = {r.name: r.score for r in ranked}
     low, high = min(scores.values(), default=0.0), max(scores.values(), default=0.0)
     for k, (label, graph) in enumerate(zip(request.labels, request.graphs)):
-        x, y, rotation = _pose_in(reference, graph)
+        x, y, rotation = robot_pose_in(reference, graph)
         position = (*to_rep103(x, y), 0.02)
         is_best = best is not None and label == best.name
         size = 0.45 if is_best else 0.3
@@ -170,3 +175,76 @@ def ranking_markers(request, ranked: list) -> list:
         markers.append(Marker('candidates', k, 'CYLINDER', position, rotation, (size, size, 0.04), colour,
                               label=f'{label} {score:.3f}' if score is not None else label))
     return markers
+
+
+class _Cdr:
+    """Little-endian plain CDR (what rclpy's Fast DDS type support writes): each number aligned
+    to its size from the start of the payload, strings as uint32 length (with the NUL) + UTF-8 + NUL."""
+
+    def __init__(self):
+        self.buffer = bytearray()
+
+    def _align(self, size: int):
+        self.buffer += bytes(-len(self.buffer) % size)
+
+    def numbers(self, code: str, *values):
+        self._align(struct.calcsize(code))
+        self.buffer += struct.pack(f'<{len(values)}{code}', *values)
+
+    def string(self, text: str):
+        data = text.encode()
+        self.numbers('I', len(data) + 1)
+        self.buffer += data + b'\0'
+
+    def boolean(self, value: bool):
+        self.buffer.append(1 if value else 0)
+
+
+def _marker_cdr(out: _Cdr, marker: Marker | None, frame_id: str, sec: int, nanosec: int):
+    """One visualization_msgs/Marker, field by field; None: a DELETEALL."""
+    out.numbers('i', sec)
+    out.numbers('I', nanosec)
+    out.string(frame_id)
+    if marker is None:
+        out.string('')
+        out.numbers('i', 0, 0, DELETEALL)
+        out.numbers('d', 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # pose (identity), scale
+        out.numbers('f', 0.0, 0.0, 0.0, 0.0)
+    else:
+        out.string(marker.ns)
+        out.numbers('i', marker.id, TYPES[marker.kind], ADD)
+        out.numbers('d', *marker.position, 0.0, 0.0, math.sin(marker.yaw / 2), math.cos(marker.yaw / 2),
+                    *marker.scale)
+        out.numbers('f', *marker.color)
+    out.numbers('i', 0)  # lifetime 0: until replaced (the next array's DELETEALL)
+    out.numbers('I', 0)
+    out.boolean(False)  # frame_locked
+    points = () if marker is None else marker.points
+    out.numbers('I', len(points))
+    if points:
+        out.numbers('d', *(value for point in points for value in point))
+    out.numbers('I', 0)  # colors
+    out.string('')  # texture_resource
+    out.numbers('i', 0)  # texture: sensor_msgs/CompressedImage (header, format, data), empty
+    out.numbers('I', 0)
+    out.string('')
+    out.string('')
+    out.numbers('I', 0)
+    out.numbers('I', 0)  # uv_coordinates
+    out.string('' if marker is None else marker.label)  # text
+    out.string('')  # mesh_resource
+    out.string('')  # mesh_file: visualization_msgs/MeshFile (filename, data), empty
+    out.numbers('I', 0)
+    out.boolean(False)  # mesh_use_embedded_materials
+
+
+def encode_marker_array(markers: list, frame_id: str, stamp_ns: int) -> bytes:
+    """The CDR bytes of a visualization_msgs/MarkerArray: a DELETEALL, then ``markers``, every
+    header in ``frame_id`` at ``stamp_ns`` (ns of ROS time); ``label`` goes in ``text``."""
+    out = _Cdr()
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    out.numbers('I', len(markers) + 1)
+    _marker_cdr(out, None, frame_id, sec, nanosec)
+    for marker in markers:
+        _marker_cdr(out, marker, frame_id, sec, nanosec)
+    return CDR_LITTLE_ENDIAN + bytes(out.buffer)

@@ -40,7 +40,7 @@ STRING_HASH = 'RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f
 PID_FILE = 'recording.pid'
 METADATA_FILE = 'metadata.yaml'
 ROSBAG2_VERSION = 9
-_CDR_LITTLE_ENDIAN = b'\x00\x01\x00\x00'  # encapsulation header: plain CDR, little-endian
+CDR_LITTLE_ENDIAN = b'\x00\x01\x00\x00'  # encapsulation header: plain CDR, little-endian
 _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 _MAGIC = b'\x89MCAP0\r\n'
 
@@ -79,7 +79,7 @@ def encode_string(text: str) -> bytes:
     length of the UTF-8 text with its NUL terminator (uint32), the text, the NUL.
     mcap-ros2-support encodes only inside its own MCAP writer, so it is written here."""
     data = text.encode('utf-8') + b'\0'
-    return _CDR_LITTLE_ENDIAN + len(data).to_bytes(4, 'little') + data
+    return CDR_LITTLE_ENDIAN + len(data).to_bytes(4, 'little') + data
 
 
 def topic_qos(channel: Channel) -> dict:

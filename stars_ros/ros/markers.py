@@ -1,16 +1,13 @@
-"""stars/markers on the wire: ``node.markers.Marker`` lists as visualization_msgs/MarkerArray,
-and the type as a bag stores it (``recording.MessageType``: the ros2msg definition rosbag2
+"""stars/markers on the wire: the publisher of the MarkerArray bytes ``node.markers`` encodes,
+and their type as a bag stores it (``recording.MessageType``: the ros2msg definition rosbag2
 writes, made from the installed message classes, so it matches the ROS it runs on).
 """
 from __future__ import annotations
 
 import importlib
-import math
 
-from geometry_msgs.msg import Point
-from rclpy.serialization import serialize_message
 from rosidl_parser import definition
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
 from stars_ros.recording import MessageType
 
@@ -64,38 +61,17 @@ def message_definition(message_class) -> str:
     return ''.join(sections)
 
 
-def _message(spec, frame_id: str, stamp) -> Marker:
-    marker = Marker(ns=spec.ns, id=spec.id, type=getattr(Marker, spec.kind), action=Marker.ADD, text=spec.label)
-    marker.header.frame_id, marker.header.stamp = frame_id, stamp
-    marker.pose.position.x, marker.pose.position.y, marker.pose.position.z = (float(v) for v in spec.position)
-    marker.pose.orientation.z, marker.pose.orientation.w = math.sin(spec.yaw / 2), math.cos(spec.yaw / 2)
-    marker.scale.x, marker.scale.y, marker.scale.z = (float(v) for v in spec.scale)
-    marker.color.r, marker.color.g, marker.color.b, marker.color.a = (float(v) for v in spec.color)
-    marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in spec.points]
-    return marker
-
-
-def marker_array(markers: list, frame_id: str, stamp) -> MarkerArray:
-    """A DELETEALL (the previous scene's markers go), then one Marker per ``node.markers.Marker``."""
-    clear = Marker(action=Marker.DELETEALL)
-    clear.header.frame_id, clear.header.stamp = frame_id, stamp
-    return MarkerArray(markers=[clear] + [_message(spec, frame_id, stamp) for spec in markers])
-
-
 class MarkerOutput:
     """What ``RankerCore`` sends stars/markers through (its ``markers_out``): the node's
-    publisher, its clock and ``frame_id`` parameter; ``type_hash`` is the topic's RIHS01 hash
-    (as the middleware reports it for the publisher)."""
+    MarkerArray publisher, which publishes the encoded bytes as they are; ``type_hash`` is the
+    topic's RIHS01 hash (as the middleware reports it for the publisher)."""
 
-    def __init__(self, node, publisher, params: dict, type_hash: str):
-        self.node, self.publisher, self.params = node, publisher, params
+    def __init__(self, publisher, type_hash: str):
+        self.publisher = publisher
         self.message_type = MessageType(MARKER_ARRAY, message_definition(MarkerArray), type_hash)
 
     def subscribed(self) -> bool:
         return self.publisher.get_subscription_count() > 0
 
-    def send(self, markers: list, record: bool):
-        array = marker_array(markers, self.params['frame_id'], self.node.get_clock().now().to_msg())
-        if self.subscribed():
-            self.publisher.publish(array)
-        return serialize_message(array) if record else None
+    def publish(self, data: bytes):
+        self.publisher.publish(data)

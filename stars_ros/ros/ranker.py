@@ -94,7 +94,7 @@ class RankerNode(Node):
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
                                self.get_fully_qualified_name(), self._publish, self.get_logger(),
                                lambda: self.get_clock().now().nanoseconds,
-                               MarkerOutput(self, markers_pub, self.params, type_hash))
+                               MarkerOutput(markers_pub, type_hash))
         self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, qos['stars/scene'])
         self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data),
                                  qos['stars/user_id'])

@@ -5,6 +5,7 @@ builds them after each ranking only when somebody listens or the bag records the
 import math
 
 import pytest
+from rosbags.typesys import Stores, get_typestore
 
 from core_harness import Node, drain
 from stars_ros import messages, recording
@@ -13,7 +14,7 @@ from stars_ros.data.scene_source import placement_candidates, scene_request
 from stars_ros.model.explain import Why
 from stars_ros.model.predictor import Ranked
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
-from stars_ros.node.markers import heading_yaw, ranking_markers, scene_markers, to_rep103
+from stars_ros.node.markers import encode_marker_array, heading_yaw, ranking_markers, scene_markers, to_rep103
 
 ROOM = [[-300, -300], [300, -300], [300, 300], [-300, 300], [-300, -300]]
 SCENE = {'robot': {'id': 0}, 'room': ROOM,
@@ -21,6 +22,10 @@ SCENE = {'robot': {'id': 0}, 'room': ROOM,
                     {'id': 2, 'xPos': 50, 'yPos': 0, 'orientation': 90}],    # 0.5 m to the right, facing right
          'objects': [{'id': 3, 'xPos': -200, 'yPos': 0, 'orientation': 0}],  # 2 m to the left
          'links': [[1, 2, 'interact'], [2, 1, 'interact']]}
+
+
+MARKER_ARRAY_DEFINITION = get_typestore(Stores.ROS2_JAZZY).generate_msgdef('visualization_msgs/msg/MarkerArray',
+                                                                          ros_version=2)[0]
 
 
 def _by(markers):
@@ -81,8 +86,22 @@ def test_candidates_stand_where_their_robot_is_coloured_by_score():
     assert _by(markers)['humans', 1].color[1] > 0.5  # tinted by the best entry's why
 
 
+def test_the_marker_array_decodes_as_a_real_one():
+    markers = scene_markers(SCENE, {1: 0.3}, 'scene é')
+    data = encode_marker_array(markers, 'base_link', 1_234_567_890_123)
+    array = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(data, 'visualization_msgs/msg/MarkerArray')
+    assert len(array.markers) == 1 + len(markers) and array.markers[0].action == 3  # DELETEALL first
+    for ours, theirs in zip(markers, array.markers[1:]):
+        assert (theirs.ns, theirs.id, theirs.text) == (ours.ns, ours.id, ours.label)
+        assert theirs.header.frame_id == 'base_link'
+        assert (theirs.header.stamp.sec, theirs.header.stamp.nanosec) == (1234, 567_890_123)
+        assert (theirs.pose.position.x, theirs.pose.position.y, theirs.pose.position.z) == ours.position
+        assert [(p.x, p.y, p.z) for p in theirs.points] == list(ours.points)
+        assert (theirs.color.r, theirs.color.g, theirs.color.b, theirs.color.a) == pytest.approx(ours.color)
+
+
 class FakeMarkers:
-    message_type = recording.MessageType('visualization_msgs/msg/MarkerArray', 'int32 n\n', 'RIHS01_x')
+    message_type = recording.MessageType('visualization_msgs/msg/MarkerArray', MARKER_ARRAY_DEFINITION, 'RIHS01_x')
 
     def __init__(self, listening):
         self.listening, self.sent = listening, []
@@ -90,9 +109,8 @@ class FakeMarkers:
     def subscribed(self):
         return self.listening
 
-    def send(self, markers, record):
-        self.sent.append((markers, record))
-        return b'\x00\x01\x00\x00' + len(markers).to_bytes(4, 'little') if record else None
+    def publish(self, data):
+        self.sent.append(data)
 
 
 @pytest.mark.parametrize('listening, record_folder, record, built', [
@@ -109,11 +127,15 @@ def test_the_core_builds_markers_only_for_a_listener_or_the_bag(tiny_checkpoint,
     core.accept_scene(messages.dumps(scene_request('s0', scene)), 0)
     drain(core)
     assert len(node.on('stars/ranking')) == 1
-    assert len(out.sent) == int(built)
-    if built:
-        assert len(out.sent[0][0]) == 1 + len(entity_nodes(scene)) and out.sent[0][1] == (record_folder and record)
+    assert len(out.sent) == int(listening)
+    if listening:  # a DELETEALL, the robot and one marker per entity
+        assert int.from_bytes(out.sent[0][4:8], 'little') == 2 + len(entity_nodes(scene))
     core.close()
-    if record_folder and record:
+    stored = []
+    if record_folder:
         [bag] = tmp_path.iterdir()
-        assert recording.bag_topics(bag, out.message_type.name) == {'/stars/markers': recording.qos_profile(1, True)}
-        assert '/stars/markers' not in recording.bag_topics(bag)  # the String topics a replay plays
+        stored = list(recording.read_decoded(bag, ['/stars/markers']))
+        if record:
+            assert recording.bag_topics(bag, None)['/stars/markers'] == recording.qos_profile(1, True)
+            assert '/stars/markers' not in recording.bag_topics(bag)  # the String topics a replay plays
+    assert len(stored) == int(built and record_folder)

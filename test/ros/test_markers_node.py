@@ -3,11 +3,15 @@ on every entry, stars/markers carries one marker per scene entity and candidate 
 frame_id frame, and both are in the MCAP bag, the markers as real
 visualization_msgs/msg/MarkerArray read back with mcap_ros2 (and rosbags)."""
 import json
+import math
 
 import pytest
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from visualization_msgs.msg import Marker, MarkerArray
@@ -17,11 +21,41 @@ from stars_ros import messages, recording
 from stars_ros.data.scene_graph import entity_nodes
 from stars_ros.data.scene_source import placement_candidates, scene_request
 from stars_ros.model.predictor import Predictor
-from stars_ros.node.markers import to_rep103
+from stars_ros.node.markers import encode_marker_array, scene_markers, to_rep103
+from stars_ros.ros.markers import message_definition
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
 MARKERS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 FRAME = 'robot1/base_link'
+
+
+def test_the_encoded_marker_array_is_the_one_rclpy_serialises(scene):
+    """The bytes the node publishes and records are those of the MarkerArray built field by field
+    (as long, and the same message; Fast-CDR leaves its padding bytes uninitialised)."""
+    markers = scene_markers(scene, {scene['humans'][0]['id']: 0.2}, 'scène')
+    stamp = Time(sec=12, nanosec=345)
+    clear = Marker(action=Marker.DELETEALL)
+    clear.header.frame_id, clear.header.stamp = FRAME, stamp
+    expected = [clear]
+    for spec in markers:
+        marker = Marker(ns=spec.ns, id=spec.id, type=getattr(Marker, spec.kind), action=Marker.ADD, text=spec.label)
+        marker.header.frame_id, marker.header.stamp = FRAME, stamp
+        marker.pose.position = Point(x=spec.position[0], y=spec.position[1], z=spec.position[2])
+        marker.pose.orientation.z, marker.pose.orientation.w = math.sin(spec.yaw / 2), math.cos(spec.yaw / 2)
+        marker.scale.x, marker.scale.y, marker.scale.z = spec.scale
+        marker.color.r, marker.color.g, marker.color.b, marker.color.a = spec.color
+        marker.points = [Point(x=x, y=y, z=z) for x, y, z in spec.points]
+        expected.append(marker)
+    ours, theirs = encode_marker_array(markers, FRAME, 12_000_000_345), serialize_message(MarkerArray(markers=expected))
+    assert len(ours) == len(theirs)
+    assert deserialize_message(ours, MarkerArray) == deserialize_message(theirs, MarkerArray)
+
+
+def test_the_recorded_definition_is_the_installed_one():
+    ours = message_definition(MarkerArray)
+    theirs, _ = get_typestore(Stores.ROS2_JAZZY).generate_msgdef('visualization_msgs/msg/MarkerArray', ros_version=2)
+    fields = [line for line in theirs.splitlines() if '=' not in line or line.startswith('=' * 80)]  # no constants
+    assert ours.splitlines() == fields
 
 
 def _added(array) -> list:
