@@ -368,7 +368,8 @@ def test_replay_reruns_a_recorded_session(ranker, scenes, tmp_path):
 def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(socnav1_root, tmp_path):
     """Each run records into a new temporary folder of its own (under TMPDIR here), so the
     second restores none of the first run's folded-in users, and sends its feedback once
-    every ranking is in: the two runs print the same rankings, digit for digit."""
+    every ranking is in: the two runs print the same rankings, digit for digit; each draws
+    its first scene for both people into that folder."""
     printed = []
     for _ in range(2):
         demo = subprocess.run([sys.executable, '-m', 'stars_ros.ros.demo',  # the packaged model, as a user runs it
@@ -379,6 +380,8 @@ def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(socn
         assert re.search(r"People: '[a-l]' and '[a-l]'", demo.stdout)
         assert demo.stdout.count('scene ') == 3 and 'Summary: 6 rankings' in demo.stdout
         assert '6 rankings and 6 feedback ratings read back from MCAP. Ranker exit code 0.' in demo.stdout
+        picture = re.search(r'Picture \(both people, [^)]+\): (\S+\.png)$', demo.stdout, re.MULTILINE)
+        assert picture and open(picture.group(1), 'rb').read(8) == b'\x89PNG\r\n\x1a\n'
         printed.append([line for line in demo.stdout.splitlines() if line.startswith(('scene ', '  '))])
     assert len(printed[0]) == 9 and printed[0] == printed[1]
     people_lines = [line for k, line in enumerate(printed[0]) if k % 3]
