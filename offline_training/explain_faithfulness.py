@@ -68,6 +68,12 @@ def _sample(predictor, data, root: Path, count: int, seed: int) -> tuple[list, l
     return scenes, users, len(held)
 
 
+def _shown(path) -> str:
+    """``path`` relative to the current folder when it is inside it (results stay portable)."""
+    path = Path(path).resolve()
+    return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
+
+
 def _markdown(results: dict) -> str:
     f, g = results['faithfulness'], results['gnnexplainer']
     return f"""# Faithfulness of the removal effects, and GNNExplainer, on held-out SocNav1 scenes
@@ -116,7 +122,7 @@ def main(argv=None) -> int:
     column = predictor.action_columns([action])[0]
     print(f'{held} held-out scenes; explaining {len(scenes)}', flush=True)
     results = {'command': ' '.join(['python -m offline_training.explain_faithfulness'] + (argv or sys.argv[1:])),
-               'checkpoint': str(checkpoint), 'fingerprint': predictor.fingerprint, 'held_out_scenes': held,
+               'checkpoint': _shown(checkpoint), 'fingerprint': predictor.fingerprint, 'held_out_scenes': held,
                'action': action, 'seed': args.seed,
                'faithfulness': faithfulness(predictor, scenes, users, column)}
     print(json.dumps(results['faithfulness']), flush=True)

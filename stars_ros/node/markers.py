@@ -14,6 +14,7 @@ motion that carries its humans, objects and room corners onto the first candidat
 """
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from dataclasses import dataclass
@@ -181,8 +182,8 @@ class _Cdr:
     """Little-endian plain CDR (what rclpy's Fast DDS type support writes): each number aligned
     to its size from the start of the payload, strings as uint32 length (with the NUL) + UTF-8 + NUL."""
 
-    def __init__(self):
-        self.buffer = bytearray()
+    def __init__(self, phase: int = 0):
+        self.buffer = bytearray(phase)  # ``phase`` bytes stand for what precedes (see _constant)
 
     def _align(self, size: int):
         self.buffer += bytes(-len(self.buffer) % size)
@@ -200,42 +201,71 @@ class _Cdr:
         self.buffer.append(1 if value else 0)
 
 
-def _marker_cdr(out: _Cdr, marker: Marker | None, frame_id: str, sec: int, nanosec: int):
-    """One visualization_msgs/Marker, field by field; None: a DELETEALL."""
+def _texture_on(out: _Cdr):
+    """colors, texture_resource, texture (sensor_msgs/CompressedImage) and uv_coordinates, all empty."""
+    out.numbers('I', 0)
+    out.string('')
+    out.numbers('i', 0)
+    out.numbers('I', 0)
+    out.string('')
+    out.string('')
+    out.numbers('I', 0)
+    out.numbers('I', 0)
+
+
+def _mesh_on(out: _Cdr):
+    """mesh_resource, mesh_file (visualization_msgs/MeshFile) and mesh_use_embedded_materials, empty."""
+    out.string('')
+    out.string('')
+    out.numbers('I', 0)
+    out.boolean(False)
+
+
+@functools.lru_cache(maxsize=64)
+def _constant(part, phase: int, *args) -> bytes:
+    """The bytes ``part(out, *args)`` writes at an offset ``phase`` (mod 8) into the payload:
+    the same wherever that is, so they are made once."""
+    out = _Cdr(phase)
+    part(out, *args)
+    return bytes(out.buffer[phase:])
+
+
+def _header_on(out: _Cdr, frame_id: str, sec: int, nanosec: int):
     out.numbers('i', sec)
     out.numbers('I', nanosec)
     out.string(frame_id)
+
+
+def _marker_cdr(out: _Cdr, marker: Marker | None, frame_id: str, sec: int, nanosec: int):
+    """One visualization_msgs/Marker, field by field; None: a DELETEALL."""
+    buffer = out.buffer
+    buffer += _constant(_header_on, len(buffer) % 8, frame_id, sec, nanosec)
+    ns = b'' if marker is None else marker.ns.encode()
+    out.numbers('I', len(ns) + 1)
+    buffer += ns + b'\0'
     if marker is None:
-        out.string('')
-        out.numbers('i', 0, 0, DELETEALL)
-        out.numbers('d', 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # pose (identity), scale
-        out.numbers('f', 0.0, 0.0, 0.0, 0.0)
+        codes, values = (0, 0, DELETEALL), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # identity pose
+        points, colour = (), (0.0,) * 4
     else:
-        out.string(marker.ns)
-        out.numbers('i', marker.id, TYPES[marker.kind], ADD)
-        out.numbers('d', *marker.position, 0.0, 0.0, math.sin(marker.yaw / 2), math.cos(marker.yaw / 2),
-                    *marker.scale)
-        out.numbers('f', *marker.color)
-    out.numbers('i', 0)  # lifetime 0: until replaced (the next array's DELETEALL)
-    out.numbers('I', 0)
-    out.boolean(False)  # frame_locked
-    points = () if marker is None else marker.points
-    out.numbers('I', len(points))
+        codes = (marker.id, TYPES[marker.kind], ADD)
+        values = (*marker.position, 0.0, 0.0, math.sin(marker.yaw / 2), math.cos(marker.yaw / 2), *marker.scale)
+        points, colour = marker.points, marker.color
+    offset = len(buffer)
+    pad4 = -offset % 4
+    pad8 = -(offset + pad4 + 12) % 8  # pose, scale: float64
+    # id, type, action; pose, scale; color (float32); lifetime (0: until the next DELETEALL); frame_locked
+    layout = f'<{pad4}x3i{pad8}x10d4f2i?'
+    after = offset + struct.calcsize(layout)
+    layout += f'{-after % 4}xI'  # points
+    flat = ()
     if points:
-        out.numbers('d', *(value for point in points for value in point))
-    out.numbers('I', 0)  # colors
-    out.string('')  # texture_resource
-    out.numbers('i', 0)  # texture: sensor_msgs/CompressedImage (header, format, data), empty
-    out.numbers('I', 0)
-    out.string('')
-    out.string('')
-    out.numbers('I', 0)
-    out.numbers('I', 0)  # uv_coordinates
+        after += -after % 4 + 4
+        layout += f'{-after % 8}x{3 * len(points)}d'
+        flat = tuple(value for point in points for value in point)
+    buffer += struct.pack(layout, *codes, *values, *colour, 0, 0, False, len(points), *flat)
+    buffer += _constant(_texture_on, len(buffer) % 8)
     out.string('' if marker is None else marker.label)  # text
-    out.string('')  # mesh_resource
-    out.string('')  # mesh_file: visualization_msgs/MeshFile (filename, data), empty
-    out.numbers('I', 0)
-    out.boolean(False)  # mesh_use_embedded_materials
+    buffer += _constant(_mesh_on, len(buffer) % 8)
 
 
 def encode_marker_array(markers: list, frame_id: str, stamp_ns: int) -> bytes:
