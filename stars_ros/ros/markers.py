@@ -41,7 +41,8 @@ def _nested(slot):
 
 def message_definition(message_class) -> str:
     """The ros2msg text of ``message_class`` and of every type it uses, depth first (each
-    after a line of 80 '=' and ``MSG: pkg/Type``), as rosbag2 stores it in an MCAP schema."""
+    after a line of 80 '=' and ``MSG: pkg/Type``), as rosbag2 stores it in an MCAP schema
+    (the fields: constants, which no reader needs to decode, are left out)."""
     sections, seen = [], set()
 
     def define(cls):

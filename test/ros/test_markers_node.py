@@ -93,8 +93,7 @@ def test_explained_rankings_and_markers_live_and_in_the_bag(tiny_checkpoint, syn
     params = {'checkpoint': tiny_checkpoint, 'record_folder': records, 'frame_id': FRAME, 'explain_entities': 0}
     with running_ranker(domain_id(14), params, tmp_path / 'ranker.log',
                         scene_request('probe', synthetic_scenes[0])) as (process, client):
-        arrays = []
-        client.node.create_subscription(MarkerArray, '/stars/markers', client._keep(arrays, None), MARKERS)
+        arrays = client.collect_messages('/stars/markers', MarkerArray, MARKERS)
         assert client.wait(lambda: client.node.count_publishers('/stars/markers') == 1, 30)
 
         client.scene({**scene_request('actions', scene), 'explain': True})
