@@ -172,7 +172,8 @@ class RankerCore:
         except (OSError, ValueError) as error:
             self.report('recording', f'could not recover old bags in {folder}: {error}')
         qos = {self.topics[topic]: recording.qos_profile(depth, latched)
-               for topic, (depth, latched) in topic_qos(self.params).items()}
+               for topic, (depth, latched) in topic_qos(self.params).items()
+               if topic != 'stars/markers' or self.markers_out is not None}
         types = {} if self.markers_out is None else {self.topics['stars/markers']: self.markers_out.message_type}
         recorder = recording.Recorder(
             folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],

@@ -469,12 +469,15 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
     from rosbags.typesys import Stores, get_typestore
     store = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
-        read = [(c.topic, store.deserialize_cdr(raw, c.msgtype).data) for c, _, raw in reader.messages()]
+        read = [(c.topic, store.deserialize_cdr(raw, c.msgtype)) for c, _, raw in reader.messages()]
         qos = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
-    assert ('/stars/feedback', json.dumps(feedback)) in read and len(read) == len(messages)
+    texts = [(topic, message.data) for topic, message in read if topic != '/stars/markers']
+    assert ('/stars/feedback', json.dumps(feedback)) in texts and len(texts) == len(messages)
+    markers = [message for topic, message in read if topic == '/stars/markers']  # one MarkerArray a ranking
+    assert len(markers) == len(recorded) and all(m.markers[0].action == 3 for m in markers)  # DELETEALL first
     assert qos['/stars/user_id'][0].durability.name == 'TRANSIENT_LOCAL'
     info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-    assert info['message_count'] == len(messages)
+    assert info['message_count'] == len(messages) + len(markers)
 
 
 def test_hard_kill_then_recovery_keeps_everything_before_the_last_flush(tiny_checkpoint, scenes, tmp_path):
