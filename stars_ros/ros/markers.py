@@ -6,37 +6,28 @@ from __future__ import annotations
 
 import importlib
 
-from rosidl_parser import definition
 from visualization_msgs.msg import MarkerArray
 
 from stars_ros.recording import MessageType
 
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
-_BASIC = {'double': 'float64', 'float': 'float32', 'long double': 'float64', 'boolean': 'bool', 'octet': 'byte',
-          'char': 'char', 'wchar': 'wchar'}
+_BASIC = {'double': 'float64', 'float': 'float32', 'long double': 'float64', 'boolean': 'bool', 'octet': 'byte'}
 
 
-def _type_text(slot) -> str:
-    """A field type in ros2msg syntax (``float64``, ``string<=10``, ``geometry_msgs/Point[]``)."""
-    if isinstance(slot, definition.BasicType):
-        return _BASIC.get(slot.typename, slot.typename)
-    if isinstance(slot, definition.NamespacedType):
-        return f'{slot.namespaces[0]}/{slot.name}'
-    if isinstance(slot, definition.AbstractGenericString):
-        base = 'wstring' if isinstance(slot, definition.AbstractWString) else 'string'
-        return f'{base}<={slot.maximum_size}' if slot.has_maximum_size() else base
-    inner = _type_text(slot.value_type)
-    if isinstance(slot, definition.Array):
-        return f'{inner}[{slot.size}]'
-    if isinstance(slot, definition.BoundedSequence):
-        return f'{inner}[<={slot.maximum_size}]'
-    return f'{inner}[]'
-
-
-def _nested(slot):
-    while isinstance(slot, definition.AbstractNestedType):
-        slot = slot.value_type
-    return slot if isinstance(slot, definition.NamespacedType) else None
+def _field(idl: str) -> tuple:
+    """(ros2msg type, 'pkg/Type' it uses or None) of a rosidl field type (``double``,
+    ``string<10>``, ``sequence<geometry_msgs/Point>``, ``sequence<int32, 5>``, ``uint8[4]``)."""
+    suffix = ''
+    if idl.startswith('sequence<'):
+        inner, _, bound = idl[len('sequence<'):-1].partition(', ')
+        idl, suffix = inner, f'[<={bound}]' if bound else '[]'
+    elif idl.endswith(']'):
+        idl, size = idl[:-1].split('[')
+        suffix = f'[{size}]'
+    if idl.startswith(('string<', 'wstring<')):
+        base, _, bound = idl[:-1].partition('<')
+        return f'{base}<={bound}{suffix}', None
+    return _BASIC.get(idl, idl) + suffix, idl if '/' in idl else None
 
 
 def message_definition(message_class) -> str:
@@ -47,17 +38,18 @@ def message_definition(message_class) -> str:
 
     def define(cls):
         lines, used = [], []
-        for name, slot in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES):
-            lines.append(f'{_type_text(slot)} {name}')
-            nested = _nested(slot)
+        for name, idl in cls.get_fields_and_field_types().items():
+            text, nested = _field(idl)
+            lines.append(f'{text} {name}')
             if nested is not None:
-                used.append((nested.namespaces[0], nested.name))
+                used.append(nested)
         header = '' if not sections else '=' * 80 + f"\nMSG: {cls.__module__.split('.')[0]}/{cls.__name__}\n"
         sections.append(header + '\n'.join(lines) + '\n')
         for key in used:
             if key not in seen:
                 seen.add(key)
-                define(getattr(importlib.import_module(f'{key[0]}.msg'), key[1]))
+                package, name = key.split('/')
+                define(getattr(importlib.import_module(f'{package}.msg'), name))
     define(message_class)
     return ''.join(sections)
 
