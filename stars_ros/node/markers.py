@@ -27,7 +27,7 @@ from stars_ros.recording.bag import CDR_LITTLE_ENDIAN
 KIND_COLOURS = {'robot': (0.2, 0.3, 0.9, 1.0), 'room': (0.6, 0.6, 0.6, 1.0), 'human': (1.0, 0.75, 0.1, 1.0),
                 'object': (0.55, 0.35, 0.2, 1.0), 'wall': (0.3, 0.3, 0.3, 1.0),
                 'interaction': (0.8, 0.2, 0.8, 1.0)}
-RAISES, LOWERS = (0.1, 0.75, 0.2), (0.9, 0.15, 0.1)  # an entity whose removal lowers / raises the score
+RAISES, LOWERS = (0.1, 0.75, 0.2), (0.9, 0.15, 0.1)  # an entity that raises / lowers the score (effect > 0 / < 0)
 TYPES = {'ARROW': 0, 'CUBE': 1, 'SPHERE': 2, 'CYLINDER': 3, 'LINE_STRIP': 4, 'LINE_LIST': 5}  # Marker.type
 ADD, DELETEALL = 0, 3  # Marker.action
 NAMESPACES = {'robot': 'robot', 'room': 'room', 'human': 'humans', 'object': 'objects', 'wall': 'walls',
@@ -173,7 +173,7 @@ def ranking_markers(request, ranked: list) -> list:
         colour = (0.5, 0.5, 0.5, 0.4) if score is None else _score_colour(score, low, high)
         if not is_best:
             colour = (*colour[:3], min(colour[3], 0.6))
-        markers.append(Marker('candidates', k, 'CYLINDER', position, rotation, (size, size, 0.04), colour,
+        markers.append(Marker(NAMESPACES['candidate'], k, 'CYLINDER', position, rotation, (size, size, 0.04), colour,
                               label=f'{label} {score:.3f}' if score is not None else label))
     return markers
 
