@@ -24,7 +24,9 @@ The ratios ranker / echo say what the model adds over the middleware floor. Befo
 nodes start, ``in_process`` times the steps of one request on one thread in this process
 (parse and validate, featurise, encode, score, build the reply; the whole request with and
 without score_sd and p_first_is_best, which the node computes for every ranking, and with
-every entry's ``why``, ``"explain": true``: docs/explanations.md), with the
+every entry's ``why``, ``"explain": true``: docs/explanations.md; and the stars/markers of an
+explained ranking, built and encoded as a MarkerArray, which the node does after the reply
+for a subscriber or the bag: ``--no-markers`` turns their recording off), with the
 encoder in its serving form (GAT: compiled; the others: dense numpy) and, as a reference
 measured in the same run, in its PyG sparse form.
 """
@@ -226,7 +228,8 @@ def _timed(call):
 
 
 def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
-    """Median ms of each step of one request on one torch thread (see the module docstring)."""
+    """Median ms of each step of one request on one torch thread and one BLAS thread, as the
+    node serves (see the module docstring)."""
     import torch
 
     from stars_ros import messages
@@ -235,10 +238,14 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     from stars_ros.data.scene_graph import featurise
     from stars_ros.data.scene_store import GraphStore
     from stars_ros.node.batching import Pending, rank_batch
+    from stars_ros.node.markers import encode_marker_array, ranking_markers
     from stars_ros.personalisation.foldin import FoldIn
     from stars_ros.personalisation.uncertainty import Uncertainty
 
+    from threadpoolctl import threadpool_limits
+
     torch.set_num_threads(1)
+    threadpool_limits(1, user_api='blas')  # as the node does; OpenBLAS threads on busy cores slow explained requests
     predictor = Predictor.load(resolve_checkpoint(checkpoint))
     model = predictor.recommender.model
     uncertainty = Uncertainty(FoldIn(predictor))  # as the node serves: score_sd and p_first_is_best
@@ -256,6 +263,9 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
         _, total = _timed(lambda: request_total(text))
         _, without_spread = _timed(lambda: request_total(text, None))
         _, explained = _timed(lambda: request_total(text, explanations=(True, 5)))
+        parsed = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
+        ranked = rank_batch(predictor, [Pending(parsed, 'alice', 0)], 0, uncertainty, (True, 5))[0].ranked
+        _, markers = _timed(lambda: encode_marker_array(ranking_markers(parsed, ranked), 'base_link', 0))
         request, parse = _timed(lambda: messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES))
         graph, featurising = _timed(lambda: featurise(request.graphs[0], validate=False))
         sparse = GraphStore([graph]).batch(torch.arange(1))
@@ -266,6 +276,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
         if k >= 50:  # the first are warm-up
             for name, ms in (('request_total', total), ('request_total_without_score_sd', without_spread),
                              ('request_total_explained', explained),
+                             ('markers_explained', markers),
                              ('parse_validate', parse), ('featurise', featurising),
                              ('encode_serving', encode_serving),
                              ('encode_sparse_reference', encode_sparse),
@@ -289,6 +300,8 @@ def main(argv=None) -> int:
     parser.add_argument('--out', default=str(REPO / 'results' / 'node_latency.json'))
     parser.add_argument('--explain', action='store_true',
                         help="the ranker explains every ranking (-p explain:=true: each entry's why)")
+    parser.add_argument('--no-markers', action='store_true',
+                        help='the ranker does not record stars/markers (-p record_markers:=false; nobody subscribes)')
     parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.echo:
@@ -307,6 +320,8 @@ def main(argv=None) -> int:
             ranker += ['-p', f'checkpoint:={args.checkpoint}']
         if args.explain:
             ranker += ['-p', 'explain:=true']
+        if args.no_markers:
+            ranker += ['-p', 'record_markers:=false']
         echo = [sys.executable, str(Path(__file__).resolve()), '--echo']
         served = {}
         try:
@@ -336,7 +351,7 @@ def main(argv=None) -> int:
         'paced_latency_p99': results['ranker']['paced_latency_ms']['p99'] / results['echo']['paced_latency_ms']['p99']}
     results['settings'] = {'latency_count': args.latency_count, 'paced_count': args.paced_count, 'blocks': args.blocks,
                            'paced_period': args.paced_period, 'burst': args.burst, 'rates': args.rates,
-                           'explain': args.explain,
+                           'explain': args.explain, 'record_markers': not args.no_markers,
                            'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
                            'machine': machine()}
     for name in ('echo', 'ranker'):

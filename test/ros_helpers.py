@@ -114,6 +114,12 @@ class RosClient:
         self.node.create_subscription(String, topic, self._keep(store, json.loads), qos)
         return store
 
+    def collect_messages(self, topic: str, msg_type, qos) -> list:
+        """A list that gathers every ``msg_type`` message on ``topic`` as it is (``wait`` sees it grow)."""
+        store = []
+        self.node.create_subscription(msg_type, topic, self._keep(store, None), qos)
+        return store
+
     def _keep(self, store, convert):
         def callback(msg):
             with self._changed:

@@ -14,6 +14,7 @@ ROS = 'ROS'  # provided by a ROS install (requirements-rclpy.txt on a machine wi
 LIBRARIES = {
     'rclpy': ('rclpy', ROS), 'rcl_interfaces': ('rcl_interfaces', ROS), 'std_msgs': ('std_msgs', ROS),
     'std_srvs': ('std_srvs', ROS), 'diagnostic_msgs': ('diagnostic_msgs', ROS),
+    'visualization_msgs': ('visualization_msgs', ROS),
     'ament_index_python': ('ament_index_python', ROS), 'launch': ('launch', ROS), 'launch_ros': ('launch_ros', ROS),
     'numpy': ('python3-numpy', 'numpy'), 'yaml': ('python3-yaml', 'pyyaml'), 'pandas': ('python3-pandas', 'pandas'),
     'pydantic': ('python3-pydantic', 'pydantic'), 'scipy': ('python3-scipy', 'scipy'),
@@ -26,7 +27,8 @@ TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python
                   'referencing': ('python3-jsonschema', 'jsonschema'),  # jsonschema's own dependency
                   'rosbags': (None, 'rosbags'),
                   'sros2': ('sros2', ROS),  # a ROS package; without ROS, from ../shared/vendor/ (requirements-dev.txt)
-                  'lxml': ('python3-lxml', 'lxml')}
+                  'lxml': ('python3-lxml', 'lxml'),
+                  'geometry_msgs': ('geometry_msgs', ROS), 'builtin_interfaces': ('builtin_interfaces', ROS)}
 OWN = {'stars_ros', 'offline_training', *(path.stem for path in (REPO / 'test').rglob('*.py'))}  # test helpers too
 
 

@@ -25,6 +25,7 @@ from typing import Callable, Mapping
 
 from stars_ros import feedback_auth, messages
 from stars_ros import recording
+from stars_ros.node import markers
 from stars_ros.errors import CheckpointError, StarsError
 from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
@@ -35,7 +36,7 @@ from stars_ros.personalisation.user_state import STATE_FILE
 
 MAX_STRANGERS_REMEMBERED = 10000
 TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',
-          'stars/question_request', 'stars/question')
+          'stars/question_request', 'stars/question', 'stars/markers')
 _INT_MAX = 2 ** 31 - 1
 
 
@@ -43,12 +44,13 @@ def topic_qos(params: Mapping) -> dict:
     """topic -> (depth, latched) of every topic of TOPICS, all reliable: what the rclpy
     adapter subscribes and publishes with and the recorder offers again (``ros2 bag play``).
     A robot that joins late gets the last user models; with fleet sharing the history also
-    holds a re-send of every user until the newcomer has it."""
+    holds a re-send of every user until the newcomer has it; a viewer that joins late gets
+    the latest scene's markers."""
     depth = params['queue_depth']
     models = depth + (params['fold_in_max_users'] if params['fleet_sharing'] else 0)
     return {'stars/scene': (depth, False), 'stars/ranking': (depth, False), 'stars/feedback': (100, False),
             'stars/errors': (100, False), 'stars/user_id': (1, True), 'stars/user_model': (models, True),
-            'stars/question_request': (10, False), 'stars/question': (10, False)}
+            'stars/question_request': (10, False), 'stars/question': (10, False), 'stars/markers': (1, True)}
 
 
 PARAMETERS = {  # name: (default, description, read_only, range)
@@ -58,6 +60,10 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'explain': (False, "give every ranking entry its 'why' (the parts of its score and the entities that drive it, "
                 'docs/explanations.md), as a request with "explain": true does', False, None),
     'explain_entities': (5, "entities a 'why' names, largest |effect| first; 0: all", False, (0, 4096)),
+    'frame_id': ('base_link', "frame of stars/markers: the robot's, REP 103 axes (the scene converted from SocNav1 "
+                 'centimetres, docs/explanations.md)', False, None),
+    'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag even while nobody '
+                       'subscribes to it; false: markers are built only for a subscriber', False, None),
     'record_folder': (str(recording.default_folder()), 'folder for the MCAP bags and user_models.json; default '
                       '$ROS_HOME/stars_ros/records (ROS_HOME: ~/.ros unless set); empty: do not record', True, None),
     'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
@@ -108,11 +114,15 @@ class RankerCore:
             stars/errors or stars/user_model.
         logger: takes ``info``, ``warning`` and ``error`` lines.
         now (callable): the time recorded messages are logged at (ns of ROS time).
+        markers_out (optional): where stars/markers go: ``subscribed()`` (does anybody listen?),
+            ``publish(data)`` (a visualization_msgs/MarkerArray's CDR bytes) and ``message_type``
+            (``recording.MessageType``, for the bag); None: no markers.
     """
 
     def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
-                 logger, now: Callable[[], int]):
+                 logger, now: Callable[[], int], markers_out=None):
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
+        self.markers_out = markers_out
         self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
         self.predictor = Predictor.load(self.checkpoint_path)
         logger.info(f'serving {self.checkpoint_path} (fingerprint {self.predictor.fingerprint[:12]}, '
@@ -162,11 +172,13 @@ class RankerCore:
         except (OSError, ValueError) as error:
             self.report('recording', f'could not recover old bags in {folder}: {error}')
         qos = {self.topics[topic]: recording.qos_profile(depth, latched)
-               for topic, (depth, latched) in topic_qos(self.params).items()}
+               for topic, (depth, latched) in topic_qos(self.params).items()
+               if topic != 'stars/markers' or self.markers_out is not None}
+        types = {} if self.markers_out is None else {self.topics['stars/markers']: self.markers_out.message_type}
         recorder = recording.Recorder(
             folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
             custom={'node': node_name, 'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
-            on_event=self._on_recorder_event)
+            on_event=self._on_recorder_event, types=types)
         if recorder.error is None:
             self.logger.info(f'recording to {recorder.path}')
         return recorder
@@ -439,10 +451,28 @@ class RankerCore:
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
             self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
             self.record('stars/ranking', payload)
+            self._send_markers(request, result.ranked)
             self.personalisation.scenes.ranked(request.scene_id, item.text, predictor, result.h)
             self.problems.ranked()
             if item.user_id is not None and not known and not personalised:
                 self._report_stranger(item.user_id, request.scene_id)
+
+    def _send_markers(self, request, ranked: list):
+        """stars/markers of a ranked request, after its reply (off its latency), built only
+        when somebody subscribes or the bag records them."""
+        out = self.markers_out
+        if out is None:
+            return
+        record = self.recorder is not None and self.params['record_markers']
+        subscribed = out.subscribed()
+        if not (record or subscribed):
+            return
+        stamp = self._now()
+        data = markers.encode_marker_array(markers.ranking_markers(request, ranked), self.params['frame_id'], stamp)
+        if subscribed:
+            out.publish(data)
+        if record:
+            self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
 
     def _report_stranger(self, user_id: str, scene_id: str):
         """Warn once per unknown user and model, not per ranking: strangers are the normal

@@ -1,12 +1,13 @@
 """Recording: the rosbag2 MCAP bag the node writes, the log of record (``bag``: the format
 and reading it back; ``recorder``: writing it while serving; ``journal``: feedback made
 durable first; ``recovery``: repairing what a hard kill left)."""
-from stars_ros.recording.bag import (METADATA_FILE, PID_FILE, STRING, STRING_HASH, bag_files, bag_topics,
-                                     default_folder, encode_string, is_finished, qos_profile, read_messages)
+from stars_ros.recording.bag import (METADATA_FILE, PID_FILE, STRING, STRING_HASH, MessageType, bag_files, bag_topics,
+                                     default_folder, encode_string, is_finished, qos_profile, read_decoded,
+                                     read_messages)
 from stars_ros.recording.journal import JOURNAL
 from stars_ros.recording.recorder import Recorder
 from stars_ros.recording.recovery import abandoned_bags, recover, salvage_messages
 
-__all__ = ['JOURNAL', 'METADATA_FILE', 'PID_FILE', 'STRING', 'STRING_HASH', 'Recorder', 'abandoned_bags', 'bag_files',
-           'bag_topics', 'default_folder', 'encode_string', 'is_finished', 'qos_profile', 'read_messages', 'recover',
-           'salvage_messages']
+__all__ = ['JOURNAL', 'METADATA_FILE', 'PID_FILE', 'STRING', 'STRING_HASH', 'MessageType', 'Recorder',
+           'abandoned_bags', 'bag_files', 'bag_topics', 'default_folder', 'encode_string', 'is_finished', 'qos_profile',
+           'read_decoded', 'read_messages', 'recover', 'salvage_messages']

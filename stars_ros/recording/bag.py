@@ -1,8 +1,10 @@
-"""The bag format: rosbag2's layout (Jazzy, metadata version 9) of std_msgs/String topics in
-MCAP files that ``ros2 bag``, Foxglove and rosbags open, and reading such bags back.
+"""The bag format: rosbag2's layout (Jazzy, metadata version 9) of std_msgs/String topics, and
+of topics of other types handed in already CDR-encoded (the node's visualization_msgs/MarkerArray),
+in MCAP files that ``ros2 bag``, Foxglove and rosbags open, and reading such bags back.
 
-ROS-free: a String's CDR encoding is written here and decoded by mcap-ros2-support from the
-ros2msg definition, so no rclpy is needed to write or read a bag::
+ROS-free: a String's CDR encoding is written here, other types come encoded with their
+``MessageType`` (ros2msg definition and type hash), and mcap-ros2-support decodes them all
+from the definitions, so no rclpy is needed to write or read a bag::
 
     <folder>/<name>/metadata.yaml        topics, counts, files
     <folder>/<name>/<name>_0.mcap, _1 …  rotated by size, ros2 profile, zstd chunks
@@ -38,9 +40,22 @@ STRING_HASH = 'RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f
 PID_FILE = 'recording.pid'
 METADATA_FILE = 'metadata.yaml'
 ROSBAG2_VERSION = 9
-_CDR_LITTLE_ENDIAN = b'\x00\x01\x00\x00'  # encapsulation header: plain CDR, little-endian
+CDR_LITTLE_ENDIAN = b'\x00\x01\x00\x00'  # encapsulation header: plain CDR, little-endian
 _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 _MAGIC = b'\x89MCAP0\r\n'
+
+
+@dataclass(frozen=True)
+class MessageType:
+    """A ROS 2 message type as a bag stores it: its name (``pkg/msg/Type``), its ros2msg
+    definition (with the definitions it uses, as rosbag2 writes them) and its RIHS01 hash."""
+
+    name: str
+    definition: str
+    type_hash: str
+
+
+STRING_TYPE = MessageType(STRING, STRING_DEFINITION, STRING_HASH)
 
 
 def default_folder() -> Path:
@@ -64,7 +79,7 @@ def encode_string(text: str) -> bytes:
     length of the UTF-8 text with its NUL terminator (uint32), the text, the NUL.
     mcap-ros2-support encodes only inside its own MCAP writer, so it is written here."""
     data = text.encode('utf-8') + b'\0'
-    return _CDR_LITTLE_ENDIAN + len(data).to_bytes(4, 'little') + data
+    return CDR_LITTLE_ENDIAN + len(data).to_bytes(4, 'little') + data
 
 
 def topic_qos(channel: Channel) -> dict:
@@ -93,31 +108,41 @@ class FileStats:
 class McapFile:
     """One file of a bag being written to ``stream``: an MCAP writer with the ros2 profile, a
     channel per topic (its QoS and type hash in the channel metadata, as rosbag2 writes
-    them) and the statistics of the file ``name``."""
+    them), a schema per message type (``types``: topic -> MessageType; String unless named)
+    and the statistics of the file ``name``."""
 
-    def __init__(self, stream: BinaryIO, name: str, topics: dict, chunk_size: int, custom: dict):
+    def __init__(self, stream: BinaryIO, name: str, topics: dict, chunk_size: int, custom: dict,
+                 types: dict | None = None):
         self.stream = stream
         self.stats = FileStats(name)
         self.topics = topics
+        self.types = types or {}
         self.writer = McapWriter(self.stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self.writer.start(profile='ros2', library=f'stars_ros {__version__}')
-        self.schema = self.writer.register_schema(STRING, 'ros2msg', STRING_DEFINITION.encode())
+        self.schemas = {}
         self.channels = {}
         if custom:
             self.writer.add_metadata('stars_ros', {k: str(v) for k, v in custom.items()})
 
     @classmethod
-    def create(cls, path: Path, topics: dict, chunk_size: int, custom: dict) -> 'McapFile':
+    def create(cls, path: Path, topics: dict, chunk_size: int, custom: dict, types: dict | None = None) -> 'McapFile':
         """A new file at ``path``, which it owns (``finish`` closes it)."""
-        return cls(open(path, 'wb'), path.name, topics, chunk_size, custom)
+        return cls(open(path, 'wb'), path.name, topics, chunk_size, custom, types)
+
+    def _schema(self, kind: MessageType) -> int:
+        if kind.name not in self.schemas:
+            self.schemas[kind.name] = self.writer.register_schema(kind.name, 'ros2msg', kind.definition.encode())
+        return self.schemas[kind.name]
 
     def write(self, topic: str, data: bytes, log_time: int):
+        """Write ``data``, the CDR bytes of a message of the topic's type."""
         channel = self.channels.get(topic)
         if channel is None:
+            kind = self.types.get(topic, STRING_TYPE)
             qos = yaml.safe_dump([self.topics.get(topic, qos_profile())], sort_keys=False)
             channel = self.channels[topic] = self.writer.register_channel(
-                topic, 'cdr', self.schema,
-                {'offered_qos_profiles': qos, 'topic_type_hash': STRING_HASH})
+                topic, 'cdr', self._schema(kind),
+                {'offered_qos_profiles': qos, 'topic_type_hash': kind.type_hash})
         self.writer.add_message(channel, log_time=log_time, data=data, publish_time=log_time)
         self.stats.add(topic, log_time)
 
@@ -142,10 +167,12 @@ class McapFile:
             self.stream.close()
 
 
-def metadata_text(files: list, topics: dict, custom: dict | None = None, interim: bool = False) -> str:
-    """rosbag2's metadata.yaml for ``files`` (FileStats) with ``topics`` {name: qos}:
-    block YAML, or, ``interim`` (while recording), the same document as one line of JSON
-    (0.1 ms instead of 8-9 ms)."""
+def metadata_text(files: list, topics: dict, custom: dict | None = None, interim: bool = False,
+                  types: dict | None = None) -> str:
+    """rosbag2's metadata.yaml for ``files`` (FileStats) with ``topics`` {name: qos} of
+    ``types`` {name: MessageType; String unless named}: block YAML, or, ``interim`` (while
+    recording), the same document as one line of JSON (0.1 ms instead of 8-9 ms)."""
+    types = types or {}
     counts = {}
     for stats in files:
         for topic, n in stats.topics.items():
@@ -160,8 +187,9 @@ def metadata_text(files: list, topics: dict, custom: dict | None = None, interim
         'starting_time': {'nanoseconds_since_epoch': start},
         'message_count': sum(f.count for f in files),
         'topics_with_message_count': [
-            {'topic_metadata': {'name': topic, 'type': STRING, 'serialization_format': 'cdr',
-                                'offered_qos_profiles': [qos], 'type_description_hash': STRING_HASH},
+            {'topic_metadata': {'name': topic, 'type': types.get(topic, STRING_TYPE).name,
+                                'serialization_format': 'cdr', 'offered_qos_profiles': [qos],
+                                'type_description_hash': types.get(topic, STRING_TYPE).type_hash},
              'message_count': counts.get(topic, 0)}
             for topic, qos in topics.items()],
         'compression_format': '',
@@ -206,17 +234,29 @@ def _files_of(bag: Path) -> list:
     return bag_files(bag) if bag.is_dir() else [bag]
 
 
-def read_messages(bag, topics=None) -> Iterator[tuple]:
-    """(topic, text, log_time) of every message in a bag directory or MCAP file, in file order."""
+def read_decoded(bag, topics=None, type_name: str | None = None) -> Iterator[tuple]:
+    """(topic, decoded message, log_time) of every message in a bag directory or MCAP file
+    (of the type ``type_name`` only, if given), in file order; messages decode to objects
+    with the definition's fields (``msg.markers[0].pose.position.x``)."""
+    decoders = DecoderFactory()
     for path in _files_of(Path(bag)):
         with open(path, 'rb') as handle:
-            reader = make_reader(handle, decoder_factories=[DecoderFactory()])
-            for _, channel, message, decoded in reader.iter_decoded_messages(topics=topics):
-                yield channel.topic, decoded.data, message.log_time
+            for schema, channel, message in make_reader(handle).iter_messages(topics=topics):
+                if type_name is None or (schema is not None and schema.name == type_name):
+                    decode = decoders.decoder_for(channel.message_encoding, schema)
+                    yield channel.topic, decode(message.data), message.log_time
 
 
-def bag_topics(bag) -> dict:
-    """{topic: offered QoS} of a finished bag directory or MCAP file."""
+def read_messages(bag, topics=None) -> Iterator[tuple]:
+    """(topic, text, log_time) of every std_msgs/String message in a bag directory or MCAP
+    file, in file order (other types, the markers, are left out)."""
+    for topic, decoded, log_time in read_decoded(bag, topics, STRING):
+        yield topic, decoded.data, log_time
+
+
+def bag_topics(bag, type_name: str | None = STRING) -> dict:
+    """{topic: offered QoS} of the topics of a finished bag directory or MCAP file of the
+    type ``type_name`` (String: the JSON topics a replay can publish; None: all)."""
     bag = Path(bag)
     topics = {}
     for path in _files_of(bag):
@@ -225,5 +265,7 @@ def bag_topics(bag) -> dict:
         if summary is None:
             raise McapError(f'{path} has no summary: run `python -m stars_ros.recording recover {bag}` first')
         for channel in summary.channels.values():
-            topics.setdefault(channel.topic, topic_qos(channel))
+            schema = summary.schemas.get(channel.schema_id)
+            if type_name is None or (schema is not None and schema.name == type_name):
+                topics.setdefault(channel.topic, topic_qos(channel))
     return topics

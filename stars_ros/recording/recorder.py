@@ -1,4 +1,5 @@
-"""The recorder: String messages of the node's topics into one bag (``bag``), feedback
+"""The recorder: String messages of the node's topics, and CDR-encoded messages of other types
+(``types``), into one bag (``bag``), feedback
 through the journal first (``journal``), from the threads that serve requests.
 
 Every ``flush_interval`` seconds a thread of its own writes out the chunk in progress,
@@ -36,11 +37,13 @@ class Recorder:
         custom (dict, optional): kept in metadata.yaml ``custom_data`` and in each file.
         on_event (callable, optional): ``on_event(level, text)`` with level ``'error'`` or
             ``'info'`` for disk failures and recoveries; called from any thread.
+        types (dict, optional): topic name -> ``bag.MessageType`` of the topics that are not
+            std_msgs/String; their messages are recorded with ``write_encoded``.
     """
 
     def __init__(self, folder, topics: dict, *, rotation_bytes: int = 64 << 20, flush_interval: float = 1.0,
                  name: str | None = None, custom: dict | None = None,
-                 on_event: Callable[[str, str], None] | None = None):
+                 on_event: Callable[[str, str], None] | None = None, types: dict | None = None):
         if rotation_bytes < 4096:
             raise ValueError('rotation_bytes must be at least 4096')
         if not flush_interval > 0:
@@ -49,6 +52,7 @@ class Recorder:
         self.name = name or f'stars_{stamp}'
         self.path = Path(folder).expanduser() / self.name
         self.topics = dict(topics)
+        self.types = dict(types or {})
         self.rotation_bytes = rotation_bytes
         self.flush_interval = flush_interval
         self.custom = dict(custom or {})
@@ -103,7 +107,7 @@ class Recorder:
             (self.path / PID_FILE).write_text(f'{os.getpid()}\n')
             self._journal.open()
             path = self.path / f'{self.name}_{len(self._files)}.mcap'
-            self._file = McapFile.create(path, self.topics, self._chunk_size, self.custom)
+            self._file = McapFile.create(path, self.topics, self._chunk_size, self.custom, self.types)
             self._files.append(self._file.stats)
             self._write_metadata(self._metadata_snapshot())
         except OSError as error:
@@ -120,7 +124,11 @@ class Recorder:
     # -- writing ---------------------------------------------------------------------------
     def write(self, topic: str, text: str, log_time: int) -> bool:
         """Record ``text`` on ``topic`` at ``log_time`` (ns); False if it could not be."""
-        data = encode_string(text)
+        return self.write_encoded(topic, encode_string(text), log_time)
+
+    def write_encoded(self, topic: str, data: bytes, log_time: int) -> bool:
+        """Record ``data``, the CDR bytes of a message of the topic's type (``types``; String
+        unless named), at ``log_time`` (ns); False if it could not be."""
         with self._lock:
             if self._closed or self._file is None:
                 self.dropped += 1
@@ -214,7 +222,7 @@ class Recorder:
         """Write ``snapshot`` unless a newer one is already on disk (the flusher writes its
         snapshot after releasing the lock, so a rotation may have overtaken it)."""
         generation, files = snapshot
-        text = metadata_text(files, self.topics, self.custom, interim)
+        text = metadata_text(files, self.topics, self.custom, interim, self.types)
         with self._sync_lock:
             if generation > self._metadata_written:
                 write_metadata(self.path, text)

@@ -12,8 +12,8 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from stars_ros.files import atomic_write
-from stars_ros.recording.bag import (PID_FILE, FileStats, McapFile, bag_files, encode_string, is_finished,
-                                     metadata_text, qos_profile, topic_qos, write_metadata)
+from stars_ros.recording.bag import (PID_FILE, STRING, FileStats, McapFile, MessageType, bag_files, encode_string,
+                                     is_finished, metadata_text, qos_profile, topic_qos, write_metadata)
 from stars_ros.recording.journal import JOURNAL, read_journal
 
 
@@ -55,9 +55,10 @@ def salvage_messages(path: Path) -> tuple[list, str | None]:
     messages = []
     for message in found.messages:
         channel = found.channels.get(message.channel_id)
-        if channel is None:
+        schema = None if channel is None else found.schemas.get(channel.schema_id)
+        if schema is None or schema.name != STRING:
             continue
-        decode = decoders.decoder_for(channel.message_encoding, found.schemas.get(channel.schema_id))
+        decode = decoders.decoder_for(channel.message_encoding, schema)
         if decode is not None:
             messages.append((channel.topic, decode(message.data).data, message.log_time))
     return messages, found.damage
@@ -71,17 +72,21 @@ def recover(bag) -> dict:
     {'repaired': [file names], 'feedback_restored': n, 'messages': n}.
     """
     bag = Path(bag)
-    files, topics, custom, repaired = [], {}, {}, []
+    files, topics, types, custom, repaired = [], {}, {}, {}, []
     seen = set()
     for path in bag_files(bag):
         found = salvage(path)
         custom = custom or found.custom
         for channel in found.channels.values():
             topics.setdefault(channel.topic, topic_qos(channel))
+            schema = found.schemas.get(channel.schema_id)
+            if schema is not None and schema.name != STRING:
+                types.setdefault(channel.topic, MessageType(schema.name, bytes(schema.data).decode(),
+                                                            channel.metadata.get('topic_type_hash', '')))
         for message in found.messages:
             seen.add((found.channels[message.channel_id].topic, message.log_time, bytes(message.data)))
         if found.damage is not None or not is_finished(path):
-            files.append(_rewrite(path, found, topics))
+            files.append(_rewrite(path, found, topics, types))
             repaired.append(path.name)
         else:
             stats = FileStats(path.name)
@@ -103,17 +108,17 @@ def recover(bag) -> dict:
             extra.write(entry['topic'], encode_string(entry['data']), entry['log_time'])
         extra.finish()
         files.append(extra.stats)
-    write_metadata(bag, metadata_text(files, topics, custom))
+    write_metadata(bag, metadata_text(files, topics, custom, types=types))
     (bag / PID_FILE).unlink(missing_ok=True)
     return {'repaired': repaired, 'feedback_restored': len(missing), 'messages': sum(f.count for f in files)}
 
 
-def _rewrite(path: Path, found: Salvage, topics: dict) -> FileStats:
+def _rewrite(path: Path, found: Salvage, topics: dict, types: dict) -> FileStats:
     """Replace the damaged file ``path`` with a finished one of the records ``found`` in it."""
     written = []
 
     def write(handle):
-        rewritten = McapFile(handle, path.name, topics, 1 << 20, found.custom)
+        rewritten = McapFile(handle, path.name, topics, 1 << 20, found.custom, types)
         for message in found.messages:
             rewritten.write(found.channels[message.channel_id].topic, bytes(message.data), message.log_time)
         rewritten.end()

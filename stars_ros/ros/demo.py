@@ -9,7 +9,9 @@ SocNav1 scenes both of them rated. Then it starts the ranker and one scene_publi
 person (separate processes, as ``ros2 launch`` would), prints each pair of rankings as it
 arrives, then sends each person's real SocNav1 rating of each scene as it was (placement
 ``stay``) as feedback, stops the ranker with SIGINT and reads the feedback back from the
-MCAP bag. Runs on the current ROS_DOMAIN_ID unless ``--domain-id`` is given.
+MCAP bag. Last, it draws the first scene for both people (``offline_training.plot_scene``'s
+picture) into its temporary folder and prints the PNG's path. Runs on the current
+ROS_DOMAIN_ID unless ``--domain-id`` is given.
 
 Every run starts from a clean state: the ranker records into a new temporary folder unless
 ``--record-folder`` is given, so no earlier run's folded-in users are restored, and the
@@ -33,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from stars_ros.errors import StarsError
+from stars_ros.figures.scene import plot_people
 from stars_ros.model.predictor import Predictor
 from stars_ros.recording.bag import read_messages
 from stars_ros.resources import resolve_checkpoint
@@ -208,6 +211,13 @@ def run(args) -> int:
           f'orders differ on {differ} of {len(chosen)} scenes; {sent} feedback ratings sent.')
     print(f"Recorded in {bags[-1] if bags else '(no bag)'}: {count['/stars/ranking']} rankings and "
           f"{count['/stars/feedback']} feedback ratings read back from MCAP. Ranker exit code {ranker.returncode}.")
+    first = chosen[0][0]
+    try:
+        picture = plot_people(predictor, first, [user_a, user_b], work / 'scene.png', args.placements,
+                              title=f"scene {first['identifier']}: {args.placements} robot placements")
+        print(f"Picture (both people, {first['identifier']}): {picture}")
+    except StarsError as error:  # matplotlib missing: the demo itself does not need it
+        print(f'No picture: {error}')
     return 0 if count['/stars/feedback'] == sent and ranker.returncode == 0 else 1
 
 

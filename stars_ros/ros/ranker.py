@@ -2,7 +2,8 @@
 
 Subscribes ``stars/scene``, ``stars/user_id`` (transient local), ``stars/feedback`` and
 ``stars/question_request``; publishes ``stars/ranking``, ``stars/errors``, ``stars/question``,
-``stars/user_model`` (transient local) and ``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
+``stars/user_model`` (transient local), ``stars/markers`` (visualization_msgs/MarkerArray,
+transient local: the latest scene in ``frame_id``) and ``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
 ``stars/user_model`` (its peers', and its own, which changes nothing) and sends every
 folded-in user again when a subscriber joins that topic (``stars_ros.personalisation.fleet``). See README.md
 ("The ranker node") and docs/personalisation.md. Run with ``ros2 run stars_ros ranker`` or
@@ -37,10 +38,12 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
+from visualization_msgs.msg import MarkerArray
 
 from stars_ros.errors import CheckpointError, ConfigError
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
 from stars_ros.ros import usage
+from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 
 LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR}
@@ -86,9 +89,12 @@ class RankerNode(Node):
                 if sharing and topic == 'stars/user_model' else None))
             for topic in ('stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model')}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        markers_pub = self.create_publisher(MarkerArray, 'stars/markers', qos['stars/markers'])
+        type_hash = next((str(i.topic_type_hash) for i in self.get_publishers_info_by_topic(markers_pub.topic_name)), '')
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
                                self.get_fully_qualified_name(), self._publish, self.get_logger(),
-                               lambda: self.get_clock().now().nanoseconds)
+                               lambda: self.get_clock().now().nanoseconds,
+                               MarkerOutput(markers_pub, type_hash))
         self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, qos['stars/scene'])
         self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data),
                                  qos['stars/user_id'])

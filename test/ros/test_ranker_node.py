@@ -368,7 +368,8 @@ def test_replay_reruns_a_recorded_session(ranker, scenes, tmp_path):
 def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(socnav1_root, tmp_path):
     """Each run records into a new temporary folder of its own (under TMPDIR here), so the
     second restores none of the first run's folded-in users, and sends its feedback once
-    every ranking is in: the two runs print the same rankings, digit for digit."""
+    every ranking is in: the two runs print the same rankings, digit for digit; each draws
+    its first scene for both people into that folder."""
     printed = []
     for _ in range(2):
         demo = subprocess.run([sys.executable, '-m', 'stars_ros.ros.demo',  # the packaged model, as a user runs it
@@ -379,6 +380,8 @@ def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(socn
         assert re.search(r"People: '[a-l]' and '[a-l]'", demo.stdout)
         assert demo.stdout.count('scene ') == 3 and 'Summary: 6 rankings' in demo.stdout
         assert '6 rankings and 6 feedback ratings read back from MCAP. Ranker exit code 0.' in demo.stdout
+        picture = re.search(r'Picture \(both people, [^)]+\): (\S+\.png)$', demo.stdout, re.MULTILINE)
+        assert picture and open(picture.group(1), 'rb').read(8) == b'\x89PNG\r\n\x1a\n'
         printed.append([line for line in demo.stdout.splitlines() if line.startswith(('scene ', '  '))])
     assert len(printed[0]) == 9 and printed[0] == printed[1]
     people_lines = [line for k, line in enumerate(printed[0]) if k % 3]
@@ -466,12 +469,15 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
     from rosbags.typesys import Stores, get_typestore
     store = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
-        read = [(c.topic, store.deserialize_cdr(raw, c.msgtype).data) for c, _, raw in reader.messages()]
+        read = [(c.topic, store.deserialize_cdr(raw, c.msgtype)) for c, _, raw in reader.messages()]
         qos = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}
-    assert ('/stars/feedback', json.dumps(feedback)) in read and len(read) == len(messages)
+    texts = [(topic, message.data) for topic, message in read if topic != '/stars/markers']
+    assert ('/stars/feedback', json.dumps(feedback)) in texts and len(texts) == len(messages)
+    markers = [message for topic, message in read if topic == '/stars/markers']  # one MarkerArray a ranking
+    assert len(markers) == len(recorded) and all(m.markers[0].action == 3 for m in markers)  # DELETEALL first
     assert qos['/stars/user_id'][0].durability.name == 'TRANSIENT_LOCAL'
     info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-    assert info['message_count'] == len(messages)
+    assert info['message_count'] == len(messages) + len(markers)
 
 
 def test_hard_kill_then_recovery_keeps_everything_before_the_last_flush(tiny_checkpoint, scenes, tmp_path):

@@ -13,8 +13,8 @@ REPO = Path(__file__).resolve().parents[2]
 POLICY = REPO / 'config' / 'security' / 'ranker.policy.xml'
 ENCLAVE = '/stars_ros/ranker'
 SUBSCRIBES = {'stars/scene', 'stars/user_id', 'stars/feedback', 'stars/question_request', 'stars/user_model'}
-PUBLISHES = {'stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model', 'diagnostics', 'rosout',
-             'parameter_events'}
+PUBLISHES = {'stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model', 'stars/markers', 'diagnostics',
+             'rosout', 'parameter_events'}
 SERVES = {'reload', 'describe_parameters', 'get_parameter_types', 'get_parameters', 'get_type_description',
           'list_parameters', 'set_parameters', 'set_parameters_atomically'}
 

@@ -1,0 +1,1 @@
+"""Figures drawn from a model and its scenes (matplotlib, imported only when drawing)."""
