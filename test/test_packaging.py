@@ -22,7 +22,10 @@ LIBRARIES = {
     'torch_geometric': (None, 'torch-geometric'), 'numba': (None, 'numba'), 'fastjsonschema': (None, 'fastjsonschema'),
     'mcap': (None, 'mcap'), 'mcap_ros2': (None, 'mcap-ros2-support'), 'threadpoolctl': (None, 'threadpoolctl'),
     'ray': (None, 'ray'),  # optional: the Ray executor (requirements-ray.txt)
+    'surprise': (None, 'scikit-surprise'), 'myfm': (None, 'myfm'),  # optional: the peers (requirements-peers.txt)
 }
+OPTIONAL = {'ray', 'surprise', 'myfm'}  # offline only: neither package.xml nor a robot needs them
+OPTIONAL_REQUIREMENTS = ('requirements-ray.txt', 'requirements-peers.txt')
 TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python3-jsonschema', 'jsonschema'),
                   'referencing': ('python3-jsonschema', 'jsonschema'),  # jsonschema's own dependency
                   'rosbags': (None, 'rosbags'),
@@ -63,7 +66,7 @@ def pins(*files) -> set:
 def test_every_library_the_package_imports_is_declared():
     used = imported(['stars_ros', 'offline_training', 'launch'])
     assert used <= set(LIBRARIES), f'imported but not in LIBRARIES (declare it): {used - set(LIBRARIES)}'
-    exec_depends, runtime_pins = depends('exec_depend'), pins('requirements.txt', 'requirements-ray.txt')
+    exec_depends, runtime_pins = depends('exec_depend'), pins('requirements.txt', *OPTIONAL_REQUIREMENTS)
     for module in used:
         key, distribution = LIBRARIES[module]
         assert key is None or key in exec_depends, f'{module}: <exec_depend>{key}</exec_depend> missing'
@@ -77,7 +80,7 @@ def test_every_library_the_tests_import_is_declared():
     known = {**LIBRARIES, **TEST_LIBRARIES}
     assert used <= set(known), f'imported by tests but not declared: {used - set(known)}'
     declared, dev_pins = depends('test_depend') | depends('exec_depend'), pins(
-        'requirements.txt', 'requirements-ray.txt', 'requirements-dev.txt')
+        'requirements.txt', *OPTIONAL_REQUIREMENTS, 'requirements-dev.txt')
     for module in used:
         key, distribution = known[module]
         assert key is None or key in declared, f'{module}: <test_depend>{key}</test_depend> missing'
@@ -89,7 +92,7 @@ def test_package_xml_names_the_libraries_rosdep_does_not_cover():
     """Its comment says which libraries requirements.txt installs because rosdep has no key."""
     text = (REPO / 'package.xml').read_text()
     for module, (key, distribution) in LIBRARIES.items():
-        if key is None and module != 'ray':
+        if key is None and module not in OPTIONAL:
             assert re.search(rf'\b{re.escape(distribution)}\b', text), f'{distribution} not named in package.xml'
 
 
