@@ -1,7 +1,7 @@
 """The ranker's work without ROS (what test_ranker_node.py checks over DDS, here in one
 process): rankings carry the checkpoint's fingerprint, problems are reported by kind and
 summed up in the diagnostics, feedback is folded in once the queue is empty, a reload that
-fails keeps serving, and a clean close leaves the feedback and the state file on disk."""
+fails keeps serving, and a clean close leaves the feedback and the people in the store."""
 import json
 
 import pytest
@@ -11,7 +11,6 @@ from stars_ros import recording
 from core_harness import Node, make_core
 from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.personalisation.user_state import STATE_FILE
 
 
 @pytest.fixture(scope='module')
@@ -109,7 +108,9 @@ def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoin
     for topic in ('/stars/scene', '/stars/ranking', '/stars/feedback', '/stars/user_model', '/stars/errors'):
         assert topic in recorded, topic
     assert recorded.count('/stars/scene') == 2
-    assert list(json.loads((tmp_path / STATE_FILE).read_text())['users']) == ['newcomer']
+    with recording.open_reader(tmp_path) as store:
+        assert [p['person'] for p in store.summary()] == ['newcomer']
+        assert [json.loads(e['data'])['user_id'] for e in store.feedback(core.recorder.name)] == ['newcomer']
     offered = recording.bag_topics(core.recorder.path)
     depths = topic_qos(core.params)
     for topic in set(recorded):  # the bag offers what the node subscribed and published with
