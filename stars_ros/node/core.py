@@ -61,8 +61,9 @@ PARAMETERS = {  # name: (default, description, read_only, range)
                       'empty: do not record', True, None),
     'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
                        (4096, _INT_MAX)),
-    'flush_interval': (1.0, 'seconds between flushes of the recording; a hard kill loses at most this',
-                       True, (0.01, 3600.0)),
+    'flush_interval': (1.0, 'seconds between flushes of the recording (a hard kill loses at most this of its other '
+                       'topics; stored feedback is never lost) and between two tries of a disk that refuses the state '
+                       'store', True, (0.01, 3600.0)),
     'max_message_bytes': (messages.DEFAULT_MAX_BYTES, 'larger messages are refused (kind oversized)',
                           False, (1024, 64 << 20)),
     'queue_depth': (1000, 'QoS depth of stars/scene and the most requests waiting to be scored', True,
@@ -74,7 +75,7 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'fold_in': (True, "personalise from feedback: re-solve the user's embedding after each rating", False, None),
     'fold_in_min_ratings': (1, 'ratings a user needs before their folded-in embedding is served', False,
                             (1, 100000)),
-    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state file "
+    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state store "
                             'keeps); older ones stay in the MCAP log for the offline refit', True, (1, 1000000)),
     'fold_in_max_users': (1000, 'folded-in users kept; beyond this the one who rated least recently goes back to '
                           'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),

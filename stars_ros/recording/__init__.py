@@ -13,4 +13,5 @@ from stars_ros.recording.state_store import DATABASE, StateStore, StoreLockedErr
 
 __all__ = ['DATABASE', 'METADATA_FILE', 'NODE_PLACEHOLDER', 'PID_FILE', 'STRING', 'STRING_HASH', 'Recorder', 'StateStore',
            'StoreLockedError', 'abandoned_bags', 'bag_files', 'bag_topics', 'default_folder', 'encode_string',
-           'is_finished', 'node_folder', 'open_reader', 'qos_profile', 'read_messages', 'recover', 'salvage_messages']
+           'is_finished', 'node_folder', 'open_reader', 'qos_profile', 'read_messages', 'recover',
+           'salvage_messages']

@@ -190,6 +190,9 @@ class StoreReader:
                                  ratings['peer_ratings'].get(person, []), bool(solved), updated))
         return people
 
+    def feedback_count(self) -> int:
+        return self._connection.execute('SELECT COUNT(*) FROM feedback').fetchone()[0]
+
     def feedback(self, bag: str | None = None) -> list:
         """Committed feedback entries {'topic', 'log_time', 'data', 'bag'} in commit order
         (of one bag's recording, or all)."""
