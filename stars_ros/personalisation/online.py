@@ -134,8 +134,8 @@ class Personalisation:
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
         self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
-        had = set(self.histories.snapshot())
-        for user_id in [*self.histories.absorb(absorbed), *self.peers.snapshot()]:
+        had = set(self.histories.users())
+        for user_id in [*self.histories.absorb(absorbed), *self.peers.users()]:
             self.pending[user_id] = None
         if self.store is not None:
             self.store.set_fingerprint(predictor.fingerprint)
@@ -155,6 +155,7 @@ class Personalisation:
         if isinstance(rating, str):
             return rating
         signed = feedback.signed if self.authenticator is not None else None
+        self._keep_solved_from(feedback.user_id)
         rating = dataclasses.replace(rating, rating_id=signed['auth']['mac'] if signed else fleet.new_rating_id(),
                                      stamp=stamp, origin=self.origin, feedback=signed)
         self._forget(self.histories.add(feedback.user_id, rating))
@@ -230,6 +231,7 @@ class Personalisation:
             held = self._held(staged.user_id)
             new = [r for r in staged.ratings if r.rating_id not in held]  # another message may have brought them
             if new:
+                self._keep_solved_from(staged.user_id)
                 self._forget(self.peers.add(staged.user_id, new))
                 self.pending[staged.user_id] = None
                 self._save(staged.user_id)
@@ -259,8 +261,15 @@ class Personalisation:
             return None
         if not self.sharing:
             return messages.user_model_payload(user_id, model, self.predictor.fingerprint)
+        self._keep_solved_from(user_id)
         return messages.user_model_payload(user_id, model, self.predictor.fingerprint, self.origin,
-                                           self.solved_from.get(user_id, []))
+                                           self.solved_from[user_id])
+
+    def _keep_solved_from(self, user_id: str) -> None:
+        """A model restored from the store was solved from the ratings restored with it:
+        note them before they change (read now if they were not yet)."""
+        if user_id not in self.solved_from and self.predictor.user_model(user_id) is not None:
+            self.solved_from[user_id] = self.ratings(user_id)
 
     # -- the solve -----------------------------------------------------------------------
     def solve_next(self, min_ratings: int = 1, regularisation: float = 0.0) -> tuple[str, UserModel] | None:
@@ -292,6 +301,7 @@ class Personalisation:
         """Ratings of an action or a scene the model does not take (a reload changed it) leave
         the history and the peers' ratings, each reported."""
         unusable = []
+        self._keep_solved_from(user_id)
         for rating in ratings:
             try:
                 foldin.action_index([rating.action])
@@ -330,8 +340,9 @@ class Personalisation:
 
     def restore(self) -> None:
         """Folded-in users of the last run, if they were solved against the served
-        checkpoint. A stored model solved from the ratings stored with it is served as it
-        was (mean and covariance); anyone else waits to be solved again."""
+        checkpoint: their models now, their ratings read when first used. A stored model
+        solved from the ratings stored with it is served as it was (mean and covariance);
+        anyone else waits to be solved again."""
         if self.store is None:
             return
         people, problem = self.store.load(self.predictor.fingerprint)
@@ -341,18 +352,16 @@ class Personalisation:
             return
         evicted = set(self.histories.restore({p.user_id: (p.ratings, p.dropped) for p in people if p.ratings}))
         if self.authenticator is not None:  # a replay across a restart is still a replay
-            self.authenticator.remember(r.feedback for p in people for r in p.ratings if r.feedback is not None)
-        for person in people:
-            if person.peer_ratings:
-                evicted.update(self.peers.add(person.user_id, person.peer_ratings))
+            self.authenticator.remember(self.store.reader.signed_feedback())
+        evicted.update(self.peers.restore({p.user_id: p.peer_ratings for p in people if p.peer_ratings}))
         current = self.predictor.fingerprint
         restored = {p.user_id: p.model for p in people
                     if p.user_id not in evicted and p.model is not None and p.fingerprint == current}
-        self.solved_from.update({u: self.ratings(u) for u in restored})
         self.predictor.set_user_models(restored)
         self.pending.update(dict.fromkeys(p.user_id for p in people if p.user_id not in evicted and not (
             p.user_id in restored and p.solved and p.model.covariance is not None)))
-        for user_id in evicted:
+        for user_id in evicted:  # beyond fold_in_max_users now: gone, as an eviction would take them
+            self.peers.drop(user_id)
             self.store.forget(user_id)
         self._logger.info(f'restored {len(restored)} folded-in users from {self.store.path}'
                           + (f' ({len(self.pending)} to solve again)' if self.pending else ''))

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import json
 import os
 import queue
@@ -37,6 +38,7 @@ import numpy as np
 
 from stars_ros.errors import ConfigError
 from stars_ros.personalisation.foldin import Rating, UserModel, scene_digest
+from stars_ros.personalisation.histories import Deferred
 from stars_ros.recording import migration
 
 DATABASE = 'state.db'
@@ -46,8 +48,8 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS people (
     person TEXT PRIMARY KEY, fingerprint TEXT, p BLOB, b REAL, n_ratings INTEGER, regularisation REAL,
-    covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, rated INTEGER NOT NULL,
-    updated REAL NOT NULL);
+    covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
+    peer_ratings INTEGER NOT NULL, rated INTEGER NOT NULL, updated REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS scenes (digest TEXT PRIMARY KEY, content TEXT NOT NULL, refs INTEGER NOT NULL)
     WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS ratings (
@@ -131,6 +133,7 @@ class StoreReader:
             raise FileNotFoundError(f'no state store at {self.path}')
         self._connection = sqlite3.connect(f'file:{self.path}?mode=ro', uri=True, timeout=30,
                                            check_same_thread=False)
+        self._scenes = {}  # digest -> scene object: ratings of one content share one
 
     def close(self):
         self._connection.close()
@@ -152,43 +155,49 @@ class StoreReader:
         """One dict per person, least recently rated first: ratings and peer ratings held,
         dropped, whether a model is stored and solved from them, the model's fingerprint,
         and when they last changed (seconds since the epoch)."""
-        counts = {table: dict(self._connection.execute(f'SELECT person, COUNT(*) FROM {table} GROUP BY person'))
-                  for table in _RATING_TABLES}
         rows = self._connection.execute(
-            'SELECT person, fingerprint, p IS NOT NULL, n_ratings, solved, dropped, updated FROM people '
-            'ORDER BY rated')
-        return [{'person': person, 'ratings': counts['ratings'].get(person, 0),
-                 'peer_ratings': counts['peer_ratings'].get(person, 0), 'dropped': dropped,
+            'SELECT person, fingerprint, p IS NOT NULL, n_ratings, solved, dropped, ratings, peer_ratings, updated '
+            'FROM people ORDER BY rated')
+        return [{'person': person, 'ratings': ratings, 'peer_ratings': peer_ratings, 'dropped': dropped,
                  'model': bool(has_model), 'solved': bool(solved), 'n_ratings': n_ratings,
                  'fingerprint': fingerprint, 'updated': updated}
-                for person, fingerprint, has_model, n_ratings, solved, dropped, updated in rows]
+                for person, fingerprint, has_model, n_ratings, solved, dropped, ratings, peer_ratings, updated in rows]
 
-    def people(self) -> list:
-        """Every Person with their ratings, least recently rated first; ratings of one
-        scene content share one scene object."""
-        scenes = {digest: json.loads(content) for digest, content in
-                  self._connection.execute('SELECT digest, content FROM scenes')}
-        ratings = {table: {} for table in _RATING_TABLES}
-        for table in _RATING_TABLES:
-            kept = ratings[table]
-            for person, rating_id, stamp, origin, action, score, scene_id, digest, feedback in self._connection.execute(
-                    f'SELECT person, id, stamp, origin, action, score, scene_id, scene, feedback FROM {table} '
-                    'ORDER BY position'):
-                kept.setdefault(person, []).append(Rating(
-                    scenes[digest], action, score, scene_id, rating_id, stamp, origin,
-                    None if feedback is None else json.loads(feedback)))
+    def people(self, deferred: bool = False) -> list:
+        """Every Person, least recently rated first, with their ratings; ``deferred``: as
+        ``Deferred`` loaders that read them when first used (a person without any: [])."""
         people = []
         for row in self._connection.execute(
-                'SELECT person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, updated '
-                'FROM people ORDER BY rated'):
-            person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, updated = row
+                'SELECT person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, ratings, '
+                'peer_ratings, updated FROM people ORDER BY rated'):
+            person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, own, peer, updated = row
             model = None
             if p is not None:
                 p = _array(p)
                 model = UserModel(p, b, n_ratings, regularisation, _array(covariance, (len(p) + 1, len(p) + 1)))
-            people.append(Person(person, model, fingerprint, ratings['ratings'].get(person, []), dropped,
-                                 ratings['peer_ratings'].get(person, []), bool(solved), updated))
+            held = [(Deferred(functools.partial(self.ratings, person, table)) if deferred else
+                     self.ratings(person, table)) if count else [] for table, count in zip(_RATING_TABLES, (own, peer))]
+            people.append(Person(person, model, fingerprint, held[0], dropped, held[1], bool(solved), updated))
         return people
+
+    def ratings(self, person: str, table: str = 'ratings') -> list:
+        """``person``'s ratings (``table`` 'peer_ratings': their peers'), oldest first."""
+        rows = self._connection.execute(
+            f'SELECT r.id, r.stamp, r.origin, r.action, r.score, r.scene_id, r.scene, r.feedback, s.content '
+            f'FROM {table} r JOIN scenes s ON s.digest = r.scene WHERE r.person = ? ORDER BY r.position', (person,))
+        ratings = []
+        for rating_id, stamp, origin, action, score, scene_id, digest, feedback, content in rows:
+            scene = self._scenes.get(digest)
+            if scene is None:
+                scene = self._scenes[digest] = json.loads(content)
+            ratings.append(Rating(scene, action, score, scene_id, rating_id, stamp, origin,
+                                  None if feedback is None else json.loads(feedback)))
+        return ratings
+
+    def signed_feedback(self) -> list:
+        """The signed feedback messages of every person's own ratings (replays stay refused)."""
+        return [json.loads(text) for (text,) in
+                self._connection.execute('SELECT feedback FROM ratings WHERE feedback IS NOT NULL')]
 
     def feedback_count(self) -> int:
         return self._connection.execute('SELECT COUNT(*) FROM feedback').fetchone()[0]
@@ -251,11 +260,12 @@ class StateStore:
         self._waiting = []  # items taken from the queue and not committed yet, oldest first
         self._waiting_feedback = 0  # feedback entries queued or waiting, not committed
         self._count_lock = threading.Lock()
-        self._written = {}  # (table, person) -> {rating id: scene digest}, as committed
+        self._written = {}  # (table, person) -> {rating id: scene digest}, as committed, of those written
         self._rated = {}  # person -> order of their last rating change
         self._counter = 0  # positions and rating orders, increasing
         self._foreign = False  # the rows belong to another checkpoint: replaced on the first write
         self._fingerprint = None  # the checkpoint the rows belong to, as meta holds it
+        self.reader: StoreReader | None = None  # what ``load`` read from, and the Deferred ratings read
         self.imported: list = []  # what the open imported from the files of earlier versions
         self._import_problems: list = []
         self._open()
@@ -316,10 +326,7 @@ class StateStore:
         self._lock_handle = handle
 
     def _read_written(self):
-        """What the database holds now, as the writer's diffs need it."""
-        for table in _RATING_TABLES:
-            for person, rating_id, digest in self._connection.execute(f'SELECT person, id, scene FROM {table}'):
-                self._written.setdefault((table, person), {})[rating_id] = digest
+        """The orders the writer continues from (what each person holds is read when first written)."""
         self._counter = max([self._connection.execute(f'SELECT COALESCE(MAX(position), 0) FROM {t}').fetchone()[0]
                              for t in _RATING_TABLES] +
                             [self._connection.execute('SELECT COALESCE(MAX(rated), 0) FROM people').fetchone()[0]])
@@ -401,14 +408,15 @@ class StateStore:
         self._queue.put(('fingerprint', None, fingerprint))
 
     def load(self, fingerprint: str) -> tuple[list, str | None]:
-        """(the Person rows to restore, least recently rated first; why none are restored,
-        else None). People of another checkpoint are not restored; their rows are replaced
-        by the first update. Call before the first update."""
+        """(the Person rows to restore, least recently rated first, their ratings Deferred;
+        why none are restored, else None). People of another checkpoint are not restored;
+        their rows are replaced by the first update. Call before the first update."""
         problems = list(self._import_problems)
         if self._connection is None:
             return [], None
         stored = self._meta('fingerprint')
-        people = StoreReader(self.path).people()
+        self.reader = StoreReader(self.path)
+        people = self.reader.people(deferred=True)
         if stored is None or not people:
             self.set_fingerprint(fingerprint)
             return [], '; '.join(problems) or None
@@ -437,6 +445,9 @@ class StateStore:
             with contextlib.suppress(sqlite3.Error):
                 self._connection.close()
             self._connection = None
+        if self.reader is not None:
+            self.reader.close()
+            self.reader = None
         if self._lock_handle is not None:
             self._lock_handle.close()
             self._lock_handle = None
@@ -545,8 +556,11 @@ class StateStore:
             self._rated, self._fingerprint = {}, None
 
     def _held(self, written: dict, table: str, user_id: str) -> dict:
+        """{rating id: scene digest} of what ``user_id`` holds in ``table`` in this transaction."""
         key = (table, user_id)
-        held = written[key] if key in written else self._written.get(key)
+        if key not in written and key not in self._written:
+            written[key] = dict(self._connection.execute(f'SELECT id, scene FROM {table} WHERE person = ?', (user_id,)))
+        held = written[key] if key in written else self._written[key]
         return dict(held or {})
 
     def _write_person(self, update: PersonUpdate, written: dict):
@@ -582,12 +596,13 @@ class StateStore:
             self._rated[user_id] = self._counter
         model = update.model
         connection.execute(
-            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
+            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
             (user_id, update.fingerprint if model is not None else None,
              None if model is None else _blob(model.p), None if model is None else float(model.b),
              None if model is None else int(model.n_ratings), None if model is None else float(model.regularisation),
              None if model is None else _blob(model.covariance), int(bool(update.solved and model is not None)),
-             int(update.dropped), self._rated[user_id], time.time()))
+             int(update.dropped), len(written[('ratings', user_id)]), len(written[('peer_ratings', user_id)]),
+             self._rated[user_id], time.time()))
 
     def _forget(self, user_id: str, written: dict):
         for table in _RATING_TABLES:

@@ -57,9 +57,11 @@ def test_people_round_trip_with_posterior_ratings_and_peers(tmp_path):
     assert store.close() == []
     store = _open(tmp_path / 'records')
     people, problem = store.load(FINGERPRINT)
-    store.close()
     assert problem is None and [p.user_id for p in people] == ['ann', 'bob']
-    ann, bob = people
+    assert people[0].ratings.load() == _ann() and people[1].peer_ratings == []  # read when first used
+    store.close()
+    with open_reader(tmp_path / 'records') as reader:
+        ann, bob = reader.people()
     assert np.array_equal(ann.model.p, _model().p) and np.array_equal(ann.model.covariance, _model().covariance)
     assert (ann.model.b, ann.model.n_ratings, ann.fingerprint, ann.dropped, ann.solved) == (0.125, 2, FINGERPRINT, 3,
                                                                                             True)
@@ -227,6 +229,8 @@ def test_the_files_of_earlier_versions_are_imported_once_and_kept(tmp_path):
     people, problem = store.load(FINGERPRINT)
     store.close()
     assert problem is None and {p.user_id for p in people} == {'ann', 'bob'}
+    with open_reader(tmp_path) as reader:
+        people = reader.people()
     ann = next(p for p in people if p.user_id == 'ann')
     assert ann.ratings == _ann() and ann.dropped == 3 and [r.rating_id for r in ann.peer_ratings] == ['p1']
     assert ann.model.covariance is None and not ann.solved  # solved again after the restart
