@@ -274,7 +274,7 @@ class RankerCore:
         feedback = self._parse(messages.parse_feedback, text, topic)
         if feedback is None:
             return False
-        if self.authenticator is not None:  # before the journal: refused feedback is recorded as an error only
+        if self.authenticator is not None:  # before the store: refused feedback is recorded as an error only
             refusal = self.authenticator.check(feedback.signed, self._now())
             if refusal is not None:
                 self.report('auth', f'feedback refused, not folded in: {refusal}', topic, feedback.scene_id)

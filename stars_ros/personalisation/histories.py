@@ -67,7 +67,7 @@ class BoundedUsers:
 
 class FeedbackHistories(BoundedUsers):
     """The ratings each user's fold-in is solved from, bounded so a long-running node (and
-    its state file) cannot grow without limit: the ``max_ratings`` most recent ratings per
+    its state store) cannot grow without limit: the ``max_ratings`` most recent ratings per
     user and the ``max_users`` users who rated most recently. What the bounds drop stays in
     the MCAP log, where the offline refit finds it. Thread-safe.
 
