@@ -20,7 +20,8 @@ Then, unless ``--no-node``, a ranker is started on a copy of each store and on a
 folder (each in a ROS domain the tests' way reserves): the time from starting the process
 to its first answer, and other users' ranking latency (one request every
 ``--paced-period`` s) in blocks that alternate between quiet and a stream of feedback at
-``--feedback-rate``/s for stored people on scenes the node ranked, ``--blocks`` of each.
+``--feedback-rate``/s for stored people on scenes the node ranked, ``--blocks`` of each,
+with what the node's /diagnostics said of its fold-in work meanwhile (solves, the longest).
 """
 from __future__ import annotations
 
@@ -118,6 +119,17 @@ def measure_restart(folder: Path, checkpoint: str, max_ratings: int, people: int
             'people_served': len(predictor.user_models), 'waiting_to_be_solved': len(personalisation.pending)}
 
 
+def fold_in_work(diagnostics: list) -> dict:
+    """What the node's /diagnostics said of its fold-in over ``diagnostics``: solves, the
+    longest, and the rankings that waited behind fold-in work."""
+    values = [{v.key: v.value for v in status.values} for array in diagnostics for status in array.status
+              if status.name.endswith(': ranker')]
+    longest = [float(v['period.fold_in_update_ms.max']) for v in values if 'period.fold_in_update_ms.max' in v]
+    return {'solves': sum(int(v.get('period.fold_in_updates', 0)) for v in values),
+            'longest_solve_ms': max(longest) if longest else None,
+            'rankings_delayed_by_fold_in': sum(int(v.get('period.rankings_delayed_by_fold_in', 0)) for v in values)}
+
+
 def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domain: int, args) -> dict:
     from ros_helpers import RosClient, start_node
     client = RosClient(domain)
@@ -134,6 +146,7 @@ def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domai
             raise TimeoutError('the scenes to rate were not ranked')
         rng = random.Random(7)
         latencies = {'quiet': [], 'feedback': []}
+        diagnostics = {'quiet': [], 'feedback': []}
         sent = 0
         for block in range(2 * args.blocks):
             kind = ('quiet', 'feedback')[block % 2]
@@ -146,6 +159,7 @@ def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domai
                                      'action': 'navigate', 'score': rng.random()})
                     sent += 1
             streamer = threading.Thread(target=stream, daemon=True)
+            seen = len(client.diagnostics)
             if kind == 'feedback':
                 streamer.start()
             for k in range(args.requests_per_block):
@@ -158,12 +172,14 @@ def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domai
             stop.set()
             if streamer.is_alive():
                 streamer.join()
+            diagnostics[kind] += client.diagnostics[seen:]
     finally:
         client.close()
         process.terminate()
         process.wait(timeout=120)
     return {'start_to_first_answer_s': first_answer, 'feedback_sent': sent,
-            'other_users_ranking_ms': {kind: summary(values) for kind, values in latencies.items()}}
+            'other_users_ranking_ms': {kind: summary(values) for kind, values in latencies.items()},
+            'fold_in_during_blocks': {kind: fold_in_work(values) for kind, values in diagnostics.items()}}
 
 
 def main(argv=None) -> int:

@@ -514,7 +514,10 @@ class StateStore:
             self._waiting_feedback -= len(committed)
         for entry, _, on_commit in committed:
             if on_commit is not None:
-                on_commit(entry)
+                try:
+                    on_commit(entry)
+                except Exception as error:  # noqa: BLE001 - the writer must go on: the entry is committed
+                    self._on_error(f'after committing feedback: {type(error).__name__}: {error}')
         if self.error is not None:
             self.error = None
             self._on_recovered(f'state store {self.path} works again')
