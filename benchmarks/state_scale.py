@@ -16,8 +16,8 @@ and then, in this process:
     the checkpoints that copy them into the database);
   * restart in process: open the store, load it and restore it into a Personalisation as
     the node does (``restore``).
-Then, unless ``--no-node``, a ranker is started on a copy of each store and on an empty
-folder (each in a ROS domain the tests' way reserves): the time from starting the process
+Then, unless ``--no-node``, a ranker is started on a copy of each store as filled and on an
+empty folder (each in a ROS domain the tests' way reserves): the time from starting the process
 to its first answer, and other users' ranking latency (one request every
 ``--paced-period`` s) in blocks that alternate between quiet and a stream of feedback at
 ``--feedback-rate``/s for stored people on scenes the node ranked, ``--blocks`` of each,
@@ -216,6 +216,7 @@ def main(argv=None) -> int:
             updates = fill(folder, predictor, model, scenes, people, ratings, rng)
             figures = {'fill_s': time.perf_counter() - started,
                        'database_bytes': (folder / 'state.db').stat().st_size}
+            shutil.copytree(folder, Path(work) / f'node-{name}')  # as filled: every model solved from its ratings
             figures['update'] = measure_updates(folder, predictor, model, scenes, updates, args.updates, ratings, rng)
             figures['restart_in_process'] = measure_restart(folder, checkpoint, ratings, people)
             results['sizes'][name] = figures
@@ -230,10 +231,7 @@ def main(argv=None) -> int:
             runs = [('empty', 0)] + [(f'{p}x{r}', p) for p, r in node_sizes]
             for name, people in runs:
                 folder = Path(work) / f'node-{name}'
-                if people:
-                    shutil.copytree(Path(work) / name, folder)
-                else:
-                    folder.mkdir()
+                folder.mkdir(exist_ok=True)
                 figures = measure_node(folder, checkpoint, scenes, max(people, 50), domain, args)
                 results.setdefault('node', {})[name] = figures
                 ranking = figures['other_users_ranking_ms']
