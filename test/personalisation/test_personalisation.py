@@ -1,7 +1,6 @@
 """The node's fold-in orchestration without ROS, on the tiny checkpoint: which feedback
 becomes a rating, the solve and its bounds, eviction, a reload after a refit, the state
-file across a restart, and the scene memory feedback is matched against."""
-import json
+store across a restart, and the scene memory feedback is matched against."""
 
 import numpy as np
 import pytest

@@ -14,6 +14,7 @@ from ros_helpers import RosClient, domain_id, start_node, stop, stored_feedback
 from waiting import wait_for
 from stars_ros import recording
 
+pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter handling
 START_TIMEOUT = 90
 PEOPLE = [f'person-{k}' for k in range(6)]
 ROUNDS = 3
