@@ -39,7 +39,8 @@ def show_state(folder: Path, as_json: bool) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m stars_ros.recording', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.recording',
+                                     description='Repair bags left by a hard kill; list the people of a state store.')
     commands = parser.add_subparsers(dest='command', required=True)
     repair = commands.add_parser('recover', help='repair bags left by a hard kill')
     repair.add_argument('bags', nargs='+', type=Path)
