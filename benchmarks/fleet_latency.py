@@ -15,7 +15,7 @@ theirs (no other graph is heard). This process:
     models at ``--model-rate`` per second (each a new user with ``--ratings-per-model``
     ratings of real scenes, as robot A would send them), so that the VM's drift falls on
     both alike; it also counts the streamed models B solved and published.
-The rankers record (MCAP and the state file) unless ``--no-record``.
+The rankers record (MCAP and the state store) unless ``--no-record``.
 """
 from __future__ import annotations
 
@@ -153,7 +153,7 @@ def main(argv=None) -> int:
     parser.add_argument('--model-rate', type=float, default=10.0, help='peer models per second while loading')
     parser.add_argument('--ratings-per-model', type=int, default=5)
     parser.add_argument('--no-record', action='store_true',
-                        help="rankers with record_folder '': no MCAP recording, no state file")
+                        help="rankers with record_folder '': no MCAP recording, no state store")
     parser.add_argument('--out', default=str(REPO / 'results' / 'fleet_latency.json'))
     args = parser.parse_args(argv)
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')

@@ -12,7 +12,7 @@
    another person's device would be) gets scenes ranked at ``--stream-rate`` per second.
    Condition A: the streamer gives no feedback; B: each of the streamer's rankings is
    followed by a feedback rating, with ``fold_in`` off (the feedback is validated and
-   journaled with an fsync, as before this feature); C: the same with ``fold_in`` on, so
+   stored with an fsync, as before this feature); C: the same with ``fold_in`` on, so
    the node also folds every rating in. The three take turns in ``--blocks`` rounds of
    blocks (A B C, B C A, C A B, ...) under one streamer process whose feedback is switched
    on and off, so that the machine's drift during the run reaches all three alike.
@@ -197,7 +197,7 @@ class Streamer:
         """From the streamer's next ranking on, follow each with a rating (or not)."""
         self.process.stdin.write('feedback on\n' if on else 'feedback off\n')
         self.process.stdin.flush()
-        time.sleep(0.5)  # ratings already sent reach the node and its journal
+        time.sleep(0.5)  # ratings already sent reach the node and its store
 
     def __enter__(self):
         self.process = subprocess.Popen(self.command, env=self.env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,

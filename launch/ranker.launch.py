@@ -7,7 +7,7 @@
     ros2 launch stars_ros ranker.launch.py feedback_key_file:=/etc/stars/keys.txt
 
 Leave ``checkpoint`` empty to serve the packaged SocNav1 GAT-StARS model and
-``record_folder`` empty for the node's default, ``$ROS_HOME/stars_ros/records``. A robot
+``record_folder`` empty for the node's default, ``$ROS_HOME/stars_ros/records/{node}``. A robot
 of a fleet runs in its ``namespace`` and remaps stars/user_model to ``fleet_topic``. An empty
 launch argument is refused on the command line (``record_folder:=''``), so recording is
 turned off with ``record:=false``. ``ros2 launch stars_ros ranker.launch.py --show-args``
@@ -23,7 +23,7 @@ from launch_ros.actions import Node
 
 OPTIONAL = {  # launch argument = node parameter; empty (the default): the node's own default
     'checkpoint': 'checkpoint file; empty: the packaged default model',
-    'record_folder': 'folder for the MCAP recordings; empty: the node default $ROS_HOME/stars_ros/records',
+    'record_folder': 'folder for the MCAP recordings; empty: the node default $ROS_HOME/stars_ros/records/{node}',
     'top_k': 'publish only the best k entries of each ranking; empty: the node default (0: all)',
     'fleet_sharing': 'true: share folded-in users on stars/user_model; empty: the node default (false)',
     'feedback_key_file': 'keys that sign feedback (docs/security.md); empty: feedback is not authenticated',

@@ -1,7 +1,12 @@
-"""Refit a checkpoint from the feedback in the ranker's MCAP logs.
+"""Refit a checkpoint from the feedback in the ranker's MCAP logs, or from its state store.
 
     python -m offline_training.refit --checkpoint IN.pt --logs BAG_OR_MCAP [...] --out OUT.pt \
         [--mode user|full] [--data-root ROOT] [--regularisation L] [--epochs N]
+    python -m offline_training.refit --checkpoint IN.pt --state RECORD_FOLDER --out OUT.pt [...]
+
+``--state`` takes each person's ratings as the node's state store holds them now (the most
+recent ``fold_in_max_ratings`` it kept, with λ from each stored model), read through
+``recording.open_reader`` while the node runs or not; the logs hold every rating ever given.
 
 Each /stars/feedback message is joined with the scene request it names: the latest
 /stars/scene message with that scene_id logged before it, in the same log (what the node
@@ -27,6 +32,7 @@ from __future__ import annotations
 import argparse
 import collections
 import shlex
+import sqlite3
 import sys
 import time
 from dataclasses import dataclass, field
@@ -62,6 +68,8 @@ class LogRatings:
     problems: collections.Counter = field(default_factory=collections.Counter)
     examples: dict = field(default_factory=dict)         # problem -> first few details
     messages: int = 0
+    dropped: dict = field(default_factory=dict)          # user -> older ratings the store no longer keeps
+    read: str = 'MCAP file(s)'                           # what ``files`` are
     not_needed: collections.Counter = field(default_factory=collections.Counter)  # rankings, errors, user ids
     files: list = field(default_factory=list)
 
@@ -153,6 +161,28 @@ def read_logs(paths, predictor) -> LogRatings:
     return found
 
 
+def read_state(folder, predictor) -> LogRatings:
+    """Each person's own ratings in the state store of ``folder`` (oldest first), and the
+    λ of their stored model; peers' ratings are in the peers' logs and stores."""
+    found = LogRatings(read='state store')
+    with recording.open_reader(folder) as store:
+        found.files.append(str(store.path))
+        if store.fingerprint not in (None, predictor.fingerprint):
+            found.problem('people of another checkpoint', f'{store.path} holds people solved against '
+                          f'{store.fingerprint[:12]}: their ratings are used, their models are not')
+        for person in store.people():
+            for rating in person.ratings:
+                found.messages += 1
+                if rating.action not in predictor.actions:
+                    found.problem('unknown action', f"{store.path}: '{rating.action}' ({person.user_id})")
+                    continue
+                found.ratings.setdefault(person.user_id, []).append(rating)
+            found.dropped[person.user_id] = person.dropped
+            if person.model is not None:
+                found.regularisation[person.user_id] = person.model.regularisation
+    return found
+
+
 def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) -> None:
     try:
         feedback = messages.parse_feedback(text, 1 << 30)
@@ -226,7 +256,7 @@ def fine_tune(recommender: StarsTrainer, data: RatingData, epochs: int) -> list:
 
 def print_report(found: LogRatings, solved: dict, out=None) -> None:
     out = out or sys.stdout
-    print(f'read {len(found.files)} MCAP file(s), {found.messages} messages; {found.n_ratings} usable ratings '
+    print(f'read {len(found.files)} {found.read}, {found.messages} messages; {found.n_ratings} usable ratings '
           f'from {len(found.ratings)} user(s)', file=out)
     if found.not_needed:
         print('not needed for a refit: ' + ', '.join(f'{t} {n}' for t, n in sorted(found.not_needed.items())),
@@ -245,7 +275,9 @@ def print_report(found: LogRatings, solved: dict, out=None) -> None:
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', required=True, help='the checkpoint the node served')
-    parser.add_argument('--logs', required=True, nargs='+', help='bag folders or .mcap files recorded by the node')
+    inputs = parser.add_mutually_exclusive_group(required=True)
+    inputs.add_argument('--logs', nargs='+', help='bag folders or .mcap files recorded by the node')
+    inputs.add_argument('--state', help="a record folder (or its state.db): the ratings the node's state store holds")
     parser.add_argument('--out', required=True, help='checkpoint to write')
     parser.add_argument('--mode', choices=['user', 'full'], default='user', help='(default: %(default)s)')
     parser.add_argument('--data-root', help='original ratings to fine-tune on as well (full mode)')
@@ -271,7 +303,11 @@ def main(argv=None) -> int:
         return 2
     if args.data_root and args.mode == 'user':
         print('note: --data-root is used by --mode full only; user mode keeps every other parameter fixed')
-    found = read_logs(args.logs, predictor)
+    try:
+        found = read_state(args.state, predictor) if args.state else read_logs(args.logs, predictor)
+    except (FileNotFoundError, sqlite3.Error) as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
     solved = {}
     for user, ratings in found.ratings.items():
         regularisation = args.regularisation or found.regularisation.get(user, DEFAULT_REGULARISATION)
@@ -301,8 +337,9 @@ def main(argv=None) -> int:
     parent = predictor.metadata
     provenance = {
         'refit': {'mode': args.mode, 'parent_fingerprint': predictor.fingerprint,
-                  'parent_checkpoint': str(args.checkpoint), 'logs': [str(p) for p in args.logs],
-                  'files': found.files, 'ratings_per_user': {u: len(r) for u, r in found.ratings.items()},
+                  'parent_checkpoint': str(args.checkpoint), 'logs': [str(p) for p in args.logs or []],
+                  'state': args.state, 'files': found.files,
+                  'ratings_per_user': {u: found.dropped.get(u, 0) + len(r) for u, r in found.ratings.items()},
                   'regularisation': {u: m.regularisation for u, m in solved.items()},
                   'problems': dict(found.problems), 'epochs': args.epochs if args.mode == 'full' else 0,
                   'fine_tune_losses': losses, 'data_root': args.data_root if original is not None else None,

@@ -134,7 +134,7 @@ class FeedbackAuthenticator:
         return None
 
     def remember(self, signed_messages) -> None:
-        """Count the MACs of feedback taken before (the state file's ratings after a restart)
+        """Count the MACs of feedback taken before (the state store's ratings after a restart)
         as taken, so replaying it within the window is refused."""
         for message in signed_messages:
             auth = message.get('auth') if isinstance(message, Mapping) else None

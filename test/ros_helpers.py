@@ -28,7 +28,6 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from stars_ros import recording
-from stars_ros.recording.journal import read_journal
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -187,11 +186,14 @@ class RosClient:
         rclpy.try_shutdown(context=self.context)
 
 
-def journaled_feedback(bag: Path) -> list:
-    """The feedback messages a ranker's bag holds in its journal on disk now (a positive
-    sign that the node took them in)."""
-    path = bag / recording.JOURNAL
-    return [json.loads(entry['data']) for entry in read_journal(path)] if path.exists() else []
+def stored_feedback(bag: Path) -> list:
+    """The feedback messages of recording ``bag`` that the state store beside it has
+    committed now: what the ranker counts as stored (a positive sign that it took them in)."""
+    try:
+        with recording.open_reader(bag.parent) as store:
+            return [json.loads(entry['data']) for entry in store.feedback(bag.name)]
+    except FileNotFoundError:
+        return []
 
 
 def stop(process: subprocess.Popen, signal_number, timeout: float = 30.0) -> int:

@@ -15,7 +15,7 @@ import yaml
 from stars_ros import recording
 from stars_ros.node.core import PARAMETERS
 from stars_ros.ros import demo, replay, scene_publisher, usage
-from stars_ros.personalisation.user_state import STATE_FILE
+from stars_ros.recording.state_store import PersonUpdate, write_people
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))
@@ -51,7 +51,7 @@ def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_p
     assert f'usage: ros2 run stars_ros {executable}' in shown.stdout and '-p NAME:=VALUE' in shown.stdout
     for name, (default, description, *_) in TABLES[module].items():
         if name == 'record_folder':
-            default = str(ros_home / 'stars_ros' / 'records')  # the child's ROS_HOME
+            default = str(ros_home / 'stars_ros' / 'records' / '{node}')  # the child's ROS_HOME
         assert f'  {name} (default {usage._value(default)})\n      {description}\n' in shown.stdout
 
 
@@ -121,9 +121,13 @@ def test_default_record_folder_is_under_ros_home(monkeypatch, tmp_path):
     assert recording.default_folder() == tmp_path / 'home' / 'elsewhere' / 'stars_ros' / 'records'
 
 
-def test_the_ranker_records_under_ros_home_by_default():
-    assert PARAMETERS['record_folder'][0] == str(recording.default_folder())
+def test_the_ranker_records_under_ros_home_in_a_folder_of_its_own_by_default():
+    assert PARAMETERS['record_folder'][0] == str(recording.default_folder() / '{node}')
     assert Path(PARAMETERS['record_folder'][0]).is_absolute()
+    default = PARAMETERS['record_folder'][0]
+    assert recording.node_folder(default, '/robot1/ranker') == recording.default_folder() / 'robot1' / 'ranker'
+    assert recording.node_folder(default, '/ranker') == recording.default_folder() / 'ranker'
+    assert recording.node_folder('/data/stars', '/robot1/ranker') == Path('/data/stars')
 
 
 def test_ranker_yaml_holds_the_node_defaults():
@@ -156,7 +160,7 @@ def test_the_documented_parameter_table_is_the_nodes():
     for name, (default, set_at) in table.items():
         value, _, read_only, _ = PARAMETERS[name]
         if name == 'record_folder':
-            assert default == '$ROS_HOME/stars_ros/records'  # the value depends on the environment
+            assert default == '$ROS_HOME/stars_ros/records/{node}'  # the value depends on the environment
         else:
             assert (type(yaml.safe_load(default)), yaml.safe_load(default)) == (type(value), value), name
         assert set_at == ('start' if read_only else 'any time'), name
@@ -237,6 +241,6 @@ def test_demo_records_into_a_folder_of_its_own_unless_told(tmp_path, capsys):
     given = tmp_path / 'mine'
     given.mkdir()
     assert demo.record_folder(given, tmp_path / 'run') == given and not capsys.readouterr().out
-    (given / STATE_FILE).write_text('{}')
+    write_people(given, 'f' * 64, [PersonUpdate('ann', None, 'f' * 64, [], 0, [], False)])
     demo.record_folder(given, tmp_path / 'run')
     assert 'holds folded-in users of an earlier run' in capsys.readouterr().out

@@ -3,8 +3,9 @@ requests and their batches, problem reports and diagnostics, the recording, and 
 of feedback (``personalisation``). ``stars_ros.ros.ranker`` declares the parameters, turns
 messages into the text this class takes and publishes the text it gives.
 
-One thread (the node's executor) calls ``RankerCore``; its own threads journal feedback and
-write the state file, so the disk never holds up the rankings. ``work`` scores one batch of
+One thread (the node's executor) calls ``RankerCore``; the state store's thread
+(``recording.state_store``) commits feedback and people, and the recorder's flushes the bag,
+so the disk never holds up the rankings. ``work`` scores one batch of
 queued requests with one model snapshot, else re-solves one user who gave feedback, so the
 ranking of others waits for at most one solve; ``reload`` runs between two batches, so every
 ranking is scored by exactly one checkpoint, the one whose fingerprint it carries.
@@ -17,10 +18,7 @@ whose wait overlapped such work is counted, with that overlap, in the next diagn
 from __future__ import annotations
 
 import collections
-import queue
-import threading
 import time
-from pathlib import Path
 from typing import Callable, Mapping
 
 from stars_ros import feedback_auth, messages
@@ -32,7 +30,6 @@ from stars_ros.personalisation.online import Personalisation
 from stars_ros.model.predictor import Predictor
 from stars_ros.resources import DEFAULT_CHECKPOINT, resolve_checkpoint
 from stars_ros.node.batching import WARNINGS, BusySpans, Pending, PeriodStats, Problems, rank_batch
-from stars_ros.personalisation.user_state import STATE_FILE
 
 MAX_STRANGERS_REMEMBERED = 10000
 TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',
@@ -64,12 +61,15 @@ PARAMETERS = {  # name: (default, description, read_only, range)
                  'centimetres, docs/explanations.md)', False, None),
     'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag even while nobody '
                        'subscribes to it; false: markers are built only for a subscriber', False, None),
-    'record_folder': (str(recording.default_folder()), 'folder for the MCAP bags and user_models.json; default '
-                      '$ROS_HOME/stars_ros/records (ROS_HOME: ~/.ros unless set); empty: do not record', True, None),
+    'record_folder': (str(recording.default_folder() / recording.NODE_PLACEHOLDER), 'folder for the MCAP bags and '
+                      'the state store (state.db), one node each; {node} stands for the node\'s namespace and name '
+                      '(robot1/ranker); default $ROS_HOME/stars_ros/records/{node} (ROS_HOME: ~/.ros unless set); '
+                      'empty: do not record', True, None),
     'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
                        (4096, _INT_MAX)),
-    'flush_interval': (1.0, 'seconds between flushes of the recording; a hard kill loses at most this',
-                       True, (0.01, 3600.0)),
+    'flush_interval': (1.0, 'seconds between flushes of the recording (a hard kill loses at most this of its other '
+                       'topics; stored feedback is never lost) and between two tries of a disk that refuses the state '
+                       'store', True, (0.01, 3600.0)),
     'max_message_bytes': (messages.DEFAULT_MAX_BYTES, 'larger messages are refused (kind oversized)',
                           False, (1024, 64 << 20)),
     'queue_depth': (1000, 'QoS depth of stars/scene and the most requests waiting to be scored', True,
@@ -81,7 +81,7 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'fold_in': (True, "personalise from feedback: re-solve the user's embedding after each rating", False, None),
     'fold_in_min_ratings': (1, 'ratings a user needs before their folded-in embedding is served', False,
                             (1, 100000)),
-    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state file "
+    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state store "
                             'keeps); older ones stay in the MCAP log for the offline refit', True, (1, 1000000)),
     'fold_in_max_users': (1000, 'folded-in users kept; beyond this the one who rated least recently goes back to '
                           'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),
@@ -133,18 +133,16 @@ class RankerCore:
         self._fold_in_spans = BusySpans()  # when fold-in work was done (time.time_ns)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
-        self.recorder = None
-        self.recorder = self._start_recorder(node_name)
         folder = params['record_folder']
+        self.record_folder = recording.node_folder(folder, node_name) if folder else None
+        self.recorder = None
+        self.store = self._open_store(node_name)  # first: StoreLockedError when another node holds the folder
+        self.recorder = self._start_recorder(node_name)
         self.personalisation = Personalisation(
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
-            Path(folder).expanduser() / STATE_FILE if folder else None, params['flush_interval'],
-            origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator)
+            self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator)
         self._peers_reported = set()  # (peer, fingerprint or λ) warned about once
         self.personalisation.restore()
-        self._to_journal = queue.SimpleQueue()  # accepted feedback on its way to the recorder's journal
-        self._journal_thread = threading.Thread(target=self._journal_loop, name='stars-ranker-journal', daemon=True)
-        self._journal_thread.start()
 
     def _feedback_authenticator(self):
         """The checks of signed feedback (``feedback_auth``), None without a key file. A key
@@ -161,9 +159,21 @@ class RankerCore:
         return feedback_auth.FeedbackAuthenticator(keys, lambda: self.params['feedback_max_age'])
 
     # -- recording -----------------------------------------------------------------------
+    def _open_store(self, node_name: str):
+        if self.record_folder is None:
+            return None
+        store = recording.StateStore(self.record_folder, node_name, self._on_store_error, self.logger.info,
+                                     self.params['flush_interval'])
+        for imported in store.imported:
+            self.logger.info(f'imported {imported} into {store.path} (the files are kept as they were)')
+        return store
+
+    def _on_store_error(self, text: str):
+        self.report('recording', text + '; ranking goes on, feedback is kept in memory until the disk works')
+
     def _start_recorder(self, node_name: str):
-        folder = self.params['record_folder']
-        if not folder:
+        folder = self.record_folder
+        if folder is None:
             self.logger.warning('record_folder is empty: scenes, rankings and feedback are not recorded')
             return None
         try:
@@ -194,14 +204,10 @@ class RankerCore:
         if self.recorder is not None:
             self.recorder.write(self.topics[topic], text, self._now() if log_time is None else log_time)
 
-    def _journal_loop(self):
-        """Feedback into the recorder's journal (written and fsync'd) from a thread of its own:
-        every ranking queued behind an fsync in the executor thread would wait for the disk."""
-        while (item := self._to_journal.get()) is not None:
-            topic, text, log_time, scene_id = item
-            if not self.recorder.write_feedback(topic, text, log_time):
-                self.report('recording', 'feedback could not be written yet; kept in memory and retried', topic,
-                            scene_id)
+    def _committed(self, entry: dict):
+        """Feedback the store committed (its thread): into the bag, the log of record."""
+        if self.recorder is not None:
+            self.recorder.write_feedback(entry['topic'], entry['data'], entry['log_time'])
 
     # -- problems and diagnostics --------------------------------------------------------
     def report(self, kind: str, detail: str, topic: str = '', scene_id: str | None = None):
@@ -224,15 +230,15 @@ class RankerCore:
         detail)] of each kind of problem) of the period since the last call, which ends it."""
         period, counts = self.problems.take_period()
         recorder = self.recorder
-        level = 'error' if set(period) - set(WARNINGS) or (recorder and recorder.error) else (
-            'warn' if period else 'ok')
+        store = self.store
+        failure = (recorder and recorder.error) or (store and store.error)
+        level = 'error' if set(period) - set(WARNINGS) or failure else ('warn' if period else 'ok')
         summary = 'serving' if not period else 'serving; problems since last report: ' + ', '.join(
             f'{k} x{n}' for k, (n, _) in sorted(period.items()))
         values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
                   'rankings': counts.get('ranking', 0), 'queued': len(self.queue),
-                  'recording': 'off' if recorder is None else (recorder.error or str(recorder.path)),
-                  'feedback_not_on_disk': 0 if recorder is None else
-                  recorder.pending_feedback + self._to_journal.qsize(),
+                  'recording': 'off' if recorder is None else (failure or str(recorder.path)),
+                  'feedback_not_on_disk': 0 if store is None else store.uncommitted_feedback,
                   'folded_in_users': len(self.predictor.user_models), **self._period_stats.values()}
         values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
         self._period_stats = PeriodStats()
@@ -272,13 +278,15 @@ class RankerCore:
         self.record('stars/user_id', text)
 
     def accept_feedback(self, text: str) -> bool:
-        """Journal a stars/feedback message and queue its fold-in; True when a user now waits
-        to be re-solved (call ``work``)."""
+        """Fold in a stars/feedback message and queue it, with the rating it gives, for the
+        state store, which commits both in one transaction and only then counts the feedback
+        as stored (``feedback_not_on_disk`` until then); True when a user now waits to be
+        re-solved (call ``work``)."""
         topic = self.topics['stars/feedback']
         feedback = self._parse(messages.parse_feedback, text, topic)
         if feedback is None:
             return False
-        if self.authenticator is not None:  # before the journal: refused feedback is recorded as an error only
+        if self.authenticator is not None:  # before the store: refused feedback is recorded as an error only
             refusal = self.authenticator.check(feedback.signed, self._now())
             if refusal is not None:
                 self.report('auth', f'feedback refused, not folded in: {refusal}', topic, feedback.scene_id)
@@ -288,18 +296,24 @@ class RankerCore:
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
             return False
         log_time = self._now()
-        if self.recorder is None:
+        if self.store is None:
             self.report('recording', 'feedback accepted but record_folder is empty: it is not stored', topic,
                         feedback.scene_id)
-        else:
-            self._to_journal.put((topic, text, log_time, feedback.scene_id))
-        if not self.params['fold_in']:
-            return False
-        started = time.time_ns()
-        refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time)
-        if refused is not None:
-            self.report('unknown_scene', refused, topic, feedback.scene_id)
-        self._fold_in_spans.add(started, time.time_ns())
+        elif not self.store.healthy:
+            self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
+                        feedback.scene_id)
+        refused, update = 'fold_in is off', None
+        if self.params['fold_in']:
+            started = time.time_ns()
+            refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time)
+            if refused is not None:
+                self.report('unknown_scene', refused, topic, feedback.scene_id)
+            elif self.store is not None:
+                update = self.personalisation.update(feedback.user_id)
+            self._fold_in_spans.add(started, time.time_ns())
+        if self.store is not None:
+            self.store.put_feedback({'topic': topic, 'log_time': log_time, 'data': text},
+                                    self.recorder.name if self.recorder is not None else '', update, self._committed)
         return refused is None
 
     def accept_user_model(self, text: str) -> bool:
@@ -486,16 +500,15 @@ class RankerCore:
                     'population offsets (reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
 
     def close(self):
-        """Record the requests never scored, finish the state file, the journal and the
-        recording (clean shutdown)."""
+        """Record the requests never scored, commit what waits for the state store, close
+        the store and the recording (clean shutdown)."""
         for item in self.queue:  # in the log even though they were never scored
             self.record('stars/scene', item.text, item.log_time)
-        self.personalisation.close()
-        self._to_journal.put(None)
-        self._journal_thread.join(timeout=10)  # every accepted feedback reaches the recorder
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
-        if self.recorder is not None:
-            for entry in self.recorder.close():
+        if self.store is not None:  # first: what it commits reaches the bag before the bag closes
+            for entry in self.store.close():
                 self.logger.error(f'feedback that could not be stored: {entry}')
+        if self.recorder is not None:
+            self.recorder.close()
             self.logger.info(f'recording closed: {self.recorder.path}')

@@ -23,7 +23,7 @@ import uuid
 from typing import Iterable, Sequence
 
 from stars_ros.personalisation.foldin import Rating
-from stars_ros.personalisation.histories import BoundedUsers
+from stars_ros.personalisation.histories import BoundedUsers, Deferred
 
 
 def new_rating_id() -> str:
@@ -44,33 +44,55 @@ class PeerRatings(BoundedUsers):
 
     def known(self, user_id: str) -> set:
         with self._lock:
-            return set(self._users.get(user_id, ()))
+            return set(self._held(user_id) or ())
 
     def ratings(self, user_id: str) -> list:
         with self._lock:
-            return list(self._users.get(user_id, {}).values())
+            return list((self._held(user_id) or {}).values())
 
     def add(self, user_id: str, ratings: Sequence[Rating]) -> list:
         """Keep ``ratings`` (their ids are new); returns the users evicted to make room."""
         with self._lock:
-            kept = self._users.setdefault(user_id, {})
+            kept = self._held(user_id)
+            if kept is None:
+                kept = self._users[user_id] = {}
             kept.update((r.rating_id, r) for r in ratings)
             self._users.move_to_end(user_id)
-            if len(kept) > self.max_ratings:
-                recent = sorted(kept.values(), key=lambda r: (r.stamp, r.rating_id))[-self.max_ratings:]
-                self._users[user_id] = {r.rating_id: r for r in recent}
+            self._trim(user_id)
+            return self._evict()
+
+    def restore(self, state: dict) -> list:
+        """Add users {user: [Rating] or Deferred} (the state store's); returns those evicted."""
+        with self._lock:
+            for user_id, ratings in state.items():
+                self._users[user_id] = ratings if isinstance(ratings, Deferred) else self._holding(ratings)
+                self._users.move_to_end(user_id)
+                if not isinstance(ratings, Deferred):
+                    self._trim(user_id)
             return self._evict()
 
     def discard(self, user_id: str, ratings: Sequence[Rating]) -> None:
         with self._lock:
             for rating in ratings:
-                self._users.get(user_id, {}).pop(rating.rating_id, None)
+                (self._held(user_id) or {}).pop(rating.rating_id, None)
 
     def drop(self, user_id: str) -> None:
         with self._lock:
             self._users.pop(user_id, None)
 
     def snapshot(self) -> dict:
-        """user -> [Rating], least recently rated user first."""
+        """user -> [Rating], least recently rated user first (every Deferred one read)."""
         with self._lock:
-            return {u: list(r.values()) for u, r in self._users.items()}
+            return {u: list(self._held(u).values()) for u in list(self._users)}
+
+    def _holding(self, ratings: list) -> dict:
+        return {r.rating_id: r for r in ratings}
+
+    def _loaded(self, user_id: str) -> None:
+        self._trim(user_id)
+
+    def _trim(self, user_id: str) -> None:
+        kept = self._users[user_id]
+        if len(kept) > self.max_ratings:
+            recent = sorted(kept.values(), key=lambda r: (r.stamp, r.rating_id))[-self.max_ratings:]
+            self._users[user_id] = {r.rating_id: r for r in recent}

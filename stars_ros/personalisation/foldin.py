@@ -66,7 +66,7 @@ class Rating:
     feedback: dict | None = None
 
     def to_json(self) -> dict:
-        """The rating as the state file and stars/user_model's ``ratings`` hold it."""
+        """The rating as stars/user_model's ``ratings`` hold it."""
         scene = self.scene if isinstance(self.scene, dict) else [float(v) for v in self.scene]
         values = {'id': self.rating_id, 'stamp': int(self.stamp), 'origin': self.origin, 'scene': scene,
                   'action': self.action, 'score': float(self.score)}
@@ -88,7 +88,7 @@ class UserModel:
     """A folded-in user: embedding ``p`` [dim] and offset ``b`` (float64), solved from
     ``n_ratings`` ratings, by the Gaussian posterior (``regularisation`` 0) or the ridge
     override λ; ``covariance`` [dim+1, dim+1] of θ = (p, b) (None: not known, e.g. restored
-    from a state file until it is solved again)."""
+    from an earlier version's state file until it is solved again)."""
 
     p: np.ndarray
     b: float

@@ -8,24 +8,23 @@ garbage collector little, parsed JSON would cost it much more) is added to that 
 history (bounded: histories.FeedbackHistories), and the user waits in ``pending``. The node
 calls ``solve_next`` when no scene waits, one user per turn, so the ranking of others waits
 for at most one solve (timings in docs/personalisation.md). The result goes into the
-predictor's overlay (swapped whole) and into the state file (``user_state``), which a
-restart with the same checkpoint restores. With fleet sharing (``fleet``), peers' ratings
-join a user's own and the model is solved from the union.
+predictor's overlay (swapped whole) and into the state store (``recording.state_store``):
+each change queues that person's update, which the store's own thread writes, and a restart
+with the same checkpoint restores them. With fleet sharing (``fleet``), peers' ratings join
+a user's own and the model is solved from the union.
 
-One thread (the node's executor) calls ``Personalisation``; only its state writer's thread
-reads it besides.
+One thread (the node's executor) calls ``Personalisation``.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
 import logging
-from pathlib import Path
 from typing import Callable
 
 from stars_ros.personalisation import fleet
 from stars_ros import messages
-from stars_ros.personalisation import user_state
+from stars_ros.recording.state_store import PersonUpdate
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.personalisation.uncertainty import Uncertainty
 from stars_ros.personalisation.foldin import FoldIn, Rating, UserModel, rating_from_feedback
@@ -93,8 +92,7 @@ class Personalisation:
         max_users (int): folded-in users kept; beyond, the one who rated least recently goes.
         report (callable): ``report(kind, detail)``, called for each problem.
         logger (optional): gets ``info`` and ``warning`` lines (default: this module's logger).
-        state_path (Path, optional): the state file (``user_state``); None: nothing persists.
-        flush_interval (float, optional): at most one write of the state file per this many seconds.
+        store (recording.StateStore, optional): where people persist; None: nothing does.
         scene_memory (int, optional): scene requests remembered for feedback.
         origin (str, optional): the node's name, which its ratings carry.
         sharing (bool, optional): fleet sharing: solve each user from their own and their
@@ -105,8 +103,8 @@ class Personalisation:
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
-                 logger=None, state_path: Path | None = None, flush_interval: float = 1.0,
-                 scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False, authenticator=None):
+                 logger=None, store=None, scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False,
+                 authenticator=None):
         self.histories = FeedbackHistories(max_ratings, max_users)
         self.peers = fleet.PeerRatings(max_ratings, max_users)
         self.origin, self.sharing, self.authenticator = origin, sharing, authenticator
@@ -119,9 +117,7 @@ class Personalisation:
         self._logger = logger or logging.getLogger(__name__)
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
         self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
-        self.state_path = state_path
-        self._writer = None if state_path is None else user_state.StateWriter(
-            state_path, self.state, flush_interval, lambda text: report('recording', text))
+        self.store = store
 
     def _fold_in_model(self, predictor) -> FoldIn | None:
         """The FoldIn of ``predictor``; None (and a warning) for a model without users."""
@@ -138,18 +134,28 @@ class Personalisation:
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
         self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
-        for user_id in [*self.histories.absorb(absorbed), *self.peers.snapshot()]:
+        had = set(self.histories.users())
+        for user_id in [*self.histories.absorb(absorbed), *self.peers.users()]:
             self.pending[user_id] = None
+        if self.store is not None:
+            self.store.set_fingerprint(predictor.fingerprint)
+            for user_id in had & set(absorbed):
+                if user_id in self.histories or user_id in self.peers:
+                    self._save(user_id)
+                else:
+                    self.store.forget(user_id)
 
     # -- feedback ------------------------------------------------------------------------
     def add_feedback(self, feedback, max_bytes: int = messages.DEFAULT_MAX_BYTES, stamp: int = 0) -> str | None:
         """Add the rating ``feedback`` (messages.Feedback) gives, received at ``stamp`` (ROS
         time, ns), to its user's history and queue the user for a solve; returns instead why
-        it cannot be folded in (the node reports that as ``unknown_scene``)."""
+        it cannot be folded in (the node reports that as ``unknown_scene``). The caller
+        stores the user's ``update`` with the feedback, in one transaction."""
         rating = self._rating(feedback, max_bytes)
         if isinstance(rating, str):
             return rating
         signed = feedback.signed if self.authenticator is not None else None
+        self._keep_solved_from(feedback.user_id)
         rating = dataclasses.replace(rating, rating_id=signed['auth']['mac'] if signed else fleet.new_rating_id(),
                                      stamp=stamp, origin=self.origin, feedback=signed)
         self._forget(self.histories.add(feedback.user_id, rating))
@@ -225,8 +231,10 @@ class Personalisation:
             held = self._held(staged.user_id)
             new = [r for r in staged.ratings if r.rating_id not in held]  # another message may have brought them
             if new:
+                self._keep_solved_from(staged.user_id)
                 self._forget(self.peers.add(staged.user_id, new))
                 self.pending[staged.user_id] = None
+                self._save(staged.user_id)
         return None
 
     def _held(self, user_id: str) -> set:
@@ -253,8 +261,15 @@ class Personalisation:
             return None
         if not self.sharing:
             return messages.user_model_payload(user_id, model, self.predictor.fingerprint)
+        self._keep_solved_from(user_id)
         return messages.user_model_payload(user_id, model, self.predictor.fingerprint, self.origin,
-                                           self.solved_from.get(user_id, []))
+                                           self.solved_from[user_id])
+
+    def _keep_solved_from(self, user_id: str) -> None:
+        """A model restored from the store was solved from the ratings restored with it:
+        note them before they change (read now if they were not yet)."""
+        if user_id not in self.solved_from and self.predictor.user_model(user_id) is not None:
+            self.solved_from[user_id] = self.ratings(user_id)
 
     # -- the solve -----------------------------------------------------------------------
     def solve_next(self, min_ratings: int = 1, regularisation: float = 0.0) -> tuple[str, UserModel] | None:
@@ -279,13 +294,14 @@ class Personalisation:
         self.solved_from[user_id] = ratings
         self.predictor.set_user_model(user_id, model)
         self.to_announce.pop(user_id, None)  # the solve's own message carries it
-        self._save()
+        self._save(user_id, solved=True)
         return user_id, model
 
     def _drop_unusable(self, foldin: FoldIn, user_id: str, ratings: list) -> list:
         """Ratings of an action or a scene the model does not take (a reload changed it) leave
         the history and the peers' ratings, each reported."""
         unusable = []
+        self._keep_solved_from(user_id)
         for rating in ratings:
             try:
                 foldin.action_index([rating.action])
@@ -295,6 +311,7 @@ class Personalisation:
                 self._report(messages.error_kind(error), f"feedback of '{user_id}' not folded in: {error}")
         self.histories.discard(user_id, unusable)
         self.peers.discard(user_id, unusable)
+        self._save(user_id)
         return self.ratings(user_id)
 
     def _forget(self, evicted: list) -> None:
@@ -306,44 +323,45 @@ class Personalisation:
             self._report('user_models', f"folded-in user '{user_id}' dropped: more than fold_in_max_users = "
                          f'{self.histories.max_users} users rated more recently (their feedback stays in '
                          'the MCAP log for the offline refit)')
-        if evicted:
-            self._save()
+            if self.store is not None:
+                self.store.forget(user_id)
 
-    # -- the state file ------------------------------------------------------------------
-    def state(self) -> dict:
-        """The state file's content: every folded-in user, model and history."""
-        histories = self.histories.snapshot()
-        predictor = self.predictor
-        return user_state.to_dict(predictor.fingerprint, predictor.user_models, histories, self.peers.snapshot())
+    # -- the state store ---------------------------------------------------------------
+    def update(self, user_id: str, solved: bool = False) -> PersonUpdate:
+        """What the store is to hold of ``user_id`` now; ``solved``: their served model was
+        solved from exactly their ratings as they are."""
+        ratings, dropped = self.histories.ratings(user_id), self.histories.dropped(user_id)
+        return PersonUpdate(user_id, self.predictor.user_model(user_id), self.predictor.fingerprint, ratings, dropped,
+                            self.peers.ratings(user_id), solved)
+
+    def _save(self, user_id: str, solved: bool = False) -> None:
+        if self.store is not None:
+            self.store.save_person(self.update(user_id, solved))
 
     def restore(self) -> None:
-        """Folded-in users of the last run, if they were solved against the served checkpoint."""
-        try:
-            state = None if self.state_path is None else user_state.load(self.state_path, self.predictor.fingerprint)
-        except user_state.UserStateError as error:
-            self._report('user_models', str(error))
+        """Folded-in users of the last run, if they were solved against the served
+        checkpoint: their models now, their ratings read when first used. A stored model
+        solved from the ratings stored with it is served as it was (mean and covariance);
+        anyone else waits to be solved again."""
+        if self.store is None:
             return
-        if state is None:
+        people, problem = self.store.load(self.predictor.fingerprint)
+        if problem is not None:
+            self._report('user_models', problem)
+        if not people:
             return
-        evicted = set(self.histories.restore(state.histories))
+        evicted = set(self.histories.restore({p.user_id: (p.ratings, p.dropped) for p in people if p.ratings}))
         if self.authenticator is not None:  # a replay across a restart is still a replay
-            self.authenticator.remember(r.feedback for ratings, _ in state.histories.values() for r in ratings
-                                        if r.feedback is not None)
-        for user_id, ratings in state.peers.items():
-            evicted.update(self.peers.add(user_id, ratings))
-        restored = {u: m for u, m in state.models.items() if u not in evicted}
-        self.solved_from.update({u: self.ratings(u) for u in restored})
+            self.authenticator.remember(self.store.reader.signed_feedback())
+        evicted.update(self.peers.restore({p.user_id: p.peer_ratings for p in people if p.peer_ratings}))
+        current = self.predictor.fingerprint
+        restored = {p.user_id: p.model for p in people
+                    if p.user_id not in evicted and p.model is not None and p.fingerprint == current}
         self.predictor.set_user_models(restored)
-        self.pending.update(dict.fromkeys(restored))  # solved again: the state file keeps no posterior
-        # covariance (served from the prior's until then), and with fleet sharing the last solve may
-        # not have reached the file
-        self._logger.info(f'restored {len(state.models)} folded-in users from {self.state_path}')
-
-    def _save(self) -> None:
-        if self._writer is not None:
-            self._writer.request()
-
-    def close(self) -> None:
-        """Write the state file once more if an update is not on disk yet (clean shutdown)."""
-        if self._writer is not None:
-            self._writer.close()
+        self.pending.update(dict.fromkeys(p.user_id for p in people if p.user_id not in evicted and not (
+            p.user_id in restored and p.solved and p.model.covariance is not None)))
+        for user_id in evicted:  # beyond fold_in_max_users now: gone, as an eviction would take them
+            self.peers.drop(user_id)
+            self.store.forget(user_id)
+        self._logger.info(f'restored {len(restored)} folded-in users from {self.store.path}'
+                          + (f' ({len(self.pending)} to solve again)' if self.pending else ''))

@@ -8,8 +8,8 @@ from the definitions, so no rclpy is needed to write or read a bag::
 
     <folder>/<name>/metadata.yaml        topics, counts, files
     <folder>/<name>/<name>_0.mcap, _1 …  rotated by size, ros2 profile, zstd chunks
-    <folder>/<name>/feedback.jsonl       journal of accepted feedback (``journal``)
     <folder>/<name>/recording.pid        present while a process records into the bag
+    <folder>/state.db                    the node's state store and feedback journal (``state_store``)
 
 metadata.yaml is block YAML, as rosbag2 writes it, or (``interim``, while recording) the
 same document as one line of JSON, which is YAML too (rosbag2's yaml-cpp and rosbags read
@@ -45,6 +45,9 @@ _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 _MAGIC = b'\x89MCAP0\r\n'
 
 
+NODE_PLACEHOLDER = '{node}'
+
+
 @dataclass(frozen=True)
 class MessageType:
     """A ROS 2 message type as a bag stores it: its name (``pkg/msg/Type``), its ros2msg
@@ -63,6 +66,12 @@ def default_folder() -> Path:
     ``~/.ros``), where ROS keeps what nodes write (rcl's logs go to ``$ROS_HOME/log``), so a
     node started from any folder, or by ``ros2 launch``, records to the same place."""
     return Path(os.environ.get('ROS_HOME') or '~/.ros').expanduser() / 'stars_ros' / 'records'
+
+
+def node_folder(folder: str, node_name: str) -> Path:
+    """``folder`` with ``{node}`` replaced by the node's fully qualified name without its
+    leading slash (``/robot1/ranker`` -> ``robot1/ranker``): one folder, one store, per node."""
+    return Path(str(folder).replace(NODE_PLACEHOLDER, node_name.strip('/'))).expanduser()
 
 
 def qos_profile(depth: int = 10, transient_local: bool = False) -> dict:

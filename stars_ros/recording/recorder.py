@@ -1,13 +1,14 @@
 """The recorder: String messages of the node's topics, and CDR-encoded messages of other types
-(``types``), into one bag (``bag``), feedback
-through the journal first (``journal``), from the threads that serve requests.
+(``types``), into one bag (``bag``), from the threads that serve requests; feedback once the
+state store has committed it (``state_store``), so the bag's feedback is what the store journaled.
 
 Every ``flush_interval`` seconds a thread of its own writes out the chunk in progress,
-fsyncs it and rewrites metadata.yaml, so a hard kill loses at most that interval; the fsyncs
+fsyncs it and rewrites metadata.yaml, so a hard kill loses at most that interval of the
+other topics (``recovery.recover`` adds the store's committed feedback back); the fsyncs
 run outside the lock the serving threads record under. Disk errors never raise to the
-caller: they are reported through ``on_event`` and retried at each flush, and feedback that
-could not be journaled is kept in memory until it can. ``close`` writes block YAML, as
-rosbag2 does, and repairs a file that a failure left unfinished (``recovery.recover``).
+caller: they are reported through ``on_event`` and retried at each flush, and committed
+feedback the file could not take waits in memory until it can. ``close`` writes block
+YAML, as rosbag2 does, and repairs a file that a failure left unfinished.
 """
 from __future__ import annotations
 
@@ -19,7 +20,6 @@ from pathlib import Path
 from typing import Callable
 
 from stars_ros.recording.bag import PID_FILE, McapFile, encode_string, metadata_text, write_metadata
-from stars_ros.recording.journal import JOURNAL, FeedbackJournal
 from stars_ros.recording.recovery import recover
 
 
@@ -65,8 +65,7 @@ class Recorder:
         self._metadata_generation = self._metadata_written = 0
         self._files: list = []
         self._file: McapFile | None = None
-        self._journal = FeedbackJournal(self.path / JOURNAL)
-        self._unrecorded: list = []  # journaled feedback not yet in an MCAP file
+        self._unrecorded: list = []  # committed feedback not yet in an MCAP file
         self._closed = False
         self._damaged = False
         self._stop = threading.Event()
@@ -77,9 +76,10 @@ class Recorder:
 
     # -- state -----------------------------------------------------------------------------
     @property
-    def pending_feedback(self) -> int:
-        """Accepted feedback that is not yet journaled on disk (kept in memory, retried)."""
-        return self._journal.unsaved
+    def unrecorded_feedback(self) -> int:
+        """Committed feedback not yet in an MCAP file (kept in memory, retried)."""
+        with self._lock:
+            return len(self._unrecorded)
 
     @property
     def files(self) -> list:
@@ -101,11 +101,10 @@ class Recorder:
             self._on_event('error', message)
 
     def _open(self):
-        """Create the bag directory, journal and next file; on failure stay in error state."""
+        """Create the bag directory and next file; on failure stay in error state."""
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             (self.path / PID_FILE).write_text(f'{os.getpid()}\n')
-            self._journal.open()
             path = self.path / f'{self.name}_{len(self._files)}.mcap'
             self._file = McapFile.create(path, self.topics, self._chunk_size, self.custom, self.types)
             self._files.append(self._file.stats)
@@ -113,11 +112,11 @@ class Recorder:
         except OSError as error:
             self._fail(error, 'opening the bag')
             return
-        self._retry_feedback()
+        self._record_committed()
         self._check_healthy()
 
     def _check_healthy(self):
-        if self.error is not None and self._file is not None and self._journal.healthy:
+        if self.error is not None and self._file is not None and not self._unrecorded:
             self.error = None
             self._on_event('info', f'recording to {self.path} works again')
 
@@ -143,33 +142,17 @@ class Recorder:
                 return False
             return True
 
-    def write_feedback(self, topic: str, text: str, log_time: int) -> bool:
-        """Record feedback: journaled and fsync'd before returning True; kept in memory and
-        retried at each flush when the disk refuses it, so it is never silently lost. The
-        journal's fsync runs outside the lock ``write`` takes, so other messages are recorded
-        meanwhile. Not to be called once ``close`` has begun."""
-        entry = {'topic': topic, 'log_time': log_time, 'data': text}
-        saved, failure = self._journal.save(entry)
+    def write_feedback(self, topic: str, text: str, log_time: int) -> None:
+        """Record feedback the state store has committed; kept in memory, in order, while
+        the file cannot take it. Not to be called once ``close`` has begun."""
         with self._lock:
-            if failure is not None:
-                self._fail(failure, 'journaling feedback', lose_file=False)
-            self._unrecorded += saved
-            self._record_journaled()
-        return any(done is entry for done in saved)
+            self._unrecorded.append((topic, text, log_time))
+            self._record_committed()
 
-    def _retry_feedback(self):
-        """Journal the feedback that waits for the disk, then record what is journaled."""
-        saved, failure = self._journal.retry()
-        self._unrecorded += saved
-        if failure is not None:
-            self._fail(failure, 'journaling feedback', lose_file=False)
-        self._record_journaled()
-
-    def _record_journaled(self):
-        """Journaled feedback into the MCAP file, oldest first, while the file takes it."""
+    def _record_committed(self):
+        """Committed feedback into the MCAP file, oldest first, while the file takes it."""
         while self._unrecorded and self._file is not None:
-            entry = self._unrecorded[0]
-            if not self.write(entry['topic'], entry['data'], entry['log_time']):
+            if not self.write(*self._unrecorded[0]):
                 return
             self._unrecorded.pop(0)
 
@@ -195,7 +178,7 @@ class Recorder:
                     synced = (self._file, os.dup(self._file.stream.fileno()), self._metadata_snapshot())
                 except OSError as error:
                     self._fail(error, 'flushing')
-            self._retry_feedback()
+            self._record_committed()
             self._check_healthy()
         if synced is None:
             return
@@ -232,30 +215,30 @@ class Recorder:
         while not self._stop.wait(self.flush_interval):
             self.flush()
 
-    def close(self) -> list:
-        """Finish the current file, write metadata.yaml and remove the pid marker. Returns
-        the feedback entries that could not be journaled (to be logged by the caller)."""
+    def close(self) -> int:
+        """Finish the current file, write metadata.yaml and remove the pid marker (a bag
+        left damaged is repaired, with the store's committed feedback). Returns how many
+        committed feedback messages the MCAP files could not take (recovery adds them)."""
         self._stop.set()
         if self._flusher is not threading.current_thread():
             self._flusher.join()
         with self._lock:
             if self._closed:
-                return self._journal.waiting()
-            self._retry_feedback()
+                return len(self._unrecorded)
+            self._record_committed()
             self._closed = True
             try:
                 if self._file is not None:
                     self._file.finish()
                     self._file = None
-                self._journal.close()
-                if self._damaged:
+                if self._damaged or self._unrecorded:
                     recover(self.path)
                 elif self._files:
                     self._write_metadata(self._metadata_snapshot(), interim=False)
                 (self.path / PID_FILE).unlink(missing_ok=True)
             except OSError as error:
                 self._fail(error, 'closing')
-            return self._journal.waiting()
+            return len(self._unrecorded)
 
     def __enter__(self):
         return self

@@ -14,7 +14,8 @@ from mcap_ros2.decoder import DecoderFactory
 from stars_ros.files import atomic_write
 from stars_ros.recording.bag import (PID_FILE, STRING, FileStats, McapFile, MessageType, bag_files, encode_string,
                                      is_finished, metadata_text, qos_profile, topic_qos, write_metadata)
-from stars_ros.recording.journal import JOURNAL, read_journal
+from stars_ros.recording.migration import JOURNAL, read_journal
+from stars_ros.recording.state_store import committed_feedback
 
 
 class Salvage(NamedTuple):
@@ -67,7 +68,8 @@ def salvage_messages(path: Path) -> tuple[list, str | None]:
 def recover(bag) -> dict:
     """Make an unfinished bag (hard kill, power loss) valid again.
 
-    Damaged files are rewritten with every complete record they hold, journaled feedback
+    Damaged files are rewritten with every complete record they hold, feedback the state
+    store in the bag's folder committed for it (and a feedback.jsonl of an earlier version)
     missing from the files is written to a new file, and metadata.yaml is rebuilt. Returns
     {'repaired': [file names], 'feedback_restored': n, 'messages': n}.
     """
@@ -95,7 +97,7 @@ def recover(bag) -> dict:
             files.append(stats)
     missing = []
     journal = bag / JOURNAL
-    for entry in read_journal(journal) if journal.exists() else []:
+    for entry in committed_feedback(bag.parent, bag.name) + (read_journal(journal) if journal.exists() else []):
         key = (entry['topic'], entry['log_time'], encode_string(entry['data']))
         if key not in seen:
             seen.add(key)

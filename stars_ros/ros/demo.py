@@ -26,6 +26,7 @@ import itertools
 import json
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -41,7 +42,7 @@ from stars_ros.recording.bag import read_messages
 from stars_ros.resources import resolve_checkpoint
 from stars_ros.data.ratings import socnav1_root
 from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes
-from stars_ros.personalisation.user_state import STATE_FILE
+from stars_ros import recording
 
 SOCNAV1 = socnav1_root()
 
@@ -104,15 +105,23 @@ def score_decimals(*replies, least: int = 3, most: int = 5) -> int:
     return most
 
 
+def _holds_people(folder: Path) -> bool:
+    try:
+        with recording.open_reader(folder) as store:
+            return bool(store.summary())
+    except (FileNotFoundError, sqlite3.Error):
+        return False
+
+
 def record_folder(given: Path | None, work: Path) -> Path:
     """Where the demo's ranker records: ``work``/records, a folder of this run's own, unless a
     folder is ``given``; one given that holds folded-in users of an earlier run is said to,
     since the ranker restores them and their scores then differ from a fresh start."""
     if given is None:
         return work / 'records'
-    if (given / STATE_FILE).exists():
-        print(f'Note: {given / STATE_FILE} holds folded-in users of an earlier run: the ranker restores them, so '
-              'their scores differ from a fresh start')
+    if _holds_people(given):
+        print(f'Note: {given / recording.DATABASE} holds folded-in users of an earlier run: the ranker restores them, '
+              'so their scores differ from a fresh start')
     return given
 
 
@@ -194,7 +203,7 @@ def run(args) -> int:
                                                          'candidate': 'stay', 'score': rating})))
                 sent += 1
         feedback.wait_for_all_acked(Duration(seconds=5))
-        time.sleep(1.0)  # let the ranker journal the last feedback before it is stopped
+        time.sleep(1.0)  # let the ranker store the last feedback before it is stopped
     finally:
         for process in publishers:
             process.wait(timeout=30)

@@ -172,7 +172,7 @@ class RankerNode(Node):
             self._more_work.trigger()
 
     def close(self):
-        """Finish the state file and the recording (clean shutdown). Called after
+        """Close the state store and the recording (clean shutdown). Called after
         ``destroy_node``, which takes the node's /rosout publisher with it: a signal has shut
         the context down by then, and each line logged while that publisher still existed
         would end in "Failed to publish log message to rosout: publisher's context is invalid"."""

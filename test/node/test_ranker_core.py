@@ -1,17 +1,18 @@
 """The ranker's work without ROS (what test_ranker_node.py checks over DDS, here in one
 process): rankings carry the checkpoint's fingerprint, problems are reported by kind and
 summed up in the diagnostics, feedback is folded in once the queue is empty, a reload that
-fails keeps serving, and a clean close leaves the feedback and the state file on disk."""
+fails keeps serving, and a clean close leaves the feedback and the people in the store."""
 import json
+import sqlite3
 
 import pytest
 
 from stars_ros import messages
 from stars_ros import recording
 from core_harness import Node, make_core
+from waiting import wait_for
 from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.personalisation.user_state import STATE_FILE
 
 
 @pytest.fixture(scope='module')
@@ -109,7 +110,9 @@ def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoin
     for topic in ('/stars/scene', '/stars/ranking', '/stars/feedback', '/stars/user_model', '/stars/errors'):
         assert topic in recorded, topic
     assert recorded.count('/stars/scene') == 2
-    assert list(json.loads((tmp_path / STATE_FILE).read_text())['users']) == ['newcomer']
+    with recording.open_reader(tmp_path) as store:
+        assert [p['person'] for p in store.summary()] == ['newcomer']
+        assert [json.loads(e['data'])['user_id'] for e in store.feedback(core.recorder.name)] == ['newcomer']
     offered = recording.bag_topics(core.recorder.path)
     depths = topic_qos(core.params)
     for topic in set(recorded):  # the bag offers what the node subscribed and published with
@@ -165,3 +168,41 @@ def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
     assert 'human' in kinds and 'wall' in kinds and 'room' in kinds
     assert all(_sums_to_the_score(entry, core.predictor.recommender.rating_scale) for entry in ranking['ranking'])
     core.close()
+
+
+def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_once_it_has_room(
+        tiny_checkpoint, scenes, tmp_path, monkeypatch):
+    """SQLite's own 'database or disk is full' (max_page_count stands in for the disk)."""
+    from stars_ros.recording import state_store
+    connections, connect = [], sqlite3.connect
+    monkeypatch.setattr(state_store.sqlite3, 'connect',
+                        lambda *args, **kwargs: connections.append(connect(*args, **kwargs)) or connections[-1])
+    node = Node()
+    core = make_core(node, tiny_checkpoint, record_folder=str(tmp_path), flush_interval=0.01)
+    writer = connections[0]
+    writer.execute(f"PRAGMA max_page_count = {writer.execute('PRAGMA page_count').fetchone()[0]}")
+    for scene in scenes:
+        _scene(core, scene, 'newcomer')
+    core.work()
+    sent = []
+    for k in range(40):  # until the pages the store has are full
+        sent.append(messages.dumps({'user_id': f'person-{k}', 'scene_id': scenes[k % len(scenes)]['identifier'],
+                                    'action': 'navigate', 'score': 0.5}))
+        assert core.accept_feedback(sent[-1])
+        if wait_for(lambda: any(e['kind'] == 'recording' for e in node.on('stars/errors')), 0.5):
+            break
+    assert 'database or disk is full' in node.on('stars/errors')[-1]['message']
+    assert core.diagnostics()[2]['feedback_not_on_disk'] >= 1
+    while core.work():  # the fold-in goes on: the models are served and published
+        pass
+    _scene(core, scenes[1], f'person-{len(sent) - 1}')
+    core.work()
+    assert node.on('stars/ranking')[-1]['personalised_from'] == 1
+    writer.execute('PRAGMA max_page_count = 1000000')  # room again
+    assert wait_for(lambda: core.diagnostics()[2]['feedback_not_on_disk'] == 0, 30)
+    core.close()
+    assert [text for topic, text, _ in recording.read_messages(core.recorder.path) if topic == '/stars/feedback'] == sent
+    with recording.open_reader(tmp_path) as store:
+        people = store.people()
+    assert [p.user_id for p in people] == [f'person-{k}' for k in range(len(sent))]
+    assert all(len(p.ratings) == 1 and p.solved for p in people)

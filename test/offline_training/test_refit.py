@@ -1,5 +1,5 @@
-"""Offline refit from MCAP logs: user mode equals the closed-form fold-in, full mode trains,
-and bad logs give a report with counts instead of silent drops."""
+"""Offline refit from MCAP logs or the node's state store: user mode equals the closed-form
+fold-in, full mode trains, and bad logs give a report with counts instead of silent drops."""
 import json
 import shutil
 
@@ -12,6 +12,7 @@ from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
+from stars_ros.recording.state_store import PersonUpdate, write_people
 
 QOS = recording.qos_profile()
 
@@ -69,6 +70,35 @@ def test_user_mode_equals_the_closed_form_fold_in(tiny_checkpoint, scenes, tmp_p
     provenance = metadata['provenance']['refit']
     assert provenance['mode'] == 'user' and provenance['parent_fingerprint'] == parent.fingerprint
     assert provenance['ratings_per_user'] == {'newbie': 9, 'a': 4} and provenance['logs'] == [str(bag)]
+
+
+def test_user_mode_from_the_state_store_solves_the_ratings_it_holds(tiny_checkpoint, scenes, tmp_path, capsys):
+    """The store keeps a person's most recent ratings and how many older ones it dropped: the
+    refit solves from those it holds, λ from the stored model, and says all of them were
+    absorbed (a reload then keeps only newer feedback)."""
+    _, expected = _write_session(tmp_path, scenes)
+    parent = Predictor.load(tiny_checkpoint)
+    foldin = FoldIn(parent)
+    ratings = {user: [Rating(r.scene, r.action, r.score, r.scene_id, f'{user}-{k}', k, '/ranker')
+                      for k, r in enumerate(held)] for user, held in expected.items()}
+    models = {'newbie': foldin.fit(ratings['newbie'], 'newbie', 0.5), 'a': None}
+    write_people(tmp_path / 'records', parent.fingerprint, [
+        PersonUpdate(user, models[user], parent.fingerprint, ratings[user], 3 if user == 'a' else 0, [], True)
+        for user in ratings])
+    out = tmp_path / 'refit.pt'
+    assert refit.main(['--checkpoint', str(tiny_checkpoint), '--state', str(tmp_path / 'records'),
+                       '--out', str(out)]) == 0
+    assert 'read 1 state store, 13 messages; 13 usable ratings from 2 user(s)' in capsys.readouterr().out
+    child = Predictor.load(out)
+    probe = scenes[12:18]
+    for user, regularisation in (('newbie', 0.5), ('a', 0.0)):
+        parent.set_user_model(user, foldin.fit(ratings[user], user, regularisation))
+        assert np.allclose(child.score(user, probe), parent.score(user, probe), atol=1e-5)
+    provenance = load_checkpoint(out)[1]['provenance']['refit']
+    assert provenance['ratings_per_user'] == {'newbie': 9, 'a': 4 + 3} and provenance['state'] == str(
+        tmp_path / 'records')
+    assert refit.main(['--checkpoint', str(tiny_checkpoint), '--state', str(tmp_path / 'none'),
+                       '--out', str(out)]) == 2
 
 
 def test_default_regularisation_is_the_one_the_node_logged(tiny_checkpoint, scenes, tmp_path):

@@ -14,7 +14,7 @@ from stars_ros.personalisation.fleet import PeerRatings, solve_set
 from stars_ros.personalisation.foldin import Rating
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.personalisation.user_state import STATE_FILE
+from stars_ros import recording
 from core_harness import Node, deliver, drain, published_models
 
 USER = 'visitor'
@@ -178,11 +178,15 @@ def test_a_restarted_robot_keeps_its_peers_ratings(tiny_checkpoint, scenes, tmp_
     deliver(published_models(node_a), robot_b)
     served = _served(robot_b)
     robot_b.close()
-    state = json.loads((tmp_path / 'b' / STATE_FILE).read_text())
-    assert [len(state['users'][USER][k]) for k in ('ratings', 'peer_ratings')] == [1, 1]
+    with recording.open_reader(tmp_path / 'b') as store:
+        [person] = store.people()
+    assert (len(person.ratings), len(person.peer_ratings), person.solved) == (1, 1, True)
     node_b2, robot_b2 = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
-    drain(robot_b2)
+    assert not robot_b2.personalisation.pending  # served as stored: solved from the ratings stored with it
     assert np.array_equal(_served(robot_b2), served)
+    assert np.array_equal(robot_b2.predictor.user_model(USER).covariance, robot_b.predictor.user_model(USER).covariance)
+    assert [r.rating_id for r in robot_b2.personalisation.ratings(USER)] == [
+        r.rating_id for r in robot_b.personalisation.ratings(USER)]
     assert deliver(published_models(node_a), robot_b2) == [False]  # known already: nothing was lost
     robot_b2.close()
 

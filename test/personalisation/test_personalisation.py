@@ -1,7 +1,6 @@
 """The node's fold-in orchestration without ROS, on the tiny checkpoint: which feedback
 becomes a rating, the solve and its bounds, eviction, a reload after a refit, the state
-file across a restart, and the scene memory feedback is matched against."""
-import json
+store across a restart, and the scene memory feedback is matched against."""
 
 import numpy as np
 import pytest
@@ -15,7 +14,7 @@ from stars_ros.personalisation.online import Personalisation, SceneMemory
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.node.batching import Pending, rank_batch
-from stars_ros.personalisation.user_state import STATE_FILE
+from stars_ros.recording.state_store import StateStore
 
 
 class Log:
@@ -158,28 +157,37 @@ def test_a_reload_keeps_only_the_feedback_a_refit_did_not_absorb(predictor, tiny
     assert refit.user_model('bob') is None
 
 
+def _store(folder, log):
+    return StateStore(folder, '/ranker', lambda text: log('recording', text))
+
+
 def test_folded_in_users_survive_a_restart_with_the_same_checkpoint_only(tiny_checkpoint, scenes, tmp_path):
-    state_path = tmp_path / STATE_FILE
-    first = _personalisation(Predictor.load(tiny_checkpoint), Log(), state_path=state_path, flush_interval=60.0)
+    first = _personalisation(Predictor.load(tiny_checkpoint), Log(), store=_store(tmp_path, pytest.fail))
     _rate(first, 'ann', scenes[0])
+    _rate(first, 'bob', scenes[0])  # folded in, never solved: solved again after the restart
+    first.store.save_person(first.update('bob'))
     _rate(first, 'ann', scenes[1], 0.25)
     _, model = first.solve_next()
-    first.close()
+    assert first.store.close() == []
     log = Log()
-    restarted = _personalisation(Predictor.load(tiny_checkpoint), log, state_path=state_path)
+    restarted = _personalisation(Predictor.load(tiny_checkpoint), log, store=_store(tmp_path, log))
     restarted.restore()
-    restarted.close()
     restored = restarted.predictor.user_model('ann')
     assert np.array_equal(restored.p, model.p) and restored.b == model.b and restored.n_ratings == 2
+    assert np.array_equal(restored.covariance, model.covariance)
     assert [r.score for r in restarted.histories.ratings('ann')] == [1.0, 0.25]
-    assert log.lines == [('info', f'restored 1 folded-in users from {state_path}')] and not log.reports
-    state = json.loads(state_path.read_text())
-    state_path.write_text(json.dumps({**state, 'fingerprint': '0' * 64}))
-    other = _personalisation(Predictor.load(tiny_checkpoint), log, state_path=state_path)
+    assert list(restarted.pending) == ['bob'] and restarted.predictor.user_model('bob') is None
+    assert log.lines == [('info', f'restored 1 folded-in users from {tmp_path / "state.db"} (1 to solve again)')]
+    assert not log.reports
+    restarted.store.close()
+    other_checkpoint = Predictor.load(tiny_checkpoint)
+    other_checkpoint.fingerprint = '0' * 64
+    other = _personalisation(other_checkpoint, log, store=_store(tmp_path, log))
     other.restore()
     assert not other.predictor.user_models and len(other.histories) == 0
     [(kind, detail)] = log.reports
     assert kind == 'user_models' and detail.endswith('folded-in users are not restored')
+    other.store.close()
 
 
 def test_a_model_without_users_serves_without_fold_in(predictor, scenes, monkeypatch):

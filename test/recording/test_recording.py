@@ -1,5 +1,6 @@
 """MCAP recording: rosbag2 layout read back by mcap-ros2-support and rosbags, rotation,
-hard-kill recovery, and disk failures that never lose accepted feedback."""
+hard-kill recovery (with the state store's committed feedback), and disk failures that never
+lose committed feedback."""
 import json
 import os
 import signal
@@ -33,9 +34,9 @@ def test_round_trip_with_both_readers(tmp_path):
         recorder.write('/stars/user_id', 'g', 10)
         for k in range(50):
             recorder.write('/stars/scene', json.dumps({'scene_id': f's{k}'}), 100 + k)
-        assert recorder.write_feedback('/stars/feedback', '{"score": 0.5}', 1000)
+        recorder.write_feedback('/stars/feedback', '{"score": 0.5}', 1000)
     bag = tmp_path / 'bag'
-    assert sorted(p.name for p in bag.iterdir()) == ['bag_0.mcap', 'feedback.jsonl', 'metadata.yaml']
+    assert sorted(p.name for p in bag.iterdir()) == ['bag_0.mcap', 'metadata.yaml']
     written = [('/stars/user_id', 'g', 10)] + [('/stars/scene', json.dumps({'scene_id': f's{k}'}), 100 + k)
                                                for k in range(50)] + [('/stars/feedback', '{"score": 0.5}', 1000)]
     assert list(recording.read_messages(bag)) == written
@@ -84,14 +85,18 @@ def test_rotation_by_size(tmp_path):
 
 
 KILLED_WRITER = textwrap.dedent('''
-    import os, signal, sys
+    import os, signal, sys, threading
     from stars_ros import recording
     topics = {'/stars/scene': recording.qos_profile(), '/stars/feedback': recording.qos_profile()}
     recorder = recording.Recorder(sys.argv[1], topics, name='bag', rotation_bytes=16384, flush_interval=3600)
+    store = recording.StateStore(sys.argv[1], 'killed writer', on_error=sys.exit)
     for k in range(400):
         recorder.write('/stars/scene', f'{k:04d}' + os.urandom(30).hex(), k)
     recorder.flush()  # what the flusher does every interval: all of the above is on disk
-    recorder.write_feedback('/stars/feedback', '{"score": 1}', 10_000)
+    committed = threading.Event()
+    store.put_feedback({'topic': '/stars/feedback', 'log_time': 10_000, 'data': '{"score": 1}'}, 'bag',
+                       on_commit=lambda entry: committed.set())
+    committed.wait(30)  # in the store; the bag has it in memory only
     for k in range(5):
         recorder.write('/stars/scene', 'after the last flush', 20_000 + k)
     os.kill(os.getpid(), signal.SIGKILL)
@@ -137,40 +142,45 @@ def test_hard_kill_loses_at_most_the_last_interval_and_no_feedback(tmp_path):
     assert recording.recover(bag)['feedback_restored'] == 0  # idempotent
 
 
-def test_full_disk_is_reported_and_feedback_kept_until_it_can_be_written(tmp_path):
+def test_full_disk_is_reported_and_committed_feedback_reaches_the_bag_once_it_can(tmp_path):
+    """The chunk holding the feedback is lost with the full disk; the store committed it, and
+    the repair at close writes it back into the bag."""
     bag = tmp_path / 'bag'
     bag.mkdir()
     (bag / 'bag_0.mcap').symlink_to('/dev/full')  # every write there fails with ENOSPC
-    (bag / 'feedback.jsonl').symlink_to('/dev/full')
     events = []
     recorder = recording.Recorder(tmp_path, TOPICS, name='bag', flush_interval=3600,
                                   on_event=lambda level, text: events.append((level, text)))
+    store = recording.StateStore(tmp_path, 'test', on_error=pytest.fail)
+    committed = []
     recorder.write('/stars/scene', 'lost with the full disk', 1)
-    assert not recorder.write_feedback('/stars/feedback', '{"score": 0.1}', 2)
-    assert recorder.pending_feedback == 1 and recorder.error and 'No space left' in recorder.error
-    assert events[0][0] == 'error'
+    store.put_feedback({'topic': '/stars/feedback', 'log_time': 2, 'data': '{"score": 0.1}'}, 'bag',
+                       on_commit=lambda entry: (committed.append(entry),
+                                                recorder.write_feedback(entry['topic'], entry['data'], 2)))
+    assert store.close() == [] and len(committed) == 1
     recorder.flush()
-    assert recorder.pending_feedback == 1
-
-    (bag / 'feedback.jsonl').unlink()  # space again
-    recorder.flush()
-    assert recorder.pending_feedback == 0 and recorder.error is None and events[-1][0] == 'info'
-    assert recorder.write('/stars/scene', 'after', 3)
-    assert recorder.close() == []
+    assert recorder.error and 'No space left' in recorder.error and events[0][0] == 'error'
+    recorder.write_feedback('/stars/feedback', '{"score": 0.2}', 3)  # waits for a file that takes it
+    assert recorder.unrecorded_feedback == 1
+    recorder.flush()  # the next file works
+    assert recorder.unrecorded_feedback == 0 and recorder.error is None and events[-1][0] == 'info'
+    assert recorder.write('/stars/scene', 'after', 4)
+    assert recorder.close() == 0
     messages = list(recording.read_messages(bag))
-    assert ('/stars/feedback', '{"score": 0.1}', 2) in messages and ('/stars/scene', 'after', 3) in messages
+    assert ('/stars/feedback', '{"score": 0.1}', 2) in messages and ('/stars/scene', 'after', 4) in messages
+    assert ('/stars/feedback', '{"score": 0.2}', 3) in messages
     assert len(_rosbags_messages(bag)) == len(messages)
 
 
-def test_unwritable_folder_never_raises_and_returns_unsaved_feedback(tmp_path):
+def test_unwritable_folder_never_raises_and_counts_unrecorded_feedback(tmp_path):
     blocker = tmp_path / 'file'
     blocker.write_text('not a folder')
     events = []
     recorder = recording.Recorder(blocker / 'records', TOPICS, on_event=lambda level, text: events.append(level))
     assert recorder.error is not None and events == ['error']
     assert not recorder.write('/stars/scene', 'x', 1) and recorder.dropped == 1
-    assert not recorder.write_feedback('/stars/feedback', '{"score": 1}', 2)
-    assert recorder.close() == [{'topic': '/stars/feedback', 'log_time': 2, 'data': '{"score": 1}'}]
+    recorder.write_feedback('/stars/feedback', '{"score": 1}', 2)
+    assert recorder.close() == 1
 
 
 def test_invalid_settings_refused(tmp_path):
@@ -180,10 +190,8 @@ def test_invalid_settings_refused(tmp_path):
         recording.Recorder(tmp_path, TOPICS, flush_interval=0)
 
 
-@pytest.mark.parametrize('syncer', ['flush', 'feedback'])
-def test_fsyncs_do_not_hold_up_writers(tmp_path, monkeypatch, syncer):
-    """The periodic flush and the feedback journal wait for the disk outside the lock the
-    ranker records under."""
+def test_a_flush_fsyncs_without_holding_up_writers(tmp_path, monkeypatch):
+    """The periodic flush waits for the disk outside the lock the ranker records under."""
     import threading
     real_fsync = os.fsync
     syncing, release, gave_up = threading.Event(), threading.Event(), threading.Event()
@@ -197,18 +205,17 @@ def test_fsyncs_do_not_hold_up_writers(tmp_path, monkeypatch, syncer):
     with recording.Recorder(tmp_path, TOPICS, name='bag', flush_interval=3600) as recorder:
         recorder.write('/stars/scene', 'before', 1)
         monkeypatch.setattr(os, 'fsync', slow_fsync)
-        call = recorder.flush if syncer == 'flush' else lambda: recorder.write_feedback('/stars/feedback', 'fb', 2)
-        thread = threading.Thread(target=call)
+        thread = threading.Thread(target=recorder.flush)
         thread.start()
         assert syncing.wait(10)
         assert recorder.write('/stars/scene', 'during', 3)  # would wait for the fsync if it held the lock
+        recorder.write_feedback('/stars/feedback', 'fb', 2)
         assert not gave_up.is_set()
-        assert syncer == 'flush' or recorder.pending_feedback == 1  # not on disk yet
         release.set()
         thread.join(10)
         monkeypatch.setattr(os, 'fsync', real_fsync)
-        assert recorder.error is None and recorder.pending_feedback == 0
-    expected = ['before', 'during'] if syncer == 'flush' else ['before', 'fb', 'during']  # by log time
+        assert recorder.error is None
+    expected = ['before', 'fb', 'during']  # by log time
     assert [m[1] for m in recording.read_messages(tmp_path / 'bag')] == expected
     assert yaml.safe_load((tmp_path / 'bag' / 'metadata.yaml').read_text())[
         'rosbag2_bagfile_information']['message_count'] == len(expected)

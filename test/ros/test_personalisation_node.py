@@ -12,7 +12,7 @@ import pytest
 from std_msgs.msg import String
 
 from offline_training import refit
-from ros_helpers import RELIABLE, RosClient, domain_id, journaled_feedback, start_node, stop
+from ros_helpers import RELIABLE, RosClient, domain_id, stored_feedback, start_node, stop
 from waiting import wait_for
 from stars_ros import recording
 from stars_ros.personalisation.foldin import FoldIn, Rating
@@ -102,7 +102,8 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
             expected = reference.rank(USER, scene, scene_id=scene['identifier'])[0].score
             assert abs(_score(after[scene['identifier']]) - expected) < TOLERANCE
         assert stop(process, signal.SIGINT) == 0
-        assert (records / 'user_models.json').exists()
+        with recording.open_reader(records) as store:
+            assert [(p['person'], p['ratings'], p['solved']) for p in store.summary()] == [(USER, 5, True)]
 
         # offline refit of the log, user mode
         bag = next(records.glob('stars_*'))
@@ -113,7 +114,7 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
         refitted = tmp_path / 'refit.pt'
         assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(bag), '--out', str(refitted)]) == 0
 
-        # restart: the folded-in user is restored from user_models.json
+        # restart: the folded-in user is restored from the state store
         process = _start(domain, tiny_checkpoint, records, tmp_path / 'ranker-2.log')
         client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe-2', 'graph': scenes[19]})
         restored = _rank(client, scenes, 'restored')
@@ -130,10 +131,15 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
             assert reply['fingerprint'] == fingerprint and reply['known_user'] is True
             assert 'personalised_from' not in reply  # the checkpoint absorbed the feedback
             assert abs(_score(reply) - _score(after[identifier])) < TOLERANCE
+        client.feedback({'user_id': USER, 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 0.0})
+        assert client.wait(lambda: any(m['fingerprint'] == fingerprint for m in models), 20)
         assert stop(process, signal.SIGINT) == 0
+        with recording.open_reader(records) as store:  # only the feedback the refit did not absorb
+            assert store.fingerprint == fingerprint and [(p['person'], p['ratings']) for p in store.summary()] == [
+                (USER, 1)]
 
-        # a state file solved against another checkpoint is ignored, with a warning
-        process = _start(domain, refitted, records, tmp_path / 'ranker-3.log')
+        # a store solved against another checkpoint is not restored, with a warning
+        process = _start(domain, tiny_checkpoint, records, tmp_path / 'ranker-3.log')
         client.wait_ready(process, START_TIMEOUT, {'scene_id': 'probe-3', 'graph': scenes[19]})
         assert stop(process, signal.SIGINT) == 0
         assert 'folded-in users are not restored' in (tmp_path / 'ranker-3.log').read_text()
@@ -144,7 +150,7 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
 
 
 def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, scenes, tmp_path):
-    """The feedback is taken (journaled) and still nothing is folded in: no user model is
+    """The feedback is taken (stored) and still nothing is folded in: no user model is
     published, the rankings after it are the stranger's, and the diagnostics that follow
     them count no folded-in user."""
     domain = domain_id(8)
@@ -160,7 +166,7 @@ def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, sce
         feedback = {'user_id': USER, 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0}
         client.feedback(feedback)
         bag = next(tmp_path.glob('stars_*'))
-        assert wait_for(lambda: feedback in journaled_feedback(bag), 20), 'the feedback was never taken in'
+        assert wait_for(lambda: feedback in stored_feedback(bag), 20), 'the feedback was never taken in'
         after = _rank(client, scenes, 'still a stranger')
         assert all('personalised_from' not in r for r in after.values())
         assert all(abs(_score(after[k]) - _score(before[k])) < 1e-6 for k in before)  # batching may round
@@ -173,7 +179,8 @@ def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, sce
         if process.poll() is None:
             process.kill()
         client.close()
-    assert not (tmp_path / 'user_models.json').exists()
+    with recording.open_reader(tmp_path) as store:
+        assert store.summary() == [] and len(store.feedback()) == 1
 
 
 def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_path):
@@ -202,8 +209,8 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
         if process.poll() is None:
             process.kill()
         client.close()
-    state = json.loads((tmp_path / 'user_models.json').read_text())
-    assert list(state['users']) == ['other'] and state['users']['other']['ratings_dropped'] == 0
+    with recording.open_reader(tmp_path) as store:
+        assert [(p['person'], p['ratings'], p['dropped']) for p in store.summary()] == [('other', 1, 0)]
 
 
 def test_diagnostics_count_the_rankings_that_waited_behind_fold_in(tiny_checkpoint, scenes, tmp_path):

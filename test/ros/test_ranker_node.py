@@ -21,7 +21,7 @@ import yaml
 from std_msgs.msg import String
 
 from mutations import mutate
-from ros_helpers import RosClient, domain_id, journaled_feedback, ros_env, running_ranker, start_node, stop
+from ros_helpers import RosClient, domain_id, stored_feedback, ros_env, running_ranker, start_node, stop
 from waiting import wait_for
 from stars_ros import recording
 from stars_ros.model.checkpoint import save_checkpoint
@@ -449,7 +449,7 @@ def test_clean_shutdown_closes_the_bag_with_feedback_and_latched_user(signal_num
         assert client.wait(lambda: all(client.ranking_for(f's{k}') for k in range(5)), 30)
         assert client.ranking_for('s0')['user_id'] == KNOWN_USER  # latched before the node existed
         bag = next(tmp_path.glob('stars_*'))
-        assert wait_for(lambda: journaled_feedback(bag) == [feedback], 10), 'the feedback was never journaled'
+        assert wait_for(lambda: stored_feedback(bag) == [feedback], 10), 'the feedback was never stored'
         assert stop(process, signal_number) == 0
     finally:
         if process.poll() is None:
@@ -494,8 +494,8 @@ def test_hard_kill_then_recovery_keeps_everything_before_the_last_flush(tiny_che
         assert wait_for(lambda: {f's{k}' for k in range(20)} <= {r['scene_id'] for r in _on_disk(
             bag, '/stars/ranking')}, 10), 'the rankings were never flushed'
         client.feedback({'user_id': KNOWN_USER, 'scene_id': 's2', 'candidate': 'left', 'score': 0.1})
-        assert wait_for(lambda: journaled_feedback(bag), 10), 'the feedback was never journaled'
-        process.kill()  # SIGKILL, right after the feedback was journaled
+        assert wait_for(lambda: stored_feedback(bag), 10), 'the feedback was never stored'
+        process.kill()  # SIGKILL, right after the feedback was stored
         process.wait()
     finally:
         if process.poll() is None:

@@ -1,0 +1,636 @@
+"""The ranker's state store: people, their models and ratings, peers' ratings (fleet
+sharing) and the journal of accepted feedback, in one SQLite database in the record folder
+(``state.db``, WAL mode; schema in docs/state.md).
+
+One update writes only the rows it changes: a person's row, the ratings that joined or left
+them, a scene the first time its content is rated (scenes are kept once, by content digest,
+with a count of the ratings that name them). A thread of its own writes: the node's executor
+queues an update and goes on; the writer takes everything queued into one transaction (group
+commit) and reports each feedback entry as committed (``on_commit``) only once its
+transaction is. ``synchronous=FULL``: a commit returns once the WAL is fsync'd, so what is
+committed survives a process kill and a power cut alike (given a disk that honours flushes);
+what a kill or a power cut can lose is what was queued or being written, never acknowledged.
+
+A failing disk (full, read-only, a folder that cannot be created) is reported through
+``on_error`` once; what waits is kept in memory, in order, and tried again every
+``retry_interval`` seconds until the disk takes it. One process holds a store: ``state.lock``
+is flock'd while it is open and names its holder, and a second ``StateStore`` on the same
+folder raises StoreLockedError naming that holder. ``open_reader`` reads a store without
+holding it (the inspection command, ``refit``, recovery, tests), also while a node writes.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import functools
+import json
+import os
+import queue
+import socket
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, NamedTuple
+
+import numpy as np
+
+from stars_ros.errors import ConfigError
+from stars_ros.personalisation.foldin import Rating, UserModel, scene_digest
+from stars_ros.personalisation.histories import Deferred
+from stars_ros.recording import migration
+
+DATABASE = 'state.db'
+LOCK_FILE = 'state.lock'
+SCHEMA_VERSION = 1
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS people (
+    person TEXT PRIMARY KEY, fingerprint TEXT, p BLOB, b REAL, n_ratings INTEGER, regularisation REAL,
+    covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
+    peer_ratings INTEGER NOT NULL, rated INTEGER NOT NULL, updated REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS scenes (digest TEXT PRIMARY KEY, content TEXT NOT NULL, refs INTEGER NOT NULL)
+    WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS ratings (
+    person TEXT NOT NULL, id TEXT NOT NULL, position INTEGER NOT NULL, stamp INTEGER NOT NULL,
+    origin TEXT NOT NULL, action TEXT NOT NULL, score REAL NOT NULL, scene_id TEXT, scene TEXT NOT NULL,
+    feedback TEXT, PRIMARY KEY (person, id)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS peer_ratings (
+    person TEXT NOT NULL, id TEXT NOT NULL, position INTEGER NOT NULL, stamp INTEGER NOT NULL,
+    origin TEXT NOT NULL, action TEXT NOT NULL, score REAL NOT NULL, scene_id TEXT, scene TEXT NOT NULL,
+    feedback TEXT, PRIMARY KEY (person, id)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS feedback (
+    seq INTEGER PRIMARY KEY, bag TEXT NOT NULL, topic TEXT NOT NULL, log_time INTEGER NOT NULL,
+    data TEXT NOT NULL, committed REAL NOT NULL);
+"""
+_RATING_TABLES = ('ratings', 'peer_ratings')
+
+
+class StoreLockedError(ConfigError):
+    """Another process holds the state store (one store per node)."""
+
+
+class PersonUpdate(NamedTuple):
+    """What the store is to hold of one person now: ``model`` (None: none served),
+    ``fingerprint`` of the checkpoint it was solved against, own ``ratings`` in arrival
+    order, ``dropped`` (own ratings no longer kept), ``peer_ratings``, and ``solved``: the
+    model was solved from exactly these ratings (False: they changed since)."""
+
+    user_id: str
+    model: UserModel | None
+    fingerprint: str
+    ratings: list
+    dropped: int
+    peer_ratings: list
+    solved: bool
+
+
+@dataclass
+class Person:
+    """One person as the store holds them (``PersonUpdate``'s fields, and when they last
+    changed, seconds since the epoch)."""
+
+    user_id: str
+    model: UserModel | None
+    fingerprint: str | None
+    ratings: list = field(default_factory=list)
+    dropped: int = 0
+    peer_ratings: list = field(default_factory=list)
+    solved: bool = False
+    updated: float = 0.0
+
+
+def _blob(array) -> bytes | None:
+    return None if array is None else np.ascontiguousarray(array, dtype='<f8').tobytes()
+
+
+def _array(blob, shape=None):
+    if blob is None:
+        return None
+    array = np.frombuffer(blob, dtype='<f8').astype(np.float64)
+    return array if shape is None else array.reshape(shape)
+
+
+def _scene_text(scene) -> str:
+    content = scene if isinstance(scene, dict) else [float(v) for v in scene]
+    return json.dumps(content, separators=(',', ':'))
+
+
+def holder_text() -> str:
+    return f'pid {os.getpid()} on {socket.gethostname()}'
+
+
+class StoreReader:
+    """A state store opened read-only: it takes no lock and changes nothing, so it reads a
+    store a running node holds (what the node had committed when each query ran)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        if self.path.is_dir():
+            self.path = self.path / DATABASE
+        if not self.path.exists():
+            raise FileNotFoundError(f'no state store at {self.path}')
+        self._connection = sqlite3.connect(f'file:{self.path}?mode=ro', uri=True, timeout=30,
+                                           check_same_thread=False)
+        self._scenes = {}  # digest -> scene object: ratings of one content share one
+
+    def close(self):
+        self._connection.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def meta(self) -> dict:
+        return dict(self._connection.execute('SELECT key, value FROM meta'))
+
+    @property
+    def fingerprint(self) -> str | None:
+        return self.meta().get('fingerprint')
+
+    def summary(self) -> list:
+        """One dict per person, least recently rated first: ratings and peer ratings held,
+        dropped, whether a model is stored and solved from them, the model's fingerprint,
+        and when they last changed (seconds since the epoch)."""
+        rows = self._connection.execute(
+            'SELECT person, fingerprint, p IS NOT NULL, n_ratings, solved, dropped, ratings, peer_ratings, updated '
+            'FROM people ORDER BY rated')
+        return [{'person': person, 'ratings': ratings, 'peer_ratings': peer_ratings, 'dropped': dropped,
+                 'model': bool(has_model), 'solved': bool(solved), 'n_ratings': n_ratings,
+                 'fingerprint': fingerprint, 'updated': updated}
+                for person, fingerprint, has_model, n_ratings, solved, dropped, ratings, peer_ratings, updated in rows]
+
+    def people(self, deferred: bool = False) -> list:
+        """Every Person, least recently rated first, with their ratings; ``deferred``: as
+        ``Deferred`` loaders that read them when first used (a person without any: [])."""
+        people = []
+        for row in self._connection.execute(
+                'SELECT person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, ratings, '
+                'peer_ratings, updated FROM people ORDER BY rated'):
+            person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, own, peer, updated = row
+            model = None
+            if p is not None:
+                p = _array(p)
+                model = UserModel(p, b, n_ratings, regularisation, _array(covariance, (len(p) + 1, len(p) + 1)))
+            held = [(Deferred(functools.partial(self.ratings, person, table)) if deferred else
+                     self.ratings(person, table)) if count else [] for table, count in zip(_RATING_TABLES, (own, peer))]
+            people.append(Person(person, model, fingerprint, held[0], dropped, held[1], bool(solved), updated))
+        return people
+
+    def ratings(self, person: str, table: str = 'ratings') -> list:
+        """``person``'s ratings (``table`` 'peer_ratings': their peers'), oldest first."""
+        rows = self._connection.execute(
+            f'SELECT r.id, r.stamp, r.origin, r.action, r.score, r.scene_id, r.scene, r.feedback, s.content '
+            f'FROM {table} r JOIN scenes s ON s.digest = r.scene WHERE r.person = ? ORDER BY r.position', (person,))
+        ratings = []
+        for rating_id, stamp, origin, action, score, scene_id, digest, feedback, content in rows:
+            scene = self._scenes.get(digest)
+            if scene is None:
+                scene = self._scenes[digest] = json.loads(content)
+            ratings.append(Rating(scene, action, score, scene_id, rating_id, stamp, origin,
+                                  None if feedback is None else json.loads(feedback)))
+        return ratings
+
+    def signed_feedback(self) -> list:
+        """The signed feedback messages of every person's own ratings (replays stay refused)."""
+        return [json.loads(text) for (text,) in
+                self._connection.execute('SELECT feedback FROM ratings WHERE feedback IS NOT NULL')]
+
+    def feedback_count(self) -> int:
+        return self._connection.execute('SELECT COUNT(*) FROM feedback').fetchone()[0]
+
+    def feedback(self, bag: str | None = None) -> list:
+        """Committed feedback entries {'topic', 'log_time', 'data', 'bag'} in commit order
+        (of one bag's recording, or all)."""
+        query, args = 'SELECT topic, log_time, data, bag FROM feedback', ()
+        if bag is not None:
+            query, args = query + ' WHERE bag = ?', (bag,)
+        return [{'topic': t, 'log_time': n, 'data': d, 'bag': b}
+                for t, n, d, b in self._connection.execute(query + ' ORDER BY seq', args)]
+
+
+def open_reader(path) -> StoreReader:
+    """A read-only StoreReader of the store in folder ``path`` (or the database file
+    ``path``); FileNotFoundError when there is none."""
+    return StoreReader(Path(path).expanduser())
+
+
+def committed_feedback(folder, bag: str) -> list:
+    """The feedback a store in ``folder`` committed for the recording ``bag`` ([] without a store)."""
+    path = Path(folder) / DATABASE
+    if not path.exists():
+        return []
+    try:
+        with open_reader(path) as reader:
+            return reader.feedback(bag)
+    except sqlite3.Error as error:
+        raise OSError(f'cannot read the feedback of {bag} in {path}: {error}') from None
+
+
+class StateStore:
+    """The node's store in ``folder``, held by this process until ``close``.
+
+    Args:
+        folder (str or Path): the record folder; created if missing.
+        holder (str): who holds it (the node's name), as a refusal names it.
+        on_error (callable): ``on_error(text)`` when the disk refuses (once per failure).
+        on_recovered (callable, optional): ``on_recovered(text)`` once it works again.
+        retry_interval (float, optional): seconds between two tries of a failing disk.
+
+    StoreLockedError when another process holds the folder's store. Any other failure
+    (the folder cannot be created, the disk is full) leaves the store failing and retried:
+    updates wait in memory.
+    """
+
+    def __init__(self, folder, holder: str, on_error: Callable[[str], None],
+                 on_recovered: Callable[[str], None] | None = None, retry_interval: float = 1.0):
+        self.folder = Path(folder).expanduser()
+        self.path = self.folder / DATABASE
+        self.holder = f'{holder} ({holder_text()})'
+        self.error: str | None = None
+        self._on_error, self._on_recovered = on_error, on_recovered or (lambda text: None)
+        self._retry_interval = retry_interval
+        self._connection = None
+        self._lock_handle = None
+        self._queue = queue.SimpleQueue()
+        self._closing = threading.Event()
+        self._waiting = []  # items taken from the queue and not committed yet, oldest first
+        self._waiting_feedback = 0  # feedback entries queued or waiting, not committed
+        self._count_lock = threading.Lock()
+        self._written = {}  # (table, person) -> {rating id: scene digest}, as committed, of those written
+        self._rated = {}  # person -> order of their last rating change
+        self._counter = 0  # positions and rating orders, increasing
+        self._foreign = False  # the rows belong to another checkpoint: replaced on the first write
+        self._fingerprint = None  # the checkpoint the rows belong to, as meta holds it
+        self.reader: StoreReader | None = None  # what ``load`` read from, and the Deferred ratings read
+        self.imported: list = []  # what the open imported from the files of earlier versions
+        self._import_problems: list = []
+        self._open()
+        self._thread = threading.Thread(target=self._loop, name='stars-state-store', daemon=True)
+        self._thread.start()
+
+    # -- opening -----------------------------------------------------------------------------
+    def _open(self) -> bool:
+        """Lock, open and set up the database; False (reported) when the disk refuses."""
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            self._lock()
+            connection = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30)
+            try:
+                connection.execute('PRAGMA journal_mode=WAL')
+                connection.execute('PRAGMA synchronous=FULL')
+                connection.executescript(_SCHEMA)
+                version = connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+                if version is None:
+                    connection.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+                elif int(version[0]) != SCHEMA_VERSION:
+                    raise ConfigError(f'{self.path} has schema version {version[0]}; this stars_ros reads '
+                                      f'version {SCHEMA_VERSION}')
+                self._connection = connection
+                self._read_written()
+                self._import_earlier_files()
+            except BaseException:
+                self._connection = None
+                connection.close()
+                raise
+        except (OSError, sqlite3.Error) as error:
+            self._fail(f'cannot open the state store {self.path}: {error}')
+            return False
+        if self.error is not None:
+            self.error = None
+            self._on_recovered(f'state store {self.path} works again')
+        return True
+
+    def _lock(self):
+        if self._lock_handle is not None:
+            return
+        handle = open(self.folder / LOCK_FILE, 'a+')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            other = handle.read().strip() or 'another process'
+            handle.close()
+            raise StoreLockedError(f'the state store in {self.folder} is held by {other}: one store per node; give '
+                                   'this node its own record_folder (the default is named after the node)') from None
+        except OSError:
+            handle.close()
+            raise
+        handle.seek(0)
+        handle.truncate()
+        handle.write(self.holder + '\n')
+        handle.flush()
+        self._lock_handle = handle
+
+    def _read_written(self):
+        """The orders the writer continues from (what each person holds is read when first written)."""
+        self._counter = max([self._connection.execute(f'SELECT COALESCE(MAX(position), 0) FROM {t}').fetchone()[0]
+                             for t in _RATING_TABLES] +
+                            [self._connection.execute('SELECT COALESCE(MAX(rated), 0) FROM people').fetchone()[0]])
+        self._rated = dict(self._connection.execute('SELECT person, rated FROM people'))
+        self._fingerprint = self._meta('fingerprint')
+
+    def _import_earlier_files(self):
+        """user_models.json and every bag's feedback.jsonl, once each (noted in meta)."""
+        meta = dict(self._connection.execute('SELECT key, value FROM meta'))
+        state_file = self.folder / migration.STATE_FILE
+        key = f'imported:{migration.STATE_FILE}'
+        if state_file.exists() and key not in meta:
+            try:
+                state = migration.read_state_file(state_file)
+            except ValueError as error:
+                self._import_problems.append(f'{error}: its folded-in users are not imported')
+                state = None
+            with self._transaction():
+                if state is not None:
+                    self._import_state(state)
+                self._connection.execute('INSERT INTO meta VALUES (?, ?)', (key, str(time.time())))
+            if state is not None:
+                self.imported.append(f'{len(state.models)} people from {state_file}')
+        for journal in sorted(self.folder.glob(f'*/{migration.JOURNAL}')):
+            key = f'imported:{journal.parent.name}/{migration.JOURNAL}'
+            if key in meta:
+                continue
+            entries = migration.read_journal(journal)
+            with self._transaction():
+                self._connection.executemany(
+                    'INSERT INTO feedback (bag, topic, log_time, data, committed) VALUES (?, ?, ?, ?, ?)',
+                    [(journal.parent.name, e['topic'], int(e['log_time']), e['data'], time.time()) for e in entries])
+                self._connection.execute('INSERT INTO meta VALUES (?, ?)', (key, str(time.time())))
+            self.imported.append(f'{len(entries)} feedback messages from {journal}')
+
+    def _import_state(self, state: migration.LegacyState):
+        if self._connection.execute('SELECT COUNT(*) FROM people').fetchone()[0] == 0:
+            self._set_fingerprint(state.fingerprint)
+        elif self._meta('fingerprint') != state.fingerprint:
+            self._import_problems.append(f'{self.folder / migration.STATE_FILE} holds people of checkpoint '
+                                         f'{state.fingerprint[:12]}, the store those of another: not imported')
+            return
+        written = {}
+        for user_id in state.models.keys() | state.histories.keys() | state.peers.keys():
+            ratings, dropped = state.histories.get(user_id, ([], 0))
+            self._write_person(PersonUpdate(user_id, state.models.get(user_id), state.fingerprint, ratings, dropped,
+                                            state.peers.get(user_id, []), False), written)
+        self._written.update(written)
+
+    # -- the executor's side -------------------------------------------------------------------
+    @property
+    def healthy(self) -> bool:
+        return self.error is None
+
+    @property
+    def uncommitted_feedback(self) -> int:
+        """Accepted feedback entries queued or waiting for the disk, not yet committed."""
+        with self._count_lock:
+            return self._waiting_feedback
+
+    def put_feedback(self, entry: dict, bag: str, person: PersonUpdate | None = None,
+                     on_commit: Callable[[dict], None] | None = None) -> None:
+        """Journal the feedback ``entry`` ({'topic', 'log_time', 'data'}) of recording
+        ``bag``, with ``person``'s update (the rating it gave) in the same transaction;
+        ``on_commit(entry)`` runs on the writer's thread once both are committed."""
+        with self._count_lock:
+            self._waiting_feedback += 1
+        self._queue.put(('feedback', (entry, bag, on_commit), person))
+
+    def save_person(self, update: PersonUpdate) -> None:
+        self._queue.put(('person', None, update))
+
+    def forget(self, user_id: str) -> None:
+        """Remove a person and their ratings (evicted: they go back to the checkpoint)."""
+        self._queue.put(('forget', None, user_id))
+
+    def set_fingerprint(self, fingerprint: str) -> None:
+        """The checkpoint now served (a reload): the people rows from now on belong to it."""
+        self._queue.put(('fingerprint', None, fingerprint))
+
+    def load(self, fingerprint: str) -> tuple[list, str | None]:
+        """(the Person rows to restore, least recently rated first, their ratings Deferred;
+        why none are restored, else None). People of another checkpoint are not restored;
+        their rows are replaced by the first update. Call before the first update."""
+        problems = list(self._import_problems)
+        if self._connection is None:
+            return [], None
+        stored = self._meta('fingerprint')
+        self.reader = StoreReader(self.path)
+        people = self.reader.people(deferred=True)
+        if stored is None or not people:
+            self.set_fingerprint(fingerprint)
+            return [], '; '.join(problems) or None
+        if stored != fingerprint:
+            self._foreign = True
+            problems.append(f'{self.path} holds people solved against checkpoint {stored[:12]}, not the served '
+                            f'{fingerprint[:12]}: folded-in users are not restored')
+            return [], '; '.join(problems)
+        return people, '; '.join(problems) or None
+
+    def close(self) -> list:
+        """Commit what waits and close; returns the feedback entries that could not be
+        committed (to be logged by the caller)."""
+        self._closing.set()
+        self._queue.put(('close', None, None))
+        self._thread.join(timeout=10)
+        unstored = [item[1][0] for item in self._waiting if item[0] == 'feedback']
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item[0] == 'feedback':
+                unstored.append(item[1][0])
+        if self._connection is not None:
+            with contextlib.suppress(sqlite3.Error):
+                self._connection.close()
+            self._connection = None
+        if self.reader is not None:
+            self.reader.close()
+            self.reader = None
+        if self._lock_handle is not None:
+            self._lock_handle.close()
+            self._lock_handle = None
+        return unstored
+
+    # -- the writer ------------------------------------------------------------------------------
+    def _loop(self):
+        closing = False
+        while True:
+            try:
+                self._waiting.append(self._queue.get(timeout=self._retry_interval if self._waiting else None))
+            except queue.Empty:
+                pass
+            while True:
+                try:
+                    self._waiting.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            if self._waiting and self._waiting[-1][0] == 'close':
+                self._waiting.pop()
+                closing = True
+            if self._waiting and self._commit():
+                self._waiting = []
+            if closing:
+                return
+            if self._waiting:  # the disk refuses: wait, then try all of it again (new items join)
+                self._closing.wait(self._retry_interval)
+
+    def _commit(self) -> bool:
+        """Write every waiting item in one transaction; True once committed."""
+        if self._connection is None and not self._open():
+            return False
+        written = {}
+        try:
+            with self._transaction():
+                for kind, journal, value in self._waiting:
+                    if kind == 'feedback':
+                        entry, bag, _ = journal
+                        self._connection.execute(
+                            'INSERT INTO feedback (bag, topic, log_time, data, committed) VALUES (?, ?, ?, ?, ?)',
+                            (bag, entry['topic'], int(entry['log_time']), entry['data'], time.time()))
+                        if value is not None:
+                            self._replace_foreign(written)
+                            self._write_person(value, written)
+                    elif kind == 'person':
+                        self._replace_foreign(written)
+                        self._write_person(value, written)
+                    elif kind == 'forget':
+                        self._forget(value, written)
+                    elif kind == 'fingerprint':
+                        self._replace_foreign(written)
+                        self._set_fingerprint(value)
+        except (sqlite3.Error, OSError) as error:
+            self._fingerprint = None  # rolled back: written again by the next try
+            self._fail(f'could not write the state store {self.path}: {error}')
+            return False
+        if written.pop('replaced', False):
+            self._foreign = False
+        self._written.update(written)
+        for key in [k for k, v in self._written.items() if v is None]:
+            del self._written[key]
+        committed = [journal for kind, journal, _ in self._waiting if kind == 'feedback']
+        with self._count_lock:
+            self._waiting_feedback -= len(committed)
+        for entry, _, on_commit in committed:
+            if on_commit is not None:
+                try:
+                    on_commit(entry)
+                except Exception as error:  # noqa: BLE001 - the writer must go on: the entry is committed
+                    self._on_error(f'after committing feedback: {type(error).__name__}: {error}')
+        if self.error is not None:
+            self.error = None
+            self._on_recovered(f'state store {self.path} works again')
+        return True
+
+    @contextlib.contextmanager
+    def _transaction(self):
+        self._connection.execute('BEGIN IMMEDIATE')
+        try:
+            yield
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
+                self._connection.execute('ROLLBACK')
+            raise
+        self._connection.execute('COMMIT')
+
+    def _fail(self, text: str):
+        first = self.error is None
+        self.error = text
+        if first:
+            self._on_error(text)
+
+    def _meta(self, key: str) -> str | None:
+        row = self._connection.execute('SELECT value FROM meta WHERE key = ?', (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def _set_fingerprint(self, fingerprint: str):
+        if fingerprint != self._fingerprint:
+            self._connection.execute("INSERT OR REPLACE INTO meta VALUES ('fingerprint', ?)", (fingerprint,))
+            self._fingerprint = fingerprint
+
+    def _replace_foreign(self, written: dict):
+        """The first write over another checkpoint's people removes them (once per
+        transaction: ``written`` notes it)."""
+        if self._foreign and not written.get('replaced'):
+            for table in ('people', 'scenes', *_RATING_TABLES):
+                self._connection.execute(f'DELETE FROM {table}')
+            written.update({key: None for key in self._written}, replaced=True)
+            self._rated, self._fingerprint = {}, None
+
+    def _held(self, written: dict, table: str, user_id: str) -> dict:
+        """{rating id: scene digest} of what ``user_id`` holds in ``table`` in this transaction."""
+        key = (table, user_id)
+        if key not in written and key not in self._written:
+            written[key] = dict(self._connection.execute(f'SELECT id, scene FROM {table} WHERE person = ?', (user_id,)))
+        held = written[key] if key in written else self._written[key]
+        return dict(held or {})
+
+    def _write_person(self, update: PersonUpdate, written: dict):
+        """The rows of ``update`` that differ from what is stored: ratings in and out, the
+        person's row; ``written`` gets what the transaction leaves stored."""
+        connection, user_id = self._connection, update.user_id
+        self._set_fingerprint(update.fingerprint)
+        changed = False
+        for table, ratings in zip(_RATING_TABLES, (update.ratings, update.peer_ratings)):
+            held = self._held(written, table, user_id)
+            wanted = {r.rating_id: r for r in ratings}
+            for rating_id in held.keys() - wanted.keys():
+                connection.execute(f'DELETE FROM {table} WHERE person = ? AND id = ?', (user_id, rating_id))
+                self._release_scene(held.pop(rating_id))
+                changed = True
+            for rating_id, rating in wanted.items():
+                if rating_id in held:
+                    continue
+                digest = scene_digest(rating.scene)
+                connection.execute('INSERT INTO scenes VALUES (?, ?, 1) ON CONFLICT(digest) DO UPDATE SET '
+                                   'refs = refs + 1', (digest, _scene_text(rating.scene)))
+                self._counter += 1
+                connection.execute(
+                    f'INSERT INTO {table} VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
+                    (user_id, rating_id, self._counter, int(rating.stamp), rating.origin, rating.action,
+                     float(rating.score), rating.scene_id, digest,
+                     None if rating.feedback is None else json.dumps(rating.feedback, separators=(',', ':'))))
+                held[rating_id] = digest
+                changed = True
+            written[(table, user_id)] = held
+        if changed or user_id not in self._rated:
+            self._counter += 1
+            self._rated[user_id] = self._counter
+        model = update.model
+        connection.execute(
+            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
+            (user_id, update.fingerprint if model is not None else None,
+             None if model is None else _blob(model.p), None if model is None else float(model.b),
+             None if model is None else int(model.n_ratings), None if model is None else float(model.regularisation),
+             None if model is None else _blob(model.covariance), int(bool(update.solved and model is not None)),
+             int(update.dropped), len(written[('ratings', user_id)]), len(written[('peer_ratings', user_id)]),
+             self._rated[user_id], time.time()))
+
+    def _forget(self, user_id: str, written: dict):
+        for table in _RATING_TABLES:
+            for digest in self._held(written, table, user_id).values():
+                self._release_scene(digest)
+            self._connection.execute(f'DELETE FROM {table} WHERE person = ?', (user_id,))
+            written[(table, user_id)] = None
+        self._connection.execute('DELETE FROM people WHERE person = ?', (user_id,))
+        self._rated.pop(user_id, None)
+
+    def _release_scene(self, digest: str):
+        self._connection.execute('UPDATE scenes SET refs = refs - 1 WHERE digest = ?', (digest,))
+        self._connection.execute('DELETE FROM scenes WHERE digest = ? AND refs <= 0', (digest,))
+
+
+def write_people(folder, fingerprint: str, people: Iterable[PersonUpdate]) -> None:
+    """Fill the store in ``folder`` with ``people`` in one transaction (benchmarks, tests)."""
+    store = StateStore(folder, 'write_people', on_error=lambda text: None)
+    try:
+        if store.error is not None:
+            raise OSError(store.error)
+        with store._transaction():
+            store._set_fingerprint(fingerprint)
+            written = {}
+            for update in people:
+                store._write_person(update, written)
+    finally:
+        store.close()
