@@ -286,6 +286,17 @@ class FoldIn:
         x, c = self.design_from_h(self.encode([r.scene for r in ratings]), [r.scene_id for r in ratings], actions)
         return x, c, self.to_z([r.score for r in ratings], actions)
 
+    def prepare(self, ratings: Sequence[Rating], limit: int) -> bool:
+        """Build the regression rows of at most ``limit`` of ``ratings`` not built yet
+        (encoding their scenes); True once every one is built. A caller that must stay
+        responsive (the node's executor, solving a person restored with hundreds of ratings)
+        spreads that person's first solve over several calls this way."""
+        with self._lock:
+            missing = [rating for rating in ratings if id(rating) not in self._rows]
+        if missing:
+            self.regression(missing[:limit])
+        return len(missing) <= limit
+
     # -- the solve ---------------------------------------------------------------------
     def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:
         """The user's posterior θ = (p_u, b_u) from ``ratings`` (see the module docstring);

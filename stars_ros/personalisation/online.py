@@ -7,7 +7,8 @@ computed, remembered in a bounded LRU map, ``SceneMemory``: strings and arrays c
 garbage collector little, parsed JSON would cost it much more) is added to that user's
 history (bounded: histories.FeedbackHistories), and the user waits in ``pending``. The node
 calls ``solve_next`` when no scene waits, one user per turn, so the ranking of others waits
-for at most one solve (timings in docs/personalisation.md). The result goes into the
+for at most one solve (timings in docs/personalisation.md); a person with many ratings whose
+rows are not built yet (restored after a restart) has them built ``PREPARE_ROWS`` a turn. The result goes into the
 predictor's overlay (swapped whole) and into the state store (``recording.state_store``):
 each change queues that person's update, which the store's own thread writes, and a restart
 with the same checkpoint restores them. With fleet sharing (``fleet``), peers' ratings join
@@ -31,6 +32,7 @@ from stars_ros.personalisation.foldin import FoldIn, Rating, UserModel, rating_f
 from stars_ros.personalisation.histories import FeedbackHistories
 
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
+PREPARE_ROWS = 8  # ratings' scenes encoded per call of solve_next: bounds how long one holds the executor
 
 
 class SceneMemory:
@@ -276,12 +278,21 @@ class Personalisation:
         """Re-solve the user who has waited longest from their history against the current
         model (the Gaussian posterior; a positive ``regularisation``: the ridge override):
         (user_id, the model now served for them), or None when there was nothing to solve
-        (no one waiting, no fold-in with this model, fewer than ``min_ratings``)."""
+        (no one waiting, no fold-in with this model, fewer than ``min_ratings``) or when the
+        one waiting longest still has ratings to encode (``PREPARE_ROWS`` a call: a person
+        restored with hundreds of ratings does not hold the executor for a whole encoding)."""
         if not self.pending:
             return None
-        user_id = self.pending.popitem(last=False)[0]
+        user_id = next(iter(self.pending))
         foldin = self.foldin
         ratings = self.ratings(user_id)
+        if foldin is not None and ratings and len(ratings) >= min_ratings:
+            try:
+                if not foldin.prepare(ratings, PREPARE_ROWS):
+                    return None  # more of their rows next time; they stay first in line
+            except StarsError:
+                pass  # the solve below finds the ratings it cannot use
+        del self.pending[user_id]
         if foldin is None or not ratings or len(ratings) < min_ratings:
             return None
         try:

@@ -133,7 +133,7 @@ def test_the_core_builds_markers_only_for_a_listener_or_the_bag(tiny_checkpoint,
     core.close()
     stored = []
     if record_folder:
-        [bag] = tmp_path.iterdir()
+        [bag] = tmp_path.glob('stars_*')  # beside the state store
         stored = list(recording.read_decoded(bag, ['/stars/markers']))
         if record:
             assert recording.bag_topics(bag, None)['/stars/markers'] == recording.qos_profile(1, True)

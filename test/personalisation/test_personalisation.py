@@ -2,6 +2,8 @@
 becomes a rating, the solve and its bounds, eviction, a reload after a refit, the state
 store across a restart, and the scene memory feedback is matched against."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -97,6 +99,22 @@ def test_feedback_that_names_no_usable_rating_says_why(predictor, scenes):
     assert core.add_feedback(Feedback('ann', 'placements', 0.5, candidate=label)) is None
     [rating] = core.histories.ratings('ann')
     assert rating.scene == placements['candidates'][2]['graph'] and rating.scene_id is None
+
+
+def test_a_person_with_many_ratings_is_solved_a_few_rows_a_call(predictor, scenes):
+    """The executor is held for PREPARE_ROWS ratings' rows at a time, not a whole history."""
+    core = _personalisation(predictor, Log())
+    for k in range(40):
+        assert _rate(core, 'ann', scenes[k % len(scenes)], score=(k % 5) / 4) is None
+    calls = 0
+    while (solved := core.solve_next()) is None:
+        assert list(core.pending) == ['ann']  # first in line until solved
+        calls += 1
+    assert calls == math.ceil(40 / personalisation.PREPARE_ROWS) - 1 and not core.pending
+    user_id, model = solved
+    expected = FoldIn(predictor).fit(core.ratings('ann'), 'ann')
+    assert user_id == 'ann' and model.n_ratings == 40
+    np.testing.assert_allclose(model.p, expected.p, rtol=1e-6, atol=1e-9)
 
 
 def test_a_user_is_served_once_they_have_min_ratings(predictor, scenes):
