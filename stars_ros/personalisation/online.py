@@ -283,18 +283,18 @@ class Personalisation:
         restored with hundreds of ratings does not hold the executor for a whole encoding)."""
         if not self.pending:
             return None
-        user_id = next(iter(self.pending))
+        user_id = self.pending.popitem(last=False)[0]
         foldin = self.foldin
         ratings = self.ratings(user_id)
-        if foldin is not None and ratings and len(ratings) >= min_ratings:
-            try:
-                if not foldin.prepare(ratings, PREPARE_ROWS):
-                    return None  # more of their rows next time; they stay first in line
-            except StarsError:
-                pass  # the solve below finds the ratings it cannot use
-        del self.pending[user_id]
         if foldin is None or not ratings or len(ratings) < min_ratings:
             return None
+        try:
+            if not foldin.prepare(ratings, PREPARE_ROWS):
+                self.pending[user_id] = None  # more of their rows next time, first in line again
+                self.pending.move_to_end(user_id, last=False)
+                return None
+        except StarsError:
+            pass  # the solve below finds the ratings it cannot use
         try:
             model = foldin.fit(ratings, user_id, regularisation)
         except StarsError:
