@@ -21,7 +21,7 @@ empty folder (each in a ROS domain the tests' way reserves): the time from start
 to its first answer, and other users' ranking latency (one request every
 ``--paced-period`` s) in blocks that alternate between quiet and a stream of feedback at
 ``--feedback-rate``/s for stored people on scenes the node ranked, ``--blocks`` of each,
-with what the node's /diagnostics said of its fold-in work meanwhile (solves, the longest).
+with what the node's /diagnostics said of its fold-in work meanwhile (turns, the longest).
 """
 from __future__ import annotations
 
@@ -120,13 +120,14 @@ def measure_restart(folder: Path, checkpoint: str, max_ratings: int, people: int
 
 
 def fold_in_work(diagnostics: list) -> dict:
-    """What the node's /diagnostics said of its fold-in over ``diagnostics``: solves, the
-    longest, and the rankings that waited behind fold-in work."""
+    """What the node's /diagnostics said of its fold-in over ``diagnostics``: its turns of
+    work (a solve, or a step of building a restored person's rows), the longest, and the
+    rankings that waited behind them."""
     values = [{v.key: v.value for v in status.values} for array in diagnostics for status in array.status
               if status.name.endswith(': ranker')]
     longest = [float(v['period.fold_in_update_ms.max']) for v in values if 'period.fold_in_update_ms.max' in v]
-    return {'solves': sum(int(v.get('period.fold_in_updates', 0)) for v in values),
-            'longest_solve_ms': max(longest) if longest else None,
+    return {'fold_in_turns': sum(int(v.get('period.fold_in_updates', 0)) for v in values),
+            'longest_turn_ms': max(longest) if longest else None,
             'rankings_delayed_by_fold_in': sum(int(v.get('period.rankings_delayed_by_fold_in', 0)) for v in values)}
 
 
@@ -173,10 +174,10 @@ def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domai
             if streamer.is_alive():
                 streamer.join()
             diagnostics[kind] += client.diagnostics[seen:]
-    finally:
-        client.close()
+    finally:  # the node first: a participant leaving while the node destroys its own can hang Fast DDS
         process.terminate()
         process.wait(timeout=120)
+        client.close()
     return {'start_to_first_answer_s': first_answer, 'feedback_sent': sent,
             'other_users_ranking_ms': {kind: summary(values) for kind, values in latencies.items()},
             'fold_in_during_blocks': {kind: fold_in_work(values) for kind, values in diagnostics.items()}}

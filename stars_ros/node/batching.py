@@ -169,7 +169,8 @@ class PeriodStats:
     """What /diagnostics reports of one period: the rankings' processing time (reception to
     publication; percentiles over the latest ``keep``, so a long period at a high rate
     stays bounded), the rankings that waited behind fold-in work and how long, and the
-    fold-in updates (all ms)."""
+    fold-in updates: turns of fold-in work, each a solve or a step of building the rows of a
+    person restored with many ratings (all ms)."""
 
     def __init__(self, keep: int = 10000):
         self.rankings, self.processing_max, self.latest = 0, 0.0, collections.deque(maxlen=keep)
