@@ -29,8 +29,8 @@ OPTIONAL_REQUIREMENTS = ('requirements-ray.txt', 'requirements-peers.txt')
 TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python3-jsonschema', 'jsonschema'),
                   'referencing': ('python3-jsonschema', 'jsonschema'),  # jsonschema's own dependency
                   'rosbags': (None, 'rosbags'),
-                  'sros2': ('sros2', ROS),  # a ROS package; without ROS, from ../shared/vendor/ (requirements-dev.txt)
-                  'lxml': ('python3-lxml', 'lxml'),
+                  'sros2': ('sros2', ROS),  # a ROS package (ros-jazzy-sros2); its tests skip without it
+                  'lxml': ('python3-lxml', ROS),  # sros2's own dependency, with it from a ROS install
                   'geometry_msgs': ('geometry_msgs', ROS), 'builtin_interfaces': ('builtin_interfaces', ROS)}
 OWN = {'stars_ros', 'offline_training', *(path.stem for path in (REPO / 'test').rglob('*.py'))}  # test helpers too
 
