@@ -65,7 +65,9 @@ class SceneRequest:
 class Feedback:
     """One validated /stars/feedback message; exactly one of ``action`` and ``candidate``.
     ``signed``: the message as parsed when it carries ``auth``, what ``feedback_auth``
-    checks and a folded-in rating keeps, so that peers can check it too."""
+    checks and a folded-in rating keeps, so that peers can check it too. ``implicit``: an
+    outcome the robot observed (e.g. the person stayed engaged), not a rating the person
+    gave; its score is the rating scale's top or bottom (docs/hri.md)."""
 
     user_id: str
     scene_id: str
@@ -73,6 +75,13 @@ class Feedback:
     action: str | None = None
     candidate: str | None = None
     signed: dict | None = None
+    implicit: bool = False
+
+    def as_message(self) -> dict:
+        """The message's fields (without ``auth``), as stars/feedback carries them."""
+        key, value = ('action', self.action) if self.action is not None else ('candidate', self.candidate)
+        out = {'user_id': self.user_id, 'scene_id': self.scene_id, key: value, 'score': self.score}
+        return {**out, 'implicit': True} if self.implicit else out
 
 
 def _draft07(node):
@@ -237,7 +246,7 @@ def parse_feedback(text, max_bytes: int = DEFAULT_MAX_BYTES) -> Feedback:
         raise BadMessage('non_finite', f"feedback score {payload['score']} is not a finite number",
                          payload['scene_id'])
     return Feedback(payload['user_id'], payload['scene_id'], score, payload.get('action'), payload.get('candidate'),
-                    payload if 'auth' in payload else None)
+                    payload if 'auth' in payload else None, payload.get('implicit', False))
 
 
 @dataclass(frozen=True)

@@ -119,7 +119,7 @@ GRAPH = {'humans': [], 'room': [[0, 0], [1, 1], [2, 3]]}
     (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'action': 'a', 'score': 'high'},
      "'score' must be number"),
     (messages.parse_feedback, {'user_id': 'g', 'scene_id': 's', 'action': 'a', 'score': 1, 'rating': 1},
-     "'rating': not a field of feedback (its fields: user_id, scene_id, action, candidate, score, auth)"),
+     "'rating': not a field of feedback (its fields: user_id, scene_id, action, candidate, score, implicit, auth)"),
     (messages.parse_scene_request, {'scene_id': 's'}, "a scene request needs 'graph'"),
     (messages.parse_scene_request, {'scene_id': 's', 'graph': {}}, "'graph' needs 'humans' and 'room'"),
     (messages.parse_scene_request, {'scene_id': 's', 'graph': dict(GRAPH, humans=[

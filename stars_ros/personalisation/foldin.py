@@ -13,7 +13,15 @@ prior) and independent noise z_j − c_j − x_jᵀθ ~ N(0, σ²_{a_j}) give th
 
     Λ = S₀⁻¹ + Xᵀ D⁻¹ X,    m = Λ⁻¹ (S₀⁻¹ m₀ + Xᵀ D⁻¹ (z − c)),    D = diag(σ²_a),
 
-one (d+1)×(d+1) Cholesky solve in float64. Its mean is what the node serves, its
+one (d+1)×(d+1) Cholesky solve in float64.
+
+**Implicit outcomes** (``Rating.implicit``: the person stayed engaged after the robot acted,
+score the rating scale's top H, or disengaged, its bottom L) are observations of their own
+kind, not ratings: the outcome o is Bernoulli with P(o = H) = (y − L) / (H − L), y the
+person's rating, so E[o] = y and Var[o | y] ≤ (H − L)² / 4. Taken as Gaussian with that bound,
+an outcome's noise is σ²_a + ``implicit_variance`` / σ_a² (z units; default (H − L)² / 4 on
+the rating scale, the law of total variance): the same linear row as a rating of that scene
+and action, weighted less. Its mean is what the node serves, its
 covariance Λ⁻¹ what ``uncertainty`` turns into a score's standard deviation. No λ is set by
 hand; a positive ``regularisation`` λ overrides the posterior with the ridge solve
 argmin ‖Xθ − (z − c)‖² + λ‖θ − m₀‖² (covariance σ̄²(XᵀX + λI)⁻¹, σ̄² the mean noise).
@@ -54,7 +62,9 @@ class Rating:
     A ranker names each rating it accepts (``rating_id``, unique; ``stamp``, ROS time ns;
     ``origin``, the node that accepted it), so that robots sharing ratings (``fleet``) count
     each once and order them alike. With signed feedback (``feedback_auth``), ``feedback``
-    is the signed message it came from and ``rating_id`` its MAC, so peers can check it."""
+    is the signed message it came from and ``rating_id`` its MAC, so peers can check it. An
+    implicit outcome keeps its message in ``feedback`` too, which says ``"implicit": true``
+    (so the state store, peers and the offline refit all see it as such)."""
 
     scene: object
     action: str
@@ -64,6 +74,11 @@ class Rating:
     stamp: int = 0
     origin: str = ''
     feedback: dict | None = None
+
+    @property
+    def implicit(self) -> bool:
+        """An implicit outcome (the module docstring), not a rating the person gave."""
+        return self.feedback is not None and self.feedback.get('implicit') is True
 
     def to_json(self) -> dict:
         """The rating as stars/user_model's ``ratings`` hold it."""
@@ -111,19 +126,27 @@ def rating_from_feedback(feedback, request, predictor) -> Rating | str:
     names (messages.SceneRequest) under ``predictor``'s model, or why it gives none. The node
     and the offline refit both use this, so they fold in the same ratings: an action's
     feedback rates the scene (with its q_i when it is a training scene); a candidate's
-    feedback rates that candidate scene under the action that ranked the candidates."""
+    feedback rates that candidate scene under the action that ranked the candidates. An
+    implicit outcome keeps its message (so it stays implicit wherever the rating goes) and
+    must score the scale's top or bottom."""
+    source = feedback.as_message() if feedback.implicit else None
+    scale = predictor.recommender.rating_scale
+    if feedback.implicit and scale is not None and feedback.score not in tuple(scale):
+        return (f"implicit feedback on scene '{feedback.scene_id}' scores {feedback.score}: an outcome is the rating "
+                f"scale's top {scale[1]} (stayed engaged) or bottom {scale[0]} (disengaged)")
     if feedback.action is not None:
         if request.ranks_scenes:
             return (f"feedback names action '{feedback.action}' but scene '{feedback.scene_id}' "
                     'ranked candidate scenes')
-        return Rating(request.graphs[0], feedback.action, feedback.score, request.scene_id)
+        return Rating(request.graphs[0], feedback.action, feedback.score, request.scene_id, feedback=source)
     if not request.ranks_scenes or feedback.candidate not in request.labels:
         return f"scene '{feedback.scene_id}' had no candidate '{feedback.candidate}'"
     try:
         action = predictor.ranking_action(request.action)  # the one the node ranked them by
     except UnknownActionError as error:
         return f"scene '{feedback.scene_id}': {error}"
-    return Rating(request.graphs[request.labels.index(feedback.candidate)], action, feedback.score, None)
+    return Rating(request.graphs[request.labels.index(feedback.candidate)], action, feedback.score, None,
+                  feedback=source)
 
 
 def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
@@ -163,6 +186,9 @@ class FoldIn:
         predictor (Predictor): the model to fold users into; its weights are only read.
         prior (UserPrior, optional): the population prior and noise; default: the one the
             checkpoint stores (``prior.prior_of``).
+        implicit_variance (float, optional): an implicit outcome's extra noise variance on
+            the rating scale (default: (H − L)² / 4 of the checkpoint's rating scale; 1.0 in z
+            units for a model without one).
         cache_scenes (int, optional): most encoded scenes, and most ratings' regression rows,
             kept (least recently used go).
         scene_by_scene (bool, optional): encode each scene in a forward pass of its own. A
@@ -177,7 +203,7 @@ class FoldIn:
     """
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False,
-                 prior: UserPrior | None = None):
+                 prior: UserPrior | None = None, implicit_variance: float | None = None):
         recommender = predictor.recommender
         model = recommender.require_model()
         if not model.personalised:
@@ -191,6 +217,7 @@ class FoldIn:
         self.user_prior = prior_of(recommender, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
+        self.implicit_noise = self._implicit_noise(implicit_variance)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
         self._cache = collections.OrderedDict()
@@ -201,6 +228,24 @@ class FoldIn:
         gaussian_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
                            self._population_precision)  # a process's first LAPACK solve costs
         # milliseconds: paid at load, not by the first feedback
+
+    def _implicit_noise(self, variance: float | None) -> np.ndarray:
+        """z-scale noise variance an implicit outcome adds, per action."""
+        scale = self.recommender.rating_scale
+        if variance is None:
+            if scale is None:
+                return np.ones(len(self.actions))
+            variance = (float(scale[1]) - float(scale[0])) ** 2 / 4.0
+        if not variance > 0:
+            raise ValueError(f'implicit_variance must be positive, got {variance}')
+        return variance / np.asarray(self.inference.target_std, dtype=np.float64) ** 2
+
+    def rating_noise(self, ratings: Sequence[Rating]) -> np.ndarray:
+        """z-scale noise variance of each rating: its action's, plus ``implicit_noise`` for an
+        implicit outcome."""
+        actions = self.action_index([r.action for r in ratings])
+        implicit = np.array([r.implicit for r in ratings], dtype=bool)
+        return self.noise[actions] + np.where(implicit, self.implicit_noise[actions], 0.0)
 
     def _user_row(self, row) -> np.ndarray:
         """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
@@ -306,12 +351,13 @@ class FoldIn:
         if not ratings:
             return UserModel(mean[:-1], float(mean[-1]), 0, lam, covariance)
         x, y = self.regression(ratings)
-        if lam > 0:
-            theta = solve_ridge(x, y, mean, lam)
-            covariance = float(self.noise.mean()) * np.linalg.inv(x.T @ x + lam * np.eye(len(theta)))
+        noise = self.rating_noise(ratings)
+        if lam > 0:  # implicit outcomes weigh less here too: rows scaled by their noise ratio
+            weight = np.sqrt(self.noise[self.action_index([r.action for r in ratings])] / noise)[:, None]
+            theta = solve_ridge(x * weight, y * weight[:, 0], mean, lam)
+            covariance = float(self.noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
         else:
-            theta, covariance = gaussian_posterior(x, y, self.noise[self.action_index([r.action for r in ratings])],
-                                                   mean, precision)
+            theta, covariance = gaussian_posterior(x, y, noise, mean, precision)
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)
 
     def regression(self, ratings: Sequence[Rating]) -> tuple:

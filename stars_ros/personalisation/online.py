@@ -159,7 +159,7 @@ class Personalisation:
         signed = feedback.signed if self.authenticator is not None else None
         self._keep_solved_from(feedback.user_id)
         rating = dataclasses.replace(rating, rating_id=signed['auth']['mac'] if signed else fleet.new_rating_id(),
-                                     stamp=stamp, origin=self.origin, feedback=signed)
+                                     stamp=stamp, origin=self.origin, feedback=signed or rating.feedback)
         self._forget(self.histories.add(feedback.user_id, rating))
         self.pending[feedback.user_id] = None
         return None
