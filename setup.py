@@ -39,6 +39,8 @@ setup(
             'ranker = stars_ros.ros.ranker:main',
             'scene_publisher = stars_ros.ros.scene_publisher:main',
             'replay = stars_ros.ros.replay:main',
+            'hri_bridge = stars_ros.ros.hri_bridge:main',
+            'hri_world = stars_ros.ros.hri_world:main',
         ],
     },
 )

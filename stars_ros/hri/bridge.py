@@ -203,15 +203,16 @@ class BridgeCore:
         if changed_user:
             self._published_user = user_id
         built = build_scene(self.people, self.poses, self.interactions, self.settings.scene, now)
-        for reason, ids in built.left_out.items():
-            self.left_out_total[reason] += len(ids)
-            self.report(reason, f"left out of the scene ({reason}): {ids}")
-        self.last_scene = built
         due = self._last_sent_at is None or now - self._last_sent_at >= 1e9 / self.settings.rate
         changed = changed_user or built.signature != self._last_signature
         scene = None
         if built.people and (due or changed):
             scene = self._request(built, now)
+        if scene is not None or (self.last_scene is not None and built.left_out != self.last_scene.left_out):
+            for reason, ids in built.left_out.items():  # counted per scene sent (or change), not per tick
+                self.left_out_total[reason] += len(ids)
+                self.report(reason, f'left out of the scene ({reason}): {ids}')
+        self.last_scene = built
         dropped = self.outcomes.dropped_anonymous
         feedback = tuple(self.outcomes.resolve())
         if self.outcomes.dropped_anonymous > dropped:

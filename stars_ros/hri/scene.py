@@ -9,6 +9,9 @@ pose in the robot's ``base_frame`` becomes a human of the scene, unless
 * there is no pose at all (``no_pose``: the frame never arrived) or only a non-finite one
   (``non_finite``);
 
+a merged person's pose is their own frame's when it is fresh, else the freshest of their
+aliases' frames;
+
 each left-out person is counted by that reason (the bridge reports the counts on
 /diagnostics). Interactions: every two members of a group (``/humans/interactions/groups``)
 and every two people who gaze at each other (``/humans/interactions/gazing`` both ways), each
@@ -135,13 +138,14 @@ def build_scene(people: People, poses: PoseSource, interactions: Interactions, s
         if confidences and max(confidences) < settings.min_confidence:
             left_out['low_confidence'].append(canonical)
             continue
-        looked_up = [p for p in (poses.lookup(settings.base_frame, person_frame(i)) for i in dict.fromkeys([canonical, *ids]))
-                     if p is not None]
-        found = [p for p in looked_up if all(math.isfinite(v) for v in (p.x, p.y, p.yaw))]
+        looked_up = [(i == canonical, p) for i in dict.fromkeys([canonical, *ids])
+                     if (p := poses.lookup(settings.base_frame, person_frame(i))) is not None]
+        found = [(own, p) for own, p in looked_up if all(math.isfinite(v) for v in (p.x, p.y, p.yaw))]
         if not found:
             left_out['non_finite' if looked_up else 'no_pose'].append(canonical)
             continue
-        pose = max(found, key=lambda p: p.stamp)
+        pose = max(found, key=lambda found_pose: (now - found_pose[1].stamp <= max_age_ns, *found_pose[0:1],
+                                                  found_pose[1].stamp))[1]
         if now - pose.stamp > max_age_ns:
             left_out['stale'].append(canonical)
             continue

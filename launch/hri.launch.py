@@ -1,0 +1,55 @@
+"""The whole ROS4HRI loop without a robot: the scripted world (hri_world), the bridge
+(hri_bridge) and the ranker.
+
+    ros2 launch stars_ros hri.launch.py source:=$STARS_SOCNAV1_ROOT/raw/a.jsonl
+    ros2 launch stars_ros hri.launch.py world:=false   # a robot's own ROS4HRI stack instead (docs/hri.md)
+
+Poses travel as TF where tf2_ros exists (``pose_source:=tf``), else on hri/transforms
+(``pose_source:=topic``). Recording goes to the ranker's default folder unless
+``record_folder`` is set. ``--show-args`` lists the arguments.
+"""
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.conditions import IfCondition
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+
+def _tf2_available() -> bool:
+    try:
+        import tf2_ros  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _nodes(context):
+    pose_source = LaunchConfiguration('pose_source').perform(context) or ('tf' if _tf2_available() else 'topic')
+    ranker = {'record_folder': LaunchConfiguration('record_folder')} if LaunchConfiguration(
+        'record_folder').perform(context) else {}
+    return [
+        Node(package='stars_ros', executable='hri_world', name='hri_world', output='screen',
+             parameters=[{'source': LaunchConfiguration('source'), 'pose_source': pose_source,
+                          'base_frame': LaunchConfiguration('base_frame')}],
+             condition=IfCondition(LaunchConfiguration('world'))),
+        Node(package='stars_ros', executable='hri_bridge', name='hri_bridge', output='screen',
+             parameters=[{'pose_source': pose_source, 'base_frame': LaunchConfiguration('base_frame'),
+                          'goal_frame': LaunchConfiguration('goal_frame')}]),
+        Node(package='stars_ros', executable='ranker', name='ranker', output='screen', parameters=[ranker]),
+    ]
+
+
+def generate_launch_description():
+    return LaunchDescription([
+        DeclareLaunchArgument('source', default_value='', description='SocNav1 JSONL file placing the scripted '
+                              'people; empty: a generated scene'),
+        DeclareLaunchArgument('world', default_value='true', choices=['true', 'false'],
+                              description='false: no scripted world (a robot publishes ROS4HRI)'),
+        DeclareLaunchArgument('pose_source', default_value='', description='tf or topic; empty: tf where tf2_ros '
+                              'is importable'),
+        DeclareLaunchArgument('base_frame', default_value='base_link', description="the robot's frame"),
+        DeclareLaunchArgument('goal_frame', default_value='', description='frame of stars/goal; empty: base_frame'),
+        DeclareLaunchArgument('record_folder', default_value='', description="the ranker's record folder; empty: "
+                              'its default'),
+        OpaqueFunction(function=_nodes),
+    ])

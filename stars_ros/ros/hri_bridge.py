@@ -1,0 +1,235 @@
+"""The hri_bridge node: a robot's ROS4HRI (REP 155) stack in, the ranker's topics out.
+
+Reads who is tracked (/humans/persons/tracked), each person's engagement_status, anonymous,
+alias and location_confidence (/humans/persons/<id>/...), groups and gazes
+(/humans/interactions/...) and where people are (TF frames person_<id>, or with
+``pose_source:=topic`` geometry_msgs/TransformStamped on hri/transforms); publishes the
+served person on stars/user_id, scenes on stars/scene, implicit outcomes on stars/feedback,
+and for each ranking of its scenes a decision (stars/decision) and, for a placement, a goal
+(stars/goal, geometry_msgs/PoseStamped in ``goal_frame``). The logic is ``stars_ros.hri``;
+docs/hri.md has the rules, the parameters and how to point it at a robot.
+
+    ros2 run stars_ros hri_bridge --ros-args -p base_frame:=base_link -p goal_frame:=map
+
+Needs hri_msgs (ros-jazzy-hri-msgs); tf2_ros (ros-jazzy-tf2-ros) for ``pose_source:=tf``.
+"""
+from __future__ import annotations
+
+import json
+import re
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, TransformStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from std_msgs.msg import Bool, Float32, String
+
+from stars_ros.hri.bridge import BridgeCore, BridgeSettings
+from stars_ros.hri.poses import Pose, TransformTable, quaternion_of_yaw, yaw_of_quaternion
+from stars_ros.hri.scene import DEFAULT_ROOM, SceneSettings
+from stars_ros.ros import usage
+from stars_ros.ros.spinning import run_node
+
+try:
+    from hri_msgs.msg import EngagementLevel, Gaze, Group, IdsList
+except ImportError as missing:  # the node cannot run; the package still installs
+    HRI_MSGS_ERROR = f'hri_bridge needs hri_msgs (ros-jazzy-hri-msgs, ROS4HRI): {missing}'
+else:
+    HRI_MSGS_ERROR = None
+
+TICK = 0.05  # s between two looks at the facts (a changed scene goes out within this)
+MAX_PEOPLE = 256  # per-person subscriptions held at most
+PERSON_TOPIC = re.compile(r'^/humans/persons/([^/]+)/(engagement_status|anonymous|alias|location_confidence)$')
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+PARAMETERS = {  # name: (default, description)
+    'base_frame': ('base_link', "the robot's frame (REP 103): scenes are built in it"),
+    'goal_frame': ('', 'frame of stars/goal, one the navigation stack takes (map, odom); empty: base_frame'),
+    'pose_source': ('tf', 'tf: person_<id> frames from TF (needs tf2_ros); topic: geometry_msgs/TransformStamped '
+                    'on hri/transforms (header.frame_id the parent, child_frame_id person_<id>)'),
+    'max_age': (0.5, 's: an older pose, group or gaze is left out'),
+    'min_confidence': (0.5, 'a person whose location_confidence is below this is left out'),
+    'rate': (2.0, 'scenes a second sent to the ranker (and at once on a change of people, interactions or user)'),
+    'placements': (6, 'robot placements ranked per scene (stay, 50 cm left, right, back, ahead, 100 cm left, '
+                   'right, back); 0: rank the model actions in the scene instead'),
+    'abstain_below': (0.5, 'abstain (no goal) when the ranking p_first_is_best is below this'),
+    'outcome_window': (5.0, 's after stars/executed: disengaging within it is an implicit "disengaged", engaged '
+                       'at its end "stayed"'),
+    'rating_min': (0.0, "the model's lowest rating (a disengaged outcome's score)"),
+    'rating_max': (1.0, "the model's highest rating (a stayed outcome's score)"),
+    'room': ([float(v) for corner in DEFAULT_ROOM for v in corner], 'room polygon in base_frame, metres: x0, y0, '
+             'x1, y1, ...'),
+    'objects': ('[]', 'objects in base_frame, JSON: [[x, y, yaw], ...] (metres, radians)'),
+    'diagnostics_period': (1.0, 's between two /diagnostics messages (and scans for per-person topics)'),
+}
+
+
+class TfPoses:
+    """The pose seam over tf2 (``stars_ros.hri.poses.PoseSource``)."""
+
+    def __init__(self, node: Node):
+        import tf2_ros  # only here: a ROS install provides it, the wheels do not
+        self._buffer = tf2_ros.Buffer()
+        self._listener = tf2_ros.TransformListener(self._buffer, node)
+        self._errors = (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException)
+
+    def lookup(self, target_frame: str, source_frame: str) -> Pose | None:
+        try:
+            return pose_of(self._buffer.lookup_transform(target_frame, source_frame, Time()))
+        except self._errors:
+            return None
+
+
+def pose_of(transform: TransformStamped) -> Pose:
+    t, r = transform.transform.translation, transform.transform.rotation
+    return Pose(t.x, t.y, yaw_of_quaternion(r.x, r.y, r.z, r.w), Time.from_msg(transform.header.stamp).nanoseconds)
+
+
+class HriBridge(Node):
+    """Subscribes to ROS4HRI, calls the core, publishes what it gives (module docstring)."""
+
+    def __init__(self, **kwargs):
+        super().__init__('hri_bridge', **kwargs)
+        if HRI_MSGS_ERROR:
+            raise ImportError(HRI_MSGS_ERROR)
+        v = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
+             for name, (default, text) in PARAMETERS.items()}
+        room, objects = list(v['room']), json.loads(v['objects'])
+        if len(room) % 2 or not all(len(o) == 3 for o in objects):
+            raise ValueError('room takes x, y pairs and objects [x, y, yaw] triples')
+        scene = SceneSettings(v['base_frame'], v['max_age'], v['min_confidence'],
+                              tuple(tuple(float(c) for c in o) for o in objects),
+                              tuple((room[k], room[k + 1]) for k in range(0, len(room), 2)), v['placements'])
+        settings = BridgeSettings(scene, v['rate'], v['goal_frame'], v['abstain_below'], v['outcome_window'],
+                                  (v['rating_min'], v['rating_max']))
+        if v['pose_source'] == 'tf':
+            self.poses = TfPoses(self)
+        elif v['pose_source'] == 'topic':
+            self.poses = TransformTable()
+            self.create_subscription(TransformStamped, 'hri/transforms', self._on_transform, RELIABLE)
+        else:
+            raise ValueError(f"pose_source must be 'tf' or 'topic', got '{v['pose_source']}'")
+        self.core = BridgeCore(settings, self.poses, lambda: self.get_clock().now().nanoseconds)
+        self.out = {name: self.create_publisher(String, name, qos) for name, qos in (
+            ('stars/user_id', LATCHED), ('stars/scene', RELIABLE), ('stars/feedback', RELIABLE),
+            ('stars/decision', RELIABLE))}
+        self.goal_out = self.create_publisher(PoseStamped, 'stars/goal', LATCHED)
+        self.diagnostics_out = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(IdsList, '/humans/persons/tracked', self._on_tracked, LATCHED)
+        self.create_subscription(Group, '/humans/interactions/groups', self._on_group, RELIABLE)
+        self.create_subscription(Gaze, '/humans/interactions/gazing', self._on_gaze, RELIABLE)
+        self.create_subscription(String, 'stars/ranking', self._on_ranking, RELIABLE)
+        self.create_subscription(String, 'stars/executed', lambda m: self.core.on_executed(m.data), RELIABLE)
+        self.create_subscription(String, 'stars/person_feedback', self._on_person_feedback, RELIABLE)
+        self.person_subscriptions: dict[str, list] = {}
+        self.counts = {'scenes_sent': 0, 'decisions': 0, 'goals': 0, 'outcomes_sent': 0, 'feedback_relayed': 0}
+        self.create_timer(TICK, self._tick)
+        self.create_timer(v['diagnostics_period'], self._diagnose)
+
+    # -- ROS4HRI in -----------------------------------------------------------------------
+    def _on_tracked(self, msg):
+        self.core.on_tracked(msg.ids)
+        self._follow_people(set(msg.ids))
+
+    def _follow_people(self, wanted: set):
+        """Per-person subscriptions for ``wanted`` ids (and ids that publish while not tracked,
+        so their messages are diagnosed), at most MAX_PEOPLE; others are dropped."""
+        for person_id in [i for i in self.person_subscriptions if i not in wanted]:
+            for subscription in self.person_subscriptions.pop(person_id):
+                self.destroy_subscription(subscription)
+        for person_id in sorted(wanted - set(self.person_subscriptions))[:MAX_PEOPLE - len(self.person_subscriptions)]:
+            base = f'/humans/persons/{person_id}/'
+            self.person_subscriptions[person_id] = [
+                self.create_subscription(EngagementLevel, base + 'engagement_status',
+                                         self._fact('engagement_status', person_id, lambda m: m.level), RELIABLE),
+                self.create_subscription(Bool, base + 'anonymous', self._fact('anonymous', person_id), LATCHED),
+                self.create_subscription(String, base + 'alias', self._fact('alias', person_id), LATCHED),
+                self.create_subscription(Float32, base + 'location_confidence',
+                                         self._fact('location_confidence', person_id), RELIABLE)]
+
+    def _fact(self, field: str, person_id: str, value=lambda m: m.data):
+        return lambda msg: self.core.on_person(field, person_id, value(msg))
+
+    def _on_group(self, msg):
+        self.core.on_group(msg.group_id, list(msg.members), Time.from_msg(msg.header.stamp).nanoseconds)
+
+    def _on_gaze(self, msg):
+        self.core.on_gaze(msg.sender, msg.receiver, Time.from_msg(msg.header.stamp).nanoseconds)
+
+    def _on_transform(self, msg: TransformStamped):
+        try:
+            self.poses.put(msg.header.frame_id, msg.child_frame_id, pose_of(msg))
+        except ValueError as error:
+            self.core.on_transform_problem(str(error))
+
+    # -- the ranker and the robot ---------------------------------------------------------
+    def _on_ranking(self, msg):
+        frame = self.core.settings.navigation_frame
+        decision = self.core.on_ranking(msg.data, self.poses.lookup(frame, self.core.settings.scene.base_frame))
+        if decision is None:
+            return
+        self.out['stars/decision'].publish(String(data=json.dumps(decision.to_json())))
+        self.counts['decisions'] += 1
+        if decision.goal is not None:
+            goal = PoseStamped()
+            goal.header.frame_id, goal.header.stamp = frame, self.get_clock().now().to_msg()
+            goal.pose.position.x, goal.pose.position.y = decision.goal.x, decision.goal.y
+            q = goal.pose.orientation
+            q.x, q.y, q.z, q.w = quaternion_of_yaw(decision.goal.yaw)
+            self.goal_out.publish(goal)
+            self.counts['goals'] += 1
+
+    def _on_person_feedback(self, msg):
+        payload = self.core.on_person_feedback(msg.data)
+        if payload is not None:
+            self.out['stars/feedback'].publish(String(data=json.dumps(payload)))
+            self.counts['feedback_relayed'] += 1
+
+    def _tick(self):
+        out = self.core.tick()
+        if out.user_id is not None:
+            self.out['stars/user_id'].publish(String(data=out.user_id))
+            self.get_logger().info(f'serving {self.core.served.describe()}')
+        if out.scene is not None:
+            self.out['stars/scene'].publish(String(data=json.dumps(out.scene)))
+            self.counts['scenes_sent'] += 1
+        for feedback in out.feedback:
+            self.out['stars/feedback'].publish(String(data=json.dumps(feedback)))
+            self.counts['outcomes_sent'] += 1
+
+    def _diagnose(self):
+        """/diagnostics: one status of counts, served person and problems by kind; a scan for
+        per-person topics of ids not tracked (their messages are then diagnosed)."""
+        found = {m.group(1) for name, _ in self.get_topic_names_and_types() if (m := PERSON_TOPIC.match(name))}
+        self._follow_people(set(self.core.people.tracked) | found)
+        period, totals = self.core.problems.take_period()
+        built = self.core.last_scene
+        values = {'served': self.core.served.describe(), 'tracked': len(self.core.people.tracked),
+                  'in_scene': len(built.people) if built else 0, **self.counts,
+                  **{f'left_out.{k}': n for k, n in self.core.left_out_total.items()},
+                  **{f'problems.{k}': n for k, n in totals.items()},
+                  **{f'latest.{k}': detail for k, (_, detail) in period.items()}}
+        status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: hri_bridge',
+                                  level=DiagnosticStatus.WARN if period else DiagnosticStatus.OK,
+                                  message='; '.join(f'{k}: {n}' for k, (n, _) in period.items()) or 'ok',
+                                  hardware_id='ros4hri',
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_out.publish(array)
+        for kind, (count, detail) in period.items():
+            self.get_logger().warning(f'[{kind}] {detail} ({count} in the last period)')
+
+
+def main(args=None):
+    if usage.print_help_if_asked('hri_bridge', __doc__, PARAMETERS, 'ros2 run stars_ros hri_bridge --ros-args '
+                                 '-p base_frame:=base_link -p goal_frame:=map', args):
+        return
+    run_node('hri_bridge', HriBridge, fatal=(ImportError, ValueError), args=args)
+
+
+if __name__ == '__main__':
+    main()
