@@ -11,7 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
-from ros_helpers import LATCHED, RELIABLE, domain_id, running_ranker, start_node, stop, stored_feedback
+from ros_helpers import LATCHED, RELIABLE, RosClient, domain_id, running_ranker, start_node, stop, stored_feedback
 from stars_ros.data import frames
 from stars_ros.hri.people import DISENGAGED, ENGAGED
 from stars_ros.hri.scene import placement_offset
@@ -204,8 +204,27 @@ def test_bad_input_is_diagnosed_and_the_bridge_keeps_running(loop):
     assert loop.bridge.poll() is None
 
 
-def test_the_real_tf_path(hri_msgs):
-    tf2_ros = pytest.importorskip('tf2_ros', reason='tf2_ros is not importable (it comes with a ROS install, '
-                                  'ros-jazzy-tf2-ros; no registry here serves it): the TF path is tested where it is')
-    assert tf2_ros  # a ROS install: the same loop through TF frames person_<id>
-    pytest.skip('written for a ROS install; this machine has none to run it on')
+def test_the_real_tf_path(hri_msgs, tmp_path):
+    """The same scene through real TF frames person_<id> (pose_source:=tf), where tf2_ros is."""
+    pytest.importorskip('tf2_ros', reason='tf2_ros is not importable (it comes with a ROS install, ros-jazzy-tf2-ros; '
+                        'no registry here serves it): the TF path runs where it is')
+    from stars_ros.ros.hri_world import World
+    domain = domain_id(16)  # after test_state_node's, in turn (as domain 7 is shared)
+    client = RosClient(domain, listen=False)
+    scenes = client.collect('/stars/scene', RELIABLE)
+    world = World(client.node, 'base_link', use_tf=True)
+    bridge = start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'tf', 'max_age': 1.0},
+                        tmp_path / 'bridge.log')
+    try:
+        world.track(['alice'])
+        world.anonymous('alice', False)
+        client.node.create_timer(0.1, lambda: (world.pose('alice', *POSES['alice']), world.engage('alice', ENGAGED)))
+        assert client.wait(lambda: any(s.get('user_id') == 'alice' for s in scenes), 60)
+        stay = next(c['graph'] for c in scenes[-1]['candidates'] if c['candidate'] == 'stay')
+        (human,) = frames.from_socnav(stay).humans
+        assert abs(human.x - POSES['alice'][0]) <= 0.01 and abs(human.y - POSES['alice'][1]) <= 0.01
+        assert bridge.poll() is None and stop(bridge, signal.SIGINT) == 0
+    finally:
+        if bridge.poll() is None:
+            bridge.kill()
+        client.close()
