@@ -241,11 +241,13 @@ class FoldIn:
         return variance / np.asarray(self.inference.target_std, dtype=np.float64) ** 2
 
     def rating_noise(self, ratings: Sequence[Rating]) -> np.ndarray:
-        """z-scale noise variance of each rating: its action's, plus ``implicit_noise`` for an
-        implicit outcome."""
-        actions = self.action_index([r.action for r in ratings])
-        implicit = np.array([r.implicit for r in ratings], dtype=bool)
-        return self.noise[actions] + np.where(implicit, self.implicit_noise[actions], 0.0)
+        """z-scale noise variance of each rating (``noise_of``)."""
+        return self.noise_of(self.action_index([r.action for r in ratings]), [r.implicit for r in ratings])
+
+    def noise_of(self, actions: np.ndarray, implicit) -> np.ndarray:
+        """z-scale noise variance of observations of ``actions`` (indices): the action's, plus
+        ``implicit_noise`` where ``implicit`` (bools) marks an implicit outcome."""
+        return self.noise[actions] + np.where(np.asarray(implicit, dtype=bool), self.implicit_noise[actions], 0.0)
 
     def _user_row(self, row) -> np.ndarray:
         """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
