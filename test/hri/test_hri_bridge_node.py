@@ -16,6 +16,7 @@ from stars_ros.data import frames
 from stars_ros.hri.people import DISENGAGED, ENGAGED
 from stars_ros.hri.scene import placement_offset
 
+pytestmark = pytest.mark.slow  # real nodes: ~45 s
 DOMAIN_OFFSET = 15
 PROBE = {'scene_id': 'probe', 'graph': {'humans': [{'id': 1, 'xPos': 0.0, 'yPos': 100.0, 'orientation': 0.0}],
                                         'objects': [], 'links': [],
