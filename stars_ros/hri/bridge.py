@@ -131,19 +131,14 @@ class BridgeCore:
         """stars/executed: ``{"scene_id", "action" or "candidate", "person_id"?}`` (the
         person defaults to whoever was served when the scene was sent)."""
         try:
-            payload = json.loads(text)
-            if not isinstance(payload, dict):
-                raise TypeError('not a JSON object')
-            scene_id = payload['scene_id']
-            kind = 'candidate' if 'candidate' in payload else 'action'
-            choice = payload[kind]
-            person_id = payload.get('person_id')
-            if not all(isinstance(v, str) and v for v in (scene_id, choice)):
-                raise ValueError('scene_id and the action or candidate must be non-empty strings')
-        except (ValueError, KeyError, TypeError) as error:
-            self.report('bad_executed', f'stars/executed needs {{"scene_id", "action" or "candidate", '
-                        f'"person_id"?}}: {type(error).__name__}: {error}')
+            payload = messages.load_json(text)
+            messages.check('executed', payload)
+        except messages.BadMessage as error:
+            self.report('bad_executed', f'stars/executed refused (msg_schemas/executed.schema.json): {error}')
             return
+        scene_id, person_id = payload['scene_id'], payload.get('person_id')
+        kind = 'candidate' if 'candidate' in payload else 'action'
+        choice = payload[kind]
         if person_id is None:
             served = self._sent.get(scene_id)
             if served is None:
