@@ -14,13 +14,14 @@ import yaml
 
 from stars_ros import recording
 from stars_ros.node.core import PARAMETERS
-from stars_ros.ros import demo, replay, scene_publisher, usage
+from stars_ros.ros import demo, hri_bridge, hri_world, replay, scene_publisher, usage
 from stars_ros.recording.state_store import PersonUpdate, write_people
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))
 TABLES = {'stars_ros.ros.ranker': PARAMETERS, 'stars_ros.ros.scene_publisher': scene_publisher.PARAMETERS,
-          'stars_ros.ros.replay': replay.PARAMETERS}
+          'stars_ros.ros.replay': replay.PARAMETERS, 'stars_ros.ros.hri_bridge': hri_bridge.PARAMETERS,
+          'stars_ros.ros.hri_world': hri_world.PARAMETERS}
 
 
 def test_every_console_script_has_a_parameter_table():
