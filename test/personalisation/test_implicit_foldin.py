@@ -80,3 +80,25 @@ def test_implicit_feedback_parses_stays_implicit_and_must_be_an_outcome(predicto
     assert 'top 1.0 (stayed engaged) or bottom 0.0' in rating_from_feedback(middling, request, predictor)
     with pytest.raises(messages.BadMessage):
         messages.parse_feedback(text.replace('true', '"yes"'))
+
+
+def test_the_offline_refit_folds_an_implicit_outcome_in_as_implicit(tiny_checkpoint, scenes, tmp_path):
+    from offline_training import refit
+    from stars_ros import recording
+    with recording.Recorder(tmp_path, {}, name='session') as recorder:
+        for k, scene in enumerate(scenes[:4]):
+            recorder.write('/stars/scene', json.dumps({'scene_id': f's{k}', 'graph': scene}), 10 ** 9 + 2 * k)
+            recorder.write('/stars/feedback', json.dumps({'user_id': 'newbie', 'scene_id': f's{k}', 'action': 'navigate',
+                                                          'score': 1.0, 'implicit': True}), 10 ** 9 + 2 * k + 1)
+    out = tmp_path / 'refit.pt'
+    assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(tmp_path / 'session'), '--out', str(out)]) == 0
+    parent, child = Predictor.load(tiny_checkpoint), Predictor.load(out)
+    foldin = FoldIn(parent)
+    messages_ = [{'user_id': 'newbie', 'scene_id': f's{k}', 'action': 'navigate', 'score': 1.0, 'implicit': True}
+                 for k in range(4)]
+    implicit = foldin.fit([Rating(s, 'navigate', 1.0, None, feedback=m) for s, m in zip(scenes[:4], messages_)])
+    explicit = foldin.fit([Rating(s, 'navigate', 1.0, None) for s in scenes[:4]])
+    parent.set_user_model('newbie', implicit)
+    assert np.allclose(child.score('newbie', scenes[6:9]), parent.score('newbie', scenes[6:9]), atol=1e-5)
+    parent.set_user_model('newbie', explicit)
+    assert not np.allclose(child.score('newbie', scenes[6:9]), parent.score('newbie', scenes[6:9]), atol=1e-4)
