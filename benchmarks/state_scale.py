@@ -46,6 +46,7 @@ from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
 from stars_ros.personalisation.online import Personalisation  # noqa: E402
+from stars_ros.recording import migration  # noqa: E402
 from stars_ros.recording.state_store import PersonUpdate, StateStore, write_people  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 
@@ -119,6 +120,32 @@ def measure_restart(folder: Path, checkpoint: str, max_ratings: int, people: int
             'people_served': len(predictor.user_models), 'waiting_to_be_solved': len(personalisation.pending)}
 
 
+def write_legacy_file(folder: Path, fingerprint: str, updates: list) -> int:
+    """``user_models.json`` as an earlier version kept ``updates`` (``migration``); its bytes."""
+    users = {u.user_id: {**u.model.to_json(), 'ratings_dropped': u.dropped, 'ratings': [r.to_json() for r in u.ratings],
+                         'peer_ratings': []} for u in updates}
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / migration.STATE_FILE
+    path.write_text(json.dumps({'format': migration.FORMAT, 'version': 1, 'fingerprint': fingerprint, 'users': users}))
+    return path.stat().st_size
+
+
+def measure_migration(folder: Path, checkpoint: str, max_ratings: int, people: int) -> dict:
+    """Open a store on a folder holding only a legacy state file (it is imported) and
+    restore it, as the node's start does."""
+    started = time.perf_counter()
+    store = StateStore(folder, 'state_scale', on_error=print)
+    opened = time.perf_counter()
+    predictor = Predictor.load(checkpoint)
+    personalisation = Personalisation(predictor, max_ratings, max(people, 1000), lambda kind, text: print(text),
+                                      store=store)
+    personalisation.restore()
+    restored = time.perf_counter()
+    store.close()
+    return {'import_s': opened - started, 'import_load_restore_s': restored - started, 'imported': store.imported,
+            'people_served': len(predictor.user_models)}
+
+
 def fold_in_work(diagnostics: list) -> dict:
     """What the node's /diagnostics said of its fold-in over ``diagnostics``: its turns of
     work (a solve, or a step of building a restored person's rows), the longest, and the
@@ -135,7 +162,8 @@ def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domai
     from ros_helpers import RosClient, start_node
     client = RosClient(domain)
     started = time.perf_counter()
-    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': folder},
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': folder,
+                                                          'fold_in_max_users': max(people, 1000)},
                          folder.parent / f'{folder.name}.log')
     try:
         client.wait_ready(process, 300, {'scene_id': 'ready', 'graph': scenes[0]})
@@ -195,6 +223,8 @@ def main(argv=None) -> int:
     parser.add_argument('--requests-per-block', type=int, default=100)
     parser.add_argument('--paced-period', type=float, default=0.05)
     parser.add_argument('--feedback-rate', type=float, default=50.0)
+    parser.add_argument('--max-legacy-ratings', type=int, default=500000,
+                        help='measure the import of a legacy state file for sizes of at most this many ratings')
     parser.add_argument('--out', default=str(REPO / 'results' / 'state_scale.json'))
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in size.split('x')) for size in args.sizes.split(',')]
@@ -220,6 +250,10 @@ def main(argv=None) -> int:
             shutil.copytree(folder, Path(work) / f'node-{name}')  # as filled: every model solved from its ratings
             figures['update'] = measure_updates(folder, predictor, model, scenes, updates, args.updates, ratings, rng)
             figures['restart_in_process'] = measure_restart(folder, checkpoint, ratings, people)
+            if people * ratings <= args.max_legacy_ratings:
+                legacy = Path(work) / f'legacy-{name}'
+                figures['legacy_file_bytes'] = write_legacy_file(legacy, predictor.fingerprint, updates)
+                figures['migration_in_process'] = measure_migration(legacy, checkpoint, ratings, people)
             results['sizes'][name] = figures
             print(f"{name}: {figures['database_bytes'] / 1e6:.1f} MB; update: commit p50 "
                   f"{figures['update']['commit_ms']['p50']:.2f} ms p99 {figures['update']['commit_ms']['p99']:.2f} ms, "
