@@ -5,7 +5,7 @@ takes, and what feedback for stored people costs other users' rankings, for stor
     python benchmarks/state_scale.py [--checkpoint models/socnav1_gat_stars.pt] \
         [--data-root ../shared/datasets/socnav1] [--out results/state_scale.json]
 
-For each size a store is filled (``state_store.write_people``: every person with a solved
+For each size a store is filled (``state.write_people``: every person with a solved
 model and covariance of the served checkpoint, their ratings of scenes drawn from the data)
 and then, in this process:
   * update: ``--updates`` times, one stored person's next rating arrives (the oldest leaves
@@ -46,8 +46,8 @@ from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
 from stars_ros.personalisation.online import Personalisation  # noqa: E402
-from stars_ros.recording import migration  # noqa: E402
-from stars_ros.recording.state_store import PersonUpdate, StateStore, write_people  # noqa: E402
+from stars_ros.state import migration  # noqa: E402
+from stars_ros.state.store import PersonUpdate, StateStore, write_people  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 
 SIZES = ((50, 5), (1000, 20), (1000, 200))

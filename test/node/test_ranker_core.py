@@ -8,7 +8,7 @@ import sqlite3
 import pytest
 
 from stars_ros import messages
-from stars_ros import recording
+from stars_ros import recording, state
 from core_harness import Node, make_core
 from waiting import wait_for
 from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
@@ -110,7 +110,7 @@ def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoin
     for topic in ('/stars/scene', '/stars/ranking', '/stars/feedback', '/stars/user_model', '/stars/errors'):
         assert topic in recorded, topic
     assert recorded.count('/stars/scene') == 2
-    with recording.open_reader(tmp_path) as store:
+    with state.open_reader(tmp_path) as store:
         assert [p['person'] for p in store.summary()] == ['newcomer']
         assert [json.loads(e['data'])['user_id'] for e in store.feedback(core.recorder.name)] == ['newcomer']
     offered = recording.bag_topics(core.recorder.path)
@@ -173,7 +173,7 @@ def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
 def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_once_it_has_room(
         tiny_checkpoint, scenes, tmp_path, monkeypatch):
     """SQLite's own 'database or disk is full' (max_page_count stands in for the disk)."""
-    from stars_ros.recording import state_store
+    from stars_ros.state import store as state_store
     connections, connect = [], sqlite3.connect
     monkeypatch.setattr(state_store.sqlite3, 'connect',
                         lambda *args, **kwargs: connections.append(connect(*args, **kwargs)) or connections[-1])
@@ -202,7 +202,7 @@ def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_onc
     assert wait_for(lambda: core.diagnostics()[2]['feedback_not_on_disk'] == 0, 30)
     core.close()
     assert [text for topic, text, _ in recording.read_messages(core.recorder.path) if topic == '/stars/feedback'] == sent
-    with recording.open_reader(tmp_path) as store:
+    with state.open_reader(tmp_path) as store:
         people = store.people()
     assert [p.user_id for p in people] == [f'person-{k}' for k in range(len(sent))]
     assert all(len(p.ratings) == 1 and p.solved for p in people)

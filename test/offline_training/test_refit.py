@@ -12,7 +12,7 @@ from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.recording.state_store import PersonUpdate, write_people
+from stars_ros.state.store import PersonUpdate, write_people
 
 QOS = recording.qos_profile()
 

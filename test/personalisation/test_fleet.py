@@ -14,7 +14,7 @@ from stars_ros.personalisation.fleet import PeerRatings, solve_set
 from stars_ros.personalisation.foldin import Rating
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros import recording
+from stars_ros import recording, state
 from core_harness import Node, deliver, drain, published_models
 
 USER = 'visitor'
@@ -178,7 +178,7 @@ def test_a_restarted_robot_keeps_its_peers_ratings(tiny_checkpoint, scenes, tmp_
     deliver(published_models(node_a), robot_b)
     served = _served(robot_b)
     robot_b.close()
-    with recording.open_reader(tmp_path / 'b') as store:
+    with state.open_reader(tmp_path / 'b') as store:
         [person] = store.people()
     assert (len(person.ratings), len(person.peer_ratings), person.solved) == (1, 1, True)
     node_b2, robot_b2 = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')

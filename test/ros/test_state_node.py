@@ -12,7 +12,7 @@ import pytest
 
 from ros_helpers import RosClient, domain_id, start_node, stop, stored_feedback
 from waiting import wait_for
-from stars_ros import recording
+from stars_ros import recording, state
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter handling
 START_TIMEOUT = 90
@@ -32,7 +32,7 @@ def _start(domain, checkpoint, folder, log):
 
 def _stored(folder) -> list:
     """Every feedback message the store in ``folder`` has committed, as text, in commit order."""
-    with recording.open_reader(folder) as store:
+    with state.open_reader(folder) as store:
         return [entry['data'] for entry in store.feedback()]
 
 

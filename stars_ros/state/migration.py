@@ -1,4 +1,4 @@
-"""The files the node kept its state in before the state store (``state_store``), read once
+"""The files the node kept its state in before the state store (``store``), read once
 to import them: ``user_models.json`` in the record folder and ``feedback.jsonl`` in each bag.
 Both are left as they were; the store notes that it imported them, so it happens once.
 
@@ -19,7 +19,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from stars_ros.personalisation.foldin import Rating, UserModel
+from stars_ros.state.person import Rating, UserModel
 
 STATE_FILE = 'user_models.json'
 JOURNAL = 'feedback.jsonl'
