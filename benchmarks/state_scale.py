@@ -133,8 +133,10 @@ def write_legacy_file(folder: Path, fingerprint: str, updates: list) -> int:
 def measure_migration(folder: Path, checkpoint: str, max_ratings: int, people: int) -> dict:
     """Open a store on a folder holding only a legacy state file (it is imported) and
     restore it, as the node's start does."""
+    progress = []
     started = time.perf_counter()
-    store = StateStore(folder, 'state_scale', on_error=print)
+    store = StateStore(folder, 'state_scale', on_error=print,
+                       on_progress=lambda text: progress.append((round(time.perf_counter() - started, 3), text)))
     opened = time.perf_counter()
     predictor = Predictor.load(checkpoint)
     personalisation = Personalisation(predictor, max_ratings, max(people, 1000), lambda kind, text: print(text),
@@ -143,7 +145,7 @@ def measure_migration(folder: Path, checkpoint: str, max_ratings: int, people: i
     restored = time.perf_counter()
     store.close()
     return {'import_s': opened - started, 'import_load_restore_s': restored - started, 'imported': store.imported,
-            'people_served': len(predictor.user_models)}
+            'people_served': len(predictor.user_models), 'progress': progress}
 
 
 def fold_in_work(diagnostics: list) -> dict:

@@ -164,7 +164,8 @@ class RankerCore:
         if self.record_folder is None:
             return None
         store = StateStore(self.record_folder, node_name, self._on_store_error, self.logger.info,
-                           self.params['flush_interval'], on_feedback_committed=self._committed)
+                           self.params['flush_interval'], on_feedback_committed=self._committed,
+                           on_progress=self.logger.info)
         for imported in store.imported:
             self.logger.info(f'imported {imported} into {store.path} (the files are kept as they were)')
         return store

@@ -7,7 +7,8 @@ imports personalisation, the recording or ROS."""
 from pathlib import Path
 from typing import Protocol, Sequence
 
-from stars_ros.state.person import Deferred, Rating, UserModel, check_ratings, check_score, scene_digest
+from stars_ros.state.person import (Deferred, Rating, UserModel, check_ratings, check_score, loaded,
+                                    scene_digest)
 from stars_ros.state.store import (DATABASE, Person, PersonUpdate, StateStore, StoreLockedError, StoreReader,
                                    committed_feedback, open_reader, write_people)
 
@@ -30,4 +31,4 @@ class PersonWriter(Protocol):
 
 __all__ = ['DATABASE', 'Deferred', 'Person', 'PersonUpdate', 'PersonWriter', 'Rating', 'StateStore',
            'StoreLockedError', 'StoreReader', 'UserModel', 'check_ratings', 'check_score', 'committed_feedback',
-           'open_reader', 'scene_digest', 'write_people']
+           'loaded', 'open_reader', 'scene_digest', 'write_people']

@@ -59,7 +59,8 @@ class UserModel:
     """A folded-in user: embedding ``p`` [dim] and offset ``b`` (float64), solved from
     ``n_ratings`` ratings, by the Gaussian posterior (``regularisation`` 0) or the ridge
     override λ; ``covariance`` [dim+1, dim+1] of θ = (p, b) (None: not known, e.g. restored
-    from an earlier version's state file until it is solved again)."""
+    from an earlier version's state file until it is solved again; ``Deferred``: restored
+    from the store, read when first used, ``loaded``)."""
 
     p: np.ndarray
     b: float
@@ -88,9 +89,15 @@ def scene_digest(scene) -> str:
 
 
 class Deferred(NamedTuple):
-    """A person's ratings not read yet: ``load()`` gives them ([Rating], oldest first)."""
+    """Part of a person not read from the store yet: ``load()`` gives it (their ratings,
+    [Rating] oldest first, or their model's covariance)."""
 
-    load: Callable[[], list]
+    load: Callable[[], object]
+
+
+def loaded(value):
+    """``value``, read now if it is ``Deferred``."""
+    return value.load() if isinstance(value, Deferred) else value
 
 
 def scale_text(scale: Sequence[float]) -> str:

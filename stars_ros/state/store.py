@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import functools
+import hashlib
 import json
 import os
 import queue
@@ -44,13 +45,14 @@ from stars_ros.state.person import Deferred, Rating, UserModel, scene_digest
 
 DATABASE = 'state.db'
 LOCK_FILE = 'state.lock'
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: a person's covariance in its own table, read when first used (1: in people)
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS people (
     person TEXT PRIMARY KEY, fingerprint TEXT, p BLOB, b REAL, n_ratings INTEGER, regularisation REAL,
-    covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
+    solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
     peer_ratings INTEGER NOT NULL, rated INTEGER NOT NULL, updated REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS posteriors (person TEXT PRIMARY KEY, covariance BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS scenes (digest TEXT PRIMARY KEY, content TEXT NOT NULL, refs INTEGER NOT NULL)
     WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS ratings (
@@ -113,9 +115,27 @@ def _array(blob, shape=None):
     return array if shape is None else array.reshape(shape)
 
 
-def _scene_text(scene) -> str:
-    content = scene if isinstance(scene, dict) else [float(v) for v in scene]
-    return json.dumps(content, separators=(',', ':'))
+def _scene_row(scene) -> tuple[str, str]:
+    """(``scene_digest``, content text) of a rated scene; a scene graph is serialised once
+    for both (its text is what ``scene_digest`` hashes)."""
+    if not isinstance(scene, dict):  # a tabular row: short
+        return scene_digest(scene), json.dumps([float(v) for v in scene], separators=(',', ':'))
+    text = json.dumps(scene, sort_keys=True, separators=(',', ':'))
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest(), text
+
+
+class _ReadOnce:
+    """``read()`` the first time it is called, what it gave every time after."""
+
+    __slots__ = ('_read', '_value')
+
+    def __init__(self, read: Callable[[], object]):
+        self._read, self._value = read, None
+
+    def __call__(self):
+        if self._value is None:
+            self._value = self._read()
+        return self._value
 
 
 def _reading(method):
@@ -146,6 +166,8 @@ class StoreReader:
         if not self.path.exists():
             raise FileNotFoundError(f'no state store at {self.path}')
         self._connection = self._connect()
+        version = int(self.meta().get('schema_version', SCHEMA_VERSION))
+        self._posteriors = 'people' if version == 1 else 'posteriors'  # where the covariances are
         self._scenes = {}  # digest -> scene object: ratings of one content share one
 
     @_reading
@@ -186,17 +208,24 @@ class StoreReader:
 
     @_reading
     def people(self, deferred: bool = False) -> list:
-        """Every Person, least recently rated first, with their ratings; ``deferred``: as
-        ``Deferred`` loaders that read them when first used (a person without any: [])."""
+        """Every Person, least recently rated first, with their ratings and their model's
+        covariance; ``deferred``: as ``Deferred`` loaders that read them when first used (a
+        person without any ratings: []), so that reading 10,000 people reads no covariance."""
         people = []
+        posterior = {person for (person,) in self._connection.execute(
+            f'SELECT person FROM {self._posteriors} WHERE covariance IS NOT NULL')}
         for row in self._connection.execute(
-                'SELECT person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, ratings, '
+                'SELECT person, fingerprint, p, b, n_ratings, regularisation, solved, dropped, ratings, '
                 'peer_ratings, updated FROM people ORDER BY rated'):
-            person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, own, peer, updated = row
+            person, fingerprint, p, b, n_ratings, regularisation, solved, dropped, own, peer, updated = row
             model = None
             if p is not None:
                 p = _array(p)
-                model = UserModel(p, b, n_ratings, regularisation, _array(covariance, (len(p) + 1, len(p) + 1)))
+                covariance = None
+                if person in posterior:
+                    read = functools.partial(self.covariance, person, len(p) + 1)
+                    covariance = Deferred(_ReadOnce(read)) if deferred else read()
+                model = UserModel(p, b, n_ratings, regularisation, covariance)
             held = [(Deferred(functools.partial(self.ratings, person, table)) if deferred else
                      self.ratings(person, table)) if count else [] for table, count in zip(_RATING_TABLES, (own, peer))]
             people.append(Person(person, model, fingerprint, held[0], dropped, held[1], bool(solved), updated))
@@ -216,6 +245,13 @@ class StoreReader:
             ratings.append(Rating(scene, action, score, scene_id, rating_id, stamp, origin,
                                   None if feedback is None else json.loads(feedback)))
         return ratings
+
+    @_reading
+    def covariance(self, person: str, size: int) -> np.ndarray | None:
+        """``person``'s stored covariance [size, size] (None: none stored)."""
+        row = self._connection.execute(f'SELECT covariance FROM {self._posteriors} WHERE person = ?',
+                                       (person,)).fetchone()
+        return None if row is None else _array(row[0], (size, size))
 
     @_reading
     def signed_feedback(self) -> list:
@@ -265,6 +301,8 @@ class StateStore:
         retry_interval (float, optional): seconds between two tries of a failing disk.
         on_feedback_committed (callable, optional): ``on_feedback_committed(entry)`` on the
             writer's thread for each feedback entry once it is committed.
+        on_progress (callable, optional): ``on_progress(text)`` while the open imports a
+            state file of an earlier version (how far it is).
 
     StoreLockedError when another process holds the folder's store. Any other failure
     (the folder cannot be created, the disk is full) leaves the store failing and retried:
@@ -273,7 +311,8 @@ class StateStore:
 
     def __init__(self, folder, holder: str, on_error: Callable[[str], None],
                  on_recovered: Callable[[str], None] | None = None, retry_interval: float = 1.0,
-                 on_feedback_committed: Callable[[dict], None] | None = None):
+                 on_feedback_committed: Callable[[dict], None] | None = None,
+                 on_progress: Callable[[str], None] | None = None):
         self.folder = Path(folder).expanduser()
         self.path = self.folder / DATABASE
         self.holder = f'{holder} ({holder_text()})'
@@ -281,6 +320,7 @@ class StateStore:
         self._on_error, self._on_recovered = on_error, on_recovered or (lambda text: None)
         self._retry_interval = retry_interval
         self._on_feedback_committed = on_feedback_committed or (lambda entry: None)
+        self._on_progress = on_progress or (lambda text: None)
         self._connection = None
         self._lock_handle = None
         self._queue = queue.SimpleQueue()
@@ -318,6 +358,8 @@ class StateStore:
                 version = connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
                 if version is None:
                     connection.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+                elif int(version[0]) == 1:
+                    self._upgrade_from_version_1(connection)
                 elif int(version[0]) != SCHEMA_VERSION:
                     raise ConfigError(f'{self.path} has schema version {version[0]}; this stars_ros reads '
                                       f'version {SCHEMA_VERSION}')
@@ -335,6 +377,20 @@ class StateStore:
             self.error = None
             self._on_recovered(f'state store {self.path} works again')
         return True
+
+    def _upgrade_from_version_1(self, connection):
+        """Move the covariances out of ``people`` into ``posteriors`` (schema version 2)."""
+        self._on_progress(f'upgrading {self.path} from schema version 1 to 2 (covariances in a table of their own)')
+        connection.execute('BEGIN IMMEDIATE')
+        try:
+            connection.execute('INSERT INTO posteriors SELECT person, covariance FROM people WHERE covariance IS NOT '
+                               'NULL')
+            connection.execute('ALTER TABLE people DROP COLUMN covariance')
+            connection.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))
+        except BaseException:
+            connection.execute('ROLLBACK')
+            raise
+        connection.execute('COMMIT')
 
     def _lock(self):
         if self._lock_handle is not None:
@@ -371,6 +427,8 @@ class StateStore:
         state_file = self.folder / migration.STATE_FILE
         key = f'imported:{migration.STATE_FILE}'
         if state_file.exists() and key not in meta:
+            self._on_progress(f'importing {state_file} ({state_file.stat().st_size / 1e6:.0f} MB, kept by an earlier '
+                              'version) into the state store, once: the node serves when it is in')
             try:
                 state = migration.read_state_file(state_file)
             except ValueError as error:
@@ -402,10 +460,14 @@ class StateStore:
                                          f'{state.fingerprint[:12]}, the store those of another: not imported')
             return
         written = {}
-        for user_id in state.models.keys() | state.histories.keys() | state.peers.keys():
+        people = sorted(state.models.keys() | state.histories.keys() | state.peers.keys())
+        step = max(1, len(people) // 10)
+        for done, user_id in enumerate(people, 1):
             ratings, dropped = state.histories.get(user_id, ([], 0))
             self._write_person(PersonUpdate(user_id, state.models.get(user_id), state.fingerprint, ratings, dropped,
                                             state.peers.get(user_id, []), False), written)
+            if done % step == 0 or done == len(people):
+                self._on_progress(f'imported {done} of {len(people)} people from {self.folder / migration.STATE_FILE}')
         self._written.update(written)
 
     # -- the executor's side -------------------------------------------------------------------
@@ -614,7 +676,7 @@ class StateStore:
         """The first write over another checkpoint's people removes them (once per
         transaction: ``written`` notes it)."""
         if self._foreign and not written.get('replaced'):
-            for table in ('people', 'scenes', *_RATING_TABLES):
+            for table in ('people', 'posteriors', 'scenes', *_RATING_TABLES):
                 self._connection.execute(f'DELETE FROM {table}')
             written.update({key: None for key in self._written}, replaced=True)
             self._rated, self._fingerprint = {}, None
@@ -643,9 +705,9 @@ class StateStore:
             for rating_id, rating in wanted.items():
                 if rating_id in held:
                     continue
-                digest = scene_digest(rating.scene)
+                digest, text = _scene_row(rating.scene)
                 connection.execute('INSERT INTO scenes VALUES (?, ?, 1) ON CONFLICT(digest) DO UPDATE SET '
-                                   'refs = refs + 1', (digest, _scene_text(rating.scene)))
+                                   'refs = refs + 1', (digest, text))
                 self._counter += 1
                 connection.execute(
                     f'INSERT INTO {table} VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
@@ -660,13 +722,19 @@ class StateStore:
             self._rated[user_id] = self._counter
         model = update.model
         connection.execute(
-            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
+            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
             (user_id, update.fingerprint if model is not None else None,
              None if model is None else _blob(model.p), None if model is None else float(model.b),
              None if model is None else int(model.n_ratings), None if model is None else float(model.regularisation),
-             None if model is None else _blob(model.covariance), int(bool(update.solved and model is not None)),
+             int(bool(update.solved and model is not None)),
              int(update.dropped), len(written[('ratings', user_id)]), len(written[('peer_ratings', user_id)]),
              self._rated[user_id], time.time()))
+        covariance = None if model is None else model.covariance
+        if isinstance(covariance, np.ndarray):
+            connection.execute('INSERT OR REPLACE INTO posteriors VALUES (?, ?)', (user_id, _blob(covariance)))
+        elif covariance is None:
+            connection.execute('DELETE FROM posteriors WHERE person = ?', (user_id,))
+        # Deferred: the model restored as stored, whose covariance the row holds already
 
     def _forget(self, user_id: str, written: dict):
         for table in _RATING_TABLES:
@@ -675,6 +743,7 @@ class StateStore:
             self._connection.execute(f'DELETE FROM {table} WHERE person = ?', (user_id,))
             written[(table, user_id)] = None
         self._connection.execute('DELETE FROM people WHERE person = ?', (user_id,))
+        self._connection.execute('DELETE FROM posteriors WHERE person = ?', (user_id,))
         self._rated.pop(user_id, None)
 
     def _release_scene(self, digest: str):

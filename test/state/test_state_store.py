@@ -17,6 +17,7 @@ import pytest
 from stars_ros.personalisation.foldin import Rating, UserModel
 from stars_ros.recording import __main__ as inspect_cli
 from stars_ros.state import migration, store as state_store
+from stars_ros.state import Deferred, loaded
 from stars_ros.state.store import PersonUpdate, StateStore, StoreLockedError, open_reader
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -222,9 +223,12 @@ def _legacy_files(folder):
 def test_the_files_of_earlier_versions_are_imported_once_and_kept(tmp_path):
     bag = _legacy_files(tmp_path)
     before = {p.name: p.read_bytes() for p in (tmp_path / migration.STATE_FILE, bag / migration.JOURNAL)}
-    store = _open(tmp_path)
+    progress = []
+    store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_progress=progress.append)
     assert store.imported == [f'2 people from {tmp_path / migration.STATE_FILE}',
                               f'2 feedback messages from {bag / migration.JOURNAL}']
+    assert progress[0].startswith(f'importing {tmp_path / migration.STATE_FILE} (0 MB, kept by an earlier version)')
+    assert progress[1:] == [f'imported {k} of 2 people from {tmp_path / migration.STATE_FILE}' for k in (1, 2)]
     people, problem = store.load(FINGERPRINT)
     store.close()
     assert problem is None and {p.user_id for p in people} == {'ann', 'bob'}
@@ -273,3 +277,33 @@ def test_the_inspection_command_lists_people_and_their_ratings(tmp_path, capsys)
     text = capsys.readouterr().out
     assert 'ann' in text and '1 people' in text
     assert inspect_cli.main(['state', str(tmp_path / 'none')]) == 1
+
+
+def test_a_version_1_store_is_upgraded_keeping_every_covariance(tmp_path):
+    """Version 1 kept each covariance in ``people``: reading anybody's later columns read it."""
+    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    database.executescript('''
+        CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+        CREATE TABLE people (
+            person TEXT PRIMARY KEY, fingerprint TEXT, p BLOB, b REAL, n_ratings INTEGER, regularisation REAL,
+            covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
+            peer_ratings INTEGER NOT NULL, rated INTEGER NOT NULL, updated REAL NOT NULL);''')
+    model = _model()
+    database.execute("INSERT INTO meta VALUES ('schema_version', '1')")
+    database.execute(f"INSERT INTO meta VALUES ('fingerprint', '{FINGERPRINT}')")
+    database.execute('INSERT INTO people VALUES (?, ?, ?, ?, ?, ?, ?, 1, 0, 0, 0, 1, 0.0)',
+                     ('ann', FINGERPRINT, model.p.tobytes(), model.b, 2, 0.0, model.covariance.tobytes()))
+    database.commit()
+    database.close()
+    progress = []
+    store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_progress=progress.append)
+    [ann], problem = store.load(FINGERPRINT)
+    assert problem is None and progress == [f'upgrading {tmp_path / state_store.DATABASE} from schema version 1 to 2 '
+                                            '(covariances in a table of their own)']
+    assert isinstance(ann.model.covariance, Deferred)  # read when first used
+    assert np.array_equal(loaded(ann.model.covariance), model.covariance) and np.array_equal(ann.model.p, model.p)
+    store.close()
+    with open_reader(tmp_path) as reader:
+        assert reader.meta()['schema_version'] == str(state_store.SCHEMA_VERSION)
+        [ann] = reader.people()
+    assert np.array_equal(ann.model.covariance, model.covariance)
