@@ -1,6 +1,7 @@
 """The ranker's state store at scale: what one update writes and costs, how long a restart
 takes, and what feedback for stored people costs other users' rankings, for stores of
-50 × 5, 1,000 × 20 and 1,000 × 200 people × ratings of real SocNav1 scenes.
+50 × 5, 1,000 × 20 and 1,000 × 200 people × ratings of real SocNav1 scenes (``--sizes``: also 10,000 × 200),
+and how long importing a state file of an earlier version takes.
 
     python benchmarks/state_scale.py [--checkpoint models/socnav1_gat_stars.pt] \
         [--data-root ../shared/datasets/socnav1] [--out results/state_scale.json]
@@ -10,7 +11,7 @@ model and covariance of the served checkpoint, their ratings of scenes drawn fro
 and then, in this process:
   * update: ``--updates`` times, one stored person's next rating arrives (the oldest leaves
     when they hold their maximum) with their new model, queued with its feedback as the node
-    queues it (``put_feedback``) and waited for until committed, one at a time: the time to
+    queues it (``write_person``) and waited for until committed, one at a time: the time to
     commit (p50/p99), the executor's share (building the update and queueing it), and the
     bytes this process handed to the kernel per update (/proc/self/io wchar: WAL frames and
     the checkpoints that copy them into the database);
@@ -92,9 +93,9 @@ def measure_updates(folder: Path, predictor, model, scenes: list, updates: list,
         current[person.user_id] = update
         done.clear()
         before = written_bytes()
-        store.put_feedback({'topic': '/stars/feedback', 'log_time': k, 'data': json.dumps(
-            {'user_id': person.user_id, 'scene_id': f's{k}', 'action': 'navigate', 'score': rating.score})}, 'bench',
-            update, lambda entry: done.set())
+        entry = {'topic': '/stars/feedback', 'log_time': k, 'data': json.dumps(
+            {'user_id': person.user_id, 'scene_id': f's{k}', 'action': 'navigate', 'score': rating.score})}
+        store.when_committed(store.write_person(update, [(entry, 'bench')]), done.set)
         executor.append((time.perf_counter() - started) * 1e3)
         if not done.wait(30):
             raise TimeoutError('an update was never committed')
