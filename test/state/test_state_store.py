@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from stars_ros.personalisation.foldin import Rating, UserModel
+from stars_ros.errors import StoreError
 from stars_ros.recording import __main__ as inspect_cli
 from stars_ros.state import migration, store as state_store
 from stars_ros.state import Deferred, loaded
@@ -277,6 +278,15 @@ def test_the_inspection_command_lists_people_and_their_ratings(tmp_path, capsys)
     text = capsys.readouterr().out
     assert 'ann' in text and '1 people' in text
     assert inspect_cli.main(['state', str(tmp_path / 'none')]) == 1
+
+
+def test_a_damaged_store_is_a_store_error_saying_what_to_do(tmp_path, capsys):
+    (tmp_path / state_store.DATABASE).write_bytes(b'not a database, ' * 512)
+    with pytest.raises(StoreError, match=f'cannot read the state store {tmp_path / state_store.DATABASE}: .*check '
+                                         'that it is a stars_ros state.db'):
+        open_reader(tmp_path)
+    assert inspect_cli.main(['state', str(tmp_path)]) == 1  # said in one line, no traceback
+    assert capsys.readouterr().err.startswith(f'error: cannot read the state store {tmp_path}')
 
 
 def test_a_version_1_store_is_upgraded_keeping_every_covariance(tmp_path):
