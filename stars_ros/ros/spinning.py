@@ -16,8 +16,8 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import LoggingSeverity, get_logger, get_logger_level, set_logger_level
 
 USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
-DESTROY_WAIT_S = 5.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
-CLOSE_WAIT_S = 15.0  # longest wait for ``close`` then (the state store's commit) before the process exits
+DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
+CLOSE_WAIT_S = 12.0  # longest wait for ``close`` then (the state store joins its writer for up to 10 s)
 
 
 class CommandLineError(Exception):
