@@ -6,7 +6,7 @@
 
 ``--state`` takes each person's ratings as the node's state store holds them now (the most
 recent ``fold_in_max_ratings`` it kept, with λ from each stored model), read through
-``recording.open_reader`` while the node runs or not; the logs hold every rating ever given.
+``state.open_reader`` while the node runs or not; the logs hold every rating ever given.
 
 Each /stars/feedback message is joined with the scene request it names: the latest
 /stars/scene message with that scene_id logged before it, in the same log (what the node
@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import collections
 import shlex
-import sqlite3
 import sys
 import time
 from dataclasses import dataclass, field
@@ -43,11 +42,12 @@ import torch
 from mcap.exceptions import McapError
 
 from stars_ros import messages
-from stars_ros import recording
+from stars_ros import recording, state
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.data.ratings import RatingData, load_dataset
-from stars_ros.errors import StarsError
-from stars_ros.personalisation.foldin import DEFAULT_REGULARISATION, FoldIn, rating_from_feedback, scene_digest
+from stars_ros.errors import OutOfScaleError, StarsError, StoreError
+from stars_ros.personalisation.foldin import DEFAULT_REGULARISATION, FoldIn, rating_from_feedback
+from stars_ros.state import check_score, scene_digest
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore, TabularStore
@@ -165,7 +165,7 @@ def read_state(folder, predictor) -> LogRatings:
     """Each person's own ratings in the state store of ``folder`` (oldest first), and the
     λ of their stored model; peers' ratings are in the peers' logs and stores."""
     found = LogRatings(read='state store')
-    with recording.open_reader(folder) as store:
+    with state.open_reader(folder) as store:
         found.files.append(str(store.path))
         if store.fingerprint not in (None, predictor.fingerprint):
             found.problem('people of another checkpoint', f'{store.path} holds people solved against '
@@ -176,11 +176,24 @@ def read_state(folder, predictor) -> LogRatings:
                 if rating.action not in predictor.actions:
                     found.problem('unknown action', f"{store.path}: '{rating.action}' ({person.user_id})")
                     continue
+                if not _on_scale(rating.score, predictor, found, f'{store.path} ({person.user_id})'):
+                    continue
                 found.ratings.setdefault(person.user_id, []).append(rating)
             found.dropped[person.user_id] = person.dropped
             if person.model is not None:
                 found.regularisation[person.user_id] = person.model.regularisation
     return found
+
+
+def _on_scale(score: float, predictor, found: LogRatings, where: str) -> bool:
+    """False, and an ``out_of_scale`` problem naming the scale, for a score off the
+    checkpoint's rating scale: it is not refit on."""
+    try:
+        check_score(score, predictor.recommender.rating_scale)
+    except OutOfScaleError as error:
+        found.problem('out_of_scale', f'{where}: {error}')
+        return False
+    return True
 
 
 def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) -> None:
@@ -191,6 +204,8 @@ def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) ->
         return
     if feedback.action is not None and feedback.action not in predictor.actions:
         found.problem('unknown action', f"{log}: '{feedback.action}' (scene {feedback.scene_id})")
+        return
+    if not _on_scale(feedback.score, predictor, found, f'{log} ({feedback.user_id}, scene {feedback.scene_id})'):
         return
     request = scenes.get(feedback.scene_id)
     if request is None:
@@ -305,7 +320,7 @@ def main(argv=None) -> int:
         print('note: --data-root is used by --mode full only; user mode keeps every other parameter fixed')
     try:
         found = read_state(args.state, predictor) if args.state else read_logs(args.logs, predictor)
-    except (FileNotFoundError, sqlite3.Error) as error:
+    except (FileNotFoundError, StoreError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
     solved = {}

@@ -35,3 +35,11 @@ class TrainingDivergedError(StarsError):
 
 class UnknownSceneError(StarsError):
     """A scene named by id is not in the data the ids are looked up in (give its content)."""
+
+
+class OutOfScaleError(StarsError):
+    """A rating's score lies outside the checkpoint's rating scale (the message names it)."""
+
+
+class StoreError(StarsError):
+    """The state store cannot be read or written (the message says what to do)."""

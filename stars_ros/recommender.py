@@ -49,7 +49,8 @@ from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.predictor import Predictor
 from stars_ros.model.training import NotFittedError, StarsTrainer, torch_state_kept
-from stars_ros.personalisation.foldin import FoldIn, Rating
+from stars_ros.personalisation.foldin import FoldIn
+from stars_ros.state import Rating
 from stars_ros.personalisation.prior import estimate_prior
 
 USER_TERMS = frozenset({'p', 'b_u'})

@@ -11,6 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
+from hri_fixtures import hri_msgs  # noqa: F401 - the fixture
 from ros_helpers import LATCHED, RELIABLE, RosClient, domain_id, running_ranker, start_node, stop, stored_feedback
 from stars_ros.data import frames
 from stars_ros.hri.people import DISENGAGED, ENGAGED

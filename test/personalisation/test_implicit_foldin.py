@@ -77,7 +77,7 @@ def test_implicit_feedback_parses_stays_implicit_and_must_be_an_outcome(predicto
     plain = messages.parse_feedback(json.dumps({'user_id': 'u', 'scene_id': 's1', 'action': 'navigate', 'score': 0.4}))
     assert not plain.implicit and not rating_from_feedback(plain, request, predictor).implicit
     middling = messages.parse_feedback(text.replace('0.0', '0.5'))
-    assert 'top 1.0 (stayed engaged) or bottom 0.0' in rating_from_feedback(middling, request, predictor)
+    assert 'top 1 (stayed engaged) or bottom 0' in rating_from_feedback(middling, request, predictor)
     with pytest.raises(messages.BadMessage):
         messages.parse_feedback(text.replace('true', '"yes"'))
 
