@@ -102,3 +102,19 @@ def test_the_offline_refit_folds_an_implicit_outcome_in_as_implicit(tiny_checkpo
     assert np.allclose(child.score('newbie', scenes[6:9]), parent.score('newbie', scenes[6:9]), atol=1e-5)
     parent.set_user_model('newbie', explicit)
     assert not np.allclose(child.score('newbie', scenes[6:9]), parent.score('newbie', scenes[6:9]), atol=1e-4)
+
+
+def test_the_ranker_refuses_an_implicit_score_that_is_no_outcome_and_folds_in_one_that_is(tiny_checkpoint, scenes):
+    from core_harness import Node, drain, make_core
+    node = Node()
+    core = make_core(node, tiny_checkpoint)
+    core.accept_scene(json.dumps({'scene_id': 's1', 'graph': scenes[0]}), 0)
+    drain(core)
+    feedback = {'user_id': 'u', 'scene_id': 's1', 'action': 'navigate', 'implicit': True}
+    assert not core.accept_feedback(json.dumps({**feedback, 'score': 0.5}))
+    assert [e['kind'] for e in node.on('stars/errors')] == ['out_of_scale']
+    assert core.accept_feedback(json.dumps({**feedback, 'score': 1.0}))
+    drain(core)
+    (rating,) = core.personalisation.ratings('u')
+    assert rating.implicit and core.predictor.personalised_from('u') == 1
+    core.close()
