@@ -56,6 +56,8 @@ def parse_args(argv=None):
     parser.add_argument('--draws', type=int, default=3, help='outcome draws per person and n (default: %(default)s)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--quick', action='store_true', help='pipeline check: 2 folds, 1 draw, n ≤ 16, k ≤ 4')
+    parser.add_argument('--rewrite-report', action='store_true',
+                        help="recompute the summary and results.md from --out's results.json, running nothing")
     parser.add_argument('--verbose', action='store_true')
     return parser.parse_args(argv)
 
@@ -100,19 +102,29 @@ def run_dataset(name: str, args, ns, ks) -> dict:
     curves = {}
     for curve, points in per_fold[0].items():
         curves[curve] = {str(x): dict(zip(('mean', 'sd'), mean_sd([f[curve][x] for f in per_fold]))) for x in points}
-    baseline = curves['explicit']['0']['mean']
-    summary = {}
-    for flip in args.flips:
-        curve = curves[f'implicit ε={flip}']
-        means = [curve[str(n)]['mean'] for n in ns]
-        summary[f'ε={flip}'] = {
-            'never_worse_than_unpersonalised': all(m <= baseline + 1e-12 for m in means),
-            'worst_excess_over_unpersonalised': max(m - baseline for m in means),
-            'implicit_outcomes_worth': {str(k): exchange_rate(ns, means, curves['explicit'][str(k)]['mean'])
-                                        for k in ks if k > 0}}
     return {'data': data.source, 'fingerprint': data.fingerprint, 'scale': list(data.scale), 'config': CONFIGS[name],
             'people_covered': covered, 'people_left_out': left_out, 'folds': per_fold, 'curves': curves,
-            'unpersonalised_mse': baseline, 'summary': summary}
+            'unpersonalised_mse': curves['explicit']['0']['mean'], 'summary': summarise(curves, ns, ks, args.flips)}
+
+
+def summarise(curves: dict, ns, ks, flips) -> dict:
+    """Per ε: is every n no worse than unpersonalised, and per k > 0 how many implicit
+    outcomes match k explicit ratings (``exchange_rate``): 'measured', 'beyond range' (more
+    than max n), or 'explicit no better' (k ratings do not beat unpersonalised: no rate)."""
+    baseline = curves['explicit']['0']['mean']
+    summary = {}
+    for flip in flips:
+        means = [curves[f'implicit ε={flip}'][str(n)]['mean'] for n in ns]
+        worth = {}
+        for k in (k for k in ks if k > 0):
+            target = curves['explicit'][str(k)]['mean']
+            rate = exchange_rate(ns, means, target) if target < baseline else None
+            status = 'explicit no better' if target >= baseline else 'beyond range' if rate is None else 'measured'
+            worth[str(k)] = {'explicit_mse': target, 'implicit_outcomes': rate, 'status': status}
+        summary[f'ε={flip}'] = {'never_worse_than_unpersonalised': all(m <= baseline + 1e-12 for m in means),
+                                'worst_excess_over_unpersonalised': max(m - baseline for m in means),
+                                'implicit_outcomes_worth': worth}
+    return summary
 
 
 def write_report(out: Path, results: dict, ns, ks) -> None:
@@ -138,7 +150,9 @@ def write_report(out: Path, results: dict, ns, ks) -> None:
         axis.legend(fontsize=7)
         lines += ['']
         for flip, summary in found['summary'].items():
-            worth = ', '.join(f'{k} explicit ≈ {"more than " + str(max(ns)) if v is None else f"{v:.1f}"} implicit'
+            worth = '; '.join(f"{k} explicit ≈ {v['implicit_outcomes']:.1f} implicit" if v['status'] == 'measured' else
+                              f'{k} explicit: more than {max(ns)} implicit' if v['status'] == 'beyond range' else
+                              f'{k} explicit: no better than unpersonalised, no rate'
                               for k, v in summary['implicit_outcomes_worth'].items())
             lines.append(f"- {flip}: never worse than unpersonalised: {summary['never_worse_than_unpersonalised']} "
                          f"(largest excess {summary['worst_excess_over_unpersonalised']:+.5f}); {worth}")
@@ -156,6 +170,13 @@ def main(argv=None) -> int:
     if args.quick:
         args.folds, args.draws = 2, 1
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.rewrite_report:
+        results = json.loads((args.out / 'results.json').read_text())
+        for found in results['datasets'].values():
+            found['summary'] = summarise(found['curves'], results['ns'], results['ks'], results['flips'])
+        (args.out / 'results.json').write_text(json.dumps(results, indent=1) + '\n')
+        write_report(args.out, results, results['ns'], results['ks'])
+        return 0
     started = time.time()
     results = {'command': 'python -m offline_training.implicit_feedback ' + shlex.join(argv or sys.argv[1:]),
                'ns': list(ns), 'ks': list(ks), 'flips': args.flips, 'draws': args.draws, 'pool': args.pool,
