@@ -11,6 +11,11 @@ answers who is served:
 * an alias is followed to the id it names (chains too), so a merged person is one person;
 * an id that has not yet said ``anonymous: false`` counts as anonymous (privacy by default).
 
+``anonymous`` and ``alias`` are latched facts that a person manager also publishes for people
+it knows but does not track now: they are kept for untracked ids too (at most ``MAX_KNOWN``,
+the oldest go) and hold once the id is tracked. Engagement and location confidence of an
+untracked id are refused (``UntrackedPerson``).
+
 An anonymous person is served under no user id: the ranker ranks for them with the
 population prior, and nothing about them reaches its recording or state store. ``served``
 returns the ``Served`` choice; ``Served.user_id`` is None for nobody or an anonymous person.
@@ -24,6 +29,7 @@ from typing import Callable
 UNKNOWN, DISENGAGED, ENGAGING, ENGAGED, DISENGAGING = range(5)  # hri_msgs/EngagementLevel
 ENGAGEMENT_NAMES = ('UNKNOWN', 'DISENGAGED', 'ENGAGING', 'ENGAGED', 'DISENGAGING')
 MAX_ALIAS_CHAIN = 32  # longer chains (or cycles) are refused as bad input
+MAX_KNOWN = 1000  # untracked ids whose latched facts (anonymous, alias) are kept for when they return
 
 
 class UntrackedPerson(ValueError):
@@ -75,6 +81,7 @@ class People:
         self._now = now
         self.tracked: tuple = ()
         self._people: dict[str, Person] = {}
+        self._known: dict[str, Person] = {}  # untracked ids' latched facts, oldest first
 
     # -- input ---------------------------------------------------------------------------
     def set_tracked(self, ids) -> tuple:
@@ -82,11 +89,27 @@ class People:
         ids = tuple(dict.fromkeys(str(i) for i in ids if str(i)))
         gone = tuple(i for i in self._people if i not in ids)
         for person_id in gone:
-            del self._people[person_id]
+            person = self._people.pop(person_id)
+            self._remember(person_id, Person(anonymous=person.anonymous, alias=person.alias))
         for person_id in ids:
-            self._people.setdefault(person_id, Person())
+            if person_id not in self._people:
+                self._people[person_id] = self._known.pop(person_id, None) or Person()
         self.tracked = ids
         return gone
+
+    def _remember(self, person_id: str, person: Person) -> None:
+        self._known.pop(person_id, None)
+        self._known[person_id] = person
+        while len(self._known) > MAX_KNOWN:
+            del self._known[next(iter(self._known))]
+
+    def _latched(self, person_id: str) -> Person:
+        """The record a latched fact goes to: the tracked person's, else the untracked id's."""
+        person = self._people.get(person_id)
+        if person is None:
+            person = self._known.get(person_id) or Person()
+            self._remember(person_id, person)
+        return person
 
     def _person(self, person_id: str) -> Person:
         person = self._people.get(person_id)
@@ -105,10 +128,10 @@ class People:
         person.level = level
 
     def set_anonymous(self, person_id: str, anonymous: bool) -> None:
-        self._person(person_id).anonymous = bool(anonymous)
+        self._latched(person_id).anonymous = bool(anonymous)
 
     def set_alias(self, person_id: str, target: str) -> None:
-        person = self._person(person_id)
+        person = self._latched(person_id)
         target = str(target).strip() or None
         previous, person.alias = person.alias, target
         try:

@@ -240,3 +240,17 @@ def test_person_feedback_relay_drops_anonymous(world):
     assert core.on_person_feedback(json.dumps({**message, 'person_id': 'anon'})) is None
     assert core.on_person_feedback(json.dumps({**message, 'person_id': 'carol'})) == {**message, 'user_id': 'carol'}
     assert core.problems.take_period()[1]['anonymous_dropped'] == 1
+
+
+def test_latched_facts_of_an_untracked_id_hold_once_it_is_tracked():
+    people = People(Clock())
+    people.set_anonymous('later', False)  # a person manager latches it for people it knows
+    people.set_alias('merged', 'later')
+    with pytest.raises(ValueError, match='not in /humans/persons/tracked'):
+        people.set_engagement('later', ENGAGED)
+    people.set_tracked(['later', 'merged'])
+    people.set_engagement('merged', ENGAGED)
+    assert people.served(lambda _: 1.0).user_id == 'later'
+    people.set_tracked([])
+    people.set_tracked(['later'])  # back again: still recognised, engagement starts afresh
+    assert not people.is_anonymous('later') and people.level('later') == 0
