@@ -206,6 +206,32 @@ def test_bad_input_is_diagnosed_and_the_bridge_keeps_running(loop):
     assert loop.bridge.poll() is None
 
 
+@pytest.mark.socnav1
+def test_the_scripted_world_drives_the_bridge(hri_msgs, socnav1_root, tmp_path):
+    """hri_world's script (people from a real SocNav1 scene) through the bridge: p1 is served,
+    then p2, and the scene holds the scene's people."""
+    domain = domain_id(16)  # after test_state_node's, in turn (as domain 7 is shared)
+    client = RosClient(domain, listen=False)
+    users = client.collect_messages('/stars/user_id', String, LATCHED)
+    scenes = client.collect('/stars/scene', RELIABLE)
+    processes = [start_node('stars_ros.ros.hri_world', domain, {'source': socnav1_root / 'raw' / 'a.jsonl',
+                                                                  'period': 8.0, 'pose_source': 'topic'},
+                            tmp_path / 'world.log'),
+                 start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'topic'}, tmp_path / 'bridge.log')]
+    try:
+        assert client.wait(lambda: {'p1', 'p2'} <= {u.data for u in users}, 90)
+        humans = [len(s['candidates'][0]['graph']['humans']) for s in scenes]
+        assert humans and max(humans) >= 3, humans
+        assert all(s.get('user_id', 'p').startswith('p') for s in scenes)
+        for process, log in zip(processes, ('world.log', 'bridge.log')):
+            assert process.poll() is None and stop(process, signal.SIGINT) == 0, (tmp_path / log).read_text()[-2000:]
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+        client.close()
+
+
 def test_the_real_tf_path(hri_msgs, tmp_path):
     """The same scene through real TF frames person_<id> (pose_source:=tf), where tf2_ros is."""
     pytest.importorskip('tf2_ros', reason='tf2_ros is not importable (it comes with a ROS install, ros-jazzy-tf2-ros; '
