@@ -37,7 +37,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'test'))
 
-from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import machine  # noqa: E402
 from ros_helpers import RELIABLE, RosClient, domain_id, start_node, stop  # noqa: E402

@@ -146,7 +146,7 @@ class BridgeCore:
                             '(or no longer remembers), names no person_id: ignored')
                 return
             person_id = served.person_id
-        if person_id is None or person_id not in self.people.members():
+        if person_id is None or self.people.canonical(person_id) not in self.people.members():
             self.report('untracked', f"stars/executed for '{person_id}', who is not tracked: no outcome to watch")
             return
         self.outcomes.executed(person_id, scene_id, kind, choice)
