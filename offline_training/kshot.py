@@ -45,14 +45,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stars_ros import StarsRecommender
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.executors import FitFailure, fit_outcome, worker_data
 from stars_ros.evaluation.kshot import LEVELS, STRATEGIES, Design, annotator_folds, coverage, known_split, reveal_pools
 from stars_ros.model.metrics import regression_report
 from stars_ros.evaluation.stats import mean_sd
-from stars_ros.model.training import StarsTrainer
-from stars_ros.personalisation.prior import estimate_prior
 
 from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, pyplot, read_inputs,
                      save_png, setup_logging)
@@ -111,19 +110,17 @@ def configure(args) -> ExperimentConfig:
 
 
 def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, noise_rows=None, data=None) -> dict:
-    """One fit (in a ``fit_executor`` worker, or inline with ``data``): seconds, predictions
-    on ``test``, and with ``keep`` the fitted recommender itself, its model on the CPU, where
-    the fold-in designs are computed, with the personalisation prior a checkpoint keeps (its
-    noise from ``noise_rows``, held-out ratings of the trained people)."""
+    """One fit through the front door (in a ``fit_executor`` worker, or inline with
+    ``data``): seconds, predictions on ``test``, and with ``keep`` the fitted model itself
+    (``model.fitted``, on the CPU, with the personalisation prior a checkpoint keeps, its
+    noise from ``noise_rows``, held-out ratings of the trained people), where the fold-in
+    designs are computed."""
     data = worker_data() if data is None else data
     started = time.perf_counter()
-    recommender = StarsTrainer(ExperimentConfig.from_dict(experiment)).fit(data, train)
+    recommender = StarsRecommender(experiment).fit(data, train, noise_rows=noise_rows)
     seconds = time.perf_counter() - started
-    predictions = recommender.predict_rows(data, test)
-    if keep:
-        recommender.model.cpu()
-        recommender.user_prior = estimate_prior(recommender, data, train, noise_rows=noise_rows).to_dict()
-    return {'seconds': seconds, 'predictions': predictions, 'recommender': recommender if keep else None}
+    fitted = recommender.fitted
+    return {'seconds': seconds, 'predictions': fitted.predict_rows(data, test), 'recommender': fitted if keep else None}
 
 
 def report(data, rows, predictions) -> dict:

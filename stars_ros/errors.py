@@ -35,3 +35,5 @@ class TrainingDivergedError(StarsError):
 
 class UnknownSceneError(StarsError):
     """A scene named by id is not in the data the ids are looked up in (give its content)."""
+class NotFittedError(StarsError):
+    """A model was asked to predict before fit() or load()."""

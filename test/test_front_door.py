@@ -15,7 +15,7 @@ from stars_ros.data import crowd_data, synthetic_socnav
 from stars_ros.data.ratings import socnav1_root
 from stars_ros.errors import DataError, UnknownActionError, UnknownSceneError
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.training import NotFittedError
+from stars_ros.errors import NotFittedError
 
 REPO = Path(__file__).resolve().parents[1]
 TABULAR = {'encoder': {'name': 'mlp', 'hidden': 16, 'layers': 1}, 'model': {'dim': 8},

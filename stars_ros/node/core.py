@@ -29,7 +29,8 @@ from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
 from stars_ros.model.predictor import Predictor
 from stars_ros.resources import DEFAULT_CHECKPOINT, resolve_checkpoint
-from stars_ros.node.batching import WARNINGS, BusySpans, Pending, PeriodStats, Problems, rank_batch
+from stars_ros.node.batching import Pending, rank_batch
+from stars_ros.node.diagnostics import WARNINGS, BusySpans, PeriodStats, Problems
 
 MAX_STRANGERS_REMEMBERED = 10000
 TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',

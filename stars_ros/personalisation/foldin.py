@@ -178,17 +178,16 @@ class FoldIn:
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False,
                  prior: UserPrior | None = None):
-        recommender = predictor.recommender
-        model = recommender.require_model()
+        fitted = predictor.recommender
+        model = fitted.require_model()
         if not model.personalised:
             raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
         self.predictor = predictor
-        self.recommender = recommender
         self.inference = predictor.inference  # the weights and the scoring arithmetic, shared
-        self.actions = tuple(recommender.action_names)
+        self.actions = tuple(predictor.actions)
         self._action_index = {a: k for k, a in enumerate(self.actions)}
         self.dim = self.inference.dim
-        self.user_prior = prior_of(recommender, self.inference) if prior is None else prior
+        self.user_prior = prior_of(fitted, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
@@ -217,7 +216,7 @@ class FoldIn:
         """(mean, covariance, precision) of θ before any feedback: the trained row with the
         covariance of their training ratings for a person the checkpoint knows, else the
         population prior."""
-        row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        row = self.predictor.trained_row(user_id)
         prior = self.user_prior
         if row == UNKNOWN:
             return self.population.copy(), prior.covariance, self._population_precision
@@ -248,12 +247,12 @@ class FoldIn:
 
     def to_rating_scale(self, z, actions: np.ndarray) -> np.ndarray:
         """Scores of normalised predictions, clipped to the checkpoint's rating scale."""
-        return self.recommender.clip(self.inference.to_rating_scale(z, actions))
+        return self.predictor.clip(self.inference.to_rating_scale(z, actions))
 
     def design_from_h(self, h, scene_keys: Sequence, actions: np.ndarray) -> tuple:
         """(x [n, dim+1], c [n]) (float64) for ratings whose scenes are encoded as ``h``
         [n, dim]: ``InferenceModel.linear_form``, the model's z = xᵀθ + c."""
-        rows = self.recommender.scene_vocabulary.rows(list(scene_keys))
+        rows = self.predictor.scene_rows(list(scene_keys))
         return self.inference.linear_form(np.asarray(h, dtype=np.float64), rows, actions)
 
     def remember(self, scenes: Sequence, rows: np.ndarray) -> None:

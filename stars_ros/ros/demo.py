@@ -71,7 +71,7 @@ def choose_people(predictor, root: Path, n_scenes: int, placements: int):
     """The two known annotators whose placement orders differ on most shared scenes, and
     those scenes with both ratings: (user_a, user_b, [(scene, rating_a, rating_b)])."""
     rated = {}
-    for user in predictor.recommender.users:
+    for user in predictor.users:
         path = root / 'raw' / f'{user}.jsonl'
         if path.exists():
             rated[user] = {s['identifier']: s for s in read_scenes(path)}
@@ -136,7 +136,7 @@ def run(args) -> int:
         raise StarsError(f'SocNav1 not found at {args.data_root}: set STARS_SOCNAV1_ROOT or --data-root')
     user_a, user_b, chosen = choose_people(predictor, args.data_root, args.scenes, args.placements)
     print(f'StARS demo: checkpoint {checkpoint} (fingerprint {predictor.fingerprint[:12]}), '
-          f'{len(predictor.recommender.users)} people known, action {predictor.actions[0]!r}')
+          f'{len(predictor.users)} people known, action {predictor.actions[0]!r}')
     print(f"People: '{user_a}' and '{user_b}', the two SocNav1 annotators whose rankings of {args.placements} "
           f'robot placements differ most on scenes both rated')
 

@@ -149,7 +149,7 @@ def test_a_request_that_asks_gets_why_on_every_entry_and_the_others_do_not(tiny_
         messages.check('ranking', ranking)
     assert not any('why' in entry for entry in rankings['plain']['ranking'])
     assert [e['score'] for e in rankings['plain']['ranking']] == [e['score'] for e in rankings['asks']['ranking']]
-    scale = core.predictor.recommender.rating_scale
+    scale = core.predictor.rating_scale
     for scene_id in ('asks', 'placements'):
         for entry in rankings[scene_id]['ranking']:
             assert _sums_to_the_score(entry, scale), entry
@@ -166,7 +166,7 @@ def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
     [ranking] = node.on('stars/ranking')
     kinds = {e['kind'] for entry in ranking['ranking'] for e in entry['why']['entities']}
     assert 'human' in kinds and 'wall' in kinds and 'room' in kinds
-    assert all(_sums_to_the_score(entry, core.predictor.recommender.rating_scale) for entry in ranking['ranking'])
+    assert all(_sums_to_the_score(entry, core.predictor.rating_scale) for entry in ranking['ranking'])
     core.close()
 
 
