@@ -18,7 +18,7 @@ from functools import lru_cache
 from typing import Sequence
 from urllib.parse import urljoin
 
-from stars_ros.errors import MessageError, SceneGraphError, StarsError, UnknownActionError
+from stars_ros.errors import BadMessage, SceneGraphError, StarsError, UnknownActionError
 from stars_ros.resources import share_path
 
 SCHEMA_BASE = 'https://stars-ros.dev/msg_schemas/'
@@ -26,17 +26,6 @@ DEFAULT_MAX_BYTES = 262144
 MAX_ID_CHARS = 256
 _UNSUPPORTED = ('$dynamicRef', '$dynamicAnchor', '$anchor', 'unevaluatedItems', 'unevaluatedProperties',
                 'dependentRequired', 'dependentSchemas', 'minContains', 'maxContains', 'contentSchema')
-
-
-class BadMessage(MessageError):
-    """A message the ranker refuses; ``kind`` is a short machine-readable category and
-    ``scene_id`` the message's own scene id, when it has a usable one, so that the report
-    on stars/errors can be matched to the request."""
-
-    def __init__(self, kind: str, detail: str, scene_id: str | None = None):
-        super().__init__(detail)
-        self.kind = kind
-        self.scene_id = scene_id
 
 
 @dataclass(frozen=True)

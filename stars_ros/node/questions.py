@@ -17,12 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from stars_ros import messages
-from stars_ros.errors import StarsError
+from stars_ros.errors import NoQuestion, StarsError
 from stars_ros.model.model import UNKNOWN
-
-
-class NoQuestion(StarsError):
-    """Nothing to ask about: no candidates given and no usable scene remembered."""
 
 
 @dataclass(frozen=True)
