@@ -372,7 +372,7 @@ def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(socn
     its first scene for both people into that folder."""
     printed = []
     for _ in range(2):
-        demo = subprocess.run([sys.executable, '-m', 'stars_ros.ros.demo',  # the packaged model, as a user runs it
+        demo = subprocess.run([sys.executable, '-m', 'stars_ros.examples.demo',  # the packaged model, as a user runs it
                                '--data-root', str(socnav1_root), '--scenes', '3', '--placements', '3', '--rate', '10',
                                '--domain-id', str(domain_id(5))], env=dict(ros_env(domain_id(5)), TMPDIR=str(tmp_path)),
                               capture_output=True, text=True, timeout=240)

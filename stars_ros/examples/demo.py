@@ -1,7 +1,7 @@
 """The main-job demo: the ranker serving two people, their rankings side by side, feedback
 recorded to MCAP, then a summary. Ends by itself.
 
-    python -m stars_ros.ros.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
+    python -m stars_ros.examples.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
 
 Set-up loads the checkpoint (the packaged default unless one is given) and picks, among the
 annotators it knows, the two whose rankings of alternative robot placements differ most on
@@ -48,7 +48,7 @@ SOCNAV1 = socnav1_root()
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(prog='python -m stars_ros.ros.demo', description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.examples.demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', default='', help='default: the packaged models/socnav1_gat_stars.pt')
     parser.add_argument('--data-root', type=Path, default=SOCNAV1, help='SocNav1 root (default: %(default)s)')
     parser.add_argument('--scenes', type=int, default=8, help='scenes per person (default: %(default)s)')
