@@ -1,12 +1,14 @@
 """The figures the ranker reports on /diagnostics and stars/errors: the spans of fold-in work
-(``BusySpans``), one period's processing times (``PeriodStats``) and the problems by kind
-(``Problems``). ROS-free; ``stars_ros.node.core`` keeps one of each.
+(``BusySpans``), one period's processing times (``PeriodStats``), the problems by kind
+(``Problems``) and one period's report (``period_report``). ROS-free; ``stars_ros.node.core``
+keeps one of each.
 """
 from __future__ import annotations
 
 import collections
 import threading
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -84,7 +86,8 @@ class Problems:
     most one line per kind every ``throttle`` seconds. Thread-safe (the node's own threads
     report too)."""
 
-    def __init__(self):
+    def __init__(self, clock: Callable[[], float] = time.monotonic):
+        self._clock = clock  # seconds, for the throttle
         self._lock = threading.Lock()
         self._counts = collections.Counter()
         self._period = {}  # kind -> (count, latest detail) since the last take_period
@@ -92,7 +95,7 @@ class Problems:
 
     def add(self, kind: str, detail: str, throttle: float) -> int | None:
         """Count one problem; its kind's total when it is to be logged, else None."""
-        now = time.monotonic()
+        now = self._clock()
         with self._lock:
             self._counts[kind] += 1
             self._period[kind] = (self._period.get(kind, (0, ''))[0] + 1, detail)
@@ -111,3 +114,17 @@ class Problems:
         with self._lock:
             period, self._period = self._period, {}
             return period, dict(self._counts)
+
+
+def period_report(period: dict, counts: dict, failure: str | None, values: dict) -> tuple[str, str, dict, list]:
+    """(level: 'ok', 'warn' or 'error'; summary; key-values; [(kind, level, count, latest
+    detail)] of each kind of problem) of one /diagnostics period: ``period`` and ``counts``
+    are ``Problems.take_period``'s, ``failure`` what stops the recording (None: nothing),
+    ``values`` the node's own key-values, to which the error totals are added."""
+    level = 'error' if set(period) - set(WARNINGS) or failure else ('warn' if period else 'ok')
+    summary = 'serving' if not period else 'serving; problems since last report: ' + ', '.join(
+        f'{k} x{n}' for k, (n, _) in sorted(period.items()))
+    values = {**values, **{f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'}}
+    kinds = [(kind, 'warn' if kind in WARNINGS else 'error', count, detail)
+             for kind, (count, detail) in sorted(period.items())]
+    return level, summary, values, kinds
