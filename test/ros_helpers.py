@@ -107,6 +107,11 @@ class RosClient:
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self._spinner.start()
 
+    def snapshot(self, store: list) -> list:
+        """A copy of ``store`` (one of this client's lists) taken while no callback adds to it."""
+        with self._changed:
+            return list(store)
+
     def collect(self, topic: str, qos) -> list:
         """A list that gathers the JSON of every std_msgs/String on ``topic`` (``wait`` sees it grow)."""
         store = []

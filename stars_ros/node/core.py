@@ -56,11 +56,14 @@ class RankerCore:
         markers_out (optional): where stars/markers go: ``subscribed()`` (does anybody listen?),
             ``publish(data)`` (a visualization_msgs/MarkerArray's CDR bytes) and ``message_type``
             (``recording.MessageType``, for the bag); None: no markers.
+        clock (callable): the system time in ns (``time.time_ns`` unless a test steps it),
+            which ``received`` times, processing times and fold-in spans are read on.
     """
 
     def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
-                 logger, now: Callable[[], int], markers_out=None):
+                 logger, now: Callable[[], int], markers_out=None, clock: Callable[[], int] = time.time_ns):
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
+        self._clock = clock
         self.markers_out = markers_out
         self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
         self.predictor = Predictor.load(self.checkpoint_path)
@@ -69,7 +72,7 @@ class RankerCore:
         self.user_id, self.problems, self._strangers_reported = None, Problems(), set()
         self.queue = collections.deque()  # Pending requests
         self.questions = collections.deque()  # QuestionRequests waiting to be answered
-        self._fold_in_spans = BusySpans()  # when fold-in work was done (time.time_ns)
+        self._fold_in_spans = BusySpans()  # when fold-in work was done (``clock``)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
         folder = params['record_folder']
@@ -188,7 +191,7 @@ class RankerCore:
             return None
 
     def accept_scene(self, text: str, received: int):
-        """Queue a stars/scene request the middleware received at ``received`` (time.time_ns)."""
+        """Queue a stars/scene request the middleware received at ``received`` (ns of ``clock``)."""
         request = self._parse(messages.parse_scene_request, text, self.topics['stars/scene'])
         if request is None:
             return
@@ -236,13 +239,13 @@ class RankerCore:
                         feedback.scene_id)
         refused, update = 'fold_in is off', None
         if self.params['fold_in']:
-            started = time.time_ns()
+            started = self._clock()
             refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time)
             if refused is not None:
                 self.report('unknown_scene', refused, topic, feedback.scene_id)
             elif self.store is not None:
                 update = self.personalisation.update(feedback.user_id)
-            self._fold_in_spans.add(started, time.time_ns())
+            self._fold_in_spans.add(started, self._clock())
         if self.store is not None:
             self.store.put_feedback({'topic': topic, 'log_time': log_time, 'data': text},
                                     self.recorder.name if self.recorder is not None else '', update, self._committed)
@@ -313,19 +316,19 @@ class RankerCore:
             elif self.questions:
                 self._answer_question(self.questions.popleft())
             elif intake:
-                started = time.time_ns()
+                started = self._clock()
                 try:
                     refused = personalisation.take_in_next()
                 finally:
-                    self._fold_in_spans.add(started, time.time_ns())
+                    self._fold_in_spans.add(started, self._clock())
                 if refused is not None:
                     self.report(*refused, self.topics['stars/user_model'])
             elif pending:
-                started = time.time_ns()
+                started = self._clock()
                 try:
                     self._solve_next()
                 finally:
-                    ended = time.time_ns()
+                    ended = self._clock()
                     self._fold_in_spans.add(started, ended)
                     self._period_stats.fold_in_update((ended - started) / 1e6)
             elif to_announce:
@@ -349,7 +352,7 @@ class RankerCore:
 
     def _serve(self, batch: list):
         predictor, top_k = self.predictor, self.params['top_k']
-        started = time.time_ns()
+        started = self._clock()
         uncertainty = self.personalisation.uncertainty
         explanations = (self.params['explain'], self.params['explain_entities'])
         for item, result in zip(batch, rank_batch(predictor, batch, top_k, uncertainty, explanations)):
@@ -359,7 +362,7 @@ class RankerCore:
                 self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
-            processing_ms = max(0, time.time_ns() - item.received) / 1e6
+            processing_ms = max(0, self._clock() - item.received) / 1e6
             payload = messages.dumps(messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
                 result.action, personalised, result.p_first_is_best))

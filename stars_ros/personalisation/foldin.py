@@ -201,6 +201,13 @@ class FoldIn:
                            self._population_precision)  # a process's first LAPACK solve costs
         # milliseconds: paid at load, not by the first feedback
 
+    @property
+    def cached(self) -> tuple[int, int]:
+        """(scenes whose h_i is kept, ratings whose regression row is kept): both bounded by
+        ``cache_scenes``, least recently used dropped first."""
+        with self._lock:
+            return len(self._cache), len(self._rows)
+
     def _user_row(self, row) -> np.ndarray:
         """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
         inference = self.inference

@@ -108,9 +108,8 @@ def _answers(client, prefix=None) -> tuple[set, list]:
     ``client`` holds, _settle's markers left out; only ids starting with ``prefix`` if given."""
     def kept(scene_id):
         return not str(scene_id).startswith(SETTLED) and (prefix is None or str(scene_id).startswith(prefix))
-    with client._changed:
-        ranked = [r['scene_id'] for r in client.rankings if kept(r['scene_id'])]
-        refused = [e['scene_id'] for e in client.errors if e['level'] == 'error' and kept(e['scene_id'])]
+    ranked = [r['scene_id'] for r in client.snapshot(client.rankings) if kept(r['scene_id'])]
+    refused = [e['scene_id'] for e in client.snapshot(client.errors) if e['level'] == 'error' and kept(e['scene_id'])]
     return ranked, refused
 
 
@@ -121,43 +120,26 @@ def _on_disk(bag, topic) -> list:
             for found, text, _ in recording.salvage_messages(path)[0] if found == topic]
 
 
-@pytest.fixture(scope='module')
-def node(tiny_checkpoint, scenes, tmp_path_factory):
-    folder = tmp_path_factory.mktemp('shared_ranker')
-    domain = domain_id(0)
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
-              'diagnostics_period': 0.3, 'log_throttle': 1.0}
-    with running_ranker(domain, params, folder / 'ranker.log', _probe(scenes), START_TIMEOUT) as (process, client):
-        yield process, client
-
-
 @pytest.fixture()
-def ranker(node, scenes, predictor, tiny_checkpoint):
-    """The shared node in its starting state, whatever an earlier test left: no latched
-    user id, whole rankings, the tiny checkpoint served (reloaded if another one is)."""
-    process, client = node
-    assert process.poll() is None, 'the shared ranker died in an earlier test'
-    client.user_pub.publish(String(data=''))  # empty: nobody
-    assert all(r.successful for r in client.set_parameters('/ranker', {'top_k': 0, 'checkpoint': str(tiny_checkpoint)}))
-    served = _served_latched_user(client, scenes, None)
-    assert served is not None, 'the latched user id was never cleared'
-    if served['fingerprint'] != predictor.fingerprint:
-        assert client.call('/ranker/reload').success
-    return process, client
+def ranker(tiny_checkpoint, scenes, tmp_path):
+    """A ranker of its own for each test, on the tiny checkpoint, and a client that has heard
+    nothing else: no test sees another's parameters, latched user, people or messages."""
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records', 'flush_interval': 0.2,
+              'diagnostics_period': 0.3, 'log_throttle': 1.0}
+    with running_ranker(domain_id(0), params, tmp_path / 'ranker.log', _probe(scenes), START_TIMEOUT) as running:
+        yield running
 
 
 def test_ranking_equals_predictor_rank(ranker, scenes, predictor):
     _, client = ranker
-    started = time.monotonic()
     for k, scene in enumerate(scenes[:20]):
         client.scene({'scene_id': scene['identifier'], 'user_id': KNOWN_USER, 'graph': scene})
     assert client.wait(lambda: all(client.ranking_for(s['identifier']) for s in scenes[:20]), 30)
-    round_trip_ms = (time.monotonic() - started) * 1000  # from the first request out to the last ranking in
     for scene in scenes[:20]:
         reply = client.ranking_for(scene['identifier'])
         assert reply['user_id'] == KNOWN_USER and reply['known_user'] is True
         assert reply['fingerprint'] == predictor.fingerprint
-        assert 0 < reply['processing_ms'] < round_trip_ms  # from the node's reception to its reply
+        assert reply['processing_ms'] >= 0  # what it measures: test_ranker_core.py, on a stepped clock
         _assert_same(reply, predictor.rank(KNOWN_USER, scene, scene_id=scene['identifier']))
 
 
@@ -403,8 +385,8 @@ def test_the_packaged_model_ranks_socnav1_scenes_as_its_predictor_does(socnav1, 
     process = start_node('stars_ros.ros.ranker', domain, {'record_folder': tmp_path}, tmp_path / 'ranker.log')
 
     def reply(scene_id, user):
-        with client._changed:
-            return next((r for r in client.rankings if r['scene_id'] == scene_id and r['user_id'] == user), None)
+        return next((r for r in client.snapshot(client.rankings) if r['scene_id'] == scene_id and r['user_id'] == user),
+                    None)
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))
         placements = scene_request('placements', scenes[0], placements=4)
