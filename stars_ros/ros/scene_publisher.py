@@ -33,7 +33,8 @@ PARAMETERS = {  # name: (default, description)
     'rate': (2.0, 'requests per second'),
     'count': (0, 'requests to publish before exiting; 0: no end'),
     'placements': (0, f'0: rank the actions; 1..{len(PLACEMENTS)}: rank that many robot placements'),
-    'scene_id_prefix': ('scene-', 'scene ids are this prefix + a counter'),
+    'scene_id_prefix': ('scene-', "scene ids are this prefix + a counter; empty: each scene's own identifier "
+                        "(a SocNav1 line's; random scenes: random-N), an id feedback can name without the log"),
     'seed': (0, 'seed of the random scenes and of the file order'),
     'wait_for_subscribers': (30.0, 'seconds to wait for a subscriber first'),
 }
@@ -76,8 +77,9 @@ class ScenePublisher(Node):
             self.publisher.wait_for_all_acked(Duration(seconds=5))
             self.get_logger().info(f'published {self.sent} scene requests')
             raise SystemExit(0)
-        scene_id = f'{self.prefix}{self.sent}'
-        payload = scene_request(scene_id, self._next_scene(), self.user_id or None, self.placements)
+        scene = self._next_scene()
+        scene_id = f'{self.prefix}{self.sent}' if self.prefix else str(scene.get('identifier', f'random-{self.sent}'))
+        payload = scene_request(scene_id, scene, self.user_id or None, self.placements)
         self.publisher.publish(String(data=json.dumps(payload)))
         self.sent += 1
         self.get_logger().info(f"published {scene_id}{f' for user {self.user_id}' if self.user_id else ''} on "
