@@ -23,13 +23,11 @@ from std_msgs.msg import String
 from mutations import mutate
 from ros_helpers import RosClient, domain_id, stored_feedback, ros_env, running_ranker, start_node, stop
 from waiting import wait_for
-from stars_ros import recording
-from stars_ros.model.checkpoint import save_checkpoint
-from stars_ros.model.config import ExperimentConfig
+from stars_ros import StarsRecommender, recording
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.resources import resolve_checkpoint
-from stars_ros.model.training import StarsTrainer, split_rows
+from stars_ros.model.training import split_rows
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter client
 KNOWN_USER = 'b'  # in the tiny checkpoint's training rows
@@ -53,9 +51,8 @@ def other_checkpoint(synthetic, tmp_path_factory):
               'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'lr': 3e-3, 'batch_size': 128, 'threads': 1,
                            'seed': 5}}
     train, _ = split_rows(synthetic, 0.2, 5)
-    recommender = StarsTrainer(ExperimentConfig.from_dict(config)).fit(synthetic, train[:300])
     path = tmp_path_factory.mktemp('other') / 'other.pt'
-    save_checkpoint(recommender, path, data={'fingerprint': synthetic.fingerprint, 'source': 'synthetic_socnav'})
+    StarsRecommender(config).fit(synthetic, train[:300]).save(path)
     return path
 
 
