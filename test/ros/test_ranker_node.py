@@ -320,9 +320,9 @@ def test_scene_publisher_feeds_the_ranker(ranker, synthetic_root, tmp_path):
     assert [len(client.ranking_for(f'pub-{k}')['ranking']) for k in range(4)] == [3] * 4
     assert client.ranking_for('rnd-0')['ranking'][0]['action'] == 'navigate'
     assert not [e for e in client.errors if str(e['scene_id']).startswith(('pub-', 'rnd-'))]
-    own = tmp_path / 'own-ids.log'  # an empty prefix: the file's own identifiers, which feedback can name
+    own = tmp_path / 'own-ids.log'  # the file's own identifiers, which feedback can name
     publisher = start_node('stars_ros.ros.scene_publisher', domain_id(0), {
-        'source': synthetic_root / 'raw' / 'b.jsonl', 'user_id': 'b', 'count': 2, 'scene_id_prefix': '',
+        'source': synthetic_root / 'raw' / 'b.jsonl', 'user_id': 'b', 'count': 2, 'keep_identifiers': True,
         'rate': 20.0}, own)
     assert publisher.wait(timeout=60) == 0, own.read_text()
     identifiers = [scene['identifier'] for scene in read_scenes(synthetic_root / 'raw' / 'b.jsonl')[:2]]
