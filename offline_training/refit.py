@@ -6,7 +6,7 @@
 
 ``--state`` takes each person's ratings as the node's state store holds them now (the most
 recent ``fold_in_max_ratings`` it kept, with λ from each stored model), read through
-``recording.open_reader`` while the node runs or not; the logs hold every rating ever given.
+``state.open_reader`` while the node runs or not; the logs hold every rating ever given.
 
 Each /stars/feedback message is joined with the scene request it names: the latest
 /stars/scene message with that scene_id logged before it, in the same log (what the node
@@ -31,16 +31,16 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import sqlite3
 import sys
 import time
 
 from stars_ros import StarsRecommender
 from stars_ros.data.ratings import load_dataset
-from stars_ros.errors import StarsError
+from stars_ros.errors import StarsError, StoreError
 from stars_ros.personalisation.refit import LogRatings, read_logs, read_state
 
 from .common import setup_logging
+
 
 def print_report(found: LogRatings, solved: dict, out=None) -> None:
     """What was read, each user's ratings (and λ once solved), and the problems found."""
@@ -93,7 +93,7 @@ def main(argv=None) -> int:
         print('note: --data-root is used by --mode full only; user mode keeps every other parameter fixed')
     try:
         found = read_state(args.state, parent.predictor) if args.state else read_logs(args.logs, parent.predictor)
-    except (FileNotFoundError, sqlite3.Error) as error:
+    except (FileNotFoundError, StoreError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
     if not found.ratings:

@@ -36,6 +36,8 @@ class TrainingDivergedError(StarsError):
 
 class UnknownSceneError(StarsError):
     """A scene named by id is not in the data the ids are looked up in (give its content)."""
+
+
 class NotFittedError(StarsError):
     """A model was asked to predict before fit() or load()."""
 
@@ -65,3 +67,11 @@ class KeyedError(ValueError):
     def __init__(self, loc: tuple, detail, model: type | None = None):
         super().__init__(str(detail))
         self.loc, self.detail, self.model = tuple(loc), detail, model
+
+
+class OutOfScaleError(StarsError):
+    """A rating's score lies outside the checkpoint's rating scale (the message names it)."""
+
+
+class StoreError(StarsError):
+    """The state store cannot be read or written (the message says what to do)."""

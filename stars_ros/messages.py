@@ -18,7 +18,7 @@ from functools import lru_cache
 from typing import Sequence
 from urllib.parse import urljoin
 
-from stars_ros.errors import BadMessage, SceneGraphError, StarsError, UnknownActionError
+from stars_ros.errors import BadMessage, OutOfScaleError, SceneGraphError, StarsError, UnknownActionError
 from stars_ros.resources import share_path
 
 SCHEMA_BASE = 'https://stars-ros.dev/msg_schemas/'
@@ -321,6 +321,8 @@ def error_kind(error: Exception) -> str:
         return error.kind
     if isinstance(error, UnknownActionError):
         return 'unknown_action'
+    if isinstance(error, OutOfScaleError):
+        return 'out_of_scale'
     if isinstance(error, SceneGraphError):
         return 'scene_graph'
     if isinstance(error, StarsError):

@@ -59,8 +59,9 @@ from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import FittedModel
 from stars_ros.model.predictor import Predictor, RankQuery
-from stars_ros.personalisation.foldin import FoldIn, Rating
+from stars_ros.personalisation.foldin import FoldIn
 from stars_ros.personalisation.uncertainty import Uncertainty
+from stars_ros.state import Rating
 
 if TYPE_CHECKING:
     from stars_ros.data.ratings import RatingData
@@ -311,7 +312,7 @@ class StarsRecommender:
 
     def refit(self, ratings: dict, regularisation: dict | None = None, data=None, epochs: int = 0,
               default_regularisation: float | None = None) -> Refitted:
-        """A new recommender in which each user of ``ratings`` ({user: [foldin.Rating]}, as
+        """A new recommender in which each user of ``ratings`` ({user: [state.Rating]}, as
         ``personalisation.refit`` reads them from the node's logs or state store) is a
         trained user: their (p_u, b_u) solved as ``fold_in`` and the node solve them (λ from
         ``regularisation`` {user: λ}, else ``default_regularisation``, else the posterior),

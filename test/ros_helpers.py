@@ -27,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from stars_ros import recording
+from stars_ros import recording, state
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -195,7 +195,7 @@ def stored_feedback(bag: Path) -> list:
     """The feedback messages of recording ``bag`` that the state store beside it has
     committed now: what the ranker counts as stored (a positive sign that it took them in)."""
     try:
-        with recording.open_reader(bag.parent) as store:
+        with state.open_reader(bag.parent) as store:
             return [json.loads(entry['data']) for entry in store.feedback(bag.name)]
     except FileNotFoundError:
         return []

@@ -16,7 +16,7 @@ from stars_ros import recording
 from stars_ros.node.core import PARAMETERS
 from stars_ros.examples import demo
 from stars_ros.ros import replay, scene_publisher, usage
-from stars_ros.recording.state_store import PersonUpdate, write_people
+from stars_ros.state.store import PersonUpdate, write_people
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))

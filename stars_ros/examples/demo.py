@@ -26,7 +26,6 @@ import itertools
 import json
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -35,14 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from stars_ros.errors import StarsError
+from stars_ros.errors import StarsError, StoreError
 from stars_ros.figures.scene import plot_people
 from stars_ros.model.predictor import Predictor
 from stars_ros.recording.bag import read_messages
 from stars_ros.resources import resolve_checkpoint
 from stars_ros.data.ratings import socnav1_root
 from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes
-from stars_ros import recording
+from stars_ros import state
 
 SOCNAV1 = socnav1_root()
 
@@ -107,9 +106,9 @@ def score_decimals(*replies, least: int = 3, most: int = 5) -> int:
 
 def _holds_people(folder: Path) -> bool:
     try:
-        with recording.open_reader(folder) as store:
+        with state.open_reader(folder) as store:
             return bool(store.summary())
-    except (FileNotFoundError, sqlite3.Error):
+    except (FileNotFoundError, StoreError):
         return False
 
 
@@ -120,7 +119,7 @@ def record_folder(given: Path | None, work: Path) -> Path:
     if given is None:
         return work / 'records'
     if _holds_people(given):
-        print(f'Note: {given / recording.DATABASE} holds folded-in users of an earlier run: the ranker restores them, '
+        print(f'Note: {given / state.DATABASE} holds folded-in users of an earlier run: the ranker restores them, '
               'so their scores differ from a fresh start')
     return given
 

@@ -14,7 +14,7 @@ import numpy as np
 from stars_ros.data.scene_source import placement_candidates
 from stars_ros.errors import StarsError
 from stars_ros.model.explain import removal_effects
-from stars_ros.node.markers import robot_pose_in, heading_yaw, to_rep103
+from stars_ros.data.frames import heading_yaw, robot_pose_in, to_rep103
 
 MATPLOTLIB = 'matplotlib==3.11.2'  # requirements.txt's pin
 

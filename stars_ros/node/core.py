@@ -7,7 +7,7 @@ questions (``questions``) and markers (``markers``). ``stars_ros.ros.ranker`` de
 parameters, turns messages into the text this class takes and publishes the text it gives.
 
 One thread (the node's executor) calls ``RankerCore``; the state store's thread
-(``recording.state_store``) commits feedback and people, and the recorder's flushes the bag,
+(``stars_ros.state``) commits feedback and people, and the recorder's flushes the bag,
 so the disk never holds up the rankings. ``work`` scores one batch of
 queued requests with one model snapshot, else re-solves one user who gave feedback, so the
 ranking of others waits for at most one solve; ``reload`` runs between two batches, so every
@@ -27,7 +27,8 @@ from typing import Callable, Mapping
 from stars_ros import feedback_auth, messages
 from stars_ros import recording
 from stars_ros.node import markers
-from stars_ros.errors import CheckpointError, StarsError
+from stars_ros.errors import CheckpointError, StarsError, StoreError
+from stars_ros.state import StateStore, check_score
 from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
 from stars_ros.model.predictor import Predictor
@@ -104,8 +105,9 @@ class RankerCore:
     def _open_store(self, node_name: str):
         if self.record_folder is None:
             return None
-        store = recording.StateStore(self.record_folder, node_name, self._on_store_error, self.logger.info,
-                                     self.params['flush_interval'])
+        store = StateStore(self.record_folder, node_name, self._on_store_error, self.logger.info,
+                           self.params['flush_interval'], on_feedback_committed=self._committed,
+                           on_progress=self.logger.info)
         for imported in store.imported:
             self.logger.info(f'imported {imported} into {store.path} (the files are kept as they were)')
         return store
@@ -121,7 +123,7 @@ class RankerCore:
         try:
             for bag in recording.abandoned_bags(folder):
                 self.logger.warning(f'recovered {bag} left by a hard kill: {recording.recover(bag)}')
-        except (OSError, ValueError) as error:
+        except (OSError, ValueError, StoreError) as error:
             self.report('recording', f'could not recover old bags in {folder}: {error}')
         qos = {self.topics[topic]: recording.qos_profile(depth, latched)
                for topic, (depth, latched) in topic_qos(self.params).items()
@@ -230,6 +232,11 @@ class RankerCore:
             self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
             return False
+        try:  # before the store: a score off the scale is neither stored nor folded in
+            check_score(feedback.score, self.predictor.recommender.rating_scale, 'feedback score')
+        except StarsError as error:
+            self.report(messages.error_kind(error), f'feedback refused, not stored: {error}', topic, feedback.scene_id)
+            return False
         log_time = self._now()
         if self.store is None:
             self.report('recording', 'feedback accepted but record_folder is empty: it is not stored', topic,
@@ -237,18 +244,16 @@ class RankerCore:
         elif not self.store.healthy:
             self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
                         feedback.scene_id)
-        refused, update = 'fold_in is off', None
-        if self.params['fold_in']:
-            started = self._clock()
-            refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time)
-            if refused is not None:
-                self.report('unknown_scene', refused, topic, feedback.scene_id)
-            elif self.store is not None:
-                update = self.personalisation.update(feedback.user_id)
-            self._fold_in_spans.add(started, self._clock())
-        if self.store is not None:
-            self.store.put_feedback({'topic': topic, 'log_time': log_time, 'data': text},
-                                    self.recorder.name if self.recorder is not None else '', update, self._committed)
+        journal = None if self.store is None else (
+            {'topic': topic, 'log_time': log_time, 'data': text}, self.recorder.name if self.recorder is not None else '')
+        if not self.params['fold_in']:
+            self.personalisation.record_feedback(journal)
+            return False
+        started = self._clock()
+        refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time, journal)
+        if refused is not None:
+            self.report('unknown_scene', refused, topic, feedback.scene_id)
+        self._fold_in_spans.add(started, self._clock())
         return refused is None
 
     def accept_user_model(self, text: str) -> bool:
@@ -344,11 +349,21 @@ class RankerCore:
             self._publish_model(solved[0])
 
     def _publish_model(self, user_id: str):
+        """Send ``user_id``'s served model to peers, subscribers and the bag once the store
+        has committed the ratings it was solved from: nobody sees a model a hard kill could
+        take back (their own rankings use it at once)."""
         message = self.personalisation.model_message(user_id)
-        if message is not None:
-            payload = messages.dumps(message)
+        if message is None:
+            return
+        payload, log_time = messages.dumps(message), self._now()
+
+        def publish():
             self._publish('stars/user_model', payload)
-            self.record('stars/user_model', payload)
+            self.record('stars/user_model', payload, log_time)
+        if self.store is None:
+            publish()
+        else:
+            self.store.when_committed(self.personalisation.durable_after(user_id), publish)
 
     def _serve(self, batch: list):
         predictor, top_k = self.predictor, self.params['top_k']
@@ -412,6 +427,7 @@ class RankerCore:
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
         if self.store is not None:  # first: what it commits reaches the bag before the bag closes
+            self.personalisation.flush()
             for entry in self.store.close():
                 self.logger.error(f'feedback that could not be stored: {entry}')
         if self.recorder is not None:

@@ -19,9 +19,8 @@ import math
 import struct
 from dataclasses import dataclass
 
-import numpy as np
-
-from stars_ros.data.scene_graph import CENTIMETRES_PER_METRE, entity_nodes
+from stars_ros.data.frames import heading_yaw, robot_pose_in, to_rep103
+from stars_ros.data.scene_graph import entity_nodes
 from stars_ros.recording.bag import CDR_LITTLE_ENDIAN
 
 KIND_COLOURS = {'robot': (0.2, 0.3, 0.9, 1.0), 'room': (0.6, 0.6, 0.6, 1.0), 'human': (1.0, 0.75, 0.1, 1.0),
@@ -49,43 +48,6 @@ class Marker:
     color: tuple = (1.0, 1.0, 1.0, 1.0)
     points: tuple = ()
     label: str = ''
-
-
-def to_rep103(x_cm: float, y_cm: float) -> tuple:
-    """A SocNav1 point (cm, +y ahead, +x right) in REP 103 metres (x forward, y left)."""
-    return y_cm / CENTIMETRES_PER_METRE, -x_cm / CENTIMETRES_PER_METRE
-
-
-def heading_yaw(degrees: float) -> float:
-    """A SocNav1 orientation (degrees; the entity faces (sin θ, −cos θ)) as a REP 103 yaw in (−π, π]."""
-    yaw = math.radians(degrees) + math.pi
-    return math.atan2(math.sin(yaw), math.cos(yaw))
-
-
-def robot_pose_in(reference: dict, scene: dict) -> tuple:
-    """(x cm, y cm, rotation rad) of ``scene``'s robot in ``reference``'s frame (SocNav1 axes):
-    the least-squares rigid motion carrying the points both share (humans and objects by id,
-    room corners by index when both rooms have as many) from ``scene`` onto ``reference``.
-    With one shared point it is a shift; with none, the robot is where the reference's is."""
-    def points(s):
-        found = {('e', e['id']): (e['xPos'], e['yPos']) for e in (s.get('humans') or []) + (s.get('objects') or [])}
-        if len(s['room']) == len(reference['room']):
-            found.update({('r', k): tuple(p) for k, p in enumerate(s['room'])})
-        return found
-    ours, theirs = points(scene), points(reference)
-    shared = [k for k in ours if k in theirs]
-    if not shared:
-        return 0.0, 0.0, 0.0
-    a = np.array([ours[k] for k in shared], dtype=np.float64)
-    b = np.array([theirs[k] for k in shared], dtype=np.float64)
-    ca, cb = a.mean(0), b.mean(0)
-    rotation = 0.0
-    if len(shared) > 1:
-        m = (a - ca).T @ (b - cb)
-        rotation = math.atan2(m[0, 1] - m[1, 0], m[0, 0] + m[1, 1])
-    c, s = math.cos(rotation), math.sin(rotation)
-    shift = cb - np.array([[c, -s], [s, c]]) @ ca
-    return float(shift[0]), float(shift[1]), rotation
 
 
 def _effect_style(base: tuple, effect: float | None, largest: float) -> tuple:

@@ -20,12 +20,13 @@ from pathlib import Path
 import numpy as np
 from mcap.exceptions import McapError
 
-from stars_ros import messages, recording
+from stars_ros import messages, recording, state
 from stars_ros.data.ratings import RatingData
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore, TabularStore
-from stars_ros.errors import StarsError
-from stars_ros.personalisation.foldin import rating_from_feedback, scene_digest
+from stars_ros.errors import OutOfScaleError, StarsError
+from stars_ros.personalisation.foldin import rating_from_feedback
+from stars_ros.state import check_score, scene_digest
 
 USED_TOPICS = ('stars/scene', 'stars/feedback', 'stars/user_model')
 OTHER_STARS_TOPICS = ('stars/ranking', 'stars/errors', 'stars/user_id')
@@ -137,7 +138,7 @@ def read_state(folder, predictor) -> LogRatings:
     """Each person's own ratings in the state store of ``folder`` (oldest first), and the
     λ of their stored model; peers' ratings are in the peers' logs and stores."""
     found = LogRatings(read='state store')
-    with recording.open_reader(folder) as store:
+    with state.open_reader(folder) as store:
         found.files.append(str(store.path))
         if store.fingerprint not in (None, predictor.fingerprint):
             found.problem('people of another checkpoint', f'{store.path} holds people solved against '
@@ -148,11 +149,24 @@ def read_state(folder, predictor) -> LogRatings:
                 if rating.action not in predictor.actions:
                     found.problem('unknown action', f"{store.path}: '{rating.action}' ({person.user_id})")
                     continue
+                if not _on_scale(rating.score, predictor, found, f'{store.path} ({person.user_id})'):
+                    continue
                 found.ratings.setdefault(person.user_id, []).append(rating)
             found.dropped[person.user_id] = person.dropped
             if person.model is not None:
                 found.regularisation[person.user_id] = person.model.regularisation
     return found
+
+
+def _on_scale(score: float, predictor, found: LogRatings, where: str) -> bool:
+    """False, and an ``out_of_scale`` problem naming the scale, for a score off the
+    checkpoint's rating scale: it is not refit on."""
+    try:
+        check_score(score, predictor.rating_scale)
+    except OutOfScaleError as error:
+        found.problem('out_of_scale', f'{where}: {error}')
+        return False
+    return True
 
 
 def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) -> None:
@@ -163,6 +177,8 @@ def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) ->
         return
     if feedback.action is not None and feedback.action not in predictor.actions:
         found.problem('unknown action', f"{log}: '{feedback.action}' (scene {feedback.scene_id})")
+        return
+    if not _on_scale(feedback.score, predictor, found, f'{log} ({feedback.user_id}, scene {feedback.scene_id})'):
         return
     request = scenes.get(feedback.scene_id)
     if request is None:

@@ -8,8 +8,8 @@ import sqlite3
 import pytest
 
 from stars_ros import messages
-from stars_ros import recording
-from core_harness import Node, SteppedClock, make_core
+from stars_ros import recording, state
+from core_harness import Node, SteppedClock, drain, make_core
 from waiting import wait_for
 from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
@@ -145,7 +145,7 @@ def test_a_clean_close_leaves_feedback_rankings_and_users_on_disk(tiny_checkpoin
     for topic in ('/stars/scene', '/stars/ranking', '/stars/feedback', '/stars/user_model', '/stars/errors'):
         assert topic in recorded, topic
     assert recorded.count('/stars/scene') == 2
-    with recording.open_reader(tmp_path) as store:
+    with state.open_reader(tmp_path) as store:
         assert [p['person'] for p in store.summary()] == ['newcomer']
         assert [json.loads(e['data'])['user_id'] for e in store.feedback(core.recorder.name)] == ['newcomer']
     offered = recording.bag_topics(core.recorder.path)
@@ -208,7 +208,7 @@ def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
 def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_once_it_has_room(
         tiny_checkpoint, scenes, tmp_path, monkeypatch):
     """SQLite's own 'database or disk is full' (max_page_count stands in for the disk)."""
-    from stars_ros.recording import state_store
+    from stars_ros.state import store as state_store
     connections, connect = [], sqlite3.connect
     monkeypatch.setattr(state_store.sqlite3, 'connect',
                         lambda *args, **kwargs: connections.append(connect(*args, **kwargs)) or connections[-1])
@@ -228,16 +228,72 @@ def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_onc
             break
     assert 'database or disk is full' in node.on('stars/errors')[-1]['message']
     assert core.diagnostics()[2]['feedback_not_on_disk'] >= 1
-    while core.work():  # the fold-in goes on: the models are served and published
+    while core.work():  # the fold-in goes on: the models are served to their own people
         pass
     _scene(core, scenes[1], f'person-{len(sent) - 1}')
     core.work()
     assert node.on('stars/ranking')[-1]['personalised_from'] == 1
+    with state.open_reader(tmp_path) as store:  # nobody else sees a model solved from feedback not stored
+        stored = {p.user_id for p in store.people()}
+    assert {m['user_id'] for m in node.on('stars/user_model')} <= stored
     writer.execute('PRAGMA max_page_count = 1000000')  # room again
     assert wait_for(lambda: core.diagnostics()[2]['feedback_not_on_disk'] == 0, 30)
+    assert wait_for(lambda: {m['user_id'] for m in node.on('stars/user_model')} == {
+        f'person-{k}' for k in range(len(sent))}, 30), 'the models were not published once stored'
     core.close()
     assert [text for topic, text, _ in recording.read_messages(core.recorder.path) if topic == '/stars/feedback'] == sent
-    with recording.open_reader(tmp_path) as store:
+    with state.open_reader(tmp_path) as store:
         people = store.people()
     assert [p.user_id for p in people] == [f'person-{k}' for k in range(len(sent))]
     assert all(len(p.ratings) == 1 and p.solved for p in people)
+
+
+def _feedback(scene, user_id, score=0.5):
+    return messages.dumps({'user_id': user_id, 'scene_id': scene['identifier'], 'action': 'navigate', 'score': score})
+
+
+def test_a_model_is_seen_by_nobody_else_before_the_feedback_it_was_solved_from_is_committed(
+        tiny_checkpoint, scenes, tmp_path):
+    """The store's writer held between the solve and its commit (another connection holds
+    the database's write lock): a kill then would lose the feedback, and nothing of that
+    person has gone out; their own rankings already use it."""
+    node = Node()
+    core = make_core(node, tiny_checkpoint, record_folder=str(tmp_path), flush_interval=60.0)
+    _scene(core, scenes[0], 'ann')
+    core.work()
+    blocker = sqlite3.connect(tmp_path / state.DATABASE, isolation_level=None)
+    blocker.execute('BEGIN IMMEDIATE')
+    assert core.accept_feedback(_feedback(scenes[0], 'ann'))
+    drain(core)  # solved
+    _scene(core, scenes[1], 'ann')
+    core.work()
+    assert node.on('stars/ranking')[-1]['personalised_from'] == 1  # her own next ranking uses it
+    with state.open_reader(tmp_path) as store:  # what a kill now would leave
+        assert store.summary() == [] and store.feedback() == []
+    assert node.on('stars/user_model') == []
+    blocker.execute('ROLLBACK')  # the commit goes through: now others see her model
+    assert wait_for(lambda: node.on('stars/user_model'), 30)
+    assert node.on('stars/user_model')[0]['user_id'] == 'ann'
+    blocker.close()
+    core.close()
+    assert [json.loads(text)['user_id'] for topic, text, _ in recording.read_messages(core.recorder.path)
+            if topic == '/stars/user_model'] == ['ann']
+
+
+def test_a_score_off_the_rating_scale_is_refused_and_leaves_the_store_as_it_was(tiny_checkpoint, scenes, tmp_path):
+    node = Node()
+    core = make_core(node, tiny_checkpoint, record_folder=str(tmp_path))
+    low, high = core.predictor.recommender.rating_scale
+    _scene(core, scenes[0], 'ann')
+    core.work()
+    assert core.accept_feedback(_feedback(scenes[0], 'ann', high + 79)) is False  # a raw 0-100 score
+    assert core.accept_feedback(_feedback(scenes[0], 'ann', low - 0.5)) is False
+    refusals = [e for e in node.on('stars/errors') if e['kind'] == 'out_of_scale']
+    assert len(refusals) == 2 and f'rating scale [{low:g}, {high:g}]' in refusals[0]['message']
+    assert refusals[0]['topic'] == '/stars/feedback'
+    drain(core)
+    assert not core.personalisation.pending and core.predictor.user_model('ann') is None
+    core.close()
+    with state.open_reader(tmp_path) as store:
+        assert store.summary() == [] and store.feedback() == []
+    assert '/stars/feedback' not in {topic for topic, _, _ in recording.read_messages(core.recorder.path)}

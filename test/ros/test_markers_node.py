@@ -21,7 +21,8 @@ from stars_ros import messages, recording
 from stars_ros.data.scene_graph import entity_nodes
 from stars_ros.data.scene_source import placement_candidates, scene_request
 from stars_ros.model.predictor import Predictor
-from stars_ros.node.markers import encode_marker_array, scene_markers, to_rep103
+from stars_ros.data.frames import to_rep103
+from stars_ros.node.markers import encode_marker_array, scene_markers
 from stars_ros.ros.markers import message_definition
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')

@@ -13,7 +13,7 @@ import pytest
 from offline_training import refit
 from ros_helpers import RELIABLE, RosClient, domain_id, stored_feedback, start_node, stop
 from waiting import wait_for
-from stars_ros import recording
+from stars_ros import recording, state
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
@@ -99,7 +99,7 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
             expected = reference.rank(USER, scene, scene_id=scene['identifier'])[0].score
             assert abs(_score(after[scene['identifier']]) - expected) < TOLERANCE
         assert stop(process, signal.SIGINT) == 0
-        with recording.open_reader(records) as store:
+        with state.open_reader(records) as store:
             assert [(p['person'], p['ratings'], p['solved']) for p in store.summary()] == [(USER, 5, True)]
 
         # offline refit of the log, user mode
@@ -131,7 +131,7 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
         client.feedback({'user_id': USER, 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 0.0})
         assert client.wait(lambda: any(m['fingerprint'] == fingerprint for m in models), 20)
         assert stop(process, signal.SIGINT) == 0
-        with recording.open_reader(records) as store:  # only the feedback the refit did not absorb
+        with state.open_reader(records) as store:  # only the feedback the refit did not absorb
             assert store.fingerprint == fingerprint and [(p['person'], p['ratings']) for p in store.summary()] == [
                 (USER, 1)]
 
@@ -175,7 +175,7 @@ def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, sce
         if process.poll() is None:
             process.kill()
         client.close()
-    with recording.open_reader(tmp_path) as store:
+    with state.open_reader(tmp_path) as store:
         assert store.summary() == [] and len(store.feedback()) == 1
 
 
@@ -204,7 +204,7 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
         if process.poll() is None:
             process.kill()
         client.close()
-    with recording.open_reader(tmp_path) as store:
+    with state.open_reader(tmp_path) as store:
         assert [(p['person'], p['ratings'], p['dropped']) for p in store.summary()] == [('other', 1, 0)]
 
 
