@@ -9,8 +9,9 @@
     recommender.save('model.pt'); StarsRecommender.load('model.pt', data=data)
 
 Also: ``predict_batch`` (many (user, scene, action) at once), ``rank_scenes`` (candidate
-scenes, e.g. robot placements, best first), ``test`` (held-out figures on data rows), and
-``score_sd`` / ``why`` on predictions and rankings (``uncertainty=True``, ``explain=True``).
+scenes, e.g. robot placements, best first), ``test`` (held-out figures on data rows),
+``refit`` (folded-in or logged users made trained ones), and ``score_sd`` / ``why`` on
+predictions and rankings (``uncertainty=True``, ``explain=True``).
 
 A *scene* is either a scene id the data knew, as written in its files (a string), or a
 scene's content: a scene-graph dict (msg_schemas/scene_graph.schema.json) for graph models,
@@ -20,7 +21,8 @@ b_i, not their content. A checkpoint does not store the scenes' content: a graph
 scenes are the data set itself (SocNav1's are thousands of annotated scenes, under their own
 licence), and a prediction, a ``why`` and a fold-in all need that content, not an id. So a
 model loaded without ``data`` takes scenes as content, and an id raises UnknownSceneError
-saying to pass ``data``.
+saying to pass ``data``. (The node meets the same limit the same way: a scene request
+carries its graph, and its scene id only selects the trained q_i, b_i.)
 
 ``predict`` returns a ``Prediction``: a ``float`` (the score on the rating scale, clipped to
 it), so it adds and compares as one, carrying Surprise's fields ``user``, ``scene``,
