@@ -309,8 +309,8 @@ class RankerCore:
         elif not self.store.healthy:
             self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
                         feedback.scene_id)
-        journal = None if self.store is None else (
-            {'topic': topic, 'log_time': log_time, 'data': text}, self.recorder.name if self.recorder is not None else '')
+        bag = self.recorder.name if self.recorder is not None else ''
+        journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text}, bag)
         if not self.params['fold_in']:
             self.personalisation.record_feedback(journal)
             return False
