@@ -450,11 +450,11 @@ class RankerCore:
         message = self.personalisation.model_message(user_id)
         if message is None:
             return
-        payload, log_time = messages.dumps(message), self._now()
+        payload = messages.dumps(message)
 
-        def publish():
+        def publish():  # logged when it goes out
             self._publish('stars/user_model', payload)
-            self.record('stars/user_model', payload, log_time)
+            self.record('stars/user_model', payload)
         if self.store is None:
             publish()
         else:
