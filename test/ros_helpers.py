@@ -27,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from stars_ros import recording, state
+from stars_ros import state
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]

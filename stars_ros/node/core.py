@@ -244,8 +244,8 @@ class RankerCore:
         elif not self.store.healthy:
             self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
                         feedback.scene_id)
-        journal = None if self.store is None else (
-            {'topic': topic, 'log_time': log_time, 'data': text}, self.recorder.name if self.recorder is not None else '')
+        bag = self.recorder.name if self.recorder is not None else ''
+        journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text}, bag)
         if not self.params['fold_in']:
             self.personalisation.record_feedback(journal)
             return False
@@ -355,11 +355,11 @@ class RankerCore:
         message = self.personalisation.model_message(user_id)
         if message is None:
             return
-        payload, log_time = messages.dumps(message), self._now()
+        payload = messages.dumps(message)
 
-        def publish():
+        def publish():  # logged when it goes out
             self._publish('stars/user_model', payload)
-            self.record('stars/user_model', payload, log_time)
+            self.record('stars/user_model', payload)
         if self.store is None:
             publish()
         else:

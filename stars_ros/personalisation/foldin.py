@@ -37,7 +37,7 @@ from scipy import linalg
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.model.model import UNKNOWN
 from stars_ros.personalisation.prior import UserPrior, prior_of
-from stars_ros.state.person import Rating, UserModel, scene_digest
+from stars_ros.state.person import Rating, UserModel
 
 DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
 DEFAULT_CACHE_SCENES = 4096
