@@ -31,7 +31,7 @@ from stars_ros.hri.people import People, Served, UntrackedPerson
 from stars_ros.hri.poses import PoseSource
 from stars_ros.hri.scene import (BuiltScene, Interactions, SceneSettings, build_scene, person_frame,
                                  scene_request)
-from stars_ros.node.batching import Problems
+from stars_ros.node.diagnostics import Problems
 
 SENT_SCENES = 1000  # scenes whose served person is remembered for stars/executed
 
