@@ -57,10 +57,11 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'explain': (False, "give every ranking entry its 'why' (the parts of its score and the entities that drive it, "
                 'docs/explanations.md), as a request with "explain": true does', False, None),
     'explain_entities': (5, "entities a 'why' names, largest |effect| first; 0: all", False, (0, 4096)),
-    'frame_id': ('base_link', "frame of stars/markers: the robot's, REP 103 axes (the scene converted from SocNav1 "
-                 'centimetres, docs/explanations.md)', False, None),
-    'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag even while nobody '
-                       'subscribes to it; false: markers are built only for a subscriber', False, None),
+    'frame_id': ('base_link', "the robot's frame, REP 103 axes: that of stars/markers (the scene converted from "
+                 'SocNav1 centimetres, docs/explanations.md) and the one typed scenes must be in (docs/interfaces.md)',
+                 False, None),
+    'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag; they are published '
+                       'latched either way, so a viewer that joins later gets the latest', False, None),
     'record_folder': (str(recording.default_folder() / recording.NODE_PLACEHOLDER), 'folder for the MCAP bags and '
                       'the state store (state.db), one node each; {node} stands for the node\'s namespace and name '
                       '(robot1/ranker); default $ROS_HOME/stars_ros/records/{node} (ROS_HOME: ~/.ros unless set); '
@@ -114,8 +115,8 @@ class RankerCore:
             stars/errors or stars/user_model.
         logger: takes ``info``, ``warning`` and ``error`` lines.
         now (callable): the time recorded messages are logged at (ns of ROS time).
-        markers_out (optional): where stars/markers go: ``subscribed()`` (does anybody listen?),
-            ``publish(data)`` (a visualization_msgs/MarkerArray's CDR bytes) and ``message_type``
+        markers_out (optional): where stars/markers go: ``publish(data)`` (a
+            visualization_msgs/MarkerArray's CDR bytes, latched) and ``message_type``
             (``recording.MessageType``, for the bag); None: no markers.
     """
 
@@ -269,6 +270,19 @@ class RankerCore:
             return
         self.queue.append(Pending(request, request.user_id or self.user_id, received, text, log_time))
 
+    def rank_now(self, text: str, received: int) -> tuple:
+        """Score one stars/scene request at once, as the queue's next batch would (a service
+        call, between two batches): (its stars/ranking payload, None), or (None, (kind,
+        message)) once the refusal is on stars/errors. The ranking is recorded, not published."""
+        try:
+            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
+            return None, (error.kind, str(error))
+        self.personalisation.scenes.received(request.scene_id, text)
+        return self._serve([Pending(request, request.user_id or self.user_id, received, text, self._now())],
+                           publish=False)[0]
+
     def accept_user_id(self, text: str):
         try:
             self.user_id = messages.parse_user_id(text)
@@ -353,20 +367,36 @@ class RankerCore:
         self.questions.append(request)
         return True
 
-    def _answer_question(self, request: messages.QuestionRequest):
+    def question_now(self, text: str) -> tuple:
+        """Answer one stars/question_request at once (a service call): (its stars/question
+        payload, None), or (None, (kind, message)) once the refusal is on stars/errors. The
+        answer is recorded, not published."""
+        try:
+            request = messages.parse_question_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/question_request'])
+            return None, (error.kind, str(error))
+        self.record('stars/question_request', text)
+        return self._answer_question(request, publish=False)
+
+    def _answer_question(self, request: messages.QuestionRequest, publish: bool = True) -> tuple:
+        """(the stars/question payload, None) or (None, (kind, message)); ``publish``: it goes
+        out on stars/question."""
         try:
             answer = choose_question(self.personalisation, request.user_id, list(request.candidates),
                                      self.params['question_recent_scenes'])
         except NoQuestion as error:
             self.report('no_question', str(error), self.topics['stars/question_request'])
-            return
+            return None, ('no_question', str(error))
         except StarsError as error:
-            self.report(messages.error_kind(error), f'question request refused: {error}',
-                        self.topics['stars/question_request'])
-            return
+            kind, detail = messages.error_kind(error), f'question request refused: {error}'
+            self.report(kind, detail, self.topics['stars/question_request'])
+            return None, (kind, detail)
         payload = messages.dumps(answer)
-        self._publish('stars/question', payload)
+        if publish:
+            self._publish('stars/question', payload)
         self.record('stars/question', payload)
+        return answer, None
 
     def _warn_once(self, peer: str, value, detail: str):
         if (peer, value) not in self._peers_reported:
@@ -445,7 +475,10 @@ class RankerCore:
             self._publish('stars/user_model', payload)
             self.record('stars/user_model', payload)
 
-    def _serve(self, batch: list):
+    def _serve(self, batch: list, publish: bool = True) -> list:
+        """Score ``batch``; per request (its ranking payload, None) or (None, (kind, message)).
+        ``publish``: the rankings go out on stars/ranking."""
+        outcomes = []
         predictor, top_k = self.predictor, self.params['top_k']
         started = time.time_ns()
         uncertainty = self.personalisation.uncertainty
@@ -455,13 +488,16 @@ class RankerCore:
             if isinstance(result, Exception):
                 self.record('stars/scene', item.text, item.log_time)
                 self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
+                outcomes.append((None, (messages.error_kind(result), str(result))))
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
             processing_ms = max(0, time.time_ns() - item.received) / 1e6
             payload = messages.dumps(messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
                 result.action, personalised, result.p_first_is_best))
-            self._publish('stars/ranking', payload)
+            if publish:
+                self._publish('stars/ranking', payload)
+            outcomes.append((payload, None))
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
             self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
             self.record('stars/ranking', payload)
@@ -470,22 +506,18 @@ class RankerCore:
             self.problems.ranked()
             if item.user_id is not None and not known and not personalised:
                 self._report_stranger(item.user_id, request.scene_id)
+        return outcomes
 
     def _send_markers(self, request, ranked: list):
-        """stars/markers of a ranked request, after its reply (off its latency), built only
-        when somebody subscribes or the bag records them."""
+        """stars/markers of a ranked request, after its reply (off its latency): published
+        even while nobody listens, so the latched latest array reaches a viewer that joins later."""
         out = self.markers_out
         if out is None:
             return
-        record = self.recorder is not None and self.params['record_markers']
-        subscribed = out.subscribed()
-        if not (record or subscribed):
-            return
         stamp = self._now()
         data = markers.encode_marker_array(markers.ranking_markers(request, ranked), self.params['frame_id'], stamp)
-        if subscribed:
-            out.publish(data)
-        if record:
+        out.publish(data)
+        if self.recorder is not None and self.params['record_markers']:
             self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
 
     def _report_stranger(self, user_id: str, scene_id: str):
