@@ -492,12 +492,13 @@ class RankerCore:
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
             processing_ms = max(0, time.time_ns() - item.received) / 1e6
-            payload = messages.dumps(messages.ranking_payload(
+            reply = messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
-                result.action, personalised, result.p_first_is_best))
+                result.action, personalised, result.p_first_is_best)
+            payload = messages.dumps(reply)
             if publish:
                 self._publish('stars/ranking', payload)
-            outcomes.append((payload, None))
+            outcomes.append((reply, None))
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
             self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
             self.record('stars/ranking', payload)
