@@ -10,7 +10,7 @@ from geometry_msgs import msg as geometry
 from stars_ros_msgs import msg as typed
 from stars_ros_msgs.srv import ChooseQuestion, RankActions, RankCandidates
 
-from ros_helpers import RosClient, domain_id, running_ranker, start_node
+from ros_helpers import RosClient, call_service as call, domain_id, running_ranker, start_node
 from waiting import wait_for
 from stars_ros.data.scene_source import placement_candidates, read_scenes, scene_request
 from stars_ros.model.predictor import Predictor
@@ -19,17 +19,6 @@ from stars_ros.typed_messages import scene_message
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
 KNOWN_USER = 'b'  # in the tiny checkpoint's training rows
 FRAME = 'base_link'  # the ranker's default frame_id
-
-
-def call(client: RosClient, kind, name: str, request, timeout: float = 30.0):
-    service = client.node.create_client(kind, name)
-    try:
-        assert service.wait_for_service(timeout_sec=timeout), f'{name} not available'
-        future = service.call_async(request)
-        assert wait_for(future.done, timeout), f'{name} did not answer'
-        return future.result()
-    finally:
-        client.node.destroy_client(service)
 
 
 def rank_actions(client, scene_id, scene, user_id='', frame=FRAME, **fields):
