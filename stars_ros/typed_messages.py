@@ -91,13 +91,20 @@ def rank_candidates_text(request, robot_frame: str) -> str:
     return _scene_request(payload, request.user_id, request.explain)
 
 
+def feedback_fields(feedback) -> dict:
+    """The fields of a typed ``Feedback``'s JSON twin, ``auth`` aside: what a signer signs
+    (``feedback_auth.mac(secret, feedback_fields(msg), stamp)`` is its ``auth_mac``)."""
+    fields = {'user_id': feedback.user_id, 'scene_id': feedback.scene_id, 'score': float(feedback.score)}
+    fields.update({key: value for key in ('action', 'candidate') if (value := getattr(feedback, key))})
+    return fields
+
+
 def feedback_text(feedback) -> str:
     """The stars/feedback JSON twin of a typed ``Feedback`` (with ``auth`` when signed)."""
-    scene_id = feedback.scene_id or None
     if not math.isfinite(feedback.score):
-        raise messages.BadMessage('non_finite', f'feedback score {feedback.score} is not a finite number', scene_id)
-    payload = {'user_id': feedback.user_id, 'scene_id': feedback.scene_id, 'score': float(feedback.score)}
-    payload.update({key: value for key in ('action', 'candidate') if (value := getattr(feedback, key))})
+        raise messages.BadMessage('non_finite', f'feedback score {feedback.score} is not a finite number',
+                                  feedback.scene_id or None)
+    payload = feedback_fields(feedback)
     if feedback.auth_key_id:
         payload['auth'] = {'key_id': feedback.auth_key_id, 'stamp': int(feedback.auth_stamp),
                            'mac': feedback.auth_mac}
