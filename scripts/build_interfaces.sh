@@ -1,34 +1,43 @@
 #!/usr/bin/env bash
-# Build the ROS interface packages named on the command line (folders holding an
-# ament_cmake package.xml, e.g. interfaces/stars_ros_msgs) into .venv from PyPI wheels alone
-# (requirements-interfaces.txt), so a plain .venv/bin/python imports them with nothing to
-# source. A no-op while the pins and the packages' files are unchanged.
-# Steps and why: /work/shared/notes/ros-interfaces.md (the wheels' CMake exports name the
-# wheel builder's Python and numpy include folders: they are rewritten to the venv's once).
+# Build ament_cmake interface packages (.msg/.srv) into .venv from PyPI wheels alone, so a
+# plain .venv/bin/python imports them with nothing to source (../shared/notes/ros-interfaces.md).
+# Usage: scripts/build_interfaces.sh PACKAGE_DIR...   (paths from the repository root)
+# Each package is rebuilt only when its files change (a stamp per package in .venv); a ROS
+# workspace builds the same packages with colcon instead (docs/interfaces.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-VENV=${VENV:-$PWD/.venv}
+VENV=$(pwd)/.venv
 PY=$VENV/bin/python
-[ "$#" -gt 0 ] || { echo "usage: $0 PACKAGE_FOLDER..." >&2; exit 2; }
-stamp=$VENV/.stars_ros-interfaces
-want=$( (cat requirements-interfaces.txt; for pkg in "$@"; do (cd "$pkg" && find . -type f | LC_ALL=C sort | xargs sha256sum); done) | sha256sum | cut -d' ' -f1)
-if [ "$(cat "$stamp" 2>/dev/null)" = "$want" ]; then
-  exit 0
+stamp=$VENV/.stars_ros-interface-wheels
+want=$(sha256sum requirements-interfaces.txt | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  "$PY" -m pip install --quiet -r requirements-interfaces.txt
+  # The wheels' CMake exports name the wheel builder's Python and numpy headers; CMake refuses
+  # them until they name this interpreter's own.
+  python_include=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
+  numpy_include=$("$PY" -c "import numpy; print(numpy.get_include())")
+  for file in "$VENV"/share/*/cmake/export_*__rosidl_generator_pyExport.cmake; do
+    sed -i -E "s#/opt/python/[^/;\"]+/include/python3\.[0-9]+#${python_include}#g; \
+s#/opt/python/[^/;\"]+/lib/python3\.[0-9]+/site-packages/numpy/_core/include#${numpy_include}#g" "$file"
+  done
+  echo "$want" > "$stamp"
 fi
-"$PY" -m pip install --quiet -r requirements-interfaces.txt
-include=$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
-numpy_include=$("$PY" -c 'import numpy; print(numpy.get_include())')
-for export in "$VENV"/share/*/cmake/export_*__rosidl_generator_pyExport.cmake; do
-  [ -f "$export" ] || continue
-  # every foreign Python include folder (/opt/python/cp3XX-.../include/python3.X) and numpy include folder
-  sed -i -E "s#/[^;\" ]*/site-packages/numpy/(_core|core)/include#${numpy_include}#g; s#/opt/python/[^;\" ]*/include/python3\.[0-9]+#${include}#g" "$export"
+for package in "$@"; do
+  name=$(basename "$package")
+  package_stamp=$VENV/.stars_ros-interface-$name
+  digest=$(cd "$package" && find . -type f ! -name '*.pyc' | LC_ALL=C sort | xargs sha256sum | sha256sum | cut -d' ' -f1)
+  if [ "$(cat "$package_stamp" 2>/dev/null)" = "$digest" ] && "$PY" -c "import $name.msg" 2>/dev/null; then
+    continue
+  fi
+  build=$(mktemp -d)
+  trap 'rm -rf "$build"' EXIT
+  echo "building the interface package $name into $VENV"
+  cmake -S "$package" -B "$build" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
+    -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF > "$build/configure.log" 2>&1 \
+    || { cat "$build/configure.log" >&2; exit 1; }
+  cmake --build "$build" -j 2 > "$build/build.log" 2>&1 || { tail -50 "$build/build.log" >&2; exit 1; }
+  cmake --install "$build" > /dev/null
+  rm -rf "$build"
+  trap - EXIT
+  echo "$digest" > "$package_stamp"
 done
-for pkg in "$@"; do
-  name=$(basename "$pkg")
-  build=$VENV/build/$name
-  cmake -S "$pkg" -B "$build" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
-    -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >/dev/null
-  cmake --build "$build" -j "$(nproc)" >/dev/null
-  cmake --install "$build" >/dev/null
-done
-echo "$want" > "$stamp"
