@@ -131,6 +131,7 @@ class RankerCore:
         self.user_id, self.problems, self._strangers_reported = None, Problems(), set()
         self.queue = collections.deque()  # Pending requests
         self.questions = collections.deque()  # QuestionRequests waiting to be answered
+        self.replied = collections.deque()  # (Pending, reply, ranked) of rank_now: to record, markers to send
         self._fold_in_spans = BusySpans()  # when fold-in work was done (time.time_ns)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
@@ -273,7 +274,8 @@ class RankerCore:
     def rank_now(self, text: str, received: int) -> tuple:
         """Score one stars/scene request at once, as the queue's next batch would (a service
         call, between two batches): (its stars/ranking payload, None), or (None, (kind,
-        message)) once the refusal is on stars/errors. The ranking is recorded, not published."""
+        message)) once the refusal is on stars/errors. The ranking is not published; the next
+        ``work`` records it and sends its markers (call it once the reply is out)."""
         try:
             request = messages.parse_scene_request(text, self.params['max_message_bytes'])
         except messages.BadMessage as error:
@@ -436,6 +438,8 @@ class RankerCore:
         personalisation = self.personalisation
         pending, to_announce, intake = personalisation.pending, personalisation.to_announce, personalisation.intake
         try:
+            while self.replied:
+                self._after_reply(*self.replied.popleft())
             if self.queue:
                 self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
             elif self.questions:
@@ -495,19 +499,25 @@ class RankerCore:
             reply = messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
                 result.action, personalised, result.p_first_is_best)
-            payload = messages.dumps(reply)
             if publish:
-                self._publish('stars/ranking', payload)
+                self._publish('stars/ranking', messages.dumps(reply))
+                self._after_reply(item, reply, result.ranked)
+            else:  # the caller sends the reply: recording and markers wait for the next ``work``
+                self.replied.append((item, reply, result.ranked))
             outcomes.append((reply, None))
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
-            self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
-            self.record('stars/ranking', payload)
-            self._send_markers(request, result.ranked)
             self.personalisation.scenes.ranked(request.scene_id, item.text, predictor, result.h)
             self.problems.ranked()
             if item.user_id is not None and not known and not personalised:
                 self._report_stranger(item.user_id, request.scene_id)
         return outcomes
+
+    def _after_reply(self, item: Pending, reply: dict, ranked: list):
+        """What follows a ranking's reply, off its latency: the request and the ranking
+        recorded, the markers sent."""
+        self.record('stars/scene', item.text, item.log_time)
+        self.record('stars/ranking', messages.dumps(reply))
+        self._send_markers(item.request, ranked)
 
     def _send_markers(self, request, ranked: list):
         """stars/markers of a ranked request, after its reply (off its latency): published
@@ -535,6 +545,10 @@ class RankerCore:
     def close(self):
         """Record the requests never scored, commit what waits for the state store, close
         the store and the recording (clean shutdown)."""
+        while self.replied:  # answered by rank_now since the last work
+            item, reply, _ = self.replied.popleft()
+            self.record('stars/scene', item.text, item.log_time)
+            self.record('stars/ranking', messages.dumps(reply))
         for item in self.queue:  # in the log even though they were never scored
             self.record('stars/scene', item.text, item.log_time)
         if self.queue:

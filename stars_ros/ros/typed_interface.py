@@ -54,6 +54,7 @@ class TypedInterface:
             text, refusal = self._twin(lambda r: convert(r, frame), request, self._names[name])
             payload, refusal = (None, refusal) if text is None else self.core.rank_now(text, received)
             if payload is not None:
+                self.more_work()  # the recording and markers, once the response is out
                 response.ranking = typed_messages.ranking_message(payload, typed)
                 response.ranking.header.stamp = self.node.get_clock().now().to_msg()
                 response.ranking.header.frame_id = frame
