@@ -14,7 +14,9 @@ ROS = 'ROS'  # provided by a ROS install (requirements-rclpy.txt on a machine wi
 LIBRARIES = {
     'rclpy': ('rclpy', ROS), 'rcl_interfaces': ('rcl_interfaces', ROS), 'std_msgs': ('std_msgs', ROS),
     'std_srvs': ('std_srvs', ROS), 'diagnostic_msgs': ('diagnostic_msgs', ROS),
-    'visualization_msgs': ('visualization_msgs', ROS),
+    'visualization_msgs': ('visualization_msgs', ROS), 'geometry_msgs': ('geometry_msgs', ROS),
+    'lifecycle_msgs': ('lifecycle_msgs', ROS),  # rclpy.lifecycle's (the managed ranker)
+    'stars_ros_msgs': ('stars_ros_msgs', ROS),  # this repository's interfaces/stars_ros_msgs, built beside it
     'ament_index_python': ('ament_index_python', ROS), 'launch': ('launch', ROS), 'launch_ros': ('launch_ros', ROS),
     'numpy': ('python3-numpy', 'numpy'), 'yaml': ('python3-yaml', 'pyyaml'), 'pandas': ('python3-pandas', 'pandas'),
     'pydantic': ('python3-pydantic', 'pydantic'), 'scipy': ('python3-scipy', 'scipy'),
@@ -31,7 +33,7 @@ TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python
                   'rosbags': (None, 'rosbags'),
                   'sros2': ('sros2', ROS),  # a ROS package (ros-jazzy-sros2); its tests skip without it
                   'lxml': ('python3-lxml', ROS),  # sros2's own dependency, with it from a ROS install
-                  'geometry_msgs': ('geometry_msgs', ROS), 'builtin_interfaces': ('builtin_interfaces', ROS)}
+                  'builtin_interfaces': ('builtin_interfaces', ROS)}
 OWN = {'stars_ros', 'offline_training', *(path.stem for path in (REPO / 'test').rglob('*.py'))}  # test helpers too
 
 
