@@ -102,8 +102,9 @@ class RankerParts:
         # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
         # cores the executor, the DDS threads and the node's neighbours need
         threadpool_limits(1, user_api='blas')
+        durability = {True: DurabilityPolicy.TRANSIENT_LOCAL, False: DurabilityPolicy.VOLATILE}
         self.qos = {topic: QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-                                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+                                      durability=durability[latched])
                     for topic, (depth, latched) in topic_qos(self.params).items()}
         sharing = self.params['fleet_sharing']
         self.publishers_by_topic = {
@@ -121,24 +122,18 @@ class RankerParts:
                                MarkerOutput(markers_pub, type_hash))
 
     def _activate(self):
-        qos = self.qos
-        self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, qos['stars/scene'])
-        self._serving = [self._scene_subscription]
-        self._serving.append(self.create_subscription(String, 'stars/user_id',
-                                                      lambda msg: self.core.accept_user_id(msg.data),
-                                                      qos['stars/user_id']))
-        self._serving.append(self.create_subscription(String, 'stars/feedback', self._on_feedback,
-                                                      qos['stars/feedback']))
-        self._serving.append(self.create_subscription(String, 'stars/question_request', self._on_question_request,
-                                                      qos['stars/question_request']))
+        callbacks = {'stars/scene': self._on_scene, 'stars/user_id': lambda msg: self.core.accept_user_id(msg.data),
+                     'stars/feedback': self._on_feedback, 'stars/question_request': self._on_question_request}
         if self.params['fleet_sharing']:
-            self._serving.append(self.create_subscription(String, 'stars/user_model', self._on_user_model,
-                                                          qos['stars/user_model']))
-        self._serving.append(self.create_service(Trigger, '~/reload', self._on_reload))
-        self._serving.append(self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics))
+            callbacks['stars/user_model'] = self._on_user_model
+        subscriptions = {topic: self.create_subscription(String, topic, callback, self.qos[topic])
+                         for topic, callback in callbacks.items()}
+        self._scene_subscription = subscriptions['stars/scene']
         self._more_work = self.create_guard_condition(self._work)
-        self._serving.append(self._more_work)
-        self._serving += TypedInterface(self, self.core, self.params, self._more_work.trigger).entities
+        self._serving = [*subscriptions.values(), self._more_work,
+                         self.create_service(Trigger, '~/reload', self._on_reload),
+                         self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics),
+                         *TypedInterface(self, self.core, self.params, self._more_work.trigger).entities]
 
     def _deactivate(self):
         """Stop serving: every subscription, service, timer and guard condition of ``_activate`` goes."""
@@ -154,7 +149,6 @@ class RankerParts:
         for publisher in self._configured:
             self.destroy_publisher(publisher)
         self._configured, self.core = (), None
-
 
     def _on_parameters_set(self, parameters):
         """Apply what rclpy accepted: the descriptors have checked type, range and read-only."""
