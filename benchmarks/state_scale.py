@@ -1,16 +1,17 @@
 """The ranker's state store at scale: what one update writes and costs, how long a restart
 takes, and what feedback for stored people costs other users' rankings, for stores of
-50 × 5, 1,000 × 20 and 1,000 × 200 people × ratings of real SocNav1 scenes.
+50 × 5, 1,000 × 20 and 1,000 × 200 people × ratings of real SocNav1 scenes (``--sizes``: also 10,000 × 200),
+and how long importing a state file of an earlier version takes.
 
     python benchmarks/state_scale.py [--checkpoint models/socnav1_gat_stars.pt] \
         [--data-root ../shared/datasets/socnav1] [--out results/state_scale.json]
 
-For each size a store is filled (``state_store.write_people``: every person with a solved
+For each size a store is filled (``state.write_people``: every person with a solved
 model and covariance of the served checkpoint, their ratings of scenes drawn from the data)
 and then, in this process:
   * update: ``--updates`` times, one stored person's next rating arrives (the oldest leaves
     when they hold their maximum) with their new model, queued with its feedback as the node
-    queues it (``put_feedback``) and waited for until committed, one at a time: the time to
+    queues it (``write_person``) and waited for until committed, one at a time: the time to
     commit (p50/p99), the executor's share (building the update and queueing it), and the
     bytes this process handed to the kernel per update (/proc/self/io wchar: WAL frames and
     the checkpoints that copy them into the database);
@@ -46,7 +47,8 @@ from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
 from stars_ros.personalisation.online import Personalisation  # noqa: E402
-from stars_ros.recording.state_store import PersonUpdate, StateStore, write_people  # noqa: E402
+from stars_ros.state import migration  # noqa: E402
+from stars_ros.state.store import PersonUpdate, StateStore, write_people  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 
 SIZES = ((50, 5), (1000, 20), (1000, 200))
@@ -91,9 +93,9 @@ def measure_updates(folder: Path, predictor, model, scenes: list, updates: list,
         current[person.user_id] = update
         done.clear()
         before = written_bytes()
-        store.put_feedback({'topic': '/stars/feedback', 'log_time': k, 'data': json.dumps(
-            {'user_id': person.user_id, 'scene_id': f's{k}', 'action': 'navigate', 'score': rating.score})}, 'bench',
-            update, lambda entry: done.set())
+        entry = {'topic': '/stars/feedback', 'log_time': k, 'data': json.dumps(
+            {'user_id': person.user_id, 'scene_id': f's{k}', 'action': 'navigate', 'score': rating.score})}
+        store.when_committed(store.write_person(update, [(entry, 'bench')]), done.set)
         executor.append((time.perf_counter() - started) * 1e3)
         if not done.wait(30):
             raise TimeoutError('an update was never committed')
@@ -119,6 +121,34 @@ def measure_restart(folder: Path, checkpoint: str, max_ratings: int, people: int
             'people_served': len(predictor.user_models), 'waiting_to_be_solved': len(personalisation.pending)}
 
 
+def write_legacy_file(folder: Path, fingerprint: str, updates: list) -> int:
+    """``user_models.json`` as an earlier version kept ``updates`` (``migration``); its bytes."""
+    users = {u.user_id: {**u.model.to_json(), 'ratings_dropped': u.dropped, 'ratings': [r.to_json() for r in u.ratings],
+                         'peer_ratings': []} for u in updates}
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / migration.STATE_FILE
+    path.write_text(json.dumps({'format': migration.FORMAT, 'version': 1, 'fingerprint': fingerprint, 'users': users}))
+    return path.stat().st_size
+
+
+def measure_migration(folder: Path, checkpoint: str, max_ratings: int, people: int) -> dict:
+    """Open a store on a folder holding only a legacy state file (it is imported) and
+    restore it, as the node's start does."""
+    progress = []
+    started = time.perf_counter()
+    store = StateStore(folder, 'state_scale', on_error=print,
+                       on_progress=lambda text: progress.append((round(time.perf_counter() - started, 3), text)))
+    opened = time.perf_counter()
+    predictor = Predictor.load(checkpoint)
+    personalisation = Personalisation(predictor, max_ratings, max(people, 1000), lambda kind, text: print(text),
+                                      store=store)
+    personalisation.restore()
+    restored = time.perf_counter()
+    store.close()
+    return {'import_s': opened - started, 'import_load_restore_s': restored - started, 'imported': store.imported,
+            'people_served': len(predictor.user_models), 'progress': progress}
+
+
 def fold_in_work(diagnostics: list) -> dict:
     """What the node's /diagnostics said of its fold-in over ``diagnostics``: its turns of
     work (a solve, or a step of building a restored person's rows), the longest, and the
@@ -135,7 +165,8 @@ def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domai
     from ros_helpers import RosClient, start_node
     client = RosClient(domain)
     started = time.perf_counter()
-    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': folder},
+    process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': folder,
+                                                          'fold_in_max_users': max(people, 1000)},
                          folder.parent / f'{folder.name}.log')
     try:
         client.wait_ready(process, 300, {'scene_id': 'ready', 'graph': scenes[0]})
@@ -195,6 +226,8 @@ def main(argv=None) -> int:
     parser.add_argument('--requests-per-block', type=int, default=100)
     parser.add_argument('--paced-period', type=float, default=0.05)
     parser.add_argument('--feedback-rate', type=float, default=50.0)
+    parser.add_argument('--max-legacy-ratings', type=int, default=500000,
+                        help='measure the import of a legacy state file for sizes of at most this many ratings')
     parser.add_argument('--out', default=str(REPO / 'results' / 'state_scale.json'))
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in size.split('x')) for size in args.sizes.split(',')]
@@ -220,6 +253,10 @@ def main(argv=None) -> int:
             shutil.copytree(folder, Path(work) / f'node-{name}')  # as filled: every model solved from its ratings
             figures['update'] = measure_updates(folder, predictor, model, scenes, updates, args.updates, ratings, rng)
             figures['restart_in_process'] = measure_restart(folder, checkpoint, ratings, people)
+            if people * ratings <= args.max_legacy_ratings:
+                legacy = Path(work) / f'legacy-{name}'
+                figures['legacy_file_bytes'] = write_legacy_file(legacy, predictor.fingerprint, updates)
+                figures['migration_in_process'] = measure_migration(legacy, checkpoint, ratings, people)
             results['sizes'][name] = figures
             print(f"{name}: {figures['database_bytes'] / 1e6:.1f} MB; update: commit p50 "
                   f"{figures['update']['commit_ms']['p50']:.2f} ms p99 {figures['update']['commit_ms']['p99']:.2f} ms, "

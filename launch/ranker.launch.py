@@ -23,7 +23,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
 
-from stars_ros.node.core import PARAMETERS
+from stars_ros.node.parameters import PARAMETERS
 from stars_ros.ros.launch_arguments import parameter_value
 
 LOG_LEVELS = ['debug', 'info', 'warn', 'error', 'fatal']

@@ -24,9 +24,10 @@ import os
 import re
 import stat
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 from stars_ros.errors import ConfigError
+from stars_ros.state.person import check_score
 
 KEY_ID = re.compile(r'[A-Za-z0-9._-]{1,64}')
 MAC = re.compile(r'[0-9a-f]{64}')
@@ -86,9 +87,12 @@ def mac(secret: bytes, fields: Mapping, stamp: int) -> str:
     return hmac.new(secret, canonical(fields, stamp), hashlib.sha256).hexdigest()
 
 
-def sign(fields: Mapping, key_id: str, secret: bytes, stamp: int) -> dict:
+def sign(fields: Mapping, key_id: str, secret: bytes, stamp: int, scale: Sequence[float] | None = None) -> dict:
     """The feedback ``fields`` with the ``auth`` that key ``key_id`` gives them at ``stamp``
-    (ROS time, ns): the payload to publish on stars/feedback."""
+    (ROS time, ns): the payload to publish on stars/feedback. With the checkpoint's rating
+    ``scale`` (low, high), a score outside it is not signed: OutOfScaleError."""
+    if scale is not None and 'score' in fields:
+        check_score(float(fields['score']), scale, 'feedback score')
     unsigned = {key: value for key, value in fields.items() if key != 'auth'}
     return {**unsigned, 'auth': {'key_id': key_id, 'stamp': int(stamp), 'mac': mac(secret, unsigned, stamp)}}
 

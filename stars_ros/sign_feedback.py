@@ -7,7 +7,9 @@ prints the message with its ``"auth"`` (stamped now, ROS time without simulated 
 for ``ros2 topic pub --once stars/feedback std_msgs/msg/String "{data: '...'}"``. With more
 than one key in the file, ``--key-id`` says which signs. A program signs with
 ``stars_ros.feedback_auth.sign`` instead (docs/security.md). The message is checked against
-msg_schemas/feedback.schema.json first.
+msg_schemas/feedback.schema.json first, and its score against the rating scale of the
+checkpoint the ranker serves (``--checkpoint``, default the packaged one): a score off it is
+not signed.
 """
 from __future__ import annotations
 
@@ -17,7 +19,9 @@ import sys
 import time
 
 from stars_ros import feedback_auth, messages
-from stars_ros.errors import ConfigError
+from stars_ros.errors import CheckpointError, ConfigError, OutOfScaleError
+from stars_ros.model.checkpoint import read_checkpoint
+from stars_ros.resources import DEFAULT_CHECKPOINT, resolve_checkpoint
 
 
 def main(argv=None) -> int:
@@ -27,6 +31,8 @@ def main(argv=None) -> int:
                         'its own key)')
     parser.add_argument('--key-id', help='the key to sign with; needed when the file holds more than one')
     parser.add_argument('--stamp', type=int, help='signing time in ns of ROS time (default: now)')
+    parser.add_argument('--checkpoint', default='', help='the checkpoint the ranker serves, whose rating scale the '
+                        f'score must lie on (default: the packaged {DEFAULT_CHECKPOINT})')
     args = parser.parse_args(argv)
     try:
         keys = feedback_auth.load_keys(args.key_file)
@@ -45,8 +51,16 @@ def main(argv=None) -> int:
         messages.check('feedback', fields)
     except messages.BadMessage as error:
         parser.exit(2, f'error: {error}\n')
+    try:
+        scale = read_checkpoint(resolve_checkpoint(args.checkpoint))['metadata'].get('rating_scale')
+    except CheckpointError as error:
+        parser.exit(2, f'error: {error}\n')
     stamp = time.time_ns() if args.stamp is None else args.stamp
-    print(json.dumps(feedback_auth.sign(fields, key_id, keys[key_id], stamp), separators=(',', ':')))
+    try:
+        signed = feedback_auth.sign(fields, key_id, keys[key_id], stamp, scale)
+    except OutOfScaleError as error:
+        parser.exit(2, f'error: not signed: {error}\n')
+    print(json.dumps(signed, separators=(',', ':')))
     return 0
 
 

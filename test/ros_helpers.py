@@ -27,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from stars_ros import recording
+from stars_ros import state
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -106,6 +106,11 @@ class RosClient:
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self._spinner.start()
+
+    def snapshot(self, store: list) -> list:
+        """A copy of ``store`` (one of this client's lists) taken while no callback adds to it."""
+        with self._changed:
+            return list(store)
 
     def collect(self, topic: str, qos) -> list:
         """A list that gathers the JSON of every std_msgs/String on ``topic`` (``wait`` sees it grow)."""
@@ -190,7 +195,7 @@ def stored_feedback(bag: Path) -> list:
     """The feedback messages of recording ``bag`` that the state store beside it has
     committed now: what the ranker counts as stored (a positive sign that it took them in)."""
     try:
-        with recording.open_reader(bag.parent) as store:
+        with state.open_reader(bag.parent) as store:
             return [json.loads(entry['data']) for entry in store.feedback(bag.name)]
     except FileNotFoundError:
         return []

@@ -29,6 +29,14 @@ def workspace(tmp_path_factory):
 BASE_PATHS = ('--base-paths', 'src', 'src/stars_ros/interfaces')
 
 
+@pytest.fixture(scope='module')
+def built(workspace):
+    """``colcon build`` of both packages run once in the workspace; every test that reads the
+    install tree asks for it, so none depends on running after another."""
+    return colcon(workspace, 'build', *BASE_PATHS, '--event-handlers', 'console_direct-', '--cmake-args',
+                  f'-DPython3_EXECUTABLE={sys.executable}', '-DBUILD_TESTING=OFF')
+
+
 def colcon(workspace, *args):
     return subprocess.run([str(BIN / 'colcon'), *args], cwd=workspace, env=_env(), capture_output=True, text=True,
                           timeout=900)
@@ -52,12 +60,10 @@ def test_colcon_sees_an_ament_python_package(workspace):
         ['stars_ros', '(ros.ament_python)'], ['stars_ros_msgs', '(ros.ament_cmake)']]
 
 
-def test_colcon_build_installs_what_ros2_run_needs(workspace):
-    built = colcon(workspace, 'build', *BASE_PATHS, '--event-handlers', 'console_direct-', '--cmake-args',
-                   f'-DPython3_EXECUTABLE={sys.executable}', '-DBUILD_TESTING=OFF')
+def test_colcon_build_installs_what_ros2_run_needs(workspace, built):
     assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
-    for executable in ('ranker', 'managed_ranker', 'scene_publisher', 'replay'):
+    for executable in ('ranker', 'managed_ranker', 'scene_publisher', 'replay', 'sign_feedback', 'recording'):
         path = prefix / 'lib' / 'stars_ros' / executable
         assert path.is_file() and os.access(path, os.X_OK), path
     share = prefix / 'share'
@@ -74,9 +80,10 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
     assert installed.requires == ['setuptools', *filter(None, pins)]  # install_requires, as pip would see them
 
 
-def test_source_install_setup_bash_finds_the_built_package(workspace):
+def test_source_install_setup_bash_finds_the_built_package(workspace, built):
     """README: `source install/setup.bash` after `colcon build`; colcon writes setup.bash only
     with colcon-bash installed (requirements-dev.txt), else sourcing fails: no such file."""
+    assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
     code = 'import stars_ros.resources as r; print(r.__file__); print(r.share_path("launch/ranker.launch.py"))'
     env = _env()
@@ -90,9 +97,10 @@ def test_source_install_setup_bash_finds_the_built_package(workspace):
     assert module.startswith(str(prefix)) and launch_file.startswith(str(prefix / 'share' / 'stars_ros'))
 
 
-def test_both_packages_import_from_the_install_space(workspace):
+def test_both_packages_import_from_the_install_space(workspace, built):
     """The typed messages and the node's adapter of them come from install/, not from the
     venv this test runs in (which has stars_ros_msgs built into it too)."""
+    assert built.returncode == 0, built.stdout + built.stderr
     code = ('import stars_ros_msgs.srv as s, stars_ros.ros.typed_interface as t; '
             'from rclpy.serialization import serialize_message; '
             'serialize_message(s.RankActions.Request()); print(s.__file__); print(t.__file__)')
@@ -104,9 +112,10 @@ def test_both_packages_import_from_the_install_space(workspace):
     assert adapter.startswith(str(workspace / 'install' / 'stars_ros')), adapter
 
 
-def test_installed_ranker_finds_its_packaged_files(workspace):
+def test_installed_ranker_finds_its_packaged_files(workspace, built):
     """The built package resolves the default checkpoint and schemas from its share/
     folder (the way it does under `ros2 run`), not from this checkout."""
+    assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
     site = next((prefix / 'lib').glob('python3*/site-packages'))
     code = ('from stars_ros.resources import resolve_checkpoint, share_path; '

@@ -18,7 +18,8 @@ import pytest
 from mutations import mutate
 from stars_ros import feedback_auth, messages, recording
 from stars_ros.data.scene_source import scene_request
-from stars_ros.errors import ConfigError
+from stars_ros.errors import ConfigError, OutOfScaleError
+from stars_ros.model.predictor import Predictor
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 from core_harness import Node, deliver, drain, published_models
 
@@ -375,9 +376,17 @@ def test_the_signer_prints_what_the_ranker_takes(tiny_checkpoint, synthetic_scen
     assert refused.returncode == 2 and 'say which with --key-id' in refused.stderr
     invalid = subprocess.run(command + ['--key-id', 'old', '{"user_id": "x"}'], capture_output=True, text=True)
     assert invalid.returncode == 2 and "feedback needs either 'action'" in invalid.stderr
-    signed = subprocess.run(command + ['--key-id', 'old', '--stamp', str(T0), fields], capture_output=True,
+    served = ['--checkpoint', str(tiny_checkpoint)]
+    signed = subprocess.run(command + served + ['--key-id', 'old', '--stamp', str(T0), fields], capture_output=True,
                             text=True, check=True).stdout
     assert json.loads(signed)['auth']['key_id'] == 'old'
+    low, high = Predictor.load(tiny_checkpoint).recommender.rating_scale
+    off_scale = json.dumps({**_feedback(scene), 'score': high + 79})  # a raw 0-100 score on a smaller scale
+    unsigned = subprocess.run(command + served + ['--key-id', 'old', off_scale], capture_output=True, text=True)
+    assert unsigned.returncode == 2 and unsigned.stdout == ''
+    assert f'outside the rating scale [{low:g}, {high:g}]' in unsigned.stderr
+    with pytest.raises(OutOfScaleError, match='outside the rating scale'):
+        feedback_auth.sign({**_feedback(scene), 'score': high + 79}, 'old', b'k' * 32, T0, (low, high))
     node, core = _robot(tiny_checkpoint, Clock(), feedback_key_file=key_file)
     _rank(core, scene)
     assert core.accept_feedback(signed.strip()) is True

@@ -22,8 +22,8 @@ from __future__ import annotations
 import uuid
 from typing import Iterable, Sequence
 
-from stars_ros.personalisation.foldin import Rating
-from stars_ros.personalisation.histories import BoundedUsers, Deferred
+from stars_ros.state import Deferred, Rating
+from stars_ros.personalisation.histories import BoundedUsers
 
 
 def new_rating_id() -> str:

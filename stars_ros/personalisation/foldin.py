@@ -28,10 +28,7 @@ evaluation all use ``FoldIn``.
 from __future__ import annotations
 
 import collections
-import hashlib
-import json
 import threading
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -40,70 +37,10 @@ from scipy import linalg
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.model.model import UNKNOWN
 from stars_ros.personalisation.prior import UserPrior, prior_of
+from stars_ros.state.person import Rating, UserModel
 
 DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
 DEFAULT_CACHE_SCENES = 4096
-
-
-@dataclass(frozen=True)
-class Rating:
-    """One rating to fold in: ``scene`` is a scene-graph dict (or a tabular feature row),
-    ``score`` is on the model's rating scale, ``scene_id`` names a training scene whose q_i
-    applies (None for scenes the model never saw, e.g. candidate placements).
-
-    A ranker names each rating it accepts (``rating_id``, unique; ``stamp``, ROS time ns;
-    ``origin``, the node that accepted it), so that robots sharing ratings (``fleet``) count
-    each once and order them alike. With signed feedback (``feedback_auth``), ``feedback``
-    is the signed message it came from and ``rating_id`` its MAC, so peers can check it."""
-
-    scene: object
-    action: str
-    score: float
-    scene_id: str | None = None
-    rating_id: str = ''
-    stamp: int = 0
-    origin: str = ''
-    feedback: dict | None = None
-
-    def to_json(self) -> dict:
-        """The rating as stars/user_model's ``ratings`` hold it."""
-        scene = self.scene if isinstance(self.scene, dict) else [float(v) for v in self.scene]
-        values = {'id': self.rating_id, 'stamp': int(self.stamp), 'origin': self.origin, 'scene': scene,
-                  'action': self.action, 'score': float(self.score)}
-        if self.feedback is not None:
-            values['feedback'] = self.feedback
-        return values if self.scene_id is None else {**values, 'scene_id': self.scene_id}
-
-    @classmethod
-    def from_json(cls, values: dict, fallback_id: str = '') -> 'Rating':
-        """The rating of ``to_json``'s form; ``fallback_id`` names one written before ratings
-        had ids."""
-        return cls(values['scene'], values['action'], float(values['score']), values.get('scene_id'),
-                   values.get('id') or fallback_id, int(values.get('stamp', 0)), values.get('origin', ''),
-                   values.get('feedback'))
-
-
-@dataclass(frozen=True)
-class UserModel:
-    """A folded-in user: embedding ``p`` [dim] and offset ``b`` (float64), solved from
-    ``n_ratings`` ratings, by the Gaussian posterior (``regularisation`` 0) or the ridge
-    override λ; ``covariance`` [dim+1, dim+1] of θ = (p, b) (None: not known, e.g. restored
-    from an earlier version's state file until it is solved again)."""
-
-    p: np.ndarray
-    b: float
-    n_ratings: int
-    regularisation: float
-    covariance: np.ndarray | None = None
-
-    def to_json(self) -> dict:
-        return {'p_u': [float(v) for v in self.p], 'b_u': float(self.b), 'n_ratings': int(self.n_ratings),
-                'regularisation': float(self.regularisation)}
-
-    @classmethod
-    def from_json(cls, values: dict) -> 'UserModel':
-        return cls(np.asarray(values['p_u'], dtype=np.float64), float(values['b_u']), int(values['n_ratings']),
-                   float(values['regularisation']))
 
 
 def rating_from_feedback(feedback, request, predictor) -> Rating | str:
@@ -147,15 +84,6 @@ def solve_ridge(x: np.ndarray, y: np.ndarray, prior: np.ndarray, regularisation:
     return np.linalg.solve(gram, x.T @ np.asarray(y, dtype=np.float64) + regularisation * prior)
 
 
-def scene_digest(scene) -> str:
-    """Cache key of a scene's content (the same graph under two scene ids is encoded once)."""
-    if isinstance(scene, dict):
-        text = json.dumps(scene, sort_keys=True, separators=(',', ':'))
-    else:
-        text = json.dumps(np.asarray(scene, dtype=np.float64).tolist())
-    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
-
-
 class FoldIn:
     """Closed-form user fold-in against one trained model (see the module docstring).
 
@@ -178,17 +106,16 @@ class FoldIn:
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False,
                  prior: UserPrior | None = None):
-        recommender = predictor.recommender
-        model = recommender.require_model()
+        fitted = predictor.recommender
+        model = fitted.require_model()
         if not model.personalised:
             raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
         self.predictor = predictor
-        self.recommender = recommender
         self.inference = predictor.inference  # the weights and the scoring arithmetic, shared
-        self.actions = tuple(recommender.action_names)
+        self.actions = tuple(predictor.actions)
         self._action_index = {a: k for k, a in enumerate(self.actions)}
         self.dim = self.inference.dim
-        self.user_prior = prior_of(recommender, self.inference) if prior is None else prior
+        self.user_prior = prior_of(fitted, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
@@ -201,6 +128,13 @@ class FoldIn:
         gaussian_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
                            self._population_precision)  # a process's first LAPACK solve costs
         # milliseconds: paid at load, not by the first feedback
+
+    @property
+    def cached(self) -> tuple[int, int]:
+        """(scenes whose h_i is kept, ratings whose regression row is kept): both bounded by
+        ``cache_scenes``, least recently used dropped first."""
+        with self._lock:
+            return len(self._cache), len(self._rows)
 
     def _user_row(self, row) -> np.ndarray:
         """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
@@ -217,7 +151,7 @@ class FoldIn:
         """(mean, covariance, precision) of θ before any feedback: the trained row with the
         covariance of their training ratings for a person the checkpoint knows, else the
         population prior."""
-        row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        row = self.predictor.trained_row(user_id)
         prior = self.user_prior
         if row == UNKNOWN:
             return self.population.copy(), prior.covariance, self._population_precision
@@ -248,12 +182,12 @@ class FoldIn:
 
     def to_rating_scale(self, z, actions: np.ndarray) -> np.ndarray:
         """Scores of normalised predictions, clipped to the checkpoint's rating scale."""
-        return self.recommender.clip(self.inference.to_rating_scale(z, actions))
+        return self.predictor.clip(self.inference.to_rating_scale(z, actions))
 
     def design_from_h(self, h, scene_keys: Sequence, actions: np.ndarray) -> tuple:
         """(x [n, dim+1], c [n]) (float64) for ratings whose scenes are encoded as ``h``
         [n, dim]: ``InferenceModel.linear_form``, the model's z = xᵀθ + c."""
-        rows = self.recommender.scene_vocabulary.rows(list(scene_keys))
+        rows = self.predictor.scene_rows(list(scene_keys))
         return self.inference.linear_form(np.asarray(h, dtype=np.float64), rows, actions)
 
     def remember(self, scenes: Sequence, rows: np.ndarray) -> None:

@@ -9,15 +9,9 @@ from __future__ import annotations
 
 import collections
 import threading
-from typing import Callable, NamedTuple, Sequence
+from typing import Sequence
 
-from stars_ros.personalisation.foldin import Rating
-
-
-class Deferred(NamedTuple):
-    """A person's ratings not read yet: ``load()`` gives them ([Rating], oldest first)."""
-
-    load: Callable[[], list]
+from stars_ros.state.person import Deferred, Rating
 
 
 class BoundedUsers:

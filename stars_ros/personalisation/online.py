@@ -9,10 +9,16 @@ history (bounded: histories.FeedbackHistories), and the user waits in ``pending`
 calls ``solve_next`` when no scene waits, one user per turn, so the ranking of others waits
 for at most one solve (timings in docs/personalisation.md); a person with many ratings whose
 rows are not built yet (restored after a restart) has them built ``PREPARE_ROWS`` a turn. The result goes into the
-predictor's overlay (swapped whole) and into the state store (``recording.state_store``):
-each change queues that person's update, which the store's own thread writes, and a restart
-with the same checkpoint restores them. With fleet sharing (``fleet``), peers' ratings join
-a user's own and the model is solved from the union.
+predictor's overlay (swapped whole): the person's own next rankings use it at once.
+
+This module is the one writer of a person (``stars_ros.state``): each change of a person's
+ratings queues one write, with the feedback entry that brought it (one write per feedback),
+which the store's own thread commits. A solved model is written with that person's next
+write, and at ``flush`` (a clean shutdown); a restart with the same checkpoint serves the
+stored model when it was solved from exactly the stored ratings and solves anyone else
+again. ``durable_after(user)`` is the write the served model of a person was solved from:
+what others see of the model waits for its commit. With fleet sharing (``fleet``), peers'
+ratings join a user's own and the model is solved from the union.
 
 One thread (the node's executor) calls ``Personalisation``.
 """
@@ -25,11 +31,11 @@ from typing import Callable
 
 from stars_ros.personalisation import fleet
 from stars_ros import messages
-from stars_ros.recording.state_store import PersonUpdate
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.personalisation.uncertainty import Uncertainty
-from stars_ros.personalisation.foldin import FoldIn, Rating, UserModel, rating_from_feedback
+from stars_ros.personalisation.foldin import FoldIn, rating_from_feedback
 from stars_ros.personalisation.histories import FeedbackHistories
+from stars_ros.state import PersonUpdate, PersonWriter, Rating, UserModel, check_ratings
 
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
 PREPARE_ROWS = 8  # ratings' scenes encoded per call of solve_next: bounds how long one holds the executor
@@ -94,7 +100,7 @@ class Personalisation:
         max_users (int): folded-in users kept; beyond, the one who rated least recently goes.
         report (callable): ``report(kind, detail)``, called for each problem.
         logger (optional): gets ``info`` and ``warning`` lines (default: this module's logger).
-        store (recording.StateStore, optional): where people persist; None: nothing does.
+        store (state.PersonWriter, optional): where people persist; None: nothing does.
         scene_memory (int, optional): scene requests remembered for feedback.
         origin (str, optional): the node's name, which its ratings carry.
         sharing (bool, optional): fleet sharing: solve each user from their own and their
@@ -105,8 +111,8 @@ class Personalisation:
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
-                 logger=None, store=None, scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False,
-                 authenticator=None):
+                 logger=None, store: PersonWriter | None = None, scene_memory: int = SCENE_MEMORY, origin: str = '',
+                 sharing: bool = False, authenticator=None):
         self.histories = FeedbackHistories(max_ratings, max_users)
         self.peers = fleet.PeerRatings(max_ratings, max_users)
         self.origin, self.sharing, self.authenticator = origin, sharing, authenticator
@@ -115,6 +121,8 @@ class Personalisation:
         self.to_announce = collections.OrderedDict()  # users whose model peers are to be sent again
         self.intake = collections.deque()  # PeerIntake: peers' ratings being checked, oldest first
         self.solved_from = {}  # user -> the ratings their served model was solved from
+        self.written = {}  # user -> sequence number of their latest write to the store
+        self.unsaved = set()  # users whose served model the store does not hold yet
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
@@ -145,16 +153,19 @@ class Personalisation:
                 if user_id in self.histories or user_id in self.peers:
                     self._save(user_id)
                 else:
-                    self.store.forget(user_id)
+                    self._forget_stored(user_id)
 
     # -- feedback ------------------------------------------------------------------------
-    def add_feedback(self, feedback, max_bytes: int = messages.DEFAULT_MAX_BYTES, stamp: int = 0) -> str | None:
+    def add_feedback(self, feedback, max_bytes: int = messages.DEFAULT_MAX_BYTES, stamp: int = 0,
+                     journal: tuple[dict, str] | None = None) -> str | None:
         """Add the rating ``feedback`` (messages.Feedback) gives, received at ``stamp`` (ROS
         time, ns), to its user's history and queue the user for a solve; returns instead why
-        it cannot be folded in (the node reports that as ``unknown_scene``). The caller
-        stores the user's ``update`` with the feedback, in one transaction."""
+        it cannot be folded in (the node reports that as ``unknown_scene``). ``journal``
+        (the feedback entry and its recording) is written with the user's new rating, in one
+        write; refused, it is written alone."""
         rating = self._rating(feedback, max_bytes)
         if isinstance(rating, str):
+            self.record_feedback(journal)
             return rating
         signed = feedback.signed if self.authenticator is not None else None
         self._keep_solved_from(feedback.user_id)
@@ -162,7 +173,13 @@ class Personalisation:
                                      stamp=stamp, origin=self.origin, feedback=signed)
         self._forget(self.histories.add(feedback.user_id, rating))
         self.pending[feedback.user_id] = None
+        self._save(feedback.user_id, journal)
         return None
+
+    def record_feedback(self, journal: tuple[dict, str] | None) -> None:
+        """Journal feedback that changes nobody (not folded in)."""
+        if self.store is not None and journal is not None:
+            self.store.write_person(None, [journal])
 
     def _rating(self, feedback, max_bytes: int) -> Rating | str:
         """The Rating ``feedback`` gives, or why it cannot be folded in."""
@@ -186,6 +203,7 @@ class Personalisation:
         """Stage the ``ratings`` of a peer's stars/user_model message (fleet sharing) that this
         node does not hold yet; True when some wait in ``intake`` (call ``take_in_next``).
         UnknownActionError, and nothing is staged, when one names an action the model lacks;
+        OutOfScaleError when one's score lies outside the checkpoint's rating scale;
         with signed feedback, BadMessage ``auth`` when the message carries no ratings or one
         of the new ones fails ``check_rating``."""
         foldin = self.foldin
@@ -199,6 +217,7 @@ class Personalisation:
             new = list({e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}.values())
         except OverflowError:  # an integer the schema takes but no float holds: refused, not a crash
             raise messages.BadMessage('non_finite', 'a rating holds a number too large for a float') from None
+        check_ratings(new, self.predictor.recommender.rating_scale, user_id)
         for rating in new if self.authenticator is not None else ():
             refusal = self.authenticator.check_rating(user_id, rating)
             if refusal is not None:
@@ -305,7 +324,7 @@ class Personalisation:
         self.solved_from[user_id] = ratings
         self.predictor.set_user_model(user_id, model)
         self.to_announce.pop(user_id, None)  # the solve's own message carries it
-        self._save(user_id, solved=True)
+        self.unsaved.add(user_id)  # written with their next write or at flush: one write per feedback
         return user_id, model
 
     def _drop_unusable(self, foldin: FoldIn, user_id: str, ratings: list) -> list:
@@ -331,23 +350,46 @@ class Personalisation:
             self.predictor.set_user_model(user_id, None)
             self.peers.drop(user_id)
             self.solved_from.pop(user_id, None)
+            self.unsaved.discard(user_id)
             self._report('user_models', f"folded-in user '{user_id}' dropped: more than fold_in_max_users = "
                          f'{self.histories.max_users} users rated more recently (their feedback stays in '
                          'the MCAP log for the offline refit)')
-            if self.store is not None:
-                self.store.forget(user_id)
+            self._forget_stored(user_id)
 
     # -- the state store ---------------------------------------------------------------
-    def update(self, user_id: str, solved: bool = False) -> PersonUpdate:
-        """What the store is to hold of ``user_id`` now; ``solved``: their served model was
-        solved from exactly their ratings as they are."""
+    def _update(self, user_id: str) -> PersonUpdate:
+        """What the store is to hold of ``user_id`` now: ``solved`` when their served model
+        was solved from exactly their ratings as they are."""
         ratings, dropped = self.histories.ratings(user_id), self.histories.dropped(user_id)
+        solved_from = self.solved_from.get(user_id)
+        solved = solved_from is not None and [r.rating_id for r in solved_from] == [
+            r.rating_id for r in self.ratings(user_id)]
         return PersonUpdate(user_id, self.predictor.user_model(user_id), self.predictor.fingerprint, ratings, dropped,
                             self.peers.ratings(user_id), solved)
 
-    def _save(self, user_id: str, solved: bool = False) -> None:
+    def _save(self, user_id: str, journal: tuple[dict, str] | None = None) -> None:
+        """Write ``user_id`` as they are now, with the feedback entry that changed them."""
         if self.store is not None:
-            self.store.save_person(self.update(user_id, solved))
+            self.written[user_id] = self.store.write_person(self._update(user_id), [journal] if journal else [])
+            self.unsaved.discard(user_id)
+
+    def _forget_stored(self, user_id: str) -> None:
+        self.written.pop(user_id, None)
+        if self.store is not None:
+            self.store.forget_person(user_id)
+
+    def durable_after(self, user_id: str) -> int:
+        """The store's write that ``user_id``'s served model waits for before anyone else may
+        see it: the latest write of their ratings (0: nothing in flight)."""
+        return self.written.get(user_id, 0)
+
+    def flush(self) -> None:
+        """Write every served model the store does not hold yet (a clean shutdown), so that
+        the restart serves them without solving again."""
+        for user_id in list(self.unsaved):
+            if user_id in self.histories or user_id in self.peers:
+                self._save(user_id)
+        self.unsaved.clear()
 
     def restore(self) -> None:
         """Folded-in users of the last run, if they were solved against the served
@@ -363,7 +405,7 @@ class Personalisation:
             return
         evicted = set(self.histories.restore({p.user_id: (p.ratings, p.dropped) for p in people if p.ratings}))
         if self.authenticator is not None:  # a replay across a restart is still a replay
-            self.authenticator.remember(self.store.reader.signed_feedback())
+            self.authenticator.remember(self.store.signed_feedback())
         evicted.update(self.peers.restore({p.user_id: p.peer_ratings for p in people if p.peer_ratings}))
         current = self.predictor.fingerprint
         restored = {p.user_id: p.model for p in people
@@ -373,6 +415,6 @@ class Personalisation:
             p.user_id in restored and p.solved and p.model.covariance is not None)))
         for user_id in evicted:  # beyond fold_in_max_users now: gone, as an eviction would take them
             self.peers.drop(user_id)
-            self.store.forget(user_id)
+            self._forget_stored(user_id)
         self._logger.info(f'restored {len(restored)} folded-in users from {self.store.path}'
                           + (f' ({len(self.pending)} to solve again)' if self.pending else ''))

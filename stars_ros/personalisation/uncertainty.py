@@ -29,6 +29,8 @@ from typing import Sequence
 
 import numpy as np
 
+from stars_ros.state import loaded
+
 SAMPLES = 512  # draws of θ for p_first_is_best (fixed seed)
 
 
@@ -62,7 +64,7 @@ class Uncertainty:
         """Cov θ serving ``user_id``: their folded-in ``model``'s posterior when it has one,
         else their prior (trained row's, or the population's)."""
         if model is not None and model.covariance is not None:
-            return model.covariance
+            return loaded(model.covariance)
         return self.foldin.covariance(user_id)
 
     def spread(self, predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: Sequence[int]) -> Spread:

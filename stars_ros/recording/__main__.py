@@ -5,12 +5,12 @@ the store from the node that holds it."""
 import argparse
 import datetime
 import json
-import sqlite3
 import sys
 from pathlib import Path
 
 from stars_ros.recording.recovery import recover
-from stars_ros.recording.state_store import open_reader
+from stars_ros.errors import StoreError
+from stars_ros.state import open_reader
 
 
 def _time(seconds: float) -> str:
@@ -21,7 +21,7 @@ def show_state(folder: Path, as_json: bool) -> int:
     try:
         with open_reader(folder) as reader:
             meta, people, feedback = reader.meta(), reader.summary(), reader.feedback_count()
-    except (FileNotFoundError, sqlite3.Error) as error:
+    except (FileNotFoundError, StoreError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 1
     if as_json:
@@ -51,7 +51,11 @@ def main(argv=None) -> int:
     if args.command == 'state':
         return show_state(args.folder, args.json)
     for bag in args.bags:
-        print(f'{bag}: {recover(bag)}')
+        try:
+            print(f'{bag}: {recover(bag)}')
+        except StoreError as error:
+            print(f'error: {bag}: {error}', file=sys.stderr)
+            return 1
     return 0
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from stars_ros.errors import StarsError
-from stars_ros.node.core import PARAMETERS
+from stars_ros.node.parameters import PARAMETERS
 from stars_ros.ros import usage
 from stars_ros.ros.ranker import RankerParts, serve
 from stars_ros.ros.spinning import run_node

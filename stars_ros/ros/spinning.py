@@ -1,9 +1,12 @@
 """How the package's nodes run: ``rclpy.spin`` until a signal or a ROS shutdown, and the
-life of a node executable from ``rclpy.init`` to a clean shutdown."""
+life of a node executable from ``rclpy.init`` to a clean shutdown, bounded in time."""
 from __future__ import annotations
 
+import os
 import re
+import signal
 import sys
+import threading
 from typing import Callable
 
 import rclpy
@@ -13,6 +16,8 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import LoggingSeverity, get_logger, get_logger_level, set_logger_level
 
 USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
+DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
+CLOSE_WAIT_S = 12.0  # longest wait for ``close`` then (the state store joins its writer for up to 10 s)
 
 
 class CommandLineError(Exception):
@@ -80,11 +85,55 @@ def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown
         get_logger(name).fatal(str(error))
         raise SystemExit(1) from None
     finally:
+        _shut_down(name, node, close)
+
+
+class _Closing:
+    """``close(node)`` once, from whichever thread gets there first."""
+
+    def __init__(self, node, close: Callable | None):
+        self._node, self._close, self._lock, self._done = node, close, threading.Lock(), False
+
+    def __call__(self):
+        with self._lock:
+            if not self._done and self._node is not None and self._close is not None:
+                self._done = True
+                self._close(self._node)
+
+
+def _shut_down(name: str, node, close: Callable | None) -> None:
+    """Destroy ``node``, ``close(node)``, shut ROS down; a signal meanwhile is ignored (a
+    second Ctrl-C would otherwise raise KeyboardInterrupt inside ``destroy_node``). When the
+    middleware has not finished within DESTROY_WAIT_S (it has hung in Fast DDS's
+    ``set_listener`` at shutdown), a watchdog closes the node (the state store commits what
+    waits) and ends the process with status 0 once that is done or CLOSE_WAIT_S have passed."""
+    _ignore_signals()
+    closing, finished = _Closing(node, close), threading.Event()
+
+    def watchdog():
+        if finished.wait(DESTROY_WAIT_S):
+            return
+        closer = threading.Thread(target=closing, name='stars-close', daemon=True)
+        closer.start()
+        closer.join(CLOSE_WAIT_S)
+        print(f'{name}: the middleware did not shut down within {DESTROY_WAIT_S:g} s; '
+              + ('closed, ' if not closer.is_alive() else f'close did not finish within {CLOSE_WAIT_S:g} s, ')
+              + 'exiting', file=sys.stderr, flush=True)
+        os._exit(0)
+    threading.Thread(target=watchdog, name='stars-shutdown-watchdog', daemon=True).start()
+    try:
         if node is not None:
             node.destroy_node()
-            if close is not None:
-                close(node)
+        closing()
         rclpy.try_shutdown()
+        _ignore_signals()  # rclpy's shutdown puts back the handlers it found: Python's raises KeyboardInterrupt
+    finally:
+        finished.set()
+
+
+def _ignore_signals():
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, signal.SIG_IGN)
 
 
 def _usage_error(name: str, message: str):

@@ -12,7 +12,7 @@ from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.recording.state_store import PersonUpdate, write_people
+from stars_ros.state.store import PersonUpdate, write_people
 
 QOS = recording.qos_profile()
 
@@ -58,7 +58,7 @@ def test_user_mode_equals_the_closed_form_fold_in(tiny_checkpoint, scenes, tmp_p
     parent, child = Predictor.load(tiny_checkpoint), Predictor.load(out)
     foldin = FoldIn(parent)
     assert child.knows_user('newbie') and not parent.knows_user('newbie')
-    assert list(child.recommender.users[:len(parent.recommender.users)]) == list(parent.recommender.users)
+    assert list(child.users[:len(parent.users)]) == list(parent.users)
     probe = [s for s in scenes[12:18]]
     for user in ('newbie', 'a'):
         online = foldin.fit(expected[user], user, 0.5)
@@ -169,3 +169,17 @@ def test_full_mode_fine_tunes_from_the_user_solution(tiny_checkpoint, scenes, tm
     assert metadata['provenance']['refit']['mode'] == 'full'
     assert len(metadata['provenance']['refit']['fine_tune_losses']) == 2
     shutil.rmtree(bag)
+
+
+def test_a_score_off_the_rating_scale_in_a_bag_is_refused_naming_the_scale(tiny_checkpoint, scenes, tmp_path,
+                                                                           capsys):
+    low, high = Predictor.load(tiny_checkpoint).recommender.rating_scale
+    raw = json.dumps({'user_id': 'a', 'scene_id': 's3', 'action': 'navigate', 'score': high + 79})
+    bag, _ = _write_session(tmp_path, scenes, extra=[('/stars/feedback', raw)])
+    out = tmp_path / 'refit.pt'
+    assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(bag), '--out', str(out)]) == 0
+    report = capsys.readouterr().out
+    assert 'out_of_scale' in report and f'outside the rating scale [{low:g}, {high:g}]' in report
+    assert '13 usable ratings from 2 user(s)' in report  # the session's own, without it
+    _, metadata = load_checkpoint(out)
+    assert metadata['provenance']['refit']['ratings_per_user'] == {'newbie': 9, 'a': 4}

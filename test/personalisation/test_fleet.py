@@ -14,7 +14,7 @@ from stars_ros.personalisation.fleet import PeerRatings, solve_set
 from stars_ros.personalisation.foldin import Rating
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros import recording
+from stars_ros import state
 from core_harness import Node, deliver, drain, published_models
 
 USER = 'visitor'
@@ -170,6 +170,24 @@ def test_garbage_from_a_peer_is_reported_and_changes_nothing(tiny_checkpoint, sc
     assert np.array_equal(_served(robot_b), _served(robot_a))
 
 
+def test_a_peer_score_off_the_rating_scale_is_refused_and_leaves_the_store_as_it_was(tiny_checkpoint, scenes,
+                                                                                     tmp_path):
+    node_a, robot_a = _robot('robot_a', tiny_checkpoint)
+    node_b, robot_b = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
+    _rate(node_a, robot_a, scenes[0], 1.0)
+    _rate(node_a, robot_a, scenes[1], 0.5)
+    low, high = robot_b.predictor.recommender.rating_scale
+    payload = json.loads(published_models(node_a)[-1])
+    payload['ratings'][1]['score'] = high + 79  # a raw 0-100 score: a peer that took it unchecked
+    assert deliver([json.dumps(payload)], robot_b) == [False]
+    [error] = node_b.on('stars/errors')
+    assert error['kind'] == 'out_of_scale' and f'rating scale [{low:g}, {high:g}]' in error['message']
+    assert robot_b.predictor.user_model(USER) is None and node_b.on('stars/user_model') == []  # not passed on
+    robot_b.close()
+    with state.open_reader(tmp_path / 'b') as store:
+        assert store.summary() == []
+
+
 def test_a_restarted_robot_keeps_its_peers_ratings(tiny_checkpoint, scenes, tmp_path):
     node_a, robot_a = _robot('robot_a', tiny_checkpoint)
     node_b, robot_b = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
@@ -178,13 +196,14 @@ def test_a_restarted_robot_keeps_its_peers_ratings(tiny_checkpoint, scenes, tmp_
     deliver(published_models(node_a), robot_b)
     served = _served(robot_b)
     robot_b.close()
-    with recording.open_reader(tmp_path / 'b') as store:
+    with state.open_reader(tmp_path / 'b') as store:
         [person] = store.people()
     assert (len(person.ratings), len(person.peer_ratings), person.solved) == (1, 1, True)
     node_b2, robot_b2 = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
     assert not robot_b2.personalisation.pending  # served as stored: solved from the ratings stored with it
     assert np.array_equal(_served(robot_b2), served)
-    assert np.array_equal(robot_b2.predictor.user_model(USER).covariance, robot_b.predictor.user_model(USER).covariance)
+    assert np.array_equal(state.loaded(robot_b2.predictor.user_model(USER).covariance),
+                          robot_b.predictor.user_model(USER).covariance)  # read when first used
     assert [r.rating_id for r in robot_b2.personalisation.ratings(USER)] == [
         r.rating_id for r in robot_b.personalisation.ratings(USER)]
     assert deliver(published_models(node_a), robot_b2) == [False]  # known already: nothing was lost

@@ -16,7 +16,7 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from stars_ros import recording
+from stars_ros import recording, state
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TOPICS = {'/stars/scene': recording.qos_profile(), '/stars/user_id': recording.qos_profile(1, transient_local=True),
@@ -86,16 +86,16 @@ def test_rotation_by_size(tmp_path):
 
 KILLED_WRITER = textwrap.dedent('''
     import os, signal, sys, threading
-    from stars_ros import recording
+    from stars_ros import recording, state
     topics = {'/stars/scene': recording.qos_profile(), '/stars/feedback': recording.qos_profile()}
     recorder = recording.Recorder(sys.argv[1], topics, name='bag', rotation_bytes=16384, flush_interval=3600)
-    store = recording.StateStore(sys.argv[1], 'killed writer', on_error=sys.exit)
+    store = state.StateStore(sys.argv[1], 'killed writer', on_error=sys.exit)
     for k in range(400):
         recorder.write('/stars/scene', f'{k:04d}' + os.urandom(30).hex(), k)
     recorder.flush()  # what the flusher does every interval: all of the above is on disk
     committed = threading.Event()
-    store.put_feedback({'topic': '/stars/feedback', 'log_time': 10_000, 'data': '{"score": 1}'}, 'bag',
-                       on_commit=lambda entry: committed.set())
+    store.when_committed(store.write_person(None, [({'topic': '/stars/feedback', 'log_time': 10_000,
+                                                      'data': '{"score": 1}'}, 'bag')]), committed.set)
     committed.wait(30)  # in the store; the bag has it in memory only
     for k in range(5):
         recorder.write('/stars/scene', 'after the last flush', 20_000 + k)
@@ -151,12 +151,11 @@ def test_full_disk_is_reported_and_committed_feedback_reaches_the_bag_once_it_ca
     events = []
     recorder = recording.Recorder(tmp_path, TOPICS, name='bag', flush_interval=3600,
                                   on_event=lambda level, text: events.append((level, text)))
-    store = recording.StateStore(tmp_path, 'test', on_error=pytest.fail)
     committed = []
+    store = state.StateStore(tmp_path, 'test', on_error=pytest.fail, on_feedback_committed=lambda entry: (
+        committed.append(entry), recorder.write_feedback(entry['topic'], entry['data'], 2)))
     recorder.write('/stars/scene', 'lost with the full disk', 1)
-    store.put_feedback({'topic': '/stars/feedback', 'log_time': 2, 'data': '{"score": 0.1}'}, 'bag',
-                       on_commit=lambda entry: (committed.append(entry),
-                                                recorder.write_feedback(entry['topic'], entry['data'], 2)))
+    store.write_person(None, [({'topic': '/stars/feedback', 'log_time': 2, 'data': '{"score": 0.1}'}, 'bag')])
     assert store.close() == [] and len(committed) == 1
     recorder.flush()
     assert recorder.error and 'No space left' in recorder.error and events[0][0] == 'error'

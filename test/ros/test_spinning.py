@@ -1,4 +1,9 @@
-"""Nodes end cleanly when a signal shuts ROS down, whenever it lands."""
+"""Nodes end cleanly when a signal shuts ROS down, whenever it lands, and within a bound when
+the middleware hangs in their shutdown."""
+import signal
+import threading
+import types
+
 import pytest
 import rclpy
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -25,6 +30,15 @@ def test_a_wait_set_error_while_ros_runs_is_raised(monkeypatch):
     monkeypatch.setattr(rclpy, 'ok', lambda: True)
     with pytest.raises(_rclpy.RCLError):
         spinning.spin_until_shutdown(node=None)
+
+
+@pytest.fixture(autouse=True)
+def signal_handlers():
+    """run_node ignores signals while it shuts down: this process gets its own back."""
+    kept = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for number, handler in kept.items():
+        signal.signal(number, handler)
 
 
 class _Node:
@@ -56,3 +70,22 @@ def test_run_node_ends_cleanly_and_exits_1_on_a_fatal_error(monkeypatch, ending,
             spinning.run_node('test', lambda: node, run, (ValueError,), close=_Node.close)
         assert exited.value.code == status
     assert calls == ['init', 'shutdown'] and node.calls == ['destroyed', 'closed']
+
+
+def test_a_middleware_that_hangs_in_destroy_node_still_closes_and_exits(monkeypatch, capsys):
+    """The watchdog closes the node (its store commits) and ends the process, status 0."""
+    monkeypatch.setattr(rclpy, 'init', lambda args=None: None)
+    monkeypatch.setattr(spinning, 'DESTROY_WAIT_S', 0.01)
+    exited, released = [], threading.Event()
+
+    def exit_process(status):  # the process would end here: release the hung destroy_node instead
+        exited.append(status)
+        released.set()
+    monkeypatch.setattr(spinning, 'os', types.SimpleNamespace(_exit=exit_process))
+    node = _Node()
+    node.destroy_node = lambda: released.wait(60)  # Fast DDS busy in set_listener
+    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: None)
+    spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
+    assert exited == [0] and node.calls == ['closed']  # closed once, by the watchdog
+    assert 'test: the middleware did not shut down within 0.01 s; closed, exiting' in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # a second Ctrl-C meanwhile raises nothing

@@ -1,8 +1,10 @@
 """The ranker's state store with the node running for real: SIGKILLed at random moments of
 a feedback stream, round after round on one record folder, it keeps every feedback message
 it had stored (what it counts as accepted), each once, serves every person the model of all
-their stored ratings after the restart, and the bags hold the stored feedback, each once; a
-second ranker on a folder another holds is refused at start, naming the holder."""
+their stored ratings after the restart, and every person whose model it had published on
+stars/user_model comes back with at least the ratings that model was solved from; the bags
+hold the stored feedback, each once; a second ranker on a folder another holds is refused at
+start, naming the holder."""
 import json
 import random
 import signal
@@ -10,9 +12,10 @@ import time
 
 import pytest
 
+import ros_helpers
 from ros_helpers import RosClient, domain_id, start_node, stop, stored_feedback
 from waiting import wait_for
-from stars_ros import recording
+from stars_ros import recording, state
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter handling
 START_TIMEOUT = 90
@@ -32,7 +35,7 @@ def _start(domain, checkpoint, folder, log):
 
 def _stored(folder) -> list:
     """Every feedback message the store in ``folder`` has committed, as text, in commit order."""
-    with recording.open_reader(folder) as store:
+    with state.open_reader(folder) as store:
         return [entry['data'] for entry in store.feedback()]
 
 
@@ -48,6 +51,7 @@ def test_sigkill_during_feedback_keeps_every_stored_message_once(tiny_checkpoint
     domain = domain_id(16)
     rng = random.Random(25)
     client = RosClient(domain)
+    published = client.collect('/stars/user_model', ros_helpers.RELIABLE)  # what anybody could see
     acknowledged = []  # stored before a kill: the node had counted them as accepted
     sent = 0
     process = None
@@ -59,6 +63,9 @@ def test_sigkill_during_feedback_keeps_every_stored_message_once(tiny_checkpoint
             assert set(acknowledged) <= set(stored), 'feedback the node had stored is gone'
             assert len(stored) == len(set(stored)), 'feedback stored twice'
             expected = {p: sum(json.loads(text)['user_id'] == p for text in stored) for p in PEOPLE}
+            seen = {m['user_id']: max(n['n_ratings'] for n in published if n['user_id'] == m['user_id'])
+                    for m in list(published)}
+            assert all(expected[person] >= n for person, n in seen.items()), (seen, expected)
             # each person's model is solved from every stored rating (restored, or solved again)
             assert wait_for(lambda: _rank_all(client, scenes, f'check-{round_}-{time.monotonic_ns()}') == expected,
                             60), (expected, _rank_all(client, scenes, f'last-{round_}'))
@@ -85,6 +92,7 @@ def test_sigkill_during_feedback_keeps_every_stored_message_once(tiny_checkpoint
         client.close()
     stored = _stored(tmp_path)
     assert 0 < len(stored) <= sent
+    assert published, 'no model was published: nothing seen to check'
     in_bags = [text for bag in sorted(tmp_path.glob('stars_*'))
                for topic, text, _ in recording.read_messages(bag) if topic == '/stars/feedback']
     assert sorted(in_bags) == sorted(stored)  # the log of record: every stored message, once

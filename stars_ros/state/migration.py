@@ -1,4 +1,4 @@
-"""The files the node kept its state in before the state store (``state_store``), read once
+"""The files the node kept its state in before the state store (``store``), read once
 to import them: ``user_models.json`` in the record folder and ``feedback.jsonl`` in each bag.
 Both are left as they were; the store notes that it imported them, so it happens once.
 
@@ -19,7 +19,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from stars_ros.personalisation.foldin import Rating, UserModel
+from stars_ros.state.person import Rating, UserModel
 
 STATE_FILE = 'user_models.json'
 JOURNAL = 'feedback.jsonl'
@@ -41,6 +41,8 @@ def _ratings(user_id: str, entries: list, kind: str) -> list:
     """Ratings of the file; one written before ratings had ids is named by a digest of the
     user, its place and its content, the same at every import."""
     def fallback(k, entry):
+        if entry.get('id'):
+            return ''
         text = json.dumps([user_id, kind, k, entry['scene'], entry['action'], entry['score']], sort_keys=True)
         return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
     return [Rating.from_json(entry, fallback(k, entry)) for k, entry in enumerate(entries)]

@@ -1,7 +1,7 @@
 """The main-job demo: the ranker serving two people, their rankings side by side, feedback
 recorded to MCAP, then a summary. Ends by itself.
 
-    python -m stars_ros.ros.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
+    python -m stars_ros.examples.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
 
 Set-up loads the checkpoint (the packaged default unless one is given) and picks, among the
 annotators it knows, the two whose rankings of alternative robot placements differ most on
@@ -28,7 +28,6 @@ import itertools
 import json
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -37,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stars_ros.errors import StarsError
+from stars_ros.errors import StarsError, StoreError
 from stars_ros.figures.scene import plot_people
 from stars_ros.model.predictor import Predictor
 from stars_ros.recording.bag import read_messages
@@ -45,13 +44,13 @@ from stars_ros.resources import resolve_checkpoint
 from stars_ros.data.ratings import socnav1_root
 from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes
 from stars_ros.typed_messages import scene_message
-from stars_ros import recording
+from stars_ros import state
 
 SOCNAV1 = socnav1_root()
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(prog='python -m stars_ros.ros.demo', description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.examples.demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', default='', help='default: the packaged models/socnav1_gat_stars.pt')
     parser.add_argument('--data-root', type=Path, default=SOCNAV1, help='SocNav1 root (default: %(default)s)')
     parser.add_argument('--scenes', type=int, default=8, help='scenes per person (default: %(default)s)')
@@ -74,7 +73,7 @@ def choose_people(predictor, root: Path, n_scenes: int, placements: int):
     """The two known annotators whose placement orders differ on most shared scenes, and
     those scenes with both ratings: (user_a, user_b, [(scene, rating_a, rating_b)])."""
     rated = {}
-    for user in predictor.recommender.users:
+    for user in predictor.users:
         path = root / 'raw' / f'{user}.jsonl'
         if path.exists():
             rated[user] = {s['identifier']: s for s in read_scenes(path)}
@@ -110,9 +109,9 @@ def score_decimals(*replies, least: int = 3, most: int = 5) -> int:
 
 def _holds_people(folder: Path) -> bool:
     try:
-        with recording.open_reader(folder) as store:
+        with state.open_reader(folder) as store:
             return bool(store.summary())
-    except (FileNotFoundError, sqlite3.Error):
+    except (FileNotFoundError, StoreError):
         return False
 
 
@@ -123,7 +122,7 @@ def record_folder(given: Path | None, work: Path) -> Path:
     if given is None:
         return work / 'records'
     if _holds_people(given):
-        print(f'Note: {given / recording.DATABASE} holds folded-in users of an earlier run: the ranker restores them, '
+        print(f'Note: {given / state.DATABASE} holds folded-in users of an earlier run: the ranker restores them, '
               'so their scores differ from a fresh start')
     return given
 
@@ -161,7 +160,7 @@ def run(args) -> int:
         raise StarsError(f'SocNav1 not found at {args.data_root}: set STARS_SOCNAV1_ROOT or --data-root')
     user_a, user_b, chosen = choose_people(predictor, args.data_root, args.scenes, args.placements)
     print(f'StARS demo: checkpoint {checkpoint} (fingerprint {predictor.fingerprint[:12]}), '
-          f'{len(predictor.recommender.users)} people known, action {predictor.actions[0]!r}')
+          f'{len(predictor.users)} people known, action {predictor.actions[0]!r}')
     print(f"People: '{user_a}' and '{user_b}', the two SocNav1 annotators whose rankings of {args.placements} "
           f'robot placements differ most on scenes both rated')
 

@@ -6,10 +6,13 @@ One update writes only the rows it changes: a person's row, the ratings that joi
 them, a scene the first time its content is rated (scenes are kept once, by content digest,
 with a count of the ratings that name them). A thread of its own writes: the node's executor
 queues an update and goes on; the writer takes everything queued into one transaction (group
-commit) and reports each feedback entry as committed (``on_commit``) only once its
-transaction is. ``synchronous=FULL``: a commit returns once the WAL is fsync'd, so what is
-committed survives a process kill and a power cut alike (given a disk that honours flushes);
-what a kill or a power cut can lose is what was queued or being written, never acknowledged.
+commit), numbering each write (``write_person`` returns its sequence number). Only once a
+transaction is committed does it hand each feedback entry on (``on_feedback_committed``) and
+run what waited for its writes (``when_committed``: the node publishes a person's model
+then, so nobody sees what a hard kill could take back). ``synchronous=FULL``: a commit
+returns once the WAL is fsync'd, so what is committed survives a process kill and a power
+cut alike (given a disk that honours flushes); what a kill or a power cut can lose is what
+was queued or being written, never acknowledged.
 
 A failing disk (full, read-only, a folder that cannot be created) is reported through
 ``on_error`` once; what waits is kept in memory, in order, and tried again every
@@ -23,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import functools
+import hashlib
 import json
 import os
 import queue
@@ -32,24 +36,24 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, NamedTuple
+from typing import Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from stars_ros.errors import ConfigError
-from stars_ros.personalisation.foldin import Rating, UserModel, scene_digest
-from stars_ros.personalisation.histories import Deferred
-from stars_ros.recording import migration
+from stars_ros.errors import ConfigError, StoreError
+from stars_ros.state import migration
+from stars_ros.state.person import Deferred, Rating, UserModel, scene_digest
 
 DATABASE = 'state.db'
 LOCK_FILE = 'state.lock'
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: a person's covariance in its own table, read when first used (1: in people)
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS people (
     person TEXT PRIMARY KEY, fingerprint TEXT, p BLOB, b REAL, n_ratings INTEGER, regularisation REAL,
-    covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
+    solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
     peer_ratings INTEGER NOT NULL, rated INTEGER NOT NULL, updated REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS posteriors (person TEXT PRIMARY KEY, covariance BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS scenes (digest TEXT PRIMARY KEY, content TEXT NOT NULL, refs INTEGER NOT NULL)
     WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS ratings (
@@ -112,9 +116,40 @@ def _array(blob, shape=None):
     return array if shape is None else array.reshape(shape)
 
 
-def _scene_text(scene) -> str:
-    content = scene if isinstance(scene, dict) else [float(v) for v in scene]
-    return json.dumps(content, separators=(',', ':'))
+def _scene_row(scene) -> tuple[str, str]:
+    """(``scene_digest``, content text) of a rated scene; a scene graph is serialised once
+    for both (its text is what ``scene_digest`` hashes)."""
+    if not isinstance(scene, dict):  # a tabular row: short
+        return scene_digest(scene), json.dumps([float(v) for v in scene], separators=(',', ':'))
+    text = json.dumps(scene, sort_keys=True, separators=(',', ':'))
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest(), text
+
+
+class _ReadOnce:
+    """``read()`` the first time it is called, what it gave every time after."""
+
+    __slots__ = ('_read', '_value')
+
+    def __init__(self, read: Callable[[], object]):
+        self._read, self._value = read, None
+
+    def __call__(self):
+        if self._value is None:
+            self._value = self._read()
+        return self._value
+
+
+def _reading(method):
+    """``method`` with sqlite3's errors raised as StoreError naming the store and what to do."""
+    @functools.wraps(method)
+    def read(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except sqlite3.Error as error:
+            raise StoreError(f'cannot read the state store {self.path}: {error}; check that it is a stars_ros '
+                             'state.db, readable, and not damaged (a copy of the record folder can be inspected '
+                             'with python -m stars_ros.recording state FOLDER)') from None
+    return read
 
 
 def holder_text() -> str:
@@ -131,9 +166,16 @@ class StoreReader:
             self.path = self.path / DATABASE
         if not self.path.exists():
             raise FileNotFoundError(f'no state store at {self.path}')
-        self._connection = sqlite3.connect(f'file:{self.path}?mode=ro', uri=True, timeout=30,
-                                           check_same_thread=False)
+        self._connection = self._connect()
+        version = int(self.meta().get('schema_version', SCHEMA_VERSION))
+        self._posteriors = 'people' if version == 1 else 'posteriors'  # where the covariances are
         self._scenes = {}  # digest -> scene object: ratings of one content share one
+
+    @_reading
+    def _connect(self):
+        connection = sqlite3.connect(f'file:{self.path}?mode=ro', uri=True, timeout=30, check_same_thread=False)
+        connection.execute('SELECT COUNT(*) FROM meta').fetchone()  # not a database, or not a store: said now
+        return connection
 
     def close(self):
         self._connection.close()
@@ -144,6 +186,7 @@ class StoreReader:
     def __exit__(self, *exc):
         self.close()
 
+    @_reading
     def meta(self) -> dict:
         return dict(self._connection.execute('SELECT key, value FROM meta'))
 
@@ -151,6 +194,7 @@ class StoreReader:
     def fingerprint(self) -> str | None:
         return self.meta().get('fingerprint')
 
+    @_reading
     def summary(self) -> list:
         """One dict per person, least recently rated first: ratings and peer ratings held,
         dropped, whether a model is stored and solved from them, the model's fingerprint,
@@ -163,23 +207,32 @@ class StoreReader:
                  'fingerprint': fingerprint, 'updated': updated}
                 for person, fingerprint, has_model, n_ratings, solved, dropped, ratings, peer_ratings, updated in rows]
 
+    @_reading
     def people(self, deferred: bool = False) -> list:
-        """Every Person, least recently rated first, with their ratings; ``deferred``: as
-        ``Deferred`` loaders that read them when first used (a person without any: [])."""
+        """Every Person, least recently rated first, with their ratings and their model's
+        covariance; ``deferred``: as ``Deferred`` loaders that read them when first used (a
+        person without any ratings: []), so that reading 10,000 people reads no covariance."""
         people = []
+        posterior = {person for (person,) in self._connection.execute(
+            f'SELECT person FROM {self._posteriors} WHERE covariance IS NOT NULL')}
         for row in self._connection.execute(
-                'SELECT person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, ratings, '
+                'SELECT person, fingerprint, p, b, n_ratings, regularisation, solved, dropped, ratings, '
                 'peer_ratings, updated FROM people ORDER BY rated'):
-            person, fingerprint, p, b, n_ratings, regularisation, covariance, solved, dropped, own, peer, updated = row
+            person, fingerprint, p, b, n_ratings, regularisation, solved, dropped, own, peer, updated = row
             model = None
             if p is not None:
                 p = _array(p)
-                model = UserModel(p, b, n_ratings, regularisation, _array(covariance, (len(p) + 1, len(p) + 1)))
+                covariance = None
+                if person in posterior:
+                    read = functools.partial(self.covariance, person, len(p) + 1)
+                    covariance = Deferred(_ReadOnce(read)) if deferred else read()
+                model = UserModel(p, b, n_ratings, regularisation, covariance)
             held = [(Deferred(functools.partial(self.ratings, person, table)) if deferred else
                      self.ratings(person, table)) if count else [] for table, count in zip(_RATING_TABLES, (own, peer))]
             people.append(Person(person, model, fingerprint, held[0], dropped, held[1], bool(solved), updated))
         return people
 
+    @_reading
     def ratings(self, person: str, table: str = 'ratings') -> list:
         """``person``'s ratings (``table`` 'peer_ratings': their peers'), oldest first."""
         rows = self._connection.execute(
@@ -194,14 +247,24 @@ class StoreReader:
                                   None if feedback is None else json.loads(feedback)))
         return ratings
 
+    @_reading
+    def covariance(self, person: str, size: int) -> np.ndarray | None:
+        """``person``'s stored covariance [size, size] (None: none stored)."""
+        row = self._connection.execute(f'SELECT covariance FROM {self._posteriors} WHERE person = ?',
+                                       (person,)).fetchone()
+        return None if row is None else _array(row[0], (size, size))
+
+    @_reading
     def signed_feedback(self) -> list:
         """The signed feedback messages of every person's own ratings (replays stay refused)."""
         return [json.loads(text) for (text,) in
                 self._connection.execute('SELECT feedback FROM ratings WHERE feedback IS NOT NULL')]
 
+    @_reading
     def feedback_count(self) -> int:
         return self._connection.execute('SELECT COUNT(*) FROM feedback').fetchone()[0]
 
+    @_reading
     def feedback(self, bag: str | None = None) -> list:
         """Committed feedback entries {'topic', 'log_time', 'data', 'bag'} in commit order
         (of one bag's recording, or all)."""
@@ -219,15 +282,13 @@ def open_reader(path) -> StoreReader:
 
 
 def committed_feedback(folder, bag: str) -> list:
-    """The feedback a store in ``folder`` committed for the recording ``bag`` ([] without a store)."""
+    """The feedback a store in ``folder`` committed for the recording ``bag`` ([] without a
+    store); StoreError when it cannot be read."""
     path = Path(folder) / DATABASE
     if not path.exists():
         return []
-    try:
-        with open_reader(path) as reader:
-            return reader.feedback(bag)
-    except sqlite3.Error as error:
-        raise OSError(f'cannot read the feedback of {bag} in {path}: {error}') from None
+    with open_reader(path) as reader:
+        return reader.feedback(bag)
 
 
 class StateStore:
@@ -239,6 +300,10 @@ class StateStore:
         on_error (callable): ``on_error(text)`` when the disk refuses (once per failure).
         on_recovered (callable, optional): ``on_recovered(text)`` once it works again.
         retry_interval (float, optional): seconds between two tries of a failing disk.
+        on_feedback_committed (callable, optional): ``on_feedback_committed(entry)`` on the
+            writer's thread for each feedback entry once it is committed.
+        on_progress (callable, optional): ``on_progress(text)`` while the open imports a
+            state file of an earlier version (how far it is).
 
     StoreLockedError when another process holds the folder's store. Any other failure
     (the folder cannot be created, the disk is full) leaves the store failing and retried:
@@ -246,13 +311,17 @@ class StateStore:
     """
 
     def __init__(self, folder, holder: str, on_error: Callable[[str], None],
-                 on_recovered: Callable[[str], None] | None = None, retry_interval: float = 1.0):
+                 on_recovered: Callable[[str], None] | None = None, retry_interval: float = 1.0,
+                 on_feedback_committed: Callable[[dict], None] | None = None,
+                 on_progress: Callable[[str], None] | None = None):
         self.folder = Path(folder).expanduser()
         self.path = self.folder / DATABASE
         self.holder = f'{holder} ({holder_text()})'
         self.error: str | None = None
         self._on_error, self._on_recovered = on_error, on_recovered or (lambda text: None)
         self._retry_interval = retry_interval
+        self._on_feedback_committed = on_feedback_committed or (lambda entry: None)
+        self._on_progress = on_progress or (lambda text: None)
         self._connection = None
         self._lock_handle = None
         self._queue = queue.SimpleQueue()
@@ -260,6 +329,10 @@ class StateStore:
         self._waiting = []  # items taken from the queue and not committed yet, oldest first
         self._waiting_feedback = 0  # feedback entries queued or waiting, not committed
         self._count_lock = threading.Lock()
+        self._sequence = 0  # of the latest write queued
+        self._committed_lock = threading.RLock()
+        self._committed_sequence = 0  # of the latest write committed
+        self._after_commit = []  # (sequence, callback) waiting for their write's commit, in order
         self._written = {}  # (table, person) -> {rating id: scene digest}, as committed, of those written
         self._rated = {}  # person -> order of their last rating change
         self._counter = 0  # positions and rating orders, increasing
@@ -286,6 +359,8 @@ class StateStore:
                 version = connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
                 if version is None:
                     connection.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+                elif int(version[0]) == 1:
+                    self._upgrade_from_version_1(connection)
                 elif int(version[0]) != SCHEMA_VERSION:
                     raise ConfigError(f'{self.path} has schema version {version[0]}; this stars_ros reads '
                                       f'version {SCHEMA_VERSION}')
@@ -303,6 +378,20 @@ class StateStore:
             self.error = None
             self._on_recovered(f'state store {self.path} works again')
         return True
+
+    def _upgrade_from_version_1(self, connection):
+        """Move the covariances out of ``people`` into ``posteriors`` (schema version 2)."""
+        self._on_progress(f'upgrading {self.path} from schema version 1 to 2 (covariances in a table of their own)')
+        connection.execute('BEGIN IMMEDIATE')
+        try:
+            connection.execute('INSERT INTO posteriors SELECT person, covariance FROM people WHERE covariance IS NOT '
+                               'NULL')
+            connection.execute('ALTER TABLE people DROP COLUMN covariance')
+            connection.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))
+        except BaseException:
+            connection.execute('ROLLBACK')
+            raise
+        connection.execute('COMMIT')
 
     def _lock(self):
         if self._lock_handle is not None:
@@ -339,6 +428,8 @@ class StateStore:
         state_file = self.folder / migration.STATE_FILE
         key = f'imported:{migration.STATE_FILE}'
         if state_file.exists() and key not in meta:
+            self._on_progress(f'importing {state_file} ({state_file.stat().st_size / 1e6:.0f} MB, kept by an earlier '
+                              'version) into the state store, once: the node serves when it is in')
             try:
                 state = migration.read_state_file(state_file)
             except ValueError as error:
@@ -370,10 +461,14 @@ class StateStore:
                                          f'{state.fingerprint[:12]}, the store those of another: not imported')
             return
         written = {}
-        for user_id in state.models.keys() | state.histories.keys() | state.peers.keys():
+        people = sorted(state.models.keys() | state.histories.keys() | state.peers.keys())
+        step = max(1, len(people) // 10)
+        for done, user_id in enumerate(people, 1):
             ratings, dropped = state.histories.get(user_id, ([], 0))
             self._write_person(PersonUpdate(user_id, state.models.get(user_id), state.fingerprint, ratings, dropped,
                                             state.peers.get(user_id, []), False), written)
+            if done % step == 0 or done == len(people):
+                self._on_progress(f'imported {done} of {len(people)} people from {self.folder / migration.STATE_FILE}')
         self._written.update(written)
 
     # -- the executor's side -------------------------------------------------------------------
@@ -387,25 +482,47 @@ class StateStore:
         with self._count_lock:
             return self._waiting_feedback
 
-    def put_feedback(self, entry: dict, bag: str, person: PersonUpdate | None = None,
-                     on_commit: Callable[[dict], None] | None = None) -> None:
-        """Journal the feedback ``entry`` ({'topic', 'log_time', 'data'}) of recording
-        ``bag``, with ``person``'s update (the rating it gave) in the same transaction;
-        ``on_commit(entry)`` runs on the writer's thread once both are committed."""
+    def write_person(self, update: PersonUpdate | None, feedback: Sequence[tuple[dict, str]] = ()) -> int:
+        """Queue what the store is to hold of one person now (None: nobody, the feedback
+        alone) with the ``feedback`` entries ({'topic', 'log_time', 'data'}, recording) that
+        changed it, in one transaction; ``on_feedback_committed(entry)`` runs on the writer's
+        thread for each once it is committed. Returns the write's sequence number, for
+        ``when_committed``."""
         with self._count_lock:
-            self._waiting_feedback += 1
-        self._queue.put(('feedback', (entry, bag, on_commit), person))
+            self._waiting_feedback += len(feedback)
+            self._sequence += 1
+            self._queue.put(('person', list(feedback), update, self._sequence))
+            return self._sequence
 
-    def save_person(self, update: PersonUpdate) -> None:
-        self._queue.put(('person', None, update))
+    def forget_person(self, user_id: str) -> int:
+        """Remove a person and their ratings (evicted: they go back to the checkpoint);
+        returns the write's sequence number."""
+        with self._count_lock:
+            self._sequence += 1
+            self._queue.put(('forget', (), user_id, self._sequence))
+            return self._sequence
 
-    def forget(self, user_id: str) -> None:
-        """Remove a person and their ratings (evicted: they go back to the checkpoint)."""
-        self._queue.put(('forget', None, user_id))
+    def when_committed(self, sequence: int, callback: Callable[[], None]) -> None:
+        """``callback()`` once the write ``sequence`` (and every earlier one) is committed:
+        now, on this thread, if it is; else on the writer's thread right after the commit.
+        Callbacks run in the order their writes were queued, never two at once."""
+        with self._committed_lock:
+            if sequence > self._committed_sequence:
+                self._after_commit.append((sequence, callback))
+                return
+            self._run(callback)
+
+    @property
+    def committed_sequence(self) -> int:
+        """The latest write committed (every earlier one is)."""
+        with self._committed_lock:
+            return self._committed_sequence
 
     def set_fingerprint(self, fingerprint: str) -> None:
         """The checkpoint now served (a reload): the people rows from now on belong to it."""
-        self._queue.put(('fingerprint', None, fingerprint))
+        with self._count_lock:
+            self._sequence += 1
+            self._queue.put(('fingerprint', (), fingerprint, self._sequence))
 
     def load(self, fingerprint: str) -> tuple[list, str | None]:
         """(the Person rows to restore, least recently rated first, their ratings Deferred;
@@ -427,20 +544,23 @@ class StateStore:
             return [], '; '.join(problems)
         return people, '; '.join(problems) or None
 
+    def signed_feedback(self) -> list:
+        """The signed feedback messages of the people ``load`` read (replays stay refused)."""
+        return [] if self.reader is None else self.reader.signed_feedback()
+
     def close(self) -> list:
         """Commit what waits and close; returns the feedback entries that could not be
         committed (to be logged by the caller)."""
         self._closing.set()
-        self._queue.put(('close', None, None))
+        self._queue.put(('close', (), None, None))
         self._thread.join(timeout=10)
-        unstored = [item[1][0] for item in self._waiting if item[0] == 'feedback']
+        unstored = [entry for item in self._waiting for entry, _ in item[1]]
         while True:
             try:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if item[0] == 'feedback':
-                unstored.append(item[1][0])
+            unstored += [entry for entry, _ in item[1]]
         if self._connection is not None:
             with contextlib.suppress(sqlite3.Error):
                 self._connection.close()
@@ -483,16 +603,12 @@ class StateStore:
         written = {}
         try:
             with self._transaction():
-                for kind, journal, value in self._waiting:
-                    if kind == 'feedback':
-                        entry, bag, _ = journal
+                for kind, feedback, value, _ in self._waiting:
+                    for entry, bag in feedback:
                         self._connection.execute(
                             'INSERT INTO feedback (bag, topic, log_time, data, committed) VALUES (?, ?, ?, ?, ?)',
                             (bag, entry['topic'], int(entry['log_time']), entry['data'], time.time()))
-                        if value is not None:
-                            self._replace_foreign(written)
-                            self._write_person(value, written)
-                    elif kind == 'person':
+                    if kind == 'person' and value is not None:
                         self._replace_foreign(written)
                         self._write_person(value, written)
                     elif kind == 'forget':
@@ -509,19 +625,27 @@ class StateStore:
         self._written.update(written)
         for key in [k for k, v in self._written.items() if v is None]:
             del self._written[key]
-        committed = [journal for kind, journal, _ in self._waiting if kind == 'feedback']
+        committed = [entry for _, feedback, _, _ in self._waiting for entry, _ in feedback]
         with self._count_lock:
             self._waiting_feedback -= len(committed)
-        for entry, _, on_commit in committed:
-            if on_commit is not None:
-                try:
-                    on_commit(entry)
-                except Exception as error:  # noqa: BLE001 - the writer must go on: the entry is committed
-                    self._on_error(f'after committing feedback: {type(error).__name__}: {error}')
+        for entry in committed:
+            self._run(functools.partial(self._on_feedback_committed, entry))
+        with self._committed_lock:
+            self._committed_sequence = self._waiting[-1][3]
+            ready = [callback for sequence, callback in self._after_commit if sequence <= self._committed_sequence]
+            self._after_commit = [(s, c) for s, c in self._after_commit if s > self._committed_sequence]
+            for callback in ready:
+                self._run(callback)
         if self.error is not None:
             self.error = None
             self._on_recovered(f'state store {self.path} works again')
         return True
+
+    def _run(self, callback: Callable[[], None]) -> None:
+        try:
+            callback()
+        except Exception as error:  # noqa: BLE001 - the writer must go on: what it wrote is committed
+            self._on_error(f'after a commit of the state store: {type(error).__name__}: {error}')
 
     @contextlib.contextmanager
     def _transaction(self):
@@ -553,7 +677,7 @@ class StateStore:
         """The first write over another checkpoint's people removes them (once per
         transaction: ``written`` notes it)."""
         if self._foreign and not written.get('replaced'):
-            for table in ('people', 'scenes', *_RATING_TABLES):
+            for table in ('people', 'posteriors', 'scenes', *_RATING_TABLES):
                 self._connection.execute(f'DELETE FROM {table}')
             written.update({key: None for key in self._written}, replaced=True)
             self._rated, self._fingerprint = {}, None
@@ -582,9 +706,9 @@ class StateStore:
             for rating_id, rating in wanted.items():
                 if rating_id in held:
                     continue
-                digest = scene_digest(rating.scene)
+                digest, text = _scene_row(rating.scene)
                 connection.execute('INSERT INTO scenes VALUES (?, ?, 1) ON CONFLICT(digest) DO UPDATE SET '
-                                   'refs = refs + 1', (digest, _scene_text(rating.scene)))
+                                   'refs = refs + 1', (digest, text))
                 self._counter += 1
                 connection.execute(
                     f'INSERT INTO {table} VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
@@ -599,13 +723,19 @@ class StateStore:
             self._rated[user_id] = self._counter
         model = update.model
         connection.execute(
-            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
+            'INSERT OR REPLACE INTO people VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)',
             (user_id, update.fingerprint if model is not None else None,
              None if model is None else _blob(model.p), None if model is None else float(model.b),
              None if model is None else int(model.n_ratings), None if model is None else float(model.regularisation),
-             None if model is None else _blob(model.covariance), int(bool(update.solved and model is not None)),
+             int(bool(update.solved and model is not None)),
              int(update.dropped), len(written[('ratings', user_id)]), len(written[('peer_ratings', user_id)]),
              self._rated[user_id], time.time()))
+        covariance = None if model is None else model.covariance
+        if isinstance(covariance, np.ndarray):
+            connection.execute('INSERT OR REPLACE INTO posteriors VALUES (?, ?)', (user_id, _blob(covariance)))
+        elif covariance is None:
+            connection.execute('DELETE FROM posteriors WHERE person = ?', (user_id,))
+        # Deferred: the model restored as stored, whose covariance the row holds already
 
     def _forget(self, user_id: str, written: dict):
         for table in _RATING_TABLES:
@@ -614,6 +744,7 @@ class StateStore:
             self._connection.execute(f'DELETE FROM {table} WHERE person = ?', (user_id,))
             written[(table, user_id)] = None
         self._connection.execute('DELETE FROM people WHERE person = ?', (user_id,))
+        self._connection.execute('DELETE FROM posteriors WHERE person = ?', (user_id,))
         self._rated.pop(user_id, None)
 
     def _release_scene(self, digest: str):

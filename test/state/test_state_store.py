@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 
 from stars_ros.personalisation.foldin import Rating, UserModel
+from stars_ros.errors import StoreError
 from stars_ros.recording import __main__ as inspect_cli
-from stars_ros.recording import migration, state_store
-from stars_ros.recording.state_store import PersonUpdate, StateStore, StoreLockedError, open_reader
+from stars_ros.state import migration, store as state_store
+from stars_ros.state import Deferred, loaded
+from stars_ros.state.store import PersonUpdate, StateStore, StoreLockedError, open_reader
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = {'identifier': 's1', 'humans': [{'id': 1, 'xPos': 0.5, 'yPos': -1.0, 'orientation': 90}]}
@@ -43,7 +45,7 @@ def _open(folder, errors=None):
 
 def _committed(store, entry, person=None):
     done = threading.Event()
-    store.put_feedback(entry, 'bag', person, on_commit=lambda e: done.set())
+    store.when_committed(store.write_person(person, [(entry, 'bag')]), done.set)
     assert done.wait(30), 'never committed'
 
 
@@ -51,8 +53,8 @@ def test_people_round_trip_with_posterior_ratings_and_peers(tmp_path):
     store = _open(tmp_path / 'records')  # the folder is created
     assert store.load(FINGERPRINT) == ([], None)
     peers = [Rating(SCENE, 'navigate', 0.25, 's1', 'p1', 15, '/robot2/ranker')]
-    store.save_person(PersonUpdate('ann', _model(), FINGERPRINT, _ann(), 3, peers, True))
-    store.save_person(PersonUpdate('bob', None, FINGERPRINT, [Rating([0.0, 1.5], 'wait', 1.0, None, 'r3', 30, '/r')],
+    store.write_person(PersonUpdate('ann', _model(), FINGERPRINT, _ann(), 3, peers, True))
+    store.write_person(PersonUpdate('bob', None, FINGERPRINT, [Rating([0.0, 1.5], 'wait', 1.0, None, 'r3', 30, '/r')],
                                    0, [], False))
     assert store.close() == []
     store = _open(tmp_path / 'records')
@@ -74,10 +76,10 @@ def test_an_update_writes_the_rows_it_changes_and_scenes_once(tmp_path):
     store = _open(tmp_path)
     store.load(FINGERPRINT)
     ratings = _ann()
-    store.save_person(PersonUpdate('ann', None, FINGERPRINT, ratings, 0, [], False))
+    store.write_person(PersonUpdate('ann', None, FINGERPRINT, ratings, 0, [], False))
     newer = Rating(OTHER_SCENE, 'navigate', 0.1, None, 'r4', 40, '/ranker')
-    store.save_person(PersonUpdate('ann', _model(), FINGERPRINT, ratings[1:] + [newer], 1, [], True))
-    store.save_person(PersonUpdate('cat', None, FINGERPRINT, [newer], 0, [], False))
+    store.write_person(PersonUpdate('ann', _model(), FINGERPRINT, ratings[1:] + [newer], 1, [], True))
+    store.write_person(PersonUpdate('cat', None, FINGERPRINT, [newer], 0, [], False))
     store.close()
     database = sqlite3.connect(tmp_path / state_store.DATABASE)
     assert database.execute('SELECT person, id FROM ratings ORDER BY position').fetchall() == [
@@ -87,8 +89,8 @@ def test_an_update_writes_the_rows_it_changes_and_scenes_once(tmp_path):
     database.close()
     store = _open(tmp_path)
     store.load(FINGERPRINT)
-    store.forget('ann')
-    store.forget('cat')
+    store.forget_person('ann')
+    store.forget_person('cat')
     store.close()
     with open_reader(tmp_path) as reader:
         assert reader.people() == [] and reader.summary() == []
@@ -100,7 +102,7 @@ def test_an_update_writes_the_rows_it_changes_and_scenes_once(tmp_path):
 def test_people_of_another_checkpoint_are_not_restored_and_replaced_by_the_first_update(tmp_path):
     store = _open(tmp_path)
     store.load(FINGERPRINT)
-    store.save_person(PersonUpdate('ann', _model(), FINGERPRINT, _ann(), 0, [], True))
+    store.write_person(PersonUpdate('ann', _model(), FINGERPRINT, _ann(), 0, [], True))
     store.close()
     store = _open(tmp_path)
     people, problem = store.load('cd' * 32)
@@ -112,7 +114,7 @@ def test_people_of_another_checkpoint_are_not_restored_and_replaced_by_the_first
         assert [p['person'] for p in reader.summary()] == ['ann']
     store = _open(tmp_path)
     store.load('cd' * 32)
-    store.save_person(PersonUpdate('bob', None, 'cd' * 32, [Rating(SCENE, 'navigate', 1.0, None, 'b1', 5, '/r')], 0,
+    store.write_person(PersonUpdate('bob', None, 'cd' * 32, [Rating(SCENE, 'navigate', 1.0, None, 'b1', 5, '/r')], 0,
                                    [], False))
     store.close()
     with open_reader(tmp_path) as reader:
@@ -120,15 +122,15 @@ def test_people_of_another_checkpoint_are_not_restored_and_replaced_by_the_first
 
 
 def test_feedback_is_reported_committed_with_the_rating_it_gave(tmp_path):
-    store = _open(tmp_path)
-    store.load(FINGERPRINT)
     entry = {'topic': '/stars/feedback', 'log_time': 7, 'data': '{"score": 1}'}
     seen_in_store = []
 
     def on_commit(committed):  # runs once the transaction is: a reader sees feedback and rating
         with open_reader(tmp_path) as reader:
             seen_in_store.append((reader.feedback(), [len(p.ratings) for p in reader.people()]))
-    store.put_feedback(entry, 'bag', PersonUpdate('ann', None, FINGERPRINT, _ann(), 0, [], False), on_commit)
+    store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_feedback_committed=on_commit)
+    store.load(FINGERPRINT)
+    store.write_person(PersonUpdate('ann', None, FINGERPRINT, _ann(), 0, [], False), [(entry, 'bag')])
     assert store.close() == []
     assert seen_in_store == [([{**entry, 'bag': 'bag'}], [2])]
     assert store.uncommitted_feedback == 0
@@ -144,16 +146,15 @@ def test_a_full_disk_is_reported_and_everything_waits_in_order_until_it_has_room
         connections.append(connection)
         return connection
     monkeypatch.setattr(state_store.sqlite3, 'connect', keep)
-    errors, recovered = [], threading.Event()
-    store = StateStore(tmp_path, '/ranker', errors.append, lambda text: recovered.set(), retry_interval=0.01)
+    errors, recovered, committed = [], threading.Event(), []
+    store = StateStore(tmp_path, '/ranker', errors.append, lambda text: recovered.set(), retry_interval=0.01,
+                       on_feedback_committed=committed.append)
     store.load(FINGERPRINT)
     writer = connections[0]
     pages = writer.execute('PRAGMA page_count').fetchone()[0]
     writer.execute(f'PRAGMA max_page_count = {pages}')
-    committed = []
     for k in range(3):
-        store.put_feedback({'topic': '/stars/feedback', 'log_time': k, 'data': 'x' * 5000}, 'bag',
-                           on_commit=committed.append)
+        store.write_person(None, [({'topic': '/stars/feedback', 'log_time': k, 'data': 'x' * 5000}, 'bag')])
     assert _wait(lambda: errors)
     assert 'database or disk is full' in errors[0] and not store.healthy and not committed
     assert store.uncommitted_feedback == 3
@@ -175,14 +176,14 @@ def test_a_folder_that_cannot_be_created_keeps_feedback_in_memory_and_close_retu
     assert errors and errors[0].startswith(f"cannot open the state store {tmp_path / 'file' / 'records' / 'state.db'}")
     assert store.load(FINGERPRINT) == ([], None)
     entry = {'topic': '/stars/feedback', 'log_time': 2, 'data': '{"score": 1}'}
-    store.put_feedback(entry, 'bag')
+    store.write_person(None, [(entry, 'bag')])
     assert store.uncommitted_feedback == 1
     assert store.close() == [entry] and len(errors) == 1
 
 
 HOLDER = textwrap.dedent('''
     import sys
-    from stars_ros.recording.state_store import StateStore
+    from stars_ros.state.store import StateStore
     store = StateStore(sys.argv[1], '/robot1/ranker', on_error=sys.exit)
     print('open', flush=True)
     sys.stdin.readline()
@@ -223,9 +224,12 @@ def _legacy_files(folder):
 def test_the_files_of_earlier_versions_are_imported_once_and_kept(tmp_path):
     bag = _legacy_files(tmp_path)
     before = {p.name: p.read_bytes() for p in (tmp_path / migration.STATE_FILE, bag / migration.JOURNAL)}
-    store = _open(tmp_path)
+    progress = []
+    store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_progress=progress.append)
     assert store.imported == [f'2 people from {tmp_path / migration.STATE_FILE}',
                               f'2 feedback messages from {bag / migration.JOURNAL}']
+    assert progress[0].startswith(f'importing {tmp_path / migration.STATE_FILE} (0 MB, kept by an earlier version)')
+    assert progress[1:] == [f'imported {k} of 2 people from {tmp_path / migration.STATE_FILE}' for k in (1, 2)]
     people, problem = store.load(FINGERPRINT)
     store.close()
     assert problem is None and {p.user_id for p in people} == {'ann', 'bob'}
@@ -260,7 +264,7 @@ def test_a_corrupted_state_file_is_not_imported_and_said_so(tmp_path, text):
 def test_the_inspection_command_lists_people_and_their_ratings(tmp_path, capsys):
     store = _open(tmp_path)
     store.load(FINGERPRINT)
-    store.save_person(PersonUpdate('ann', _model(), FINGERPRINT, _ann(), 0, [], True))
+    store.write_person(PersonUpdate('ann', _model(), FINGERPRINT, _ann(), 0, [], True))
     _committed(store, {'topic': '/stars/feedback', 'log_time': 1, 'data': '{}'})
     store.close()
     assert inspect_cli.main(['state', str(tmp_path), '--json']) == 0
@@ -274,3 +278,42 @@ def test_the_inspection_command_lists_people_and_their_ratings(tmp_path, capsys)
     text = capsys.readouterr().out
     assert 'ann' in text and '1 people' in text
     assert inspect_cli.main(['state', str(tmp_path / 'none')]) == 1
+
+
+def test_a_damaged_store_is_a_store_error_saying_what_to_do(tmp_path, capsys):
+    (tmp_path / state_store.DATABASE).write_bytes(b'not a database, ' * 512)
+    with pytest.raises(StoreError, match=f'cannot read the state store {tmp_path / state_store.DATABASE}: .*check '
+                                         'that it is a stars_ros state.db'):
+        open_reader(tmp_path)
+    assert inspect_cli.main(['state', str(tmp_path)]) == 1  # said in one line, no traceback
+    assert capsys.readouterr().err.startswith(f'error: cannot read the state store {tmp_path}')
+
+
+def test_a_version_1_store_is_upgraded_keeping_every_covariance(tmp_path):
+    """Version 1 kept each covariance in ``people``: reading anybody's later columns read it."""
+    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    database.executescript('''
+        CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+        CREATE TABLE people (
+            person TEXT PRIMARY KEY, fingerprint TEXT, p BLOB, b REAL, n_ratings INTEGER, regularisation REAL,
+            covariance BLOB, solved INTEGER NOT NULL, dropped INTEGER NOT NULL, ratings INTEGER NOT NULL,
+            peer_ratings INTEGER NOT NULL, rated INTEGER NOT NULL, updated REAL NOT NULL);''')
+    model = _model()
+    database.execute("INSERT INTO meta VALUES ('schema_version', '1')")
+    database.execute(f"INSERT INTO meta VALUES ('fingerprint', '{FINGERPRINT}')")
+    database.execute('INSERT INTO people VALUES (?, ?, ?, ?, ?, ?, ?, 1, 0, 0, 0, 1, 0.0)',
+                     ('ann', FINGERPRINT, model.p.tobytes(), model.b, 2, 0.0, model.covariance.tobytes()))
+    database.commit()
+    database.close()
+    progress = []
+    store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_progress=progress.append)
+    [ann], problem = store.load(FINGERPRINT)
+    assert problem is None and progress == [f'upgrading {tmp_path / state_store.DATABASE} from schema version 1 to 2 '
+                                            '(covariances in a table of their own)']
+    assert isinstance(ann.model.covariance, Deferred)  # read when first used
+    assert np.array_equal(loaded(ann.model.covariance), model.covariance) and np.array_equal(ann.model.p, model.p)
+    store.close()
+    with open_reader(tmp_path) as reader:
+        assert reader.meta()['schema_version'] == str(state_store.SCHEMA_VERSION)
+        [ann] = reader.people()
+    assert np.array_equal(ann.model.covariance, model.covariance)

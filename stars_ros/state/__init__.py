@@ -1,0 +1,34 @@
+"""A person's state, with one owner: the ratings a person gave and the model solved from them
+(``person``: the types, and the check of a score against the checkpoint's rating scale), and
+the SQLite store that keeps them across restarts (``store``: people, ratings, peers' ratings
+and the journal of accepted feedback; ``migration``: the files earlier versions kept them
+in). Personalisation writes a person only through ``PersonWriter``'s methods; nothing here
+imports personalisation, the recording or ROS."""
+from pathlib import Path
+from typing import Protocol, Sequence
+
+from stars_ros.state.person import (Deferred, Rating, UserModel, check_ratings, check_score, loaded,
+                                    scene_digest)
+from stars_ros.state.store import (DATABASE, Person, PersonUpdate, StateStore, StoreLockedError, StoreReader,
+                                   committed_feedback, open_reader, write_people)
+
+
+class PersonWriter(Protocol):
+    """What personalisation may do to the store: the narrow interface ``StateStore`` gives it."""
+
+    path: Path
+
+    def write_person(self, update: PersonUpdate | None, feedback: Sequence[tuple[dict, str]] = ()) -> int: ...
+
+    def forget_person(self, user_id: str) -> int: ...
+
+    def set_fingerprint(self, fingerprint: str) -> None: ...
+
+    def load(self, fingerprint: str) -> tuple[list, str | None]: ...
+
+    def signed_feedback(self) -> list: ...
+
+
+__all__ = ['DATABASE', 'Deferred', 'Person', 'PersonUpdate', 'PersonWriter', 'Rating', 'StateStore',
+           'StoreLockedError', 'StoreReader', 'UserModel', 'check_ratings', 'check_score', 'committed_feedback',
+           'loaded', 'open_reader', 'scene_digest', 'write_people']

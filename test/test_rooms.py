@@ -1,0 +1,58 @@
+"""The package's rooms (its top-level subpackages) and who owns a person's state, read from
+the source: no two rooms import each other, and one module writes a person."""
+import ast
+from pathlib import Path
+
+import stars_ros
+
+PACKAGE = Path(stars_ros.__file__).parent
+WRITES_OF_A_PERSON = {'write_person', 'forget_person'}  # the store's methods that change a person
+
+
+def _modules():
+    for path in sorted(PACKAGE.rglob('*.py')):
+        parts = path.relative_to(PACKAGE.parent).with_suffix('').parts
+        yield '.'.join(parts[:-1] if parts[-1] == '__init__' else parts), path, ast.parse(path.read_text())
+
+
+def _room(module: str) -> str | None:
+    """The room of ``stars_ros.<room>....``; None for a top-level module (not a room)."""
+    parts = module.split('.')
+    return parts[1] if len(parts) > 1 and (PACKAGE / parts[1]).is_dir() else None
+
+
+def _imported(module: str, path: Path, tree) -> set:
+    names = set()
+    package = module if path.name == '__init__.py' else module.rpartition('.')[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ''
+            if node.level:
+                parts = package.split('.')
+                base = '.'.join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+            names.update(f'{base}.{alias.name}' for alias in node.names)
+            names.add(base)
+    return {name for name in names if name.startswith('stars_ros.')}
+
+
+def test_no_two_rooms_import_each_other():
+    edges = {}
+    for module, path, tree in _modules():
+        room = _room(module)
+        for name in _imported(module, path, tree):
+            other = _room(name)
+            if room and other and other != room:
+                edges.setdefault((room, other), module)
+    both_ways = sorted(f'{a} <-> {b} ({edges[(a, b)]}, {edges[(b, a)]})' for a, b in edges if (b, a) in edges and a < b)
+    assert both_ways == []
+    assert ('personalisation', 'state') in edges and ('state', 'personalisation') not in edges
+
+
+def test_one_module_writes_a_person():
+    writers = {module for module, _, tree in _modules() if _room(module) != 'state'
+               for node in ast.walk(tree)
+               if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+               and node.func.attr in WRITES_OF_A_PERSON}
+    assert writers == {'stars_ros.personalisation.online'}
