@@ -5,8 +5,9 @@ Serves ``~/rank_actions`` (RankActions), ``~/rank_candidates`` (RankCandidates) 
 typed message becomes its JSON twin (``stars_ros.typed_messages``) and goes to the same
 ``RankerCore`` as the JSON topics' messages: same checks, same scores, same error kinds, in
 the response and on stars/errors. A service answers in its callback, between two batches of
-the queue, so its ranking is scored by one checkpoint like every other; it is recorded as
-its JSON twin, not published on stars/ranking.
+the queue, so its ranking is scored by one checkpoint like every other; it is not published
+on stars/ranking, and it is recorded as its JSON twin, with its markers sent, within
+``AFTER_REPLY_PERIOD`` of the response.
 """
 from __future__ import annotations
 
@@ -19,6 +20,10 @@ from stars_ros_msgs.srv import ChooseQuestion, RankActions, RankCandidates
 from stars_ros import messages, typed_messages
 
 FEEDBACK_TOPIC = 'stars/typed/feedback'
+# seconds: how late the recording and markers of answered calls may come. Doing them right
+# after each response put them before the next call: 4.9 ms round trip against 1.5 ms
+# (benchmarks/service_latency.py's calls, p50, docs/performance.md)
+AFTER_REPLY_PERIOD = 0.1
 SERVICES = {'rank_actions': RankActions, 'rank_candidates': RankCandidates, 'choose_question': ChooseQuestion}
 
 
@@ -35,6 +40,7 @@ class TypedInterface:
         self.entities.append(node.create_subscription(
             typed.Feedback, FEEDBACK_TOPIC, self._on_feedback,
             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)))
+        self.entities.append(node.create_timer(AFTER_REPLY_PERIOD, self._after_replies))
         self._names = {name: node.resolve_service_name(f'~/{name}') for name in SERVICES}
         self._feedback_topic = node.resolve_topic_name(FEEDBACK_TOPIC)
 
@@ -54,7 +60,6 @@ class TypedInterface:
             text, refusal = self._twin(lambda r: convert(r, frame), request, self._names[name])
             payload, refusal = (None, refusal) if text is None else self.core.rank_now(text, received)
             if payload is not None:
-                self.more_work()  # the recording and markers, once the response is out
                 response.ranking = typed_messages.ranking_message(payload, typed)
                 response.ranking.header.stamp = self.node.get_clock().now().to_msg()
                 response.ranking.header.frame_id = frame
@@ -86,6 +91,11 @@ class TypedInterface:
             refusal = ('internal', f'{type(error).__name__}: {error}')
             self.core.report(*refusal, source, scene_id or None)
             return refusal
+
+    def _after_replies(self):
+        """The recording and markers of the calls answered since the last tick (``work``)."""
+        if self.core.replied:
+            self.more_work()
 
     def _on_feedback(self, feedback):
         text, _ = self._twin(typed_messages.feedback_text, feedback, self._feedback_topic)
