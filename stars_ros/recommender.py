@@ -51,7 +51,7 @@ from stars_ros.model.predictor import Predictor
 from stars_ros.model.training import NotFittedError, StarsTrainer, torch_state_kept
 from stars_ros.personalisation.foldin import FoldIn
 from stars_ros.state import Rating
-from stars_ros.personalisation.prior import estimate_prior
+from stars_ros.personalisation.prior import estimate_prior, held_out_split
 
 USER_TERMS = frozenset({'p', 'b_u'})
 SCENE_TERMS = frozenset({'q', 'b_i'})
@@ -195,13 +195,17 @@ class StarsRecommender:
             noise_rows: Sequence[int] | None = None) -> 'StarsRecommender':
         """Train on ``rows`` of ``data`` (a RatingData, or what ``load_dataset`` reads;
         every rating by default); returns self. A personalised variant also gets the
-        fold-in's prior (``personalisation.prior``), its rating noise from ``noise_rows``
-        (held-out ratings of the trained people) when given, else from the training
-        ratings, which understate it and make score_sd too narrow. Earlier fold-ins are
-        dropped. Leaves torch's threads, default dtype and random state as it found them."""
+        fold-in's prior (``personalisation.prior``), its rating noise and tails from
+        ``noise_rows`` (held-out ratings of the trained people) when given; else a seeded
+        ``prior.NOISE_SHARE`` of each person's examples is held out of the training for them
+        (``prior.held_out_split``), as ``train`` and ``kshot`` hold out theirs, so a person
+        folded in here is treated as on the robot. Earlier fold-ins are dropped. Leaves
+        torch's threads, default dtype and random state as it found them."""
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
         started = time.perf_counter()
+        if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
+            rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
         with torch_state_kept():
             trainer = StarsTrainer(self.config).fit(data, rows)
             if trainer.require_model().personalised:

@@ -19,7 +19,9 @@ population is not known in advance, so the prior covariance is τS₀ with τ on
 marginal likelihood of the person's answers under it (``scale_mixture_posterior``). A person
 whose answers the population explains keeps close to it; one who departs consistently moves
 as far as their answers warrant. The served θ is the mixture's mean, its covariance (the
-mixture's, moment-matched) what ``uncertainty`` turns into a score's standard deviation. No
+mixture's, moment-matched) what ``uncertainty`` turns into a score's standard deviation. A
+person the checkpoint knows starts from their own row and covariance, their departure
+already measured, and gets the plain Gaussian posterior above. No
 λ is set by hand; a positive ``regularisation`` λ overrides the posterior with the ridge solve
 argmin ‖Xθ − (z − c)‖² + λ‖θ − m₀‖² (covariance σ̄²(XᵀX + λI)⁻¹, σ̄² the mean noise).
 
@@ -206,19 +208,23 @@ class FoldIn:
         return self._user_row(row), prior.user_covariance[row], precision
 
     def posterior(self, x: np.ndarray, y: np.ndarray, actions: np.ndarray, user_id=None) -> tuple:
-        """(mean, covariance) of θ of ``user_id`` (None: a new person) after ratings with rows
-        x [n, dim+1], targets y = z − c [n] and action columns ``actions`` [n]: the scale
-        mixture of the module docstring, the one way every caller folds a person in."""
+        """(mean, covariance) of θ of ``user_id`` after ratings with rows x [n, dim+1], targets
+        y = z − c [n] and action columns ``actions`` [n], the one way every caller folds a
+        person in: from the population prior, the scale mixture of the module docstring;
+        from a known person's own trained row and covariance, the Gaussian posterior (their
+        departure from the population is already measured)."""
         mean, covariance, precision = self.prior_distribution(user_id)
-        logdet = (self._population_logdet if precision is self._population_precision
-                  else float(np.linalg.slogdet(covariance)[1]))
-        theta, covariance, _ = scale_mixture_posterior(x, y, self.noise[actions], mean, precision, logdet)
-        return theta, covariance
+        if precision is self._population_precision:
+            return scale_mixture_posterior(x, y, self.noise[actions], mean, precision, self._population_logdet)[:2]
+        if not len(x):
+            return mean, covariance
+        return gaussian_posterior(x, y, self.noise[actions], mean, precision)
 
     def covariance(self, user_id=None) -> np.ndarray:
-        """Cov θ of ``user_id`` before any feedback: ``prior_distribution``'s, times the mean
-        prior scale (the scale mixture's covariance, as ``fit`` gives with no ratings)."""
-        return float(np.mean(PRIOR_SCALES)) * self.prior_distribution(user_id)[1]
+        """Cov θ of ``user_id`` before any feedback, as ``fit`` gives it with no ratings: a
+        known person's own, else the population's scale mixture's (Σ₀ times the mean scale)."""
+        _, covariance, precision = self.prior_distribution(user_id)
+        return float(np.mean(PRIOR_SCALES)) * covariance if precision is self._population_precision else covariance
 
     def action_index(self, actions: Sequence[str]) -> np.ndarray:
         unknown = sorted({a for a in actions if a not in self._action_index})
