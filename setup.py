@@ -18,7 +18,7 @@ def requirements(path: Path) -> list:
 setup(
     name=package_name,
     version=version,
-    packages=find_packages(include=[package_name, package_name + '.*', 'offline_training']),
+    packages=find_packages(include=[package_name, package_name + '.*']),  # offline_training: run from the checkout
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -39,6 +39,8 @@ setup(
             'ranker = stars_ros.ros.ranker:main',
             'scene_publisher = stars_ros.ros.scene_publisher:main',
             'replay = stars_ros.ros.replay:main',
+            'sign_feedback = stars_ros.sign_feedback:main',
+            'recording = stars_ros.recording.__main__:main',
         ],
     },
 )

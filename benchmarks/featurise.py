@@ -7,13 +7,17 @@ results/featurise.json.
 """
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-from offline_training.common import DEFAULT_SOCNAV1, machine
-from stars_ros.data.scene_graph import featurise, validate_scene
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # offline_training is the checkout's, not installed
+
+from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from stars_ros.data.scene_graph import featurise, validate_scene  # noqa: E402
 
 
 def rate(function, scenes, repeats=3):

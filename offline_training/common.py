@@ -1,5 +1,5 @@
-"""Pieces the offline programs share: logging, inputs, where fits run, progress lines, plots,
-the SocNav1 default path."""
+"""Pieces the offline programs share: logging, inputs, where fits run, progress lines, the
+SocNav1 default path. (Plots: ``stars_ros.evaluation.plots``.)"""
 import argparse
 import concurrent.futures as futures
 import logging
@@ -8,7 +8,6 @@ import platform
 import sys
 import time
 from collections.abc import Iterable
-from pathlib import Path
 from typing import NamedTuple
 
 import torch
@@ -63,36 +62,6 @@ class Progress:
         print(f'{stage} epoch {epoch}/{self.total[stage]}: loss {loss:.4f}, {now - self.last:.2f} s, '
               f'about {per_epoch * self.left:.0f} s left', file=self.stream, flush=True)
         self.last = now
-
-
-def pyplot():
-    """matplotlib's pyplot on the file-only Agg backend (no display needed)."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    return plt
-
-
-def mean_band(axis, x, means, sds, label: str, marker: str = 'o', alpha: float = 0.2) -> None:
-    """A line of means with a ±sd band in the line's colour."""
-    line, = axis.plot(x, means, marker=marker, label=label)
-    axis.fill_between(x, means - sds, means + sds, alpha=alpha, color=line.get_color())
-
-
-def label_axis(axis, xlabel: str, ylabel: str, legend_size: int | None = None) -> None:
-    axis.set_xlabel(xlabel)
-    axis.set_ylabel(ylabel)
-    axis.grid(alpha=0.3)
-    if legend_size:
-        axis.legend(fontsize=legend_size)
-
-
-def save_png(figure, path: Path) -> str:
-    """Lay out, write and close ``figure``; returns the file's name."""
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    pyplot().close(figure)
-    return path.name
 
 
 def read_inputs(read_config, data_root):

@@ -16,9 +16,10 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from stars_ros.model.config import ExperimentConfig
+from stars_ros import StarsRecommender
 from stars_ros.data.ratings import load_dataset
-from stars_ros.model.training import StarsTrainer, split_rows
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.training import split_rows
 
 from .common import DEFAULT_SOCNAV1, machine
 
@@ -33,11 +34,11 @@ def _run(job):
     config = ExperimentConfig.from_dict(config_dict)
     train, test = split_rows(data, config.split.test_fraction, config.split.seed)
     started = time.perf_counter()
-    recommender = StarsTrainer(config).fit(data, train)
+    recommender = StarsRecommender(config).fit(data, train)
     seconds = time.perf_counter() - started
     epochs = config.training.pretrain_epochs + config.training.joint_epochs
     return {'backbone': config.encoder.name, 'variant': config.model.variant,
-            'metrics': recommender.evaluate(data, test), 'train_seconds': seconds,
+            'metrics': recommender.test(data, test), 'train_seconds': seconds,
             'seconds_per_epoch': seconds / max(epochs, 1), 'epochs': epochs,
             'final_train_loss': recommender.history['joint'][-1], 'config': config.to_dict()}
 

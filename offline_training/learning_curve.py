@@ -33,10 +33,10 @@ from stars_ros.evaluation.executors import FitFailure, FitTask, run_fits
 from stars_ros.evaluation.folds import make_folds
 from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig
 from stars_ros.evaluation.stats import mean_sd
+from stars_ros.evaluation.plots import label_axis, mean_band, pyplot, save_png
+from stars_ros.evaluation.report import METRIC_NAMES, git_state, write_csv
 
-from .common import (DEFAULT_SOCNAV1, add_executor_options, build_executor, label_axis, machine, mean_band, pyplot,
-                     read_inputs, save_png, setup_logging)
-from .evaluate import METRIC_NAMES, git_state, write_csv
+from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, machine, read_inputs, setup_logging
 
 REPO = Path(__file__).resolve().parents[1]
 CURVE_COLUMNS = ('setting', 'variant', 'fold', 'epoch', 'mse', 'rmse', 'pearson_r', 'ccc', 'n')

@@ -16,12 +16,11 @@ import time
 
 import numpy as np
 
-from stars_ros.model.checkpoint import save_checkpoint
-from stars_ros.model.config import ExperimentConfig
+from stars_ros import StarsRecommender
 from stars_ros.errors import StarsError
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.metrics import regression_report
-from stars_ros.personalisation.prior import estimate_prior
-from stars_ros.model.training import StarsTrainer, split_rows
+from stars_ros.model.training import split_rows
 
 from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, read_inputs, setup_logging
 
@@ -72,38 +71,34 @@ def main(argv=None) -> int:
           f'{len(data.scene_keys)} scenes, actions {list(data.action_names)}; train {len(train)}, test {len(test)}')
     label = f'{config.encoder.name}-{config.model.variant}'
     started = time.perf_counter()
-    try:
-        recommender = StarsTrainer(config)
-        pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
-        recommender.fit(data, train, on_epoch=None if args.quiet else Progress(
-            recommender, pretrain, config.training.joint_epochs))
+    recommender = StarsRecommender(config)
+    pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
+    try:  # the fold-in's noise from the held-out split: training residuals understate it
+        recommender.fit(data, train, noise_rows=test if len(test) else None, on_epoch=None if args.quiet else
+                        Progress(recommender, pretrain, config.training.joint_epochs))
     except StarsError as error:
         print(f'error: {error}', file=sys.stderr)
         return 1
     seconds = time.perf_counter() - started
-    if recommender.require_model().personalised:  # the fold-in's prior and noise, kept in the checkpoint
-        prior = estimate_prior(recommender, data, train, noise_rows=test)  # noise from the held-out split
-        recommender.user_prior = prior.to_dict()
-        print(f"personalisation prior: {prior.details}; noise variance (z-scale) per action "
-              f"{[round(float(v), 4) for v in prior.noise]}")
+    prior = recommender.fitted.user_prior
+    if prior is not None:
+        print(f"personalisation prior: {prior['details']}; noise variance (z-scale) per action "
+              f"{[round(float(v), 4) for v in prior['noise']]}")
     epochs = config.training.pretrain_epochs + config.training.joint_epochs
     print(f'{label}: trained {epochs} epochs in {seconds:.1f} s ({seconds / max(epochs, 1):.2f} s/epoch)')
     metrics = {}
     if len(test):
-        metrics = recommender.evaluate(data, test)
+        metrics = recommender.test(data, test)
         mean_baseline = regression_report(data.scores[test], np.full(len(test), data.scores[train].mean()),
                                           data.actions[test])
         print(f'{label} held-out: {format_metrics(metrics)}')
         print(f'training-mean baseline: MSE {mean_baseline["mse"]:.4f}')
-    digest = save_checkpoint(
-        recommender, args.out,
-        data={'fingerprint': data.fingerprint, 'source': data.source, 'n_ratings': len(data),
-              'n_train': len(train), 'n_test': len(test), 'split': 'all rows' if args.all_rows else config.split.model_dump()},
+    digest = recommender.save(
+        args.out, data={'n_test': len(test), 'split': 'all rows' if args.all_rows else config.split.model_dump()},
         metrics=metrics,
         provenance={'command': ' '.join(['python -m offline_training.train'] + (argv or sys.argv[1:])),
                     'train_seconds': round(seconds, 1),
-                    'machine': {**machine(), 'device': config.training.device, **cuda_info(config.training.device)},
-                    'notes': data.notes})
+                    'machine': {**machine(), 'device': config.training.device, **cuda_info(config.training.device)}})
     print(f'wrote {args.out} (digest {digest[:12]})')
     return 0
 

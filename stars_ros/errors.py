@@ -1,4 +1,5 @@
 """Exception hierarchy: the core raises these, nodes and CLIs catch them at their boundary."""
+from __future__ import annotations
 
 
 class StarsError(Exception):
@@ -35,6 +36,37 @@ class TrainingDivergedError(StarsError):
 
 class UnknownSceneError(StarsError):
     """A scene named by id is not in the data the ids are looked up in (give its content)."""
+
+
+class NotFittedError(StarsError):
+    """A model was asked to predict before fit() or load()."""
+
+
+class BadMessage(MessageError):
+    """A message the ranker refuses; ``kind`` is a short machine-readable category and
+    ``scene_id`` the message's own scene id, when it has a usable one, so that the report
+    on stars/errors can be matched to the request."""
+
+    def __init__(self, kind: str, detail: str, scene_id: str | None = None):
+        super().__init__(detail)
+        self.kind = kind
+        self.scene_id = scene_id
+
+
+class NoQuestion(StarsError):
+    """Nothing to ask about: no candidates given and no usable scene remembered."""
+
+
+class KeyedError(ValueError):
+    """Raised inside a config validator about a key below the validated value: ``loc`` (a
+    tuple of keys) is appended to the validator's location. ``detail`` is a message, or the
+    ValidationError of a nested model (``model``, a pydantic BaseModel) checked by hand. A
+    ValueError, not a StarsError, because pydantic turns a validator's ValueError into its
+    ValidationError, which ``model.config`` then reports as a ConfigError."""
+
+    def __init__(self, loc: tuple, detail, model: type | None = None):
+        super().__init__(str(detail))
+        self.loc, self.detail, self.model = tuple(loc), detail, model
 
 
 class OutOfScaleError(StarsError):

@@ -6,7 +6,7 @@ the problem for diagnostics (``oversized``, ``malformed_json``, ``non_finite``, 
 
 Validation runs on every message on the node's hot path, so the schema files are compiled
 once with fastjsonschema (about 40x faster than jsonschema here). fastjsonschema reads
-draft-07, so ``_draft07`` rewrites the 2020-12 keywords the files use; a test checks that
+draft-07, so ``draft07`` rewrites the 2020-12 keywords the files use; a test checks that
 both validators accept and refuse the same messages.
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from functools import lru_cache
 from typing import Sequence
 from urllib.parse import urljoin
 
-from stars_ros.errors import MessageError, OutOfScaleError, SceneGraphError, StarsError, UnknownActionError
+from stars_ros.errors import BadMessage, OutOfScaleError, SceneGraphError, StarsError, UnknownActionError
 from stars_ros.resources import share_path
 
 SCHEMA_BASE = 'https://stars-ros.dev/msg_schemas/'
@@ -26,17 +26,6 @@ DEFAULT_MAX_BYTES = 262144
 MAX_ID_CHARS = 256
 _UNSUPPORTED = ('$dynamicRef', '$dynamicAnchor', '$anchor', 'unevaluatedItems', 'unevaluatedProperties',
                 'dependentRequired', 'dependentSchemas', 'minContains', 'maxContains', 'contentSchema')
-
-
-class BadMessage(MessageError):
-    """A message the ranker refuses; ``kind`` is a short machine-readable category and
-    ``scene_id`` the message's own scene id, when it has a usable one, so that the report
-    on stars/errors can be matched to the request."""
-
-    def __init__(self, kind: str, detail: str, scene_id: str | None = None):
-        super().__init__(detail)
-        self.kind = kind
-        self.scene_id = scene_id
 
 
 @dataclass(frozen=True)
@@ -75,21 +64,21 @@ class Feedback:
     signed: dict | None = None
 
 
-def _draft07(node):
+def draft07(node):
     """The same schema in draft-07 terms: ``prefixItems``/``items`` become
     ``items``/``additionalItems`` and a ``$ref`` with siblings moves into ``allOf``."""
     if isinstance(node, list):
-        return [_draft07(item) for item in node]
+        return [draft07(item) for item in node]
     if not isinstance(node, dict):
         return node
     for keyword in _UNSUPPORTED:
         if keyword in node:
             raise ValueError(f'schema keyword {keyword} has no draft-07 equivalent for the fast validator')
-    out = {key: _draft07(value) for key, value in node.items() if key not in ('$schema', 'prefixItems')}
+    out = {key: draft07(value) for key, value in node.items() if key not in ('$schema', 'prefixItems')}
     if 'prefixItems' in node:
-        out['items'] = _draft07(node['prefixItems'])
+        out['items'] = draft07(node['prefixItems'])
         if 'items' in node:
-            out['additionalItems'] = _draft07(node['items'])
+            out['additionalItems'] = draft07(node['items'])
     if '$ref' in out and len(out) > 1:
         ref = out.pop('$ref')
         out = {'allOf': [{'$ref': ref}, out]}
@@ -118,7 +107,7 @@ def _inline_refs(node, document: dict, uri: str, following: tuple = ()):
         raise ValueError(f'schema reference {node["$ref"]} is recursive; the fast validator inlines references')
     if not target_uri.startswith(SCHEMA_BASE):
         raise ValueError(f'schema reference {target_uri} is outside {SCHEMA_BASE}')
-    target_document = document if target_uri == uri else _draft07(
+    target_document = document if target_uri == uri else draft07(
         load_schema(target_uri[len(SCHEMA_BASE):].removesuffix('.schema.json')))
     target = target_document
     for part in filter(None, pointer.split('/')):
@@ -133,7 +122,7 @@ def validator(name: str):
     ``fastjsonschema.JsonSchemaValueException``)."""
     import fastjsonschema
 
-    schema = _draft07(load_schema(name))
+    schema = draft07(load_schema(name))
     return fastjsonschema.compile(_inline_refs(schema, schema, schema['$id']), use_default=False)
 
 

@@ -8,11 +8,21 @@
     recommender.fold_in('newcomer', [('01792 B', 'navigate', 0.9)])
     recommender.save('model.pt'); StarsRecommender.load('model.pt', data=data)
 
+Also: ``predict_batch`` (many (user, scene, action) at once), ``rank_scenes`` (candidate
+scenes, e.g. robot placements, best first), ``test`` (held-out figures on data rows),
+``refit`` (folded-in or logged users made trained ones), and ``score_sd`` / ``why`` on
+predictions and rankings (``uncertainty=True``, ``explain=True``).
+
 A *scene* is either a scene id the data knew, as written in its files (a string), or a
 scene's content: a scene-graph dict (msg_schemas/scene_graph.schema.json) for graph models,
 a feature row for tabular ones. Ids are looked up in the data the recommender was fitted
 on, or the ``data`` given to ``load``; a checkpoint alone knows ids only as rows of q_i and
-b_i, not their content.
+b_i, not their content. A checkpoint does not store the scenes' content: a graph model's
+scenes are the data set itself (SocNav1's are thousands of annotated scenes, under their own
+licence), and a prediction, a ``why`` and a fold-in all need that content, not an id. So a
+model loaded without ``data`` takes scenes as content, and an id raises UnknownSceneError
+saying to pass ``data``. (The node meets the same limit the same way: a scene request
+carries its graph, and its scene id only selects the trained q_i, b_i.)
 
 ``predict`` returns a ``Prediction``: a ``float`` (the score on the rating scale, clipped to
 it), so it adds and compares as one, carrying Surprise's fields ``user``, ``scene``,
@@ -32,26 +42,31 @@ from the checkpoint by ``load``; ``fold_in`` solves the user with
 ``personalisation.foldin.FoldIn`` and serves them through ``Predictor.set_user_model``.
 ``save`` writes a weights-only checkpoint (``model.checkpoint``) that ``load`` and the node
 read; folded-in users are served state, not part of it (the node keeps them in its state
-file, ``offline_training.refit`` writes them into a checkpoint).
+file, ``refit`` writes them into a checkpoint as trained rows).
+
+Serving imports neither training nor pandas: ``fit``, ``refit`` and ``load_dataset`` bring
+them in when called, so ``StarsRecommender.load`` and the predictor stay light.
 """
 from __future__ import annotations
 
 import math
 import os
 import time
-from typing import Sequence
+from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from stars_ros.data.ratings import RatingData, load_dataset
-from stars_ros.errors import UnknownSceneError
+from stars_ros.errors import NotFittedError, StarsError, UnknownActionError, UnknownSceneError
 from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.predictor import Predictor
-from stars_ros.model.training import NotFittedError, StarsTrainer, torch_state_kept
+from stars_ros.model.fitted import FittedModel
+from stars_ros.model.predictor import Predictor, RankQuery
 from stars_ros.personalisation.foldin import FoldIn
+from stars_ros.personalisation.uncertainty import Uncertainty
 from stars_ros.state import Rating
-from stars_ros.personalisation.prior import estimate_prior, held_out_split
+
+if TYPE_CHECKING:
+    from stars_ros.data.ratings import RatingData
 
 USER_TERMS = frozenset({'p', 'b_u'})
 SCENE_TERMS = frozenset({'q', 'b_i'})
@@ -59,12 +74,15 @@ SCENE_TERMS = frozenset({'q', 'b_i'})
 
 class Prediction(float):
     """A predicted score: a float on the rating scale, with ``user``, ``scene`` (the id
-    given, None for content), ``action``, ``est`` (the score) and ``details`` (see the
-    module docstring)."""
+    given, None for content), ``action``, ``est`` (the score), ``details`` (see the
+    module docstring), ``score_sd`` (its predictive standard deviation) and ``why`` (its
+    ``model.explain.Why``), each None unless asked for."""
 
-    def __new__(cls, est: float, user, scene, action: str, details: dict):
+    def __new__(cls, est: float, user, scene, action: str, details: dict, score_sd: float | None = None,
+                why=None):
         prediction = super().__new__(cls, est)
         prediction.user, prediction.scene, prediction.action, prediction.details = user, scene, action, details
+        prediction.score_sd, prediction.why = score_sd, why
         return prediction
 
     @property
@@ -72,7 +90,7 @@ class Prediction(float):
         return float(self)
 
     def __reduce__(self):
-        return Prediction, (float(self), self.user, self.scene, self.action, self.details)
+        return Prediction, (float(self), self.user, self.scene, self.action, self.details, self.score_sd, self.why)
 
     def __repr__(self) -> str:
         return (f'Prediction(user={self.user!r}, scene={self.scene!r}, action={self.action!r}, '
@@ -80,12 +98,25 @@ class Prediction(float):
 
 
 class Ranking(list):
-    """``Predictor.rank``'s entries (``Ranked``: name, score, rank), best first, with the
-    ``details`` a ``Prediction`` of this user and scene has."""
+    """``Predictor.rank``'s entries (``Ranked``: name, score, rank, score_sd, why), best
+    first, with the ``details`` a ``Prediction`` of this user and scene has, and, with
+    uncertainty, ``p_first_is_best``: the probability that the first entry is truly the best."""
 
-    def __init__(self, entries: Sequence, details: dict):
+    def __init__(self, entries: Sequence, details: dict, p_first_is_best: float | None = None):
         super().__init__(entries)
-        self.details = details
+        self.details, self.p_first_is_best = details, p_first_is_best
+
+
+class Refitted(NamedTuple):
+    """What ``StarsRecommender.refit`` made: the new ``recommender``, the users ``solved``
+    ({user: foldin.UserModel}), those ``failed`` ({user: why}), the fine-tune's ``losses``
+    per epoch and the number of ``ratings`` it was fine-tuned on (0 without fine-tuning)."""
+
+    recommender: 'StarsRecommender'
+    solved: dict
+    failed: dict
+    losses: list
+    ratings: int
 
 
 class SceneCatalogue:
@@ -127,7 +158,8 @@ def _config(config) -> ExperimentConfig:
     raise TypeError(f'config must be an ExperimentConfig, a YAML path or a dict, got {type(config).__name__}')
 
 
-def _data(data) -> RatingData:
+def _data(data) -> 'RatingData':
+    from stars_ros.data.ratings import RatingData, load_dataset  # pandas: only for data
     return data if isinstance(data, RatingData) else load_dataset(data)
 
 
@@ -143,6 +175,8 @@ class StarsRecommender:
         self.config = _config(config)
         self._predictor: Predictor | None = None
         self._fold_in: FoldIn | None = None
+        self._uncertainty: Uncertainty | None = None
+        self._trainer = None  # the StarsTrainer of the latest fit (None for a loaded model)
         self._catalogue: SceneCatalogue | None = None
         self._checkpoint: dict = {}  # what save() writes besides the weights: data, metrics, provenance
 
@@ -151,7 +185,7 @@ class StarsRecommender:
         if self._predictor is None:
             return f'StarsRecommender({label}, not fitted)'
         return (f'StarsRecommender({label}, {len(self.users)} users, '
-                f'{len(self._predictor.recommender.scene_keys)} scenes, actions {list(self.actions)})')
+                f'{len(self._predictor.recommender.scene_keys)} trained scenes, actions {list(self.actions)})')
 
     # -- state ---------------------------------------------------------------------------
     @property
@@ -164,7 +198,7 @@ class StarsRecommender:
     @property
     def users(self) -> tuple:
         """The users of the training data (folded-in users: ``predictor.user_models``)."""
-        return self.predictor.recommender.users
+        return self.predictor.users
 
     @property
     def actions(self) -> tuple:
@@ -174,7 +208,7 @@ class StarsRecommender:
     @property
     def rating_scale(self) -> tuple | None:
         """(lowest, highest) score a rating can take, which served scores are clipped to (None: unbounded)."""
-        return self.predictor.recommender.rating_scale
+        return self.predictor.rating_scale
 
     @property
     def fingerprint(self) -> str:
@@ -186,28 +220,52 @@ class StarsRecommender:
         """The data whose scene ids predict, rank and fold_in accept (None: content only)."""
         return None if self._catalogue is None else self._catalogue.data
 
-    def _serve(self, trainer: StarsTrainer, predictor: Predictor, data: RatingData | None) -> None:
-        self._predictor, self._fold_in = predictor, None
-        self._catalogue = None if data is None else SceneCatalogue(data, trainer.config.model.item_key)
+    @property
+    def fitted(self) -> FittedModel:
+        """The torch model and its vocabularies (``model.fitted``): what ``save`` writes,
+        what the offline programs fine-tune (``training.StarsTrainer.resume``)."""
+        return self.predictor.recommender
+
+    @property
+    def history(self) -> dict:
+        """Training losses per epoch of the latest ``fit``, by stage ('pretrain', 'joint'),
+        as they grow during it (empty for a loaded model)."""
+        return {'pretrain': [], 'joint': []} if self._trainer is None else self._trainer.history
+
+    @property
+    def checkpoint_metadata(self) -> dict:
+        """What ``save`` writes besides the weights: ``data``, ``metrics``, ``provenance``
+        (a loaded model's are its file's)."""
+        return {key: dict(value) for key, value in self._checkpoint.items()}
+
+    def _serve(self, fitted: FittedModel, predictor: Predictor, data: 'RatingData | None') -> None:
+        self._predictor, self._fold_in, self._uncertainty = predictor, None, None
+        self._catalogue = None if data is None else SceneCatalogue(data, fitted.config.model.item_key)
 
     # -- fit, save, load -----------------------------------------------------------------
-    def fit(self, data, rows: Sequence[int] | None = None,
-            noise_rows: Sequence[int] | None = None) -> 'StarsRecommender':
+    def fit(self, data, rows: Sequence[int] | None = None, noise_rows: Sequence[int] | None = None,
+            on_epoch: Callable[[str, int], None] | None = None) -> 'StarsRecommender':
         """Train on ``rows`` of ``data`` (a RatingData, or what ``load_dataset`` reads;
         every rating by default); returns self. A personalised variant also gets the
         fold-in's prior (``personalisation.prior``), its rating noise and tails from
         ``noise_rows`` (held-out ratings of the trained people) when given; else a seeded
         ``prior.NOISE_SHARE`` of each person's examples is held out of the training for them
         (``prior.held_out_split``), as ``train`` and ``kshot`` hold out theirs, so a person
-        folded in here is treated as on the robot. Earlier fold-ins are dropped. Leaves
-        torch's threads, default dtype and random state as it found them."""
+        folded in here is treated as on the robot. ``on_epoch(stage, epoch)`` is called after
+        each epoch (``StarsTrainer.fit``; ``history`` holds the losses). Earlier fold-ins are
+        dropped. Leaves torch's threads, default dtype and random state as it found them."""
+        from stars_ros.model.training import StarsTrainer, torch_state_kept  # training (and pandas): only to fit
+        from stars_ros.personalisation.prior import estimate_prior, held_out_split
+
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
         started = time.perf_counter()
         if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
             rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
+        self._trainer = trainer = StarsTrainer(self.config)
         with torch_state_kept():
-            trainer = StarsTrainer(self.config).fit(data, rows)
+            trainer.fit(data, rows, on_epoch=on_epoch)
+            seconds = time.perf_counter() - started
             if trainer.require_model().personalised:
                 trainer.user_prior = estimate_prior(trainer, data, rows, noise_rows=noise_rows).to_dict()
         self._serve(trainer, Predictor.from_model(trainer), data)
@@ -215,29 +273,85 @@ class StarsRecommender:
             'data': {'fingerprint': data.fingerprint, 'source': data.source, 'n_ratings': len(data),
                      'n_train': len(rows)},
             'metrics': {},
-            'provenance': {'written_by': 'stars_ros.StarsRecommender', 'train_seconds':
-                           round(time.perf_counter() - started, 1), 'notes': list(data.notes)}}
+            'provenance': {'written_by': 'stars_ros.StarsRecommender', 'train_seconds': round(seconds, 1),
+                           'notes': list(data.notes)}}
         return self
 
-    def save(self, path) -> str:
+    def save(self, path, *, data: dict | None = None, metrics: dict | None = None,
+             provenance: dict | None = None) -> str:
         """Write the model to a weights-only checkpoint at ``path`` (what ``load`` and the
-        ranker node read); returns its digest, the fingerprint rankings will carry. Folded-in
-        users are not written (see the module docstring)."""
-        return save_checkpoint(self.predictor.recommender, path, **self._checkpoint)
+        ranker node read); returns its digest, the fingerprint rankings will carry. ``data``,
+        ``metrics`` and ``provenance`` add to what ``fit`` recorded of each. Folded-in users
+        are not written (see the module docstring)."""
+        extra = {'data': data, 'metrics': metrics, 'provenance': provenance}
+        written = {key: {**value, **(extra[key] or {})} for key, value in self._checkpoint.items()}
+        return save_checkpoint(self.fitted, path, **written)
 
     @classmethod
     def load(cls, path, data=None) -> 'StarsRecommender':
         """The recommender stored at ``path`` (CheckpointError for a missing, corrupted or
         incompatible file). ``data`` (a RatingData or what ``load_dataset`` reads) lets
         predict, rank and fold_in name its scenes by id; without it, scenes are given as
-        content."""
+        content (the module docstring says why a checkpoint does not hold them)."""
         predictor = Predictor.load(path)
-        trainer = predictor.recommender
-        recommender = cls(trainer.config)
-        recommender._serve(trainer, predictor, None if data is None else _data(data))
+        return cls.serving(predictor, data)
+
+    @classmethod
+    def serving(cls, predictor: Predictor, data=None) -> 'StarsRecommender':
+        """The recommender over a ``Predictor`` already loaded (``load``'s second half)."""
+        fitted = predictor.recommender
+        recommender = cls(fitted.config)
+        recommender._serve(fitted, predictor, None if data is None else _data(data))
         metadata = predictor.metadata
         recommender._checkpoint = {key: dict(metadata.get(key) or {}) for key in ('data', 'metrics', 'provenance')}
         return recommender
+
+    def test(self, data=None, rows: Sequence[int] | None = None) -> dict:
+        """Macro-averaged MSE, RMSE, Pearson r and CCC (and ``n``) on ``rows`` of ``data``
+        (default: the data ids are looked up in; every row by default), on the rating scale,
+        users scored from their trained rows (Surprise's ``test`` on a test set)."""
+        data = self.data if data is None else _data(data)
+        if data is None:
+            raise ValueError('test needs data: give it, or load the model with data=...')
+        rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
+        return self.fitted.evaluate(data, rows)
+
+    def refit(self, ratings: dict, regularisation: dict | None = None, data=None, epochs: int = 0,
+              default_regularisation: float | None = None) -> Refitted:
+        """A new recommender in which each user of ``ratings`` ({user: [state.Rating]}, as
+        ``personalisation.refit`` reads them from the node's logs or state store) is a
+        trained user: their (p_u, b_u) solved as ``fold_in`` and the node solve them (λ from
+        ``regularisation`` {user: λ}, else ``default_regularisation``, else the posterior),
+        written into new or replaced rows of the user table. With ``epochs`` > 0 every
+        parameter is then fine-tuned for that many joint epochs on the feedback (plus the
+        rows of ``data``, when given) with this model's training settings. The new
+        recommender keeps this one's checkpoint metadata under ``parent``."""
+        from stars_ros.model.training import StarsTrainer  # training: only to refit
+        from stars_ros.personalisation.foldin import DEFAULT_REGULARISATION
+        from stars_ros.personalisation.refit import feedback_data
+
+        solver, solved, failed = self._fold_in_solver(), {}, {}
+        for user, user_ratings in ratings.items():
+            lam = (regularisation or {}).get(user, default_regularisation)
+            try:
+                solved[user] = solver.fit(user_ratings, user, DEFAULT_REGULARISATION if lam is None else lam)
+            except StarsError as error:
+                failed[user] = str(error)
+        trainer = StarsTrainer.resume(self.fitted).extended(users=list(solved))
+        for user, model in solved.items():
+            trainer.set_user_row(user, model.p, model.b)
+        losses, fine_tuned_on = [], 0
+        if epochs > 0:
+            feedback = feedback_data(trainer, {u: r for u, r in ratings.items() if u in solved},
+                                     None if data is None else _data(data))
+            trainer = trainer.extended(scene_keys=feedback.scene_keys)
+            losses, fine_tuned_on = trainer.fine_tune(feedback, epochs), len(feedback)
+        child = StarsRecommender(self.config)
+        child._serve(trainer, Predictor.from_model(trainer), self.data)
+        parent = self._checkpoint
+        child._checkpoint = {'data': dict(parent.get('data', {})), 'metrics': {'parent': dict(parent.get('metrics', {}))},
+                             'provenance': {'parent': dict(parent.get('provenance', {}))}}
+        return Refitted(child, solved, failed, losses, fine_tuned_on)
 
     # -- serving -------------------------------------------------------------------------
     def _scene(self, scene) -> tuple:
@@ -253,11 +367,11 @@ class StarsRecommender:
 
     def _details(self, user, item_key) -> dict:
         predictor = self.predictor
-        trainer = predictor.recommender
+        fitted = predictor.recommender
         folded = predictor.user_model(user)
         details = {'known_user': predictor.knows_user(user), 'folded_in': 0 if folded is None else folded.n_ratings,
-                   'known_scene': item_key is not None and item_key in trainer.scene_vocabulary}
-        parts, reasons = trainer.config.model.parts, []
+                   'known_scene': item_key is not None and item_key in fitted.scene_vocabulary}
+        parts, reasons = fitted.config.model.parts, []
         if parts & USER_TERMS and not details['known_user'] and folded is None:
             reasons.append('unknown user')
         if parts & SCENE_TERMS and not details['known_scene']:
@@ -266,21 +380,74 @@ class StarsRecommender:
             details['reason'] = '; '.join(reasons)
         return details
 
-    def predict(self, user, scene, action: str) -> Prediction:
-        """The score ``user`` would give ``action`` in ``scene`` (an id or content), on the
-        rating scale; the same number ``rank`` gives it."""
-        predictor = self.predictor
-        scene_input, scene_id, item_key = self._scene(scene)
-        column = predictor.action_columns([action])[0]
-        score = predictor.score(user, [scene_input], [item_key])[0, column]
-        return Prediction(float(score), user, scene_id, action, self._details(user, item_key))
+    def _options(self, uncertainty: bool, explain: bool) -> dict:
+        """``Predictor.rank_many``'s options for ``score_sd`` (``uncertainty``) and ``why``."""
+        options = {'explain_all': explain, 'explain_entities': 0}
+        if uncertainty:
+            if self._uncertainty is None:
+                self._uncertainty = Uncertainty(self._fold_in_solver())
+            options['uncertainty'] = self._uncertainty
+        return options
 
-    def rank(self, user, scene, candidates: Sequence[str] | None = None) -> Ranking:
+    def _fold_in_solver(self) -> FoldIn:
+        if self._fold_in is None:
+            self._fold_in = FoldIn(self.predictor)  # StarsError for a model without users
+        return self._fold_in
+
+    def predict(self, user, scene, action: str, uncertainty: bool = False, explain: bool = False) -> Prediction:
+        """The score ``user`` would give ``action`` in ``scene`` (an id or content), on the
+        rating scale; the same number ``rank`` gives it. ``uncertainty``: with its
+        ``score_sd``; ``explain``: with its ``why`` (``model.explain.Why``)."""
+        return self.predict_batch([(user, scene, action)], uncertainty, explain)[0]
+
+    def predict_batch(self, requests: Sequence[tuple], uncertainty: bool = False,
+                      explain: bool = False) -> list:
+        """``predict`` of each ``(user, scene, action)`` of ``requests``, in order; each
+        user's scenes are encoded in one pass."""
+        predictor, by_user = self.predictor, {}
+        for k, (user, scene, action) in enumerate(requests):
+            scene_input, scene_id, item_key = self._scene(scene)
+            query = RankQuery((scene_input,), item_key, (str(action),))
+            by_user.setdefault(user, []).append((k, query, scene_id))
+        predictions = [None] * len(requests)
+        options = self._options(uncertainty, explain)
+        for user, members in by_user.items():
+            scored = predictor.rank_many(user, [query for _, query, _ in members], **options)
+            for (k, query, scene_id), result in zip(members, scored):
+                entry = result.ranked[0]
+                predictions[k] = Prediction(entry.score, user, scene_id, entry.name,
+                                            self._details(user, query.scene_id), entry.score_sd, entry.why)
+        return predictions
+
+    def rank(self, user, scene, candidates: Sequence[str] | None = None, uncertainty: bool = False,
+             explain: bool = False) -> Ranking:
         """The model's actions (or ``candidates``) for ``user`` in ``scene``, best first:
-        ``Ranked(name, score, rank)`` entries, scores clipped to the rating scale."""
-        predictor = self.predictor
+        ``Ranked(name, score, rank, score_sd, why)`` entries, scores clipped to the rating
+        scale; ``score_sd`` with ``uncertainty``, ``why`` with ``explain`` (else None)."""
         scene_input, _, item_key = self._scene(scene)
-        return Ranking(predictor.rank(user, scene_input, candidates, scene_id=item_key), self._details(user, item_key))
+        if candidates is not None and not list(candidates):
+            raise UnknownActionError('candidate list is empty')
+        query = RankQuery((scene_input,), item_key, None if candidates is None else tuple(candidates))
+        scored = self.predictor.rank_many(user, [query], **self._options(uncertainty, explain))[0]
+        return Ranking(scored.ranked, self._details(user, item_key), scored.p_first_is_best)
+
+    def rank_scenes(self, user, scenes: Sequence, labels: Sequence[str] | None = None, action: str | None = None,
+                    uncertainty: bool = False, explain: bool = False) -> Ranking:
+        """Candidate ``scenes`` (ids or content; e.g. the robot's possible placements) best
+        first by the score of ``action`` (needed when the model has several), labelled by
+        ``labels`` (default: their ids, else their positions '0', '1', ...). Each is scored as
+        a new scene (no q_i, b_i): the candidates are alternatives the robot could make."""
+        if not scenes:
+            raise ValueError('no candidate scenes')
+        resolved = [self._scene(scene) for scene in scenes]
+        if labels is None:
+            labels = [scene_id if scene_id is not None else str(k) for k, (_, scene_id, _) in enumerate(resolved)]
+        if len(labels) != len(scenes):
+            raise ValueError('one label per candidate scene')
+        query = RankQuery(tuple(scene_input for scene_input, _, _ in resolved), labels=tuple(map(str, labels)),
+                          action=action)
+        scored = self.predictor.rank_many(user, [query], **self._options(uncertainty, explain))[0]
+        return Ranking(scored.ranked, self._details(user, None), scored.p_first_is_best)
 
     def fold_in(self, user, ratings: Sequence[tuple], regularisation: float | None = None) -> 'StarsRecommender':
         """Solve ``user`` from ``ratings``, ``(scene, action, score)`` triples (scores on the
@@ -307,8 +474,6 @@ class StarsRecommender:
         if not folded:
             predictor.set_user_model(user, None)
             return self
-        if self._fold_in is None:
-            self._fold_in = FoldIn(predictor)
         options = {} if regularisation is None else {'regularisation': regularisation}
-        predictor.set_user_model(user, self._fold_in.fit(folded, str(user), **options))
+        predictor.set_user_model(user, self._fold_in_solver().fit(folded, str(user), **options))
         return self

@@ -4,13 +4,11 @@ from pathlib import Path
 
 import pytest
 
+from stars_ros import StarsRecommender
 from stars_ros.data import synthetic_socnav
-from stars_ros.model.checkpoint import save_checkpoint
-from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset, socnav1_root as default_socnav1_root
 from stars_ros.data.scene_source import read_scenes
-from stars_ros.personalisation.prior import estimate_prior
-from stars_ros.model.training import StarsTrainer, split_rows
+from stars_ros.model.training import split_rows
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_CONFIG = {
@@ -70,8 +68,6 @@ def synthetic_scenes(synthetic_root) -> list:
 def tiny_checkpoint(synthetic, tmp_path_factory):
     """A small StARS-GCN trained on 80 % of the generated ratings (a second), saved to disk."""
     train, held_out = split_rows(synthetic, 0.2, 0)
-    recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
-    recommender.user_prior = estimate_prior(recommender, synthetic, train, noise_rows=held_out).to_dict()
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
-    save_checkpoint(recommender, path, data={'fingerprint': synthetic.fingerprint, 'source': 'synthetic_socnav'})
+    StarsRecommender(TINY_CONFIG).fit(synthetic, train, noise_rows=held_out).save(path)
     return path

@@ -30,12 +30,24 @@ class Node:
         self.lines.append(('error', line))
 
 
-def make_core(node, checkpoint, **params):
-    """A RankerCore on ``checkpoint`` with the node's defaults (no recording), talking to ``node``."""
+class SteppedClock:
+    """A system clock (ns) that a test moves: by hand (``ns``), and by ``step`` at each read."""
+
+    def __init__(self, step: int = 0, start: int = 10 ** 12):
+        self.ns, self.step = start, step
+
+    def __call__(self) -> int:
+        self.ns += self.step
+        return self.ns
+
+
+def make_core(node, checkpoint, clock=None, **params):
+    """A RankerCore on ``checkpoint`` with the node's defaults (no recording), talking to
+    ``node``; ``clock``: the system clock it reads (default: the real one)."""
     values = {name: spec[0] for name, spec in PARAMETERS.items()}
     values.update({'checkpoint': str(checkpoint), 'record_folder': '', **params})
     return RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
-                      lambda: next(node.clock))
+                      lambda: next(node.clock), **({} if clock is None else {'clock': clock}))
 
 
 def drain(core):

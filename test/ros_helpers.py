@@ -27,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from stars_ros import recording, state
+from stars_ros import state
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -106,6 +106,11 @@ class RosClient:
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self._spinner.start()
+
+    def snapshot(self, store: list) -> list:
+        """A copy of ``store`` (one of this client's lists) taken while no callback adds to it."""
+        with self._changed:
+            return list(store)
 
     def collect(self, topic: str, qos) -> list:
         """A list that gathers the JSON of every std_msgs/String on ``topic`` (``wait`` sees it grow)."""

@@ -23,6 +23,13 @@ def workspace(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope='module')
+def built(workspace):
+    """``colcon build`` run once in the workspace; every test that reads the install tree
+    asks for it, so none depends on running after another."""
+    return colcon(workspace, 'build', '--event-handlers', 'console_direct-')
+
+
 def colcon(workspace, *args):
     return subprocess.run([str(BIN / 'colcon'), *args], cwd=workspace, env=_env(), capture_output=True, text=True,
                           timeout=300)
@@ -39,11 +46,10 @@ def test_colcon_sees_an_ament_python_package(workspace):
     assert (name, build_type) == ('stars_ros', '(ros.ament_python)')
 
 
-def test_colcon_build_installs_what_ros2_run_needs(workspace):
-    built = colcon(workspace, 'build', '--event-handlers', 'console_direct-')
+def test_colcon_build_installs_what_ros2_run_needs(workspace, built):
     assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
-    for executable in ('ranker', 'scene_publisher', 'replay'):
+    for executable in ('ranker', 'scene_publisher', 'replay', 'sign_feedback', 'recording'):
         path = prefix / 'lib' / 'stars_ros' / executable
         assert path.is_file() and os.access(path, os.X_OK), path
     share = prefix / 'share'
@@ -60,9 +66,10 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace):
     assert installed.requires == ['setuptools', *filter(None, pins)]  # install_requires, as pip would see them
 
 
-def test_source_install_setup_bash_finds_the_built_package(workspace):
+def test_source_install_setup_bash_finds_the_built_package(workspace, built):
     """README: `source install/setup.bash` after `colcon build`; colcon writes setup.bash only
     with colcon-bash installed (requirements-dev.txt), else sourcing fails: no such file."""
+    assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
     code = 'import stars_ros.resources as r; print(r.__file__); print(r.share_path("launch/ranker.launch.py"))'
     env = _env()
@@ -76,9 +83,10 @@ def test_source_install_setup_bash_finds_the_built_package(workspace):
     assert module.startswith(str(prefix)) and launch_file.startswith(str(prefix / 'share' / 'stars_ros'))
 
 
-def test_installed_ranker_finds_its_packaged_files(workspace):
+def test_installed_ranker_finds_its_packaged_files(workspace, built):
     """The built package resolves the default checkpoint and schemas from its share/
     folder (the way it does under `ros2 run`), not from this checkout."""
+    assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
     site = next((prefix / 'lib').glob('python3*/site-packages'))
     code = ('from stars_ros.resources import resolve_checkpoint, share_path; '

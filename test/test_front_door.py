@@ -13,9 +13,9 @@ import torch
 from stars_ros import Prediction, StarsRecommender, load_dataset
 from stars_ros.data import crowd_data, synthetic_socnav
 from stars_ros.data.ratings import socnav1_root
-from stars_ros.errors import DataError, UnknownActionError, UnknownSceneError
+from stars_ros.errors import DataError, StarsError, UnknownActionError, UnknownSceneError
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.training import NotFittedError
+from stars_ros.errors import NotFittedError
 
 REPO = Path(__file__).resolve().parents[1]
 TABULAR = {'encoder': {'name': 'mlp', 'hidden': 16, 'layers': 1}, 'model': {'dim': 8},
@@ -232,3 +232,83 @@ def test_load_dataset_by_name_reads_socnav1_where_the_setting_says(tmp_path, mon
         load_dataset('socnav1')
     with pytest.raises(ValueError, match='unknown kind'):
         load_dataset(root, kind='csv')
+
+
+def test_predict_batch_is_predict_one_by_one(fitted, tabular):
+    content = list(tabular.store.scene(2))
+    requests = [(user, scene, action) for user, scene in rows_of(tabular)[:6] for action in fitted.actions]
+    requests += [('stranger', content, 'mop'), (None, tabular.scene_keys[1], 'vacuum')]
+    batch = fitted.predict_batch(requests)
+    assert len(batch) == len(requests)
+    for (user, scene, action), prediction in zip(requests, batch):
+        one = fitted.predict(user, scene, action)
+        assert prediction == pytest.approx(one, abs=1e-6) and prediction.details == one.details
+        assert (prediction.user, prediction.action) == (user, action)
+
+
+def test_score_sd_and_why_come_when_asked(fitted, tabular):
+    user, scene = rows_of(tabular)[0]
+    plain = fitted.predict(user, scene, 'mop')
+    assert plain.score_sd is None and plain.why is None
+    full = fitted.predict(user, scene, 'mop', uncertainty=True, explain=True)
+    assert full == plain and full.score_sd > 0
+    assert full.why.content + full.why.personal + full.why.scene == pytest.approx(float(full), abs=1e-4)
+    assert len(full.why.entities) == tabular.store.feature_dim  # a tabular scene's entities: its features
+    ranking = fitted.rank(user, scene, uncertainty=True)
+    assert all(entry.score_sd > 0 for entry in ranking) and 0 <= ranking.p_first_is_best <= 1
+    assert fitted.rank(user, scene).p_first_is_best is None
+
+
+def test_a_base_model_gives_why_but_no_score_sd(tabular):
+    base = StarsRecommender(ExperimentConfig.from_dict(TABULAR).replace(model={'variant': 'base'})).fit(tabular)
+    scene = tabular.scene_keys[0]
+    assert base.predict('u', scene, 'mop', explain=True).why.personal_from == 'none'
+    with pytest.raises(StarsError, match='personalised'):
+        base.predict('u', scene, 'mop', uncertainty=True)
+
+
+def test_rank_scenes_orders_candidates_by_the_actions_score(fitted, tabular):
+    user, _ = rows_of(tabular)[0]
+    candidates = [list(tabular.store.scene(k)) for k in range(4)]
+    with pytest.raises(UnknownActionError, match="say which 'action'"):
+        fitted.rank_scenes(user, candidates)
+    ranking = fitted.rank_scenes(user, candidates, action='mop')
+    assert sorted(entry.name for entry in ranking) == ['0', '1', '2', '3']
+    for entry in ranking:
+        assert entry.score == pytest.approx(fitted.predict(user, candidates[int(entry.name)], 'mop'), abs=1e-6)
+    by_id = fitted.rank_scenes(user, list(tabular.scene_keys[:3]), action='vacuum', uncertainty=True)
+    assert {entry.name for entry in by_id} == set(tabular.scene_keys[:3]) and by_id.p_first_is_best is not None
+
+
+def test_test_scores_held_out_rows_as_the_fitted_model_does(tabular, tmp_path):
+    rows = np.arange(len(tabular))
+    recommender = StarsRecommender(TABULAR).fit(tabular, rows[:150])
+    figures = recommender.test(tabular, rows[150:])
+    assert figures['n'] == len(rows) - 150 and figures['mse'] >= 0 and set(figures) >= {'rmse', 'pearson_r', 'ccc'}
+    assert recommender.test(rows=rows[150:]) == figures  # the data it was fitted on
+    recommender.save(tmp_path / 'model.pt', metrics=figures)
+    loaded = StarsRecommender.load(tmp_path / 'model.pt')
+    assert loaded.test(tabular, rows[150:]) == pytest.approx(figures)
+    assert loaded.checkpoint_metadata['metrics'] == figures
+    with pytest.raises(ValueError, match='needs data'):
+        loaded.test()
+
+
+def test_refit_makes_folded_in_users_trained_ones(fitted, tabular):
+    from stars_ros.personalisation.foldin import Rating
+    scenes = [(tabular.scene_keys[k], list(tabular.store.scene(k))) for k in range(4)]
+    ratings = {'newcomer': [Rating(content, 'mop', 5.0, key) for key, content in scenes]}
+    refitted = fitted.refit(ratings)
+    assert set(refitted.solved) == {'newcomer'} and not refitted.failed and refitted.ratings == 0
+    child = refitted.recommender
+    assert 'newcomer' in child.users and 'newcomer' not in fitted.users
+    fitted.fold_in('newcomer', [(key, 'mop', 5.0) for key, _ in scenes])
+    try:
+        for key, _ in scenes:
+            assert child.predict('newcomer', key, 'mop') == pytest.approx(fitted.predict('newcomer', key, 'mop'),
+                                                                          abs=1e-5)
+            assert child.predict('newcomer', key, 'mop').details['known_user']
+    finally:
+        fitted.fold_in('newcomer', [])
+    tuned = fitted.refit(ratings, epochs=1)
+    assert tuned.ratings == 4 and len(tuned.losses) == 1

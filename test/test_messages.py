@@ -211,10 +211,10 @@ def test_fast_validator_agrees_with_jsonschema(scenes, reference):
 
 def test_draft07_translation_refuses_unknown_keywords():
     with pytest.raises(ValueError, match='unevaluatedProperties'):
-        messages._draft07({'type': 'object', 'unevaluatedProperties': False})
-    assert messages._draft07({'prefixItems': [{'type': 'integer'}], 'items': False}) == \
+        messages.draft07({'type': 'object', 'unevaluatedProperties': False})
+    assert messages.draft07({'prefixItems': [{'type': 'integer'}], 'items': False}) == \
         {'items': [{'type': 'integer'}], 'additionalItems': False}
-    assert messages._draft07({'$ref': '#/a', 'minimum': 1}) == {'allOf': [{'$ref': '#/a'}, {'minimum': 1}]}
+    assert messages.draft07({'$ref': '#/a', 'minimum': 1}) == {'allOf': [{'$ref': '#/a'}, {'minimum': 1}]}
 
 
 def test_inlined_references_resolve_across_files_and_refuse_recursion():

@@ -30,7 +30,8 @@ def _imported(module: str, path: Path, tree) -> set:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ''
             if node.level:
-                base = '.'.join(package.split('.')[:len(package.split('.')) - node.level + 1] + ([base] if base else []))
+                parts = package.split('.')
+                base = '.'.join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
             names.update(f'{base}.{alias.name}' for alias in node.names)
             names.add(base)
     return {name for name in names if name.startswith('stars_ros.')}

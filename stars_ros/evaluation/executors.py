@@ -25,7 +25,7 @@ import numpy as np
 from stars_ros.data.ratings import RatingData
 from stars_ros.errors import TrainingDivergedError
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.metrics import regression_report
+from stars_ros.model.metrics import normalised_rmse, regression_report
 
 log = logging.getLogger(__name__)
 
@@ -102,13 +102,6 @@ def worker_data() -> RatingData:
     if _WORKER_DATA is None:
         raise RuntimeError('not in a fit_executor worker')
     return _WORKER_DATA
-
-
-def normalised_rmse(y, p, actions, target_mean, target_std) -> float:
-    """RMSE of z-scores (per-action mean/std of the training split), macro over actions."""
-    y, p, actions = np.asarray(y, float), np.asarray(p, float), np.asarray(actions)
-    errors = (p - y) / np.asarray(target_std, float)[actions]
-    return float(np.mean([np.sqrt(np.mean(errors[actions == a] ** 2)) for a in np.unique(actions)]))
 
 
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:

@@ -34,7 +34,7 @@ from stars_ros.data.ratings import RatingData
 from stars_ros.data.scene_summary import summarise_store
 from stars_ros.errors import ConfigError
 from stars_ros.model.config import ExperimentConfig, Float, Int, Section, validated
-from stars_ros.model.metrics import regression_report
+from stars_ros.model.metrics import normalised_rmse, regression_report
 
 PEERS = ('surprise_svd', 'myfm', 'myfm_encoder')
 LABELS = {'surprise_svd': 'Surprise SVD (no content)', 'myfm': 'myFM (scene features)'}
@@ -177,7 +177,6 @@ def run_peer(peer: str, settings_text: str, experiment: dict, data: RatingData, 
     """Fit ``peer`` on ``train`` rows and score it on ``test`` rows: the record's metrics,
     the selection's z-RMSE, seconds (``fit_seconds`` covers predicting too; for
     ``myfm_encoder`` training the encoder) and ``curve`` at ``curve_at`` for an inner fit."""
-    from stars_ros.evaluation.executors import normalised_rmse
     started = time.perf_counter()
     predictions, epochs = peer_predictions(peer, settings_text, experiment, data, train, test)
     finished = time.perf_counter()

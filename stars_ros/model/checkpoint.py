@@ -20,7 +20,7 @@ from stars_ros import __version__
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import CheckpointError, ConfigError, StarsError
 from stars_ros.files import atomic_write
-from stars_ros.model.training import StarsTrainer, build_model
+from stars_ros.model.fitted import FittedModel, build_model
 
 FORMAT = 'stars_ros.checkpoint'  # a data format's name: it stays when modules move
 FORMAT_VERSION = 1
@@ -42,37 +42,37 @@ def _digest(metadata: dict, state: dict) -> str:
     return sha.hexdigest()
 
 
-def save_checkpoint(recommender: StarsTrainer, path, *, data: dict, metrics: dict | None = None,
+def save_checkpoint(fitted: FittedModel, path, *, data: dict, metrics: dict | None = None,
                     provenance: dict | None = None) -> str:
-    """Write ``recommender`` to ``path`` atomically; returns the checkpoint's digest.
+    """Write ``fitted`` to ``path`` atomically; returns the checkpoint's digest.
 
     Args:
         data (dict): what it was trained on (``fingerprint``, ``source``, ``n_ratings`` ...).
         metrics (dict, optional): held-out figures to keep with the weights.
         provenance (dict, optional): anything else worth keeping (command line, logs used).
     """
-    model = recommender.require_model()
+    model = fitted.require_model()
     metadata = {
         'format': FORMAT,
         'format_version': FORMAT_VERSION,
         'package_version': __version__,
         'torch_version': str(torch.__version__),
         'created_utc': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
-        'config': recommender.config.to_dict(),
+        'config': fitted.config.to_dict(),
         'input_kind': model.encoder.input_kind,
         'feature_dim': model.encoder.in_dim,
-        'users': list(recommender.users),
-        'scene_keys': list(recommender.scene_keys),
-        'actions': list(recommender.action_names),
+        'users': list(fitted.users),
+        'scene_keys': list(fitted.scene_keys),
+        'actions': list(fitted.action_names),
         'normalisation': {'mean': model.target_mean.tolist(), 'std': model.target_std.tolist()},
-        'rating_scale': list(recommender.rating_scale) if recommender.rating_scale is not None else None,
+        'rating_scale': list(fitted.rating_scale) if fitted.rating_scale is not None else None,
         'data': dict(data),
         'metrics': dict(metrics or {}),
         'provenance': dict(provenance or {}),
     }
     content = {'metadata': metadata, 'state_dict': {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
-    if recommender.user_prior is not None:
-        prior = dict(recommender.user_prior)
+    if fitted.user_prior is not None:
+        prior = dict(fitted.user_prior)
         metadata['user_prior'] = prior.pop('details', {})
         content['user_prior'] = prior
     content['digest'] = digest = _digest(metadata, _tensors(content))
@@ -127,14 +127,14 @@ def read_checkpoint(path) -> dict:
 
 
 def load_checkpoint(path, with_digest: bool = False):
-    """Rebuild the recommender stored in ``path``; returns (recommender, metadata), plus
-    the digest when ``with_digest``."""
+    """Rebuild the ``FittedModel`` stored in ``path``; returns (fitted model, metadata), plus
+    the digest when ``with_digest``. (``StarsTrainer.resume`` makes it trainable again.)"""
     content = read_checkpoint(path)
     metadata = content['metadata']
     try:
         config = ExperimentConfig.from_dict(metadata['config'])
-        recommender = StarsTrainer(config)
-        recommender.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
+        fitted = FittedModel(config)
+        fitted.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
         model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
                             len(metadata['scene_keys']), len(metadata['actions']))
         model.load_state_dict(content['state_dict'])
@@ -145,11 +145,11 @@ def load_checkpoint(path, with_digest: bool = False):
             message = f'{type(error).__name__}: {error}'
         raise CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}') from error
     model.eval()
-    recommender.model = model
+    fitted.model = model
     scale = metadata.get('rating_scale')  # absent from checkpoints written before it was kept
-    recommender.rating_scale = tuple(scale) if scale is not None else None
+    fitted.rating_scale = tuple(scale) if scale is not None else None
     if 'user_prior' in content:  # absent from checkpoints written before it was kept
-        recommender.user_prior = {**content['user_prior'], 'details': metadata.get('user_prior', {})}
+        fitted.user_prior = {**content['user_prior'], 'details': metadata.get('user_prior', {})}
     if with_digest:
-        return recommender, metadata, content['digest']
-    return recommender, metadata
+        return fitted, metadata, content['digest']
+    return fitted, metadata

@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
-from stars_ros.errors import ConfigError
+from stars_ros.errors import ConfigError, KeyedError
 
 #: The parts of each personalised variant: ``content`` (h_i), ``p`` (p_u), ``q`` (q_i), the
 #: offsets ``b_u`` and ``b_i``, and ``residual`` (the h_i added inside the final product).
@@ -40,16 +40,6 @@ Float = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 
 
 # -- errors -------------------------------------------------------------------------------
-class KeyedError(ValueError):
-    """Raised inside a validator about a key below the validated value: ``loc`` (a tuple of
-    keys) is appended to the validator's location. ``detail`` is a message, or the
-    ValidationError of a nested model (``model``) checked by hand."""
-
-    def __init__(self, loc: tuple, detail, model: type[BaseModel] | None = None):
-        super().__init__(str(detail))
-        self.loc, self.detail, self.model = tuple(loc), detail, model
-
-
 def _key(loc) -> str:
     text = ''
     for part in loc:

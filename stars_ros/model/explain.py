@@ -95,7 +95,7 @@ def removal_effects(predictor, user_id, scenes, scene_ids=None) -> list:
     encoded = inputs if predictor.input_kind == 'graph' else np.stack(inputs)
     h = predictor.inference.encode(encoded, len(inputs))
     rows = (np.full(len(scenes), UNKNOWN) if scene_ids is None
-            else predictor.recommender.scene_vocabulary.rows(list(scene_ids)))
+            else predictor.scene_rows(list(scene_ids)))
     rows = np.repeat(rows, [len(found) + 1 for found in entities])
     scores = predictor.inference.scores(h, _user_row(predictor, user_id), rows)
     results, start = [], 0

@@ -41,3 +41,10 @@ def regression_report(y, p, actions=None) -> dict:
     return {'mse': float(values[:, 0].mean()), 'rmse': float(values[:, 1].mean()),
             'pearson_r': float(values[:, 2].mean()), 'ccc': float(values[:, 3].mean()),
             'n': int(len(y))}
+
+
+def normalised_rmse(y, p, actions, target_mean, target_std) -> float:
+    """RMSE of z-scores (per-action mean/std of the training split), macro over actions."""
+    y, p, actions = np.asarray(y, float), np.asarray(p, float), np.asarray(actions)
+    errors = (p - y) / np.asarray(target_std, float)[actions]
+    return float(np.mean([np.sqrt(np.mean(errors[actions == a] ** 2)) for a in np.unique(actions)]))

@@ -19,11 +19,12 @@ from typing import Sequence
 
 import numpy as np
 
-from stars_ros.model.checkpoint import load_checkpoint
-from stars_ros.errors import SceneGraphError, UnknownActionError
-from stars_ros.model.numpy_model import InferenceModel
-from stars_ros.model.model import UNKNOWN
 from stars_ros.data.scene_graph import SceneGraph, featurise
+from stars_ros.errors import SceneGraphError, StarsError, UnknownActionError
+from stars_ros.model.checkpoint import load_checkpoint
+from stars_ros.model.explain import explain, removal_effects
+from stars_ros.model.model import UNKNOWN
+from stars_ros.model.numpy_model import InferenceModel
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,38 @@ class Ranked:
     why: object = None
 
 
+@dataclass(frozen=True)
+class RankQuery:
+    """One ranking asked of ``Predictor.rank_many``: the actions ``actions`` (None: all the
+    model's) of the one scene ``graphs[0]``, a training scene if ``scene_id`` names one; or,
+    with ``labels``, the candidate scenes ``graphs`` (labelled so) under ``action``.
+    ``explain``: give each entry its why. (``messages.SceneRequest`` has the same fields.)"""
+
+    graphs: tuple
+    scene_id: str | None = None
+    actions: tuple | None = None
+    labels: tuple | None = None
+    action: str | None = None
+    explain: bool = False
+
+    @property
+    def ranks_scenes(self) -> bool:
+        return self.labels is not None
+
+
+@dataclass(frozen=True)
+class Scored:
+    """One ranking of ``rank_many``: its entries (best first, cut to ``top_k``), the action
+    that ranked candidate scenes (None for action ranking), h_i of the query's scenes
+    [len(graphs), dim] (float32: feedback on them is folded in without encoding them again),
+    and the probability that the first entry is truly the best (None without uncertainty)."""
+
+    ranked: list
+    action: str | None
+    h: np.ndarray
+    p_first_is_best: float | None = None
+
+
 def rank_order(names: Sequence[str], scores, sds=None, whys=None) -> list:
     """``Ranked`` entries of ``names`` by ``scores`` (with their ``sds`` and ``whys``), best first."""
     order = sorted(range(len(names)), key=lambda k: (-scores[k], k))  # ties keep input order
@@ -51,7 +84,7 @@ class Predictor:
     """Scores scenes with a trained model.
 
     Args:
-        recommender (StarsTrainer): fitted model and vocabularies.
+        recommender (FittedModel): the model and its vocabularies (``model.fitted``).
         metadata (dict): the checkpoint's metadata (config, provenance, metrics).
         digest (str): the checkpoint's SHA-256 digest, its fingerprint.
     """
@@ -98,8 +131,26 @@ class Predictor:
     def input_kind(self) -> str:
         return self.recommender.model.encoder.input_kind
 
+    @property
+    def users(self) -> tuple:
+        """The users of the training data, in the rows of the user table."""
+        return self.recommender.users
+
+    @property
+    def rating_scale(self) -> tuple | None:
+        """(lowest, highest) score a rating can take (None: unbounded)."""
+        return self.recommender.rating_scale
+
+    def clip(self, scores: np.ndarray) -> np.ndarray:
+        """``scores`` limited to the rating scale the checkpoint was trained on."""
+        return self.recommender.clip(scores)
+
     def knows_user(self, user_id) -> bool:
         return user_id is not None and str(user_id) in self.recommender.user_vocabulary
+
+    def trained_row(self, user_id) -> int:
+        """The row of p_u, b_u of a user of the training data (UNKNOWN, -1, for anyone else)."""
+        return self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
 
     @property
     def user_models(self) -> dict:
@@ -159,10 +210,12 @@ class Predictor:
     def scores_from_h(self, user_id, h: np.ndarray, scene_ids: Sequence | None = None) -> np.ndarray:
         """``score`` for scenes already encoded as ``h`` [len(scenes), dim], clipped to the
         rating scale the checkpoint was trained on."""
-        scene_rows = self._scene_rows if scene_ids is None else self._scene_rows_of(scene_ids)
-        return self.recommender.clip(self._inference.scores(h, self._user_row(user_id), scene_rows))
+        scene_rows = self._scene_rows if scene_ids is None else self.scene_rows(scene_ids)
+        return self.clip(self._inference.scores(h, self._user_row(user_id), scene_rows))
 
-    def _scene_rows_of(self, scene_ids: Sequence) -> np.ndarray:
+    def scene_rows(self, scene_ids: Sequence) -> np.ndarray:
+        """The rows of q_i, b_i of training scenes ``scene_ids`` (UNKNOWN, -1, for an id the
+        model never trained on, and for None)."""
         return self.recommender.scene_vocabulary.rows(scene_ids)
 
     def user_theta(self, user_id) -> np.ndarray:
@@ -178,7 +231,7 @@ class Predictor:
         folded = self.user_model(user_id)
         if folded is not None:
             return folded.p.astype(np.float32), np.float32(folded.b)
-        row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        row = self.trained_row(user_id)
         if row == UNKNOWN:
             return self._stranger
         return inference.user_rows[row], inference.user_offsets[row]
@@ -201,20 +254,83 @@ class Predictor:
         self.action_columns([action])
         return action
 
-    def rank(self, user_id, scene, candidates: Sequence[str] | None = None, scene_id=None) -> list:
-        """Candidate actions (all by default) sorted best first for ``user_id`` in ``scene``."""
-        names = list(self.actions if candidates is None else candidates)
-        if not names:
+    def rank(self, user_id, scene, candidates: Sequence[str] | None = None, scene_id=None,
+             uncertainty=None, explain_entities: int | None = None) -> list:
+        """Candidate actions (all by default) sorted best first for ``user_id`` in ``scene``
+        (``rank_many``'s entries, with ``score_sd`` given an ``uncertainty`` and ``why`` given
+        ``explain_entities``)."""
+        if candidates is not None and not list(candidates):
             raise UnknownActionError('candidate list is empty')
-        columns = self.action_columns(names)
-        return rank_order(names, self.score(user_id, [scene], [scene_id])[0, columns])
+        query = RankQuery((scene,), scene_id, None if candidates is None else tuple(candidates),
+                          explain=explain_entities is not None)
+        return self.rank_many(user_id, [query], uncertainty=uncertainty,
+                              explain_entities=explain_entities or 0)[0].ranked
 
     def rank_scenes(self, user_id, scenes: Sequence, labels: Sequence[str] | None = None,
-                    action: str | None = None) -> list:
+                    action: str | None = None, uncertainty=None, explain_entities: int | None = None) -> list:
         """Alternative scenes (e.g. candidate robot placements) sorted best first by the
         score of ``action`` (required when the model has more than one)."""
-        column = self.action_columns([self.ranking_action(action)])[0]
         labels = [str(k) for k in range(len(scenes))] if labels is None else list(labels)
         if len(labels) != len(scenes):
             raise ValueError('one label per candidate scene')
-        return rank_order(labels, self.score(user_id, scenes)[:, column])
+        query = RankQuery(tuple(scenes), None, labels=tuple(labels), action=action,
+                          explain=explain_entities is not None)
+        return self.rank_many(user_id, [query], uncertainty=uncertainty,
+                              explain_entities=explain_entities or 0)[0].ranked
+
+    def query_action(self, query) -> str | None:
+        """Check ``query``'s action names against the model; the action that ranks its
+        candidate scenes (None for action ranking)."""
+        if query.ranks_scenes:
+            return self.ranking_action(query.action)
+        self.action_columns(query.actions or ())
+        return None
+
+    def rank_many(self, user_id, queries: Sequence, top_k: int = 0, uncertainty=None, explain_all: bool = False,
+                  explain_entities: int = 5, validate: bool = True) -> list:
+        """One ``Scored`` per query of ``queries`` (``RankQuery``, or anything with its
+        attributes, such as ``messages.SceneRequest``), every scene of them encoded in one
+        pass. Each ranking is cut to ``top_k`` entries (0: all); with ``uncertainty``
+        (``personalisation.uncertainty.Uncertainty``) each entry has its ``score_sd`` and the
+        ranking its ``p_first_is_best``; an entry has its ``why`` (``explain_entities``
+        entities, 0: all) where ``explain_all`` or its query's ``explain`` asks. Raises
+        StarsError for the whole group (a bad action name, a non-finite score)."""
+        actions = [self.query_action(query) for query in queries]
+        graphs = [graph for query in queries for graph in query.graphs]
+        scene_ids = [None if query.ranks_scenes else query.scene_id for query in queries for _ in query.graphs]
+        h = self.encode(graphs, validate=validate)
+        scores = self.scores_from_h(user_id, h, scene_ids)
+        if not np.isfinite(scores).all():
+            raise StarsError('the model produced a non-finite score')
+        results, row = [], 0
+        for query, action in zip(queries, actions):
+            count = len(query.graphs)
+            if query.ranks_scenes:
+                names = list(query.labels)
+                columns = self.action_columns([action]) * len(names)
+                entry_h, rows = h[row:row + count], np.full(len(names), UNKNOWN)
+                entry_scores = scores[row:row + count, columns[0]]
+            else:
+                names = list(query.actions or self.actions)
+                columns = self.action_columns(names)
+                entry_h = np.repeat(h[row:row + 1], len(names), axis=0)
+                rows = self.scene_rows([query.scene_id] * len(names))
+                entry_scores = scores[row, columns]
+            spread = None if uncertainty is None else uncertainty.spread(self, user_id, entry_h, rows, columns)
+            whys = (self._whys(user_id, query, entry_h, rows, columns, explain_entities)
+                    if explain_all or query.explain else None)
+            ranked = rank_order(names, entry_scores, None if spread is None else spread.sd, whys)
+            p_first = None if spread is None else spread.p_first_is_best(names.index(ranked[0].name))
+            results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + count], p_first))
+            row += count
+        return results
+
+    def _whys(self, user_id, query, entry_h, scene_rows, columns, entities: int) -> list:
+        """``explain.Why`` of each entry of ``query`` (its scenes' removal variants in one pass)."""
+        scene_ids = None if query.ranks_scenes else [query.scene_id]
+        effects = removal_effects(self, user_id, query.graphs, scene_ids)
+        if query.ranks_scenes:
+            per_entry = [(found, effect[:, columns[0]]) for found, effect in effects]
+        else:
+            per_entry = [(effects[0][0], effects[0][1][:, column]) for column in columns]
+        return explain(self, user_id, entry_h, scene_rows, np.asarray(columns), per_entry, entities)

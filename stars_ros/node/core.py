@@ -1,7 +1,10 @@
 """What the ranker node does, without ROS: the checkpoint served, the queue of scene
-requests and their batches, problem reports and diagnostics, the recording, and the fold-in
-of feedback (``personalisation``). ``stars_ros.ros.ranker`` declares the parameters, turns
-messages into the text this class takes and publishes the text it gives.
+requests and the work loop over them, problem reports, the recording, and the fold-in of
+feedback (``personalisation``). The rest of the node's logic sits beside it, one concern a
+module: its parameters and topics (``parameters``), the figures of /diagnostics
+(``diagnostics``), peers' user models (``fleet_intake``), batch ranking (``batching``),
+questions (``questions``) and markers (``markers``). ``stars_ros.ros.ranker`` declares the
+parameters, turns messages into the text this class takes and publishes the text it gives.
 
 One thread (the node's executor) calls ``RankerCore``; the state store's thread
 (``stars_ros.state``) commits feedback and people, and the recorder's flushes the bag,
@@ -29,77 +32,13 @@ from stars_ros.state import StateStore, check_score
 from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
 from stars_ros.model.predictor import Predictor
-from stars_ros.resources import DEFAULT_CHECKPOINT, resolve_checkpoint
-from stars_ros.node.batching import WARNINGS, BusySpans, Pending, PeriodStats, Problems, rank_batch
+from stars_ros.resources import resolve_checkpoint
+from stars_ros.node.batching import Pending, rank_batch
+from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos  # noqa: F401  (ros.ranker reads them here)
+from stars_ros.node.fleet_intake import FleetIntake
+from stars_ros.node.diagnostics import WARNINGS, BusySpans, PeriodStats, Problems, period_report
 
 MAX_STRANGERS_REMEMBERED = 10000
-TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',
-          'stars/question_request', 'stars/question', 'stars/markers')
-_INT_MAX = 2 ** 31 - 1
-
-
-def topic_qos(params: Mapping) -> dict:
-    """topic -> (depth, latched) of every topic of TOPICS, all reliable: what the rclpy
-    adapter subscribes and publishes with and the recorder offers again (``ros2 bag play``).
-    A robot that joins late gets the last user models; with fleet sharing the history also
-    holds a re-send of every user until the newcomer has it; a viewer that joins late gets
-    the latest scene's markers."""
-    depth = params['queue_depth']
-    models = depth + (params['fold_in_max_users'] if params['fleet_sharing'] else 0)
-    return {'stars/scene': (depth, False), 'stars/ranking': (depth, False), 'stars/feedback': (100, False),
-            'stars/errors': (100, False), 'stars/user_id': (1, True), 'stars/user_model': (models, True),
-            'stars/question_request': (10, False), 'stars/question': (10, False), 'stars/markers': (1, True)}
-
-
-PARAMETERS = {  # name: (default, description, read_only, range)
-    'checkpoint': ('', f'checkpoint file; empty: the packaged {DEFAULT_CHECKPOINT}. Read again by ~/reload',
-                   False, None),
-    'top_k': (0, 'publish only the best k entries of each ranking; 0: all', False, (0, _INT_MAX)),
-    'explain': (False, "give every ranking entry its 'why' (the parts of its score and the entities that drive it, "
-                'docs/explanations.md), as a request with "explain": true does', False, None),
-    'explain_entities': (5, "entities a 'why' names, largest |effect| first; 0: all", False, (0, 4096)),
-    'frame_id': ('base_link', "frame of stars/markers: the robot's, REP 103 axes (the scene converted from SocNav1 "
-                 'centimetres, docs/explanations.md)', False, None),
-    'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag even while nobody '
-                       'subscribes to it; false: markers are built only for a subscriber', False, None),
-    'record_folder': (str(recording.default_folder() / recording.NODE_PLACEHOLDER), 'folder for the MCAP bags and '
-                      'the state store (state.db), one node each; {node} stands for the node\'s namespace and name '
-                      '(robot1/ranker); default $ROS_HOME/stars_ros/records/{node} (ROS_HOME: ~/.ros unless set); '
-                      'empty: do not record', True, None),
-    'rotation_bytes': (64 << 20, 'start a new MCAP file once one reaches this size (bytes)', True,
-                       (4096, _INT_MAX)),
-    'flush_interval': (1.0, 'seconds between flushes of the recording (a hard kill loses at most this of its other '
-                       'topics; stored feedback is never lost) and between two tries of a disk that refuses the state '
-                       'store', True, (0.01, 3600.0)),
-    'max_message_bytes': (messages.DEFAULT_MAX_BYTES, 'larger messages are refused (kind oversized)',
-                          False, (1024, 64 << 20)),
-    'queue_depth': (1000, 'QoS depth of stars/scene and the most requests waiting to be scored', True,
-                    (1, 100000)),
-    'max_batch': (16, 'most queued requests scored in one forward pass', False, (1, 1024)),
-    'log_throttle': (5.0, 'seconds between two log lines about the same kind of error', False,
-                     (0.0, 3600.0)),
-    'diagnostics_period': (1.0, 'seconds between two /diagnostics messages', True, (0.05, 3600.0)),
-    'fold_in': (True, "personalise from feedback: re-solve the user's embedding after each rating", False, None),
-    'fold_in_min_ratings': (1, 'ratings a user needs before their folded-in embedding is served', False,
-                            (1, 100000)),
-    'fold_in_max_ratings': (200, "most recent ratings per user the fold-in is solved from (and the state store "
-                            'keeps); older ones stay in the MCAP log for the offline refit', True, (1, 1000000)),
-    'fold_in_max_users': (1000, 'folded-in users kept; beyond this the one who rated least recently goes back to '
-                          'the checkpoint (their feedback stays in the MCAP log)', True, (1, 10000000)),
-    'fold_in_regularisation': (0.0, '0: serve the Gaussian posterior of each person (no λ to set: the prior and '
-                               'rating noise come from the checkpoint); > 0: the ridge solve with this λ towards the '
-                               'prior mean instead', False, (0.0, 1e6)),
-    'question_recent_scenes': (32, 'latest remembered scenes a stars/question_request without candidates chooses '
-                               'among; the target set of every question request', False, (1, 4096)),
-    'fleet_sharing': (False, 'share folded-in users with the other rankers on stars/user_model (remap it to one '
-                      "fleet-wide topic): publish each model with the ratings it was solved from, take in peers' "
-                      "ratings and solve each user from everyone's", True, None),
-    'feedback_key_file': ('', 'file of feedback keys, one KEY_ID:HEX_SECRET a line (docs/security.md): feedback, and '
-                          "with fleet sharing the ratings of peers' models, are taken only when one of them signed "
-                          'it; empty: feedback is not authenticated', True, None),
-    'feedback_max_age': (60.0, 'seconds signed feedback stays valid: a stamp further in the past or the future, or '
-                         'a MAC already taken within it, is refused (kind auth)', False, (0.001, 86400.0)),
-}
 
 
 class RankerCore:
@@ -118,11 +57,14 @@ class RankerCore:
         markers_out (optional): where stars/markers go: ``subscribed()`` (does anybody listen?),
             ``publish(data)`` (a visualization_msgs/MarkerArray's CDR bytes) and ``message_type``
             (``recording.MessageType``, for the bag); None: no markers.
+        clock (callable): the system time in ns (``time.time_ns`` unless a test steps it),
+            which ``received`` times, processing times and fold-in spans are read on.
     """
 
     def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
-                 logger, now: Callable[[], int], markers_out=None):
+                 logger, now: Callable[[], int], markers_out=None, clock: Callable[[], int] = time.time_ns):
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
+        self._clock = clock
         self.markers_out = markers_out
         self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
         self.predictor = Predictor.load(self.checkpoint_path)
@@ -131,7 +73,7 @@ class RankerCore:
         self.user_id, self.problems, self._strangers_reported = None, Problems(), set()
         self.queue = collections.deque()  # Pending requests
         self.questions = collections.deque()  # QuestionRequests waiting to be answered
-        self._fold_in_spans = BusySpans()  # when fold-in work was done (time.time_ns)
+        self._fold_in_spans = BusySpans()  # when fold-in work was done (``clock``)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
         folder = params['record_folder']
@@ -142,7 +84,7 @@ class RankerCore:
         self.personalisation = Personalisation(
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
             self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator)
-        self._peers_reported = set()  # (peer, fingerprint or λ) warned about once
+        self.fleet = FleetIntake(params, self.topics['stars/user_model'], self.report)
         self.personalisation.restore()
 
     def _feedback_authenticator(self):
@@ -231,22 +173,15 @@ class RankerCore:
         """(level: 'ok', 'warn' or 'error'; summary; key-values; [(kind, level, count, latest
         detail)] of each kind of problem) of the period since the last call, which ends it."""
         period, counts = self.problems.take_period()
-        recorder = self.recorder
-        store = self.store
+        recorder, store = self.recorder, self.store
         failure = (recorder and recorder.error) or (store and store.error)
-        level = 'error' if set(period) - set(WARNINGS) or failure else ('warn' if period else 'ok')
-        summary = 'serving' if not period else 'serving; problems since last report: ' + ', '.join(
-            f'{k} x{n}' for k, (n, _) in sorted(period.items()))
         values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
                   'rankings': counts.get('ranking', 0), 'queued': len(self.queue),
                   'recording': 'off' if recorder is None else (failure or str(recorder.path)),
                   'feedback_not_on_disk': 0 if store is None else store.uncommitted_feedback,
                   'folded_in_users': len(self.predictor.user_models), **self._period_stats.values()}
-        values.update({f'errors.{k}': n for k, n in sorted(counts.items()) if k != 'ranking'})
         self._period_stats = PeriodStats()
-        kinds = [(kind, 'warn' if kind in WARNINGS else 'error', count, detail)
-                 for kind, (count, detail) in sorted(period.items())]
-        return level, summary, values, kinds
+        return period_report(period, counts, failure, values)
 
     # -- input ---------------------------------------------------------------------------
     def _parse(self, parse, text: str, topic: str):
@@ -258,7 +193,7 @@ class RankerCore:
             return None
 
     def accept_scene(self, text: str, received: int):
-        """Queue a stars/scene request the middleware received at ``received`` (time.time_ns)."""
+        """Queue a stars/scene request the middleware received at ``received`` (ns of ``clock``)."""
         request = self._parse(messages.parse_scene_request, text, self.topics['stars/scene'])
         if request is None:
             return
@@ -309,45 +244,22 @@ class RankerCore:
         elif not self.store.healthy:
             self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
                         feedback.scene_id)
-        journal = None if self.store is None else (
-            {'topic': topic, 'log_time': log_time, 'data': text}, self.recorder.name if self.recorder is not None else '')
+        bag = self.recorder.name if self.recorder is not None else ''
+        journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text}, bag)
         if not self.params['fold_in']:
             self.personalisation.record_feedback(journal)
             return False
-        started = time.time_ns()
+        started = self._clock()
         refused = self.personalisation.add_feedback(feedback, self.params['max_message_bytes'], log_time, journal)
         if refused is not None:
             self.report('unknown_scene', refused, topic, feedback.scene_id)
-        self._fold_in_spans.add(started, time.time_ns())
+        self._fold_in_spans.add(started, self._clock())
         return refused is None
 
     def accept_user_model(self, text: str) -> bool:
-        """Take in a peer's stars/user_model message (fleet sharing): the ratings it was
-        solved from that this node lacks join the user's. True when the user now waits to be
-        re-solved (call ``work``). A message of another checkpoint is ignored (warned about
-        once per peer and checkpoint); a bad one is reported and changes nothing."""
-        topic = self.topics['stars/user_model']
-        try:
-            payload = messages.parse_user_model(text, self.params['max_message_bytes'])
-        except messages.BadMessage as error:
-            self.report(error.kind, f'peer user model refused: {error}', topic)
-            return False
-        peer, user_id = payload.get('origin', 'a ranker without fleet sharing'), payload['user_id']
-        if payload['fingerprint'] != self.predictor.fingerprint:
-            self._warn_once(peer, payload['fingerprint'], f"user models from {peer} were solved against checkpoint "
-                            f"{payload['fingerprint'][:12]}, not the served {self.predictor.fingerprint[:12]}: "
-                            'ignored (reported once per peer and checkpoint)')
-            return False
-        if payload['regularisation'] != self.params['fold_in_regularisation']:
-            self._warn_once(peer, payload['regularisation'], f"{peer} folds in with fold_in_regularisation = "
-                            f"{payload['regularisation']}, this node with {self.params['fold_in_regularisation']}: "
-                            'their models of a user differ (reported once per peer and value)')
-        try:
-            return self.personalisation.add_peer_ratings(user_id, payload.get('ratings', []), peer)
-        except StarsError as error:
-            self.report(messages.error_kind(error), f"user model of '{user_id}' from {peer} refused, nothing taken in: "
-                        f'{error}', topic)
-            return False
+        """Take in a peer's stars/user_model message (fleet sharing, ``FleetIntake``); True
+        when the user now waits to be re-solved (call ``work``)."""
+        return self.fleet.accept(text, self.predictor, self.personalisation)
 
     def accept_question_request(self, text: str) -> bool:
         """Queue a stars/question_request; True when it waits to be answered (call ``work``)."""
@@ -372,13 +284,6 @@ class RankerCore:
         payload = messages.dumps(answer)
         self._publish('stars/question', payload)
         self.record('stars/question', payload)
-
-    def _warn_once(self, peer: str, value, detail: str):
-        if (peer, value) not in self._peers_reported:
-            if len(self._peers_reported) >= MAX_STRANGERS_REMEMBERED:
-                self._peers_reported.clear()
-            self._peers_reported.add((peer, value))
-            self.report('fleet', detail, self.topics['stars/user_model'])
 
     def announce(self) -> bool:
         """A subscriber joined stars/user_model: send it every folded-in user (fleet
@@ -416,19 +321,19 @@ class RankerCore:
             elif self.questions:
                 self._answer_question(self.questions.popleft())
             elif intake:
-                started = time.time_ns()
+                started = self._clock()
                 try:
                     refused = personalisation.take_in_next()
                 finally:
-                    self._fold_in_spans.add(started, time.time_ns())
+                    self._fold_in_spans.add(started, self._clock())
                 if refused is not None:
                     self.report(*refused, self.topics['stars/user_model'])
             elif pending:
-                started = time.time_ns()
+                started = self._clock()
                 try:
                     self._solve_next()
                 finally:
-                    ended = time.time_ns()
+                    ended = self._clock()
                     self._fold_in_spans.add(started, ended)
                     self._period_stats.fold_in_update((ended - started) / 1e6)
             elif to_announce:
@@ -450,11 +355,11 @@ class RankerCore:
         message = self.personalisation.model_message(user_id)
         if message is None:
             return
-        payload, log_time = messages.dumps(message), self._now()
+        payload = messages.dumps(message)
 
-        def publish():
+        def publish():  # logged when it goes out
             self._publish('stars/user_model', payload)
-            self.record('stars/user_model', payload, log_time)
+            self.record('stars/user_model', payload)
         if self.store is None:
             publish()
         else:
@@ -462,7 +367,7 @@ class RankerCore:
 
     def _serve(self, batch: list):
         predictor, top_k = self.predictor, self.params['top_k']
-        started = time.time_ns()
+        started = self._clock()
         uncertainty = self.personalisation.uncertainty
         explanations = (self.params['explain'], self.params['explain_entities'])
         for item, result in zip(batch, rank_batch(predictor, batch, top_k, uncertainty, explanations)):
@@ -472,7 +377,7 @@ class RankerCore:
                 self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
-            processing_ms = max(0, time.time_ns() - item.received) / 1e6
+            processing_ms = max(0, self._clock() - item.received) / 1e6
             payload = messages.dumps(messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
                 result.action, personalised, result.p_first_is_best))

@@ -17,12 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from stars_ros import messages
-from stars_ros.errors import StarsError
+from stars_ros.errors import NoQuestion, StarsError
 from stars_ros.model.model import UNKNOWN
-
-
-class NoQuestion(StarsError):
-    """Nothing to ask about: no candidates given and no usable scene remembered."""
 
 
 @dataclass(frozen=True)
@@ -48,7 +44,7 @@ def candidates_of(predictor, request: messages.SceneRequest, h: np.ndarray) -> l
                 for k, label in enumerate(request.labels)]
     names = list(request.actions or predictor.actions)
     columns = np.asarray(predictor.action_columns(names))
-    rows = predictor.recommender.scene_vocabulary.rows([request.scene_id] * len(names))
+    rows = predictor.scene_rows([request.scene_id] * len(names))
     x, c = predictor.inference.linear_form(np.repeat(h[:1], len(names), axis=0), rows, columns)
     return [Candidate(request.scene_id, name, None, x[k], float(c[k]), int(columns[k])) for k, name in enumerate(names)]
 
@@ -90,7 +86,7 @@ def choose_question(personalisation, user_id: str, requests: list, recent_scenes
     best = offered[int(np.argmax(gains))]
     theta = predictor.user_theta(user_id)
     z = float(best.x @ theta + best.c)
-    score = float(predictor.recommender.clip(predictor.inference.to_rating_scale(np.array([z]),
+    score = float(predictor.clip(predictor.inference.to_rating_scale(np.array([z]),
                                                                                  np.array([best.column])))[0])
     reply = {'user_id': user_id, 'scene_id': best.scene_id, 'action': best.action,
              'expected_variance_reduction': float(gains.max()), 'score': score,

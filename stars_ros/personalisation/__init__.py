@@ -1,2 +1,2 @@
 """Personalisation: the closed-form fold-in of a person's ratings, the node's online
-fold-in and fleet sharing (their state persists in ``recording.state_store``)."""
+fold-in and fleet sharing (a person's state persists through ``stars_ros.state``)."""

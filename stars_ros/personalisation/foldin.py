@@ -44,7 +44,7 @@ from scipy import linalg
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.model.model import UNKNOWN
 from stars_ros.personalisation.prior import PRIOR_SCALES, UserPrior, prior_of
-from stars_ros.state.person import Rating, UserModel, scene_digest
+from stars_ros.state.person import Rating, UserModel
 
 DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
 DEFAULT_CACHE_SCENES = 4096
@@ -151,17 +151,16 @@ class FoldIn:
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False,
                  prior: UserPrior | None = None):
-        recommender = predictor.recommender
-        model = recommender.require_model()
+        fitted = predictor.recommender
+        model = fitted.require_model()
         if not model.personalised:
             raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
         self.predictor = predictor
-        self.recommender = recommender
         self.inference = predictor.inference  # the weights and the scoring arithmetic, shared
-        self.actions = tuple(recommender.action_names)
+        self.actions = tuple(predictor.actions)
         self._action_index = {a: k for k, a in enumerate(self.actions)}
         self.dim = self.inference.dim
-        self.user_prior = prior_of(recommender, self.inference) if prior is None else prior
+        self.user_prior = prior_of(fitted, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
@@ -175,6 +174,13 @@ class FoldIn:
         scale_mixture_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
                                 self._population_precision, self._population_logdet)  # a process's first LAPACK solve costs
         # milliseconds: paid at load, not by the first feedback
+
+    @property
+    def cached(self) -> tuple[int, int]:
+        """(scenes whose h_i is kept, ratings whose regression row is kept): both bounded by
+        ``cache_scenes``, least recently used dropped first."""
+        with self._lock:
+            return len(self._cache), len(self._rows)
 
     def _user_row(self, row) -> np.ndarray:
         """θ = (p_u, b_u) (float64) of trained row(s) ``row``."""
@@ -191,7 +197,7 @@ class FoldIn:
         """(mean, covariance, precision) of θ before any feedback: the trained row with the
         covariance of their training ratings for a person the checkpoint knows, else the
         population prior."""
-        row = self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        row = self.predictor.trained_row(user_id)
         prior = self.user_prior
         if row == UNKNOWN:
             return self.population.copy(), prior.covariance, self._population_precision
@@ -237,12 +243,12 @@ class FoldIn:
 
     def to_rating_scale(self, z, actions: np.ndarray) -> np.ndarray:
         """Scores of normalised predictions, clipped to the checkpoint's rating scale."""
-        return self.recommender.clip(self.inference.to_rating_scale(z, actions))
+        return self.predictor.clip(self.inference.to_rating_scale(z, actions))
 
     def design_from_h(self, h, scene_keys: Sequence, actions: np.ndarray) -> tuple:
         """(x [n, dim+1], c [n]) (float64) for ratings whose scenes are encoded as ``h``
         [n, dim]: ``InferenceModel.linear_form``, the model's z = xᵀθ + c."""
-        rows = self.recommender.scene_vocabulary.rows(list(scene_keys))
+        rows = self.predictor.scene_rows(list(scene_keys))
         return self.inference.linear_form(np.asarray(h, dtype=np.float64), rows, actions)
 
     def remember(self, scenes: Sequence, rows: np.ndarray) -> None:

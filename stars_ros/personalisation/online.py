@@ -111,8 +111,8 @@ class Personalisation:
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
-                 logger=None, store: PersonWriter | None = None, scene_memory: int = SCENE_MEMORY, origin: str = '', sharing: bool = False,
-                 authenticator=None):
+                 logger=None, store: PersonWriter | None = None, scene_memory: int = SCENE_MEMORY, origin: str = '',
+                 sharing: bool = False, authenticator=None):
         self.histories = FeedbackHistories(max_ratings, max_users)
         self.peers = fleet.PeerRatings(max_ratings, max_users)
         self.origin, self.sharing, self.authenticator = origin, sharing, authenticator

@@ -9,7 +9,7 @@ from the definitions, so no rclpy is needed to write or read a bag::
     <folder>/<name>/metadata.yaml        topics, counts, files
     <folder>/<name>/<name>_0.mcap, _1 …  rotated by size, ros2 profile, zstd chunks
     <folder>/<name>/recording.pid        present while a process records into the bag
-    <folder>/state.db                    the node's state store and feedback journal (``state_store``)
+    <folder>/state.db                    the node's state store and feedback journal (``stars_ros.state``)
 
 metadata.yaml is block YAML, as rosbag2 writes it, or (``interim``, while recording) the
 same document as one line of JSON, which is YAML too (rosbag2's yaml-cpp and rosbags read

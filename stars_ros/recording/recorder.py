@@ -1,6 +1,6 @@
 """The recorder: String messages of the node's topics, and CDR-encoded messages of other types
 (``types``), into one bag (``bag``), from the threads that serve requests; feedback once the
-state store has committed it (``state_store``), so the bag's feedback is what the store journaled.
+state store has committed it (``stars_ros.state``), so the bag's feedback is what the store journaled.
 
 Every ``flush_interval`` seconds a thread of its own writes out the chunk in progress,
 fsyncs it and rewrites metadata.yaml, so a hard kill loses at most that interval of the

@@ -115,8 +115,8 @@ class RankerNode(Node):
         try:
             self.publishers_by_topic[topic].publish(String(data=text))
         except (InvalidHandle, _rclpy.RCLError):
-            if topic != 'stars/errors':  # shutting down (a thread of close()): errors are logged and recorded
-                raise
+            if topic not in ('stars/errors', 'stars/user_model'):  # shutting down: a thread of close() (errors
+                raise  # are logged and recorded; a model whose write the close committed is in the store)
 
     def _publish_diagnostics(self):
         level, summary, values, kinds = self.core.diagnostics()

@@ -33,7 +33,9 @@ PARAMETERS = {  # name: (default, description)
     'rate': (2.0, 'requests per second'),
     'count': (0, 'requests to publish before exiting; 0: no end'),
     'placements': (0, f'0: rank the actions; 1..{len(PLACEMENTS)}: rank that many robot placements'),
-    'scene_id_prefix': ('scene-', 'scene ids are this prefix + a counter'),
+    'scene_id_prefix': ('scene-', 'scene ids are this prefix + a counter (unless keep_identifiers)'),
+    'keep_identifiers': (False, "publish each scene under its own identifier (a SocNav1 line's; random scenes: "
+                         'scene_id_prefix + counter), so feedback can name a scene found in the source file'),
     'seed': (0, 'seed of the random scenes and of the file order'),
     'wait_for_subscribers': (30.0, 'seconds to wait for a subscriber first'),
 }
@@ -48,6 +50,7 @@ class ScenePublisher(Node):
                  for name, (default, text) in PARAMETERS.items()}
         self.source, self.user_id, rate = value['source'], value['user_id'], value['rate']
         self.count, self.placements, self.prefix = value['count'], value['placements'], value['scene_id_prefix']
+        self.keep_identifiers = value['keep_identifiers']
         seed, wait = value['seed'], value['wait_for_subscribers']
         if not rate > 0 or self.count < 0 or not 0 <= self.placements <= len(PLACEMENTS):
             raise ValueError(f'need rate > 0, count >= 0 and placements in 0..{len(PLACEMENTS)}')
@@ -76,8 +79,11 @@ class ScenePublisher(Node):
             self.publisher.wait_for_all_acked(Duration(seconds=5))
             self.get_logger().info(f'published {self.sent} scene requests')
             raise SystemExit(0)
+        scene = self._next_scene()
         scene_id = f'{self.prefix}{self.sent}'
-        payload = scene_request(scene_id, self._next_scene(), self.user_id or None, self.placements)
+        if self.keep_identifiers and 'identifier' in scene:
+            scene_id = str(scene['identifier'])
+        payload = scene_request(scene_id, scene, self.user_id or None, self.placements)
         self.publisher.publish(String(data=json.dumps(payload)))
         self.sent += 1
         self.get_logger().info(f"published {scene_id}{f' for user {self.user_id}' if self.user_id else ''} on "

@@ -9,9 +9,10 @@ queues an update and goes on; the writer takes everything queued into one transa
 commit), numbering each write (``write_person`` returns its sequence number). Only once a
 transaction is committed does it hand each feedback entry on (``on_feedback_committed``) and
 run what waited for its writes (``when_committed``: the node publishes a person's model
-then, so nobody sees what a hard kill could take back). ``synchronous=FULL``: a commit returns once the WAL is fsync'd, so what is
-committed survives a process kill and a power cut alike (given a disk that honours flushes);
-what a kill or a power cut can lose is what was queued or being written, never acknowledged.
+then, so nobody sees what a hard kill could take back). ``synchronous=FULL``: a commit
+returns once the WAL is fsync'd, so what is committed survives a process kill and a power
+cut alike (given a disk that honours flushes); what a kill or a power cut can lose is what
+was queued or being written, never acknowledged.
 
 A failing disk (full, read-only, a folder that cannot be created) is reported through
 ``on_error`` once; what waits is kept in memory, in order, and tried again every

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from stars_ros.evaluation import executors
+from stars_ros.evaluation import executors, report
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError
 from stars_ros.evaluation.executors import FitTask, run_fit
@@ -170,8 +170,6 @@ def test_selection_takes_the_lowest_inner_error_and_retrains_with_it(synthetic, 
 
 
 def test_ablations_follow_the_stars_choice_of_each_fold(synthetic, monkeypatch):
-    from offline_training import evaluate
-
     def fake_fit(task, data=None):
         training, model = task.experiment['training'], task.experiment['model']
         error = 0.4 if training['embedding_l2'] == 0.1 else 0.6
@@ -192,7 +190,7 @@ def test_ablations_follow_the_stars_choice_of_each_fold(synthetic, monkeypatch):
     for label in ('GCN user offsets only', 'GCN StARS without q_i', 'GCN StARS, items keyed by prefix'):
         assert final[label]['settings'] == {'embedding_l2': 0.1}
     assert final['GCN user offsets only']['variant'] == 'user_bias'
-    assert evaluate.comparison_table(result, 'mse', 'x')[2].startswith('| GCN | .040 → .020 |')  # not the prefix row
+    assert report.comparison_table(result, 'mse', 'x')[2].startswith('| GCN | .040 → .020 |')  # not the prefix row
     assert not [s for s in result.inner if s['model'] not in ('GCN base', 'GCN StARS')]
     with pytest.raises(ConfigError, match=r'^ablations\[0\]: Input should be'):
         ProtocolConfig.from_dict({'ablations': ['stars_no_p']})

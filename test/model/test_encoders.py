@@ -5,7 +5,7 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.encoders import ENCODERS, Encoder, resolve_encoder
 from stars_ros.data.scene_graph import NODE_FEATURES
 from stars_ros.data.scene_store import TabularStore
-from stars_ros.model.training import build_model
+from stars_ros.model.fitted import build_model
 
 GRAPH_BACKBONES = ['gcn', 'gin', 'graphsage', 'ggnn', 'rgcn', 'gat']
 TABULAR_BACKBONES = ['mlp', 'resmlp', 'dcnv2', 'graceae', 'fttransformer']

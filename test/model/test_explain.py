@@ -39,11 +39,11 @@ def test_gnn_parts_sum_to_the_unclipped_score(gcn, synthetic_scenes):
     h = gcn.encode(synthetic_scenes[:20])
     user = gcn.recommender.user_vocabulary.keys[0]
     ids = [s['identifier'] for s in synthetic_scenes[:20]]
-    trained = gcn.recommender.scene_vocabulary.rows(ids)
+    trained = gcn.scene_rows(ids)
     assert np.abs(score_parts(gcn, user, h, trained, np.zeros(20, dtype=np.int64))[2]).max() > 0  # b_i counts
     for scene_rows, scene_ids in ((np.full(20, UNKNOWN), None), (trained, ids)):
         served = _check_parts_sum(gcn, user, h, scene_rows)
-        np.testing.assert_allclose(gcn.recommender.clip(served), gcn.scores_from_h(user, h, scene_ids), atol=1e-6)
+        np.testing.assert_allclose(gcn.clip(served), gcn.scores_from_h(user, h, scene_ids), atol=1e-6)
 
 
 def test_a_strangers_personal_part_is_the_prior_means(gcn, synthetic_scenes):

@@ -34,7 +34,7 @@ def test_every_score_it_serves_for_socnav1_scenes_lies_on_its_scale(packaged, so
     low, high = packaged.metadata['rating_scale']
     scenes = [scene for path in sorted((socnav1_root / 'raw').glob('*.jsonl')) for scene in read_scenes(path)[::40]]
     assert len(scenes) > 200
-    for user in [*packaged.recommender.users, 'a stranger']:
+    for user in [*packaged.users, 'a stranger']:
         scores = packaged.score(user, scenes)
         assert np.isfinite(scores).all() and scores.min() >= low and scores.max() <= high, user
         for scene in scenes[:10]:

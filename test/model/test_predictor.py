@@ -27,7 +27,7 @@ def test_rank_known_and_unknown_users(predictor, scenes):
 
 
 def test_users_get_different_scores(predictor, scenes):
-    scores = {user: predictor.score(user, scenes)[:, 0] for user in predictor.recommender.users}
+    scores = {user: predictor.score(user, scenes)[:, 0] for user in predictor.users}
     assert len({tuple(np.round(s, 6)) for s in scores.values()}) > 1
 
 
@@ -87,7 +87,7 @@ def test_served_scores_are_clipped_to_the_checkpoints_rating_scale(tiny_checkpoi
     edge, as evaluation does (the scale is stored in the checkpoint)."""
     from stars_ros.personalisation.foldin import UserModel
     predictor = Predictor.load(tiny_checkpoint)
-    assert predictor.recommender.rating_scale == (0.0, 1.0)
+    assert predictor.rating_scale == (0.0, 1.0)
     dim = predictor.inference.dim
     for offset, edge in ((50.0, 1.0), (-50.0, 0.0)):
         predictor.set_user_model('pushy', UserModel(np.zeros(dim), offset, 1, 1.0))

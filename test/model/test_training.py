@@ -7,7 +7,8 @@ import torch
 
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError, DataError, TrainingDivergedError
-from stars_ros.model.training import NotFittedError, StarsTrainer, split_rows
+from stars_ros.errors import NotFittedError
+from stars_ros.model.training import StarsTrainer, split_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
          'training': {'pretrain_epochs': 2, 'joint_epochs': 4, 'lr': 3e-3, 'batch_size': 128, 'threads': 1}}

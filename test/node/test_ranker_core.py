@@ -9,7 +9,7 @@ import pytest
 
 from stars_ros import messages
 from stars_ros import recording, state
-from core_harness import Node, drain, make_core
+from core_harness import Node, SteppedClock, drain, make_core
 from waiting import wait_for
 from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
@@ -36,6 +36,41 @@ def test_rankings_carry_the_fingerprint_and_a_stranger_is_warned_once(tiny_check
     assert all(r['known_user'] is False and r['user_id'] == 'stranger' for r in rankings)
     [warning] = node.on('stars/errors')
     assert (warning['kind'], warning['level'], warning['topic']) == ('unknown_user', 'warning', '/stars/scene')
+    core.close()
+
+
+def test_processing_time_runs_from_the_middlewares_reception_to_the_reply(tiny_checkpoint, scenes):
+    node, clock = Node(), SteppedClock()
+    core = make_core(node, tiny_checkpoint, clock=clock)
+    core.accept_scene(messages.dumps(scene_request('waited', scenes[0], 'a')), clock.ns - 5_000_000)
+    clock.ns += 2_000_000  # the executor was busy elsewhere meanwhile
+    assert core.work() is False
+    [ranking] = node.on('stars/ranking')
+    assert ranking['processing_ms'] == 7.0
+    core.close()
+
+
+def test_a_ranking_that_waited_behind_fold_in_is_counted_with_that_wait(tiny_checkpoint, scenes):
+    """A request received before feedback is folded in and served after it: the fold-in's
+    span lies inside its wait, and the next diagnostics count it (``period.*``)."""
+    node, clock = Node(), SteppedClock(step=1_000_000)  # 1 ms at every read
+    core = make_core(node, tiny_checkpoint, clock=clock)
+    core.accept_scene(messages.dumps(scene_request(scenes[0]['identifier'], scenes[0], 'newcomer')), clock())
+    assert core.work() is False
+    core.diagnostics()  # a new period
+    core.accept_scene(messages.dumps(scene_request('waits', scenes[1], 'other')), clock())
+    feedback = {'user_id': 'newcomer', 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 1.0}
+    assert core.accept_feedback(messages.dumps(feedback)) is True
+    while core.work():
+        pass
+    values = core.diagnostics()[2]
+    assert values['period.rankings'] == 1 and values['period.rankings_delayed_by_fold_in'] == 1
+    assert values['period.fold_in_updates'] == 1
+    assert 0 < values['period.fold_in_delay_ms.max'] <= values['period.delayed_processing_ms.max']
+    assert values['period.delayed_processing_ms.max'] <= values['period.processing_ms.max']
+    core.accept_scene(messages.dumps(scene_request('on time', scenes[1], 'other')), clock())
+    assert core.work() is False
+    assert core.diagnostics()[2]['period.rankings_delayed_by_fold_in'] == 0
     core.close()
 
 
@@ -149,7 +184,7 @@ def test_a_request_that_asks_gets_why_on_every_entry_and_the_others_do_not(tiny_
         messages.check('ranking', ranking)
     assert not any('why' in entry for entry in rankings['plain']['ranking'])
     assert [e['score'] for e in rankings['plain']['ranking']] == [e['score'] for e in rankings['asks']['ranking']]
-    scale = core.predictor.recommender.rating_scale
+    scale = core.predictor.rating_scale
     for scene_id in ('asks', 'placements'):
         for entry in rankings[scene_id]['ranking']:
             assert _sums_to_the_score(entry, scale), entry
@@ -166,7 +201,7 @@ def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
     [ranking] = node.on('stars/ranking')
     kinds = {e['kind'] for entry in ranking['ranking'] for e in entry['why']['entities']}
     assert 'human' in kinds and 'wall' in kinds and 'room' in kinds
-    assert all(_sums_to_the_score(entry, core.predictor.recommender.rating_scale) for entry in ranking['ranking'])
+    assert all(_sums_to_the_score(entry, core.predictor.rating_scale) for entry in ranking['ranking'])
     core.close()
 
 

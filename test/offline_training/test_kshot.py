@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 
 from offline_training import kshot
+from stars_ros.evaluation import kshot_run
 from stars_ros.evaluation.kshot import Design, annotator_folds, coverage, known_split, reveal_pools
-from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.training import StarsTrainer
-from stars_ros.personalisation.prior import estimate_prior
+from stars_ros import StarsRecommender
 from conftest import TINY_CONFIG
 
 
@@ -41,9 +40,7 @@ def test_the_known_split_holds_out_whole_examples(synthetic):
 
 @pytest.fixture(scope='module')
 def design(synthetic):
-    recommender = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic)
-    recommender.user_prior = estimate_prior(recommender, synthetic, np.arange(len(synthetic))).to_dict()
-    return Design(recommender, synthetic)
+    return Design(StarsRecommender(TINY_CONFIG).fit(synthetic).fitted, synthetic)
 
 
 def test_strategies_ask_only_pool_examples_each_once(design, synthetic):
@@ -116,7 +113,7 @@ def test_fits_in_worker_processes_give_what_inline_fits_give(synthetic_root, tmp
 def test_a_fold_whose_fit_fails_is_left_out_and_named(synthetic_root, tmp_path, monkeypatch, capsys):
     """The fifth fit (fold 1's retraining at k = 5: fold 0's four come first, each fold's
     largest first) raises: fold 0 is reported, fold 1 is named and left out, status 1."""
-    calls, fit_rows = [], kshot.fit_rows
+    calls, fit_rows = [], kshot_run.fit_rows
 
     def failing_fifth(*args, **kwargs):
         calls.append(args)
@@ -124,7 +121,7 @@ def test_a_fold_whose_fit_fails_is_left_out_and_named(synthetic_root, tmp_path, 
             raise RuntimeError('injected')
         return fit_rows(*args, **kwargs)
 
-    monkeypatch.setattr(kshot, 'fit_rows', failing_fifth)
+    monkeypatch.setattr(kshot_run, 'fit_rows', failing_fifth)
     out = tmp_path / 'kshot'
     assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out', str(out),
                        '--quick']) == 1

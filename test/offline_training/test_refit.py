@@ -58,7 +58,7 @@ def test_user_mode_equals_the_closed_form_fold_in(tiny_checkpoint, scenes, tmp_p
     parent, child = Predictor.load(tiny_checkpoint), Predictor.load(out)
     foldin = FoldIn(parent)
     assert child.knows_user('newbie') and not parent.knows_user('newbie')
-    assert list(child.recommender.users[:len(parent.recommender.users)]) == list(parent.recommender.users)
+    assert list(child.users[:len(parent.users)]) == list(parent.users)
     probe = [s for s in scenes[12:18]]
     for user in ('newbie', 'a'):
         online = foldin.fit(expected[user], user, 0.5)

@@ -130,7 +130,7 @@ def test_the_checkpoint_keeps_the_prior_and_the_fold_in_uses_it(tiny_checkpoint,
     stored = UserPrior.from_dict(content['user_prior'])
     assert foldin.population == pytest.approx(stored.mean)
     assert (foldin.noise > 0).all()
-    known = predictor.recommender.users[0]
+    known = predictor.users[0]
     assert foldin.covariance(known) == pytest.approx(stored.user_covariance[0])
     assert np.trace(foldin.covariance(known)) < np.trace(foldin.covariance('stranger'))
 

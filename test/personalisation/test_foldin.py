@@ -131,7 +131,7 @@ def test_scene_cache_reuses_encodings_and_is_bounded(predictor, ratings, monkeyp
     assert len(calls) == 1 and np.array_equal(foldin.encode(scenes[:4]), first)  # the same objects: cached
     assert np.allclose(foldin.encode([dict(s) for s in scenes[:4]]), first) and len(calls) == 2  # copies: encoded
     rows = foldin.encode(scenes[4:20])
-    assert rows.shape == (16, foldin.dim) and len(foldin._cache) == 8  # bounded, least recent dropped
+    assert rows.shape == (16, foldin.dim) and foldin.cached[0] == 8  # bounded, least recent dropped
     foldin.fit(ratings[20:23], 'x')
     calls.clear()
     foldin.fit(ratings[20:24], 'x')  # one more rating: only its scene is encoded
@@ -266,6 +266,6 @@ def test_regression_rows_are_computed_once_per_rating(predictor, ratings, monkey
     assert np.allclose(rows, x[:11], atol=1e-6) and np.allclose(targets, (z - c)[:11], atol=1e-6)
     assert np.array_equal(np.append(grown.p, grown.b), solve_ridge(rows, targets, foldin.prior('u'), 1.0))
     foldin.fit(ratings[:30], 'u', 1.0)
-    assert len(foldin._rows) == 16  # bounded: the least recently used rows go, and are rebuilt when needed
+    assert foldin.cached[1] == 16  # bounded: the least recently used rows go, and are rebuilt when needed
     foldin.fit(ratings[:2], 'u', 1.0)
     assert designed[-1] == 2

@@ -78,8 +78,7 @@ class FleetTopic:
 
     def __init__(self, domain):
         self.client = RosClient(domain, listen=False)
-        self.models = []
-        self.client.node.create_subscription(String, FLEET_TOPIC, self.client._keep(self.models, json.loads), MODELS)
+        self.models = self.client.collect(FLEET_TOPIC, MODELS)
         self.publisher = self.client.node.create_publisher(String, FLEET_TOPIC, MODELS)
 
     def wait(self, predicate, timeout: float) -> bool:

@@ -9,7 +9,6 @@ import json
 import signal
 
 import pytest
-from std_msgs.msg import String
 
 from offline_training import refit
 from ros_helpers import RELIABLE, RosClient, domain_id, stored_feedback, start_node, stop
@@ -38,8 +37,7 @@ def _start(domain, checkpoint, folder, log):
 
 
 def _latest(client, scene_id):
-    with client._changed:
-        return next((r for r in reversed(client.rankings) if r['scene_id'] == scene_id), None)
+    return next((r for r in reversed(client.snapshot(client.rankings)) if r['scene_id'] == scene_id), None)
 
 
 def _rank(client, scenes, tag):
@@ -65,8 +63,7 @@ def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkp
     domain = domain_id(7)
     records = tmp_path / 'records'
     client = RosClient(domain)
-    models = []
-    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    models = client.collect('/stars/user_model', RELIABLE)
     process = _start(domain, tiny_checkpoint, records, tmp_path / 'ranker-1.log')
     probe = {'scene_id': 'probe', 'graph': scenes[19]}
     try:
@@ -155,8 +152,7 @@ def test_fold_in_off_records_feedback_without_personalising(tiny_checkpoint, sce
     them count no folded-in user."""
     domain = domain_id(8)
     client = RosClient(domain)
-    models = []
-    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    models = client.collect('/stars/user_model', RELIABLE)
     process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path,
                                                       'fold_in': False, 'diagnostics_period': 0.2},
                          tmp_path / 'ranker.log')
@@ -188,8 +184,7 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
     user who rated least recently back to the checkpoint, with a warning."""
     domain = domain_id(9)
     client = RosClient(domain)
-    models = []
-    client.node.create_subscription(String, '/stars/user_model', client._keep(models, json.loads), RELIABLE)
+    models = client.collect('/stars/user_model', RELIABLE)
     process = start_node('stars_ros.ros.ranker', domain, {
         'checkpoint': tiny_checkpoint, 'record_folder': tmp_path, 'flush_interval': 0.2,
         'fold_in_max_ratings': 2, 'fold_in_max_users': 1}, tmp_path / 'ranker.log')
@@ -213,10 +208,11 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
         assert [(p['person'], p['ratings'], p['dropped']) for p in store.summary()] == [('other', 1, 0)]
 
 
-def test_diagnostics_count_the_rankings_that_waited_behind_fold_in(tiny_checkpoint, scenes, tmp_path):
-    """A burst of feedback, then at once another user's scene requests: they reach the node
-    while its executor folds the feedback in, and /diagnostics says how many waited for it,
-    how long, and their processing time from reception."""
+def test_diagnostics_report_the_fold_in_work_and_the_waits_behind_it(tiny_checkpoint, scenes, tmp_path):
+    """A burst of feedback, then at once another user's scene requests: /diagnostics counts
+    the fold-in updates and reports any ranking that waited for them consistently. Whether
+    one did wait depends on the timing, so that a ranking that waited is counted, with its
+    wait, is checked on the core with a stepped clock (test/node/test_ranker_core.py)."""
     domain = domain_id(10)
     client = RosClient(domain)
     process = start_node('stars_ros.ros.ranker', domain, {
@@ -233,13 +229,11 @@ def test_diagnostics_count_the_rankings_that_waited_behind_fold_in(tiny_checkpoi
         assert all(client.ranking_for(f'other-{k}')['processing_ms'] > 0 for k in range(20))
 
         def periods():
-            with client._changed:
-                return [_ranker_values(d) for d in client.diagnostics if _ranker_values(d)]
+            return [_ranker_values(d) for d in client.snapshot(client.diagnostics) if _ranker_values(d)]
 
-        def burst_reported():  # the three raters solved, and rankings that waited for it
-            return sum(int(p['period.fold_in_updates']) for p in periods()) >= 3 and any(
-                int(p['period.rankings_delayed_by_fold_in']) for p in periods())
-        assert client.wait(burst_reported, 10), periods()
+        def burst_reported():  # the three raters solved
+            return sum(int(p['period.fold_in_updates']) for p in periods()) >= 3
+        assert client.wait(burst_reported, 30), periods()
         delayed = [p for p in periods() if int(p['period.rankings_delayed_by_fold_in'])]
         for p in delayed:
             assert 0 < float(p['period.fold_in_delay_ms.max']) <= float(p['period.delayed_processing_ms.max'])

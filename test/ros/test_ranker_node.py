@@ -23,13 +23,11 @@ from std_msgs.msg import String
 from mutations import mutate
 from ros_helpers import RosClient, domain_id, stored_feedback, ros_env, running_ranker, start_node, stop
 from waiting import wait_for
-from stars_ros import recording
-from stars_ros.model.checkpoint import save_checkpoint
-from stars_ros.model.config import ExperimentConfig
+from stars_ros import StarsRecommender, recording
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.resources import resolve_checkpoint
-from stars_ros.model.training import StarsTrainer, split_rows
+from stars_ros.model.training import split_rows
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')  # rclpy's parameter client
 KNOWN_USER = 'b'  # in the tiny checkpoint's training rows
@@ -53,9 +51,8 @@ def other_checkpoint(synthetic, tmp_path_factory):
               'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'lr': 3e-3, 'batch_size': 128, 'threads': 1,
                            'seed': 5}}
     train, _ = split_rows(synthetic, 0.2, 5)
-    recommender = StarsTrainer(ExperimentConfig.from_dict(config)).fit(synthetic, train[:300])
     path = tmp_path_factory.mktemp('other') / 'other.pt'
-    save_checkpoint(recommender, path, data={'fingerprint': synthetic.fingerprint, 'source': 'synthetic_socnav'})
+    StarsRecommender(config).fit(synthetic, train[:300]).save(path)
     return path
 
 
@@ -108,9 +105,8 @@ def _answers(client, prefix=None) -> tuple[set, list]:
     ``client`` holds, _settle's markers left out; only ids starting with ``prefix`` if given."""
     def kept(scene_id):
         return not str(scene_id).startswith(SETTLED) and (prefix is None or str(scene_id).startswith(prefix))
-    with client._changed:
-        ranked = [r['scene_id'] for r in client.rankings if kept(r['scene_id'])]
-        refused = [e['scene_id'] for e in client.errors if e['level'] == 'error' and kept(e['scene_id'])]
+    ranked = [r['scene_id'] for r in client.snapshot(client.rankings) if kept(r['scene_id'])]
+    refused = [e['scene_id'] for e in client.snapshot(client.errors) if e['level'] == 'error' and kept(e['scene_id'])]
     return ranked, refused
 
 
@@ -121,43 +117,26 @@ def _on_disk(bag, topic) -> list:
             for found, text, _ in recording.salvage_messages(path)[0] if found == topic]
 
 
-@pytest.fixture(scope='module')
-def node(tiny_checkpoint, scenes, tmp_path_factory):
-    folder = tmp_path_factory.mktemp('shared_ranker')
-    domain = domain_id(0)
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
-              'diagnostics_period': 0.3, 'log_throttle': 1.0}
-    with running_ranker(domain, params, folder / 'ranker.log', _probe(scenes), START_TIMEOUT) as (process, client):
-        yield process, client
-
-
 @pytest.fixture()
-def ranker(node, scenes, predictor, tiny_checkpoint):
-    """The shared node in its starting state, whatever an earlier test left: no latched
-    user id, whole rankings, the tiny checkpoint served (reloaded if another one is)."""
-    process, client = node
-    assert process.poll() is None, 'the shared ranker died in an earlier test'
-    client.user_pub.publish(String(data=''))  # empty: nobody
-    assert all(r.successful for r in client.set_parameters('/ranker', {'top_k': 0, 'checkpoint': str(tiny_checkpoint)}))
-    served = _served_latched_user(client, scenes, None)
-    assert served is not None, 'the latched user id was never cleared'
-    if served['fingerprint'] != predictor.fingerprint:
-        assert client.call('/ranker/reload').success
-    return process, client
+def ranker(tiny_checkpoint, scenes, tmp_path):
+    """A ranker of its own for each test, on the tiny checkpoint, and a client that has heard
+    nothing else: no test sees another's parameters, latched user, people or messages."""
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records', 'flush_interval': 0.2,
+              'diagnostics_period': 0.3, 'log_throttle': 1.0}
+    with running_ranker(domain_id(0), params, tmp_path / 'ranker.log', _probe(scenes), START_TIMEOUT) as running:
+        yield running
 
 
 def test_ranking_equals_predictor_rank(ranker, scenes, predictor):
     _, client = ranker
-    started = time.monotonic()
     for k, scene in enumerate(scenes[:20]):
         client.scene({'scene_id': scene['identifier'], 'user_id': KNOWN_USER, 'graph': scene})
     assert client.wait(lambda: all(client.ranking_for(s['identifier']) for s in scenes[:20]), 30)
-    round_trip_ms = (time.monotonic() - started) * 1000  # from the first request out to the last ranking in
     for scene in scenes[:20]:
         reply = client.ranking_for(scene['identifier'])
         assert reply['user_id'] == KNOWN_USER and reply['known_user'] is True
         assert reply['fingerprint'] == predictor.fingerprint
-        assert 0 < reply['processing_ms'] < round_trip_ms  # from the node's reception to its reply
+        assert reply['processing_ms'] >= 0  # what it measures: test_ranker_core.py, on a stepped clock
         _assert_same(reply, predictor.rank(KNOWN_USER, scene, scene_id=scene['identifier']))
 
 
@@ -341,6 +320,13 @@ def test_scene_publisher_feeds_the_ranker(ranker, synthetic_root, tmp_path):
     assert [len(client.ranking_for(f'pub-{k}')['ranking']) for k in range(4)] == [3] * 4
     assert client.ranking_for('rnd-0')['ranking'][0]['action'] == 'navigate'
     assert not [e for e in client.errors if str(e['scene_id']).startswith(('pub-', 'rnd-'))]
+    own = tmp_path / 'own-ids.log'  # the file's own identifiers, which feedback can name
+    publisher = start_node('stars_ros.ros.scene_publisher', domain_id(0), {
+        'source': synthetic_root / 'raw' / 'b.jsonl', 'user_id': 'b', 'count': 2, 'keep_identifiers': True,
+        'rate': 20.0}, own)
+    assert publisher.wait(timeout=60) == 0, own.read_text()
+    identifiers = [scene['identifier'] for scene in read_scenes(synthetic_root / 'raw' / 'b.jsonl')[:2]]
+    assert client.wait(lambda: all(client.ranking_for(i) for i in identifiers), 30)
 
 
 def test_replay_reruns_a_recorded_session(ranker, scenes, tmp_path):
@@ -372,7 +358,7 @@ def test_demo_runs_to_its_summary_and_a_second_run_prints_the_same_rankings(socn
     its first scene for both people into that folder."""
     printed = []
     for _ in range(2):
-        demo = subprocess.run([sys.executable, '-m', 'stars_ros.ros.demo',  # the packaged model, as a user runs it
+        demo = subprocess.run([sys.executable, '-m', 'stars_ros.examples.demo',  # the packaged model, as a user runs it
                                '--data-root', str(socnav1_root), '--scenes', '3', '--placements', '3', '--rate', '10',
                                '--domain-id', str(domain_id(5))], env=dict(ros_env(domain_id(5)), TMPDIR=str(tmp_path)),
                               capture_output=True, text=True, timeout=240)
@@ -403,8 +389,8 @@ def test_the_packaged_model_ranks_socnav1_scenes_as_its_predictor_does(socnav1, 
     process = start_node('stars_ros.ros.ranker', domain, {'record_folder': tmp_path}, tmp_path / 'ranker.log')
 
     def reply(scene_id, user):
-        with client._changed:
-            return next((r for r in client.rankings if r['scene_id'] == scene_id and r['user_id'] == user), None)
+        return next((r for r in client.snapshot(client.rankings) if r['scene_id'] == scene_id and r['user_id'] == user),
+                    None)
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))
         placements = scene_request('placements', scenes[0], placements=4)

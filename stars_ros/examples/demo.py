@@ -1,7 +1,7 @@
 """The main-job demo: the ranker serving two people, their rankings side by side, feedback
 recorded to MCAP, then a summary. Ends by itself.
 
-    python -m stars_ros.ros.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
+    python -m stars_ros.examples.demo [--checkpoint PATH] [--scenes 8] [--placements 6]
 
 Set-up loads the checkpoint (the packaged default unless one is given) and picks, among the
 annotators it knows, the two whose rankings of alternative robot placements differ most on
@@ -47,7 +47,7 @@ SOCNAV1 = socnav1_root()
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(prog='python -m stars_ros.ros.demo', description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m stars_ros.examples.demo', description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', default='', help='default: the packaged models/socnav1_gat_stars.pt')
     parser.add_argument('--data-root', type=Path, default=SOCNAV1, help='SocNav1 root (default: %(default)s)')
     parser.add_argument('--scenes', type=int, default=8, help='scenes per person (default: %(default)s)')
@@ -70,7 +70,7 @@ def choose_people(predictor, root: Path, n_scenes: int, placements: int):
     """The two known annotators whose placement orders differ on most shared scenes, and
     those scenes with both ratings: (user_a, user_b, [(scene, rating_a, rating_b)])."""
     rated = {}
-    for user in predictor.recommender.users:
+    for user in predictor.users:
         path = root / 'raw' / f'{user}.jsonl'
         if path.exists():
             rated[user] = {s['identifier']: s for s in read_scenes(path)}
@@ -135,7 +135,7 @@ def run(args) -> int:
         raise StarsError(f'SocNav1 not found at {args.data_root}: set STARS_SOCNAV1_ROOT or --data-root')
     user_a, user_b, chosen = choose_people(predictor, args.data_root, args.scenes, args.placements)
     print(f'StARS demo: checkpoint {checkpoint} (fingerprint {predictor.fingerprint[:12]}), '
-          f'{len(predictor.recommender.users)} people known, action {predictor.actions[0]!r}')
+          f'{len(predictor.users)} people known, action {predictor.actions[0]!r}')
     print(f"People: '{user_a}' and '{user_b}', the two SocNav1 annotators whose rankings of {args.placements} "
           f'robot placements differ most on scenes both rated')
 

@@ -1,7 +1,7 @@
 """The ranker's bookkeeping of waits behind fold-in work and of its per-period figures (ROS-free)."""
 import pytest
 
-from stars_ros.node.batching import BusySpans, PeriodStats
+from stars_ros.node.diagnostics import BusySpans, PeriodStats
 
 
 def test_busy_spans_count_only_the_work_inside_a_requests_wait():

@@ -1,0 +1,335 @@
+"""The k-shot run: fit each fold's models, fold each held-out person in from k answers, score
+the methods and the calibration, summarise, and write results.json, results.md and kshot.png.
+``offline_training.kshot`` is its command line (and says what the methods are); the
+pieces it is built from (folds, pools, the fold-in design) are ``evaluation.kshot``.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stars_ros import StarsRecommender
+from stars_ros.evaluation.executors import FitFailure, fit_outcome, worker_data
+from stars_ros.evaluation.kshot import LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage, known_split, reveal_pools
+from stars_ros.evaluation.plots import label_axis, pyplot, save_png
+from stars_ros.evaluation.stats import mean_sd
+from stars_ros.model.metrics import regression_report
+
+METRICS = ('mse', 'pearson_r', 'ccc')
+NAMES = {'mse': 'MSE', 'pearson_r': 'Pearson r', 'ccc': 'CCC'}
+
+
+@dataclass(frozen=True)
+class KShotSettings:
+    """What a k-shot run does (the command line's options of the same names)."""
+
+    folds: int
+    seeds: tuple
+    pool: int
+    ks: tuple
+    strategies: tuple
+    retrain_ks: tuple | None
+    known_test: float
+    ridge_lambda: float
+    max_train_rows: int | None = None
+
+
+def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, noise_rows=None, data=None) -> dict:
+    """One fit through the front door (in a ``fit_executor`` worker, or inline with
+    ``data``): seconds, predictions on ``test``, and with ``keep`` the fitted model itself
+    (``model.fitted``, on the CPU, with the personalisation prior a checkpoint keeps, its
+    noise from ``noise_rows``, held-out ratings of the trained people), where the fold-in
+    designs are computed."""
+    data = worker_data() if data is None else data
+    started = time.perf_counter()
+    recommender = StarsRecommender(experiment).fit(data, train, noise_rows=noise_rows)
+    seconds = time.perf_counter() - started
+    fitted = recommender.fitted
+    return {'seconds': seconds, 'predictions': fitted.predict_rows(data, test), 'recommender': fitted if keep else None}
+
+
+def report(data, rows, predictions) -> dict:
+    return regression_report(data.scores[rows], predictions, data.actions[rows])
+
+
+def plan_folds(settings, data) -> list:
+    """(seed, fold id, held-out people, training rows, {person: Person}, left out, known
+    people's test rows, their rows for the prior's noise) of every fold of every seed."""
+    plan = []
+    for seed in settings.seeds:
+        for fold_id, held_out in enumerate(annotator_folds(data.users, settings.folds, seed)):
+            train = np.flatnonzero(~np.isin(data.users, held_out))
+            train, held = known_split(data, train, settings.known_test, seed)
+            noise, known = known_split(data, held, 0.5, seed + 1)  # half for the prior's noise, half to check it
+            if settings.max_train_rows and len(train) > settings.max_train_rows:
+                train = np.sort(np.random.default_rng([seed, fold_id]).choice(train, settings.max_train_rows,
+                                                                              replace=False))
+            people, left_out = reveal_pools(data, held_out, settings.pool, seed)
+            plan.append((seed, fold_id, held_out, train, people, left_out, known, noise))
+    return plan
+
+
+def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
+    """The training rows at ``k``: the fold's, plus each held-out person's first k random answers."""
+    _, _, _, train, people, _, _, _ = fold
+    if k == 0:
+        return train
+    return np.sort(np.concatenate([train, *(person.rows(range(min(k, len(person.pool)))) for person in people.values())]))
+
+
+def test_rows(people: dict, k: int) -> tuple[list, np.ndarray]:
+    """(people who cover k, their test rows)."""
+    covered = sorted(name for name, person in people.items() if len(person.pool) >= k)
+    rows = np.concatenate([people[name].test for name in covered]) if covered else np.zeros(0, dtype=np.int64)
+    return covered, np.sort(rows)
+
+
+def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> tuple[list, dict]:
+    """(records, calibration samples) of one fold whose fits are ``outcomes`` {k: fit}."""
+    seed, fold_id, held, _, people, _, known, _ = fold
+    orders = {(name, strategy): design.reveal_order(person, strategy, max(settings.ks))
+              for name, person in people.items() for strategy in settings.strategies}
+    methods = [f'fold-in ({s})' for s in settings.strategies]
+    ridge = f'ridge λ={settings.ridge_lambda:g} ({settings.strategies[0]})'
+    records, calibration = [], {'new': {}, 'known': None}
+    for k in sorted(settings.ks):
+        covered, rows = test_rows(people, k)
+        if not len(rows):
+            continue
+        entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
+                 'unpersonalised': report(data, rows, design.predict(rows, None))}
+        predictions = {method: np.zeros(len(data)) for method in [*methods, ridge]}
+        samples = {'y': [], 'mean': [], 'sd': []}
+        for name in covered:
+            person = people[name]
+            for strategy, method in zip(settings.strategies, methods):
+                answered = person.rows(orders[name, strategy][:k])
+                theta, covariance = design.posterior(answered)
+                predictions[method][person.test] = design.predict(person.test, theta)
+                if strategy == settings.strategies[0]:
+                    mean, sd = design.predictive(person.test, theta, covariance)
+                    samples['y'].append(data.scores[person.test])
+                    samples['mean'].append(mean)
+                    samples['sd'].append(sd)
+                    if k:
+                        ridge_theta, _ = design.posterior(answered, regularisation=settings.ridge_lambda)
+                        predictions[ridge][person.test] = design.predict(person.test, ridge_theta)
+                    else:
+                        predictions[ridge][person.test] = predictions[method][person.test]
+        for method, values in predictions.items():
+            entry[method] = report(data, rows, values[rows])
+        if k in outcomes:
+            entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)])
+        calibration['new'][k] = {**{key: np.concatenate(v) for key, v in samples.items()},
+                                 'nu': design.foldin.user_prior.nu}
+        records.append(entry)
+    if len(known):
+        users = np.asarray(data.users[known])
+        means, sds = np.zeros(len(known)), np.zeros(len(known))
+        for name in sorted(set(users.tolist())):
+            mine = users == name
+            theta, covariance = design.posterior(np.zeros(0, dtype=np.int64), user_id=name)
+            means[mine], sds[mine] = design.predictive(known[mine], theta, covariance)
+        calibration['known'] = {'y': data.scores[known], 'mean': means, 'sd': sds, 'nu': design.foldin.user_prior.nu}
+    return records, calibration
+
+
+def retrained_ks(settings) -> list:
+    """The ks whose fits run: 0 (the fold's model) and those of ``--retrain-ks`` (default: all)."""
+    return sorted({0, *(settings.ks if settings.retrain_ks is None else [k for k in settings.retrain_ks if k in settings.ks])})
+
+
+def fold_test(fold: tuple) -> np.ndarray:
+    """Every test row of a fold's held-out people (what each fit predicts), sorted."""
+    people = fold[4]
+    return np.sort(np.concatenate([person.test for person in people.values()]))
+
+
+def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) -> dict:
+    """Every fold of the plan, its fits run by ``fits`` (an executor and how many fits run at
+    once: ``offline_training.common.FitExecutor``); ``on_fold(records, fits, folds, failed,
+    left_out, calibration)`` after each fold, so that partial results survive a stop."""
+    plan = plan_folds(settings, data)
+    experiment = config.to_dict()
+    executor = fits.executor
+    submitted = {}
+
+    def submit(folds):  # the largest fits first, so that the last wave is short
+        order = sorted(((fold, k) for fold in folds for k in retrained_ks(settings)), key=lambda f: -len(fit_rows_of(*f)))
+        for fold, k in order:
+            submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
+                                                         k == 0, fold[7])
+
+    if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
+        submit(plan)
+    records, timings, folds, failed, left_out = [], [], {}, [], {}
+    pooled = {'new': {}, 'known': []}
+    try:
+        for fold in plan:
+            seed, fold_id, held, train, people, skipped, known, _ = fold
+            if fits.jobs == 1:
+                submit([fold])
+            outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')
+                        for k in retrained_ks(settings)}
+            lost = [{'seed': seed, 'fold': fold_id, 'k': k, 'error': outcome.error}
+                    for k, outcome in outcomes.items() if isinstance(outcome, FitFailure)]
+            if lost:
+                failed += lost
+                log(f'seed {seed} fold {fold_id}: left out, ' + '; '.join(f"the fit at k={f['k']} failed: "
+                                                                          f"{f['error']}" for f in lost))
+                continue
+            folds.setdefault(str(seed), []).append(held)
+            left_out.update({f'{seed}:{name}': count for name, count in skipped.items()})
+            base = outcomes[0]
+            for k, outcome in outcomes.items():
+                timings.append({'seed': seed, 'fold': fold_id, 'k': k, 'seconds': round(outcome['seconds'], 1),
+                                'n_train': len(fit_rows_of(fold, k))})
+            log(f'seed {seed} fold {fold_id} ({len(people)} held out, {len(skipped)} left out): base model on '
+                f"{len(train)} ratings in {base['seconds']:.0f} s")
+            fold_records, calibration = score_fold(settings, data, Design(base['recommender'], data), fold, outcomes)
+            records += fold_records
+            for k, samples in calibration['new'].items():
+                pooled['new'].setdefault(k, []).append(samples)
+            if calibration['known'] is not None:
+                pooled['known'].append(calibration['known'])
+            for entry in fold_records:
+                log(f"seed {seed} fold {fold_id} k={entry['k']}: MSE " + '  '.join(
+                    f"{m} {entry[m]['mse']:.4f}" for m in methods_of(entry)))
+            if on_fold is not None:
+                on_fold(records, timings, folds, failed, left_out, calibration_table(pooled))
+    finally:
+        executor.shutdown(cancel_futures=True)
+    return {'records': records, 'fits': timings, 'folds': folds, 'failed': failed, 'left_out': left_out,
+            'calibration': calibration_table(pooled)}
+
+
+def methods_of(entry: dict) -> list:
+    """The scored methods of a record, in table order."""
+    return [key for key in entry if isinstance(entry[key], dict) and 'mse' in entry[key]]
+
+
+def calibration_table(pooled: dict) -> dict:
+    """{'new': {k: {level: coverage}}, 'known': {level: coverage}, 'n': ...} pooled over folds
+    (each fold's intervals from its own prior's ν)."""
+    def cover(parts):
+        sizes = np.array([len(p['y']) for p in parts])
+        shares = [coverage(p['y'], p['mean'], p['sd'], p['nu']) for p in parts]
+        return {**{level: float(np.average([share[level] for share in shares], weights=sizes)) for level in shares[0]},
+                'n': int(sizes.sum()), 'mean_sd': float(np.mean(np.concatenate([p['sd'] for p in parts]))),
+                'nu': sorted({float(p['nu']) for p in parts})}
+    table = {'new': {str(k): cover(parts) for k, parts in sorted(pooled['new'].items())}}
+    if pooled['known']:
+        table['known'] = cover(pooled['known'])
+    return table
+
+
+def summarise(records: list) -> dict:
+    """{method: {k: {metric: [mean, sd, n_folds]}}}"""
+    summary = {}
+    for method in methods_of(records[0]) if records else []:
+        summary[method] = {}
+        for k in sorted({r['k'] for r in records if method in r}):
+            values = {m: [r[method][m] for r in records if r['k'] == k] for m in METRICS}
+            summary[method][k] = {m: [*mean_sd(v), len(v)] for m, v in values.items()}
+    return summary
+
+
+def goals(records: list, summary: dict, strategies: list, ks: list) -> dict:
+    """The issue's goals, measured: each fold-in strategy at or below unpersonalised MSE in
+    every fold at every k >= 1 (the folds that fail named); for the node's question strategy
+    (``NODE_STRATEGY``), the fewest questions reaching random's mean MSE at k = 10 and whether
+    it is never behind random on the mean."""
+    never_worse = {}
+    for method in summary:
+        if method.startswith('fold-in'):
+            failing = sorted({(r['seed'], r['fold'], r['k']) for r in records
+                              if r['k'] >= 1 and method in r and r[method]['mse'] > r['unpersonalised']['mse']})
+            never_worse[method] = {'met': not failing, 'failing': [list(f) for f in failing]}
+    out = {'never_worse': never_worse}
+    node = f'fold-in ({NODE_STRATEGY})'
+    if NODE_STRATEGY in strategies and 'random' in strategies and 10 in summary.get('fold-in (random)', {}):
+        target = summary['fold-in (random)'][10]['mse'][0]
+        reached = [k for k in sorted(summary[node]) if summary[node][k]['mse'][0] <= target]
+        out['node_questions_to_match_random_at_10'] = reached[0] if reached else None
+        out['node_never_behind_random'] = all(summary[node][k]['mse'][0] <= summary['fold-in (random)'][k]['mse'][0]
+                                              for k in ks if k in summary[node])
+    return out
+
+
+def write_results(folder: Path, result: dict, header: dict) -> dict:
+    summary = summarise(result['records'])
+    ks = sorted(summary.get('unpersonalised', {}))
+    checks = goals(result['records'], summary, header['strategies'], ks) if summary else {}
+    payload = {**header, 'folds': result['folds'], 'left_out': result['left_out'], 'records': result['records'],
+               'fits': result['fits'], 'failed': result['failed'], 'calibration': result['calibration'],
+               'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()}, 'goals': checks}
+    (folder / 'results.json').write_text(json.dumps(payload, indent=1))
+    partitions = '; '.join(f'seed {seed}: {folds}' for seed, folds in result['folds'].items())
+    covered = {k: sorted({(r['seed'], name) for r in result['records'] if r['k'] == k for name in r['covered']})
+               for k in ks}
+    lines = ['# k-shot personalisation of new people', '', f"`{header['command']}`", '',
+             f"{len({(r['seed'], r['fold']) for r in result['records']})} folds of held-out people ({partitions}); "
+             f"pools of up to {header['pool']} examples per person; {len(result['left_out'])} people left out for "
+             f"having a single example; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "
+             'Mean ± sd over folds.', '',
+             '| k | people covered | method | MSE | Pearson r | CCC |', '| --- | --- | --- | --- | --- | --- |']
+    for k in ks:
+        for method in summary:
+            if k in summary[method]:
+                cells = [f'{s[0]:.4f} ± {s[1]:.4f}' for s in (summary[method][k][m] for m in METRICS)]
+                lines.append(f'| {k} | {len(covered[k])} | {method} | ' + ' | '.join(cells) + ' |')
+    calibration = result['calibration']
+    levels = [str(level) for level in LEVELS]
+    lines += ['', f"Calibration: share of held-out ratings inside the central predictive intervals "
+                  f"(new people: {header['strategies'][0]} questions; pooled over folds).", '',
+              '| people | k | ratings | mean score_sd | ν | ' + ' | '.join(f'{float(l):.0%}' for l in levels) + ' |',
+              '| --- | --- | --- | --- | --- |' + ' --- |' * len(levels)]
+    rows = [('new', k, calibration['new'][k]) for k in calibration.get('new', {})]
+    if 'known' in calibration:
+        rows.append(('known', '–', calibration['known']))
+    for who, k, cells in rows:
+        lines.append(f"| {who} | {k} | {cells['n']} | {cells['mean_sd']:.4f} | {', '.join(f'{v:g}' for v in cells['nu'])} | "
+                     + ' | '.join(f'{100 * cells[l]:.1f}' for l in levels) + ' |')
+    if checks:
+        lines += ['', 'Goals:', '']
+        for method, held in checks['never_worse'].items():
+            lines.append(f"- {method} at or below unpersonalised MSE in every fold at every k ≥ 1: "
+                         + ('met' if held['met'] else 'NOT met (seed, fold, k: '
+                            + ', '.join(f'{s}/{f}/{k}' for s, f, k in held['failing']) + ')'))
+        if 'node_questions_to_match_random_at_10' in checks:
+            reached = checks['node_questions_to_match_random_at_10']
+            lines.append(f"- {NODE_STRATEGY} questions (the node's) needed to reach random's MSE at k = 10: "
+                         f"{reached if reached is not None else 'not reached'} (goal ≤ 5: "
+                         f"{'met' if reached is not None and reached <= 5 else 'NOT met'}); never behind random: "
+                         f"{'met' if checks['node_never_behind_random'] else 'NOT met'}")
+        worst = max((abs(100 * cells[l] - 100 * float(l)) for _, _, cells in rows for l in levels), default=0.0)
+        lines.append(f"- interval coverage within ±3 points of nominal: {'met' if worst <= 3 else 'NOT met'} "
+                     f'(largest gap {worst:.1f} points)')
+    fit_seconds = [f['seconds'] for f in result['fits']]
+    lines += ['', f"{len(fit_seconds)} fits, {np.mean(fit_seconds) if fit_seconds else 0:.0f} s each on average, "
+                  f"{header.get('seconds', 0):.0f} s in all (one torch thread each, {header['jobs']} at a time, "
+                  f"on {header['config']['training']['device']})."]
+    (folder / 'results.md').write_text('\n'.join(lines) + '\n')
+    if summary:
+        plot(folder / 'kshot.png', summary)
+    return payload
+
+
+def plot(path: Path, summary: dict) -> None:
+    plt = pyplot()
+
+    figure, axes = plt.subplots(1, len(METRICS), figsize=(13, 3.6))
+    for axis, metric in zip(axes, METRICS):
+        for method in summary:
+            ks = sorted(summary[method])
+            means = np.array([summary[method][k][metric][0] for k in ks])
+            sds = np.array([summary[method][k][metric][1] for k in ks])
+            sds = np.nan_to_num(sds)
+            axis.errorbar(ks, means, yerr=sds, marker='o', capsize=3, label=method)
+        label_axis(axis, 'revealed ratings k', NAMES[metric])
+    axes[0].legend(fontsize=8)
+    save_png(figure, path)
