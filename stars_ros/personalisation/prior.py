@@ -45,7 +45,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-
 from scipy import stats
 
 from stars_ros.model.numpy_model import InferenceModel
@@ -122,7 +121,7 @@ def held_out_split(data, rows: np.ndarray, share: float = NOISE_SHARE, seed: int
     as a new person's are."""
     rows = np.asarray(rows, dtype=np.int64)
     users, examples = data.users[rows], data.examples[rows]
-    rng = np.random.default_rng([seed, 34])
+    rng = np.random.default_rng(seed)
     held = np.zeros(len(rows), dtype=bool)
     for name in sorted(set(users.tolist())):
         mine = users == name

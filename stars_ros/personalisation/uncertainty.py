@@ -9,8 +9,8 @@ for a person the checkpoint knows, else the population prior). So
   Clipping the served score to the rating scale does not change it: it describes the
   unclipped predictive, whose mean the clipped score is.
 - **intervals**: the predictive is a Student-t with that standard deviation and the prior's
-  ν degrees of freedom (``prior.student_t_nu``; ν = ∞ is the Gaussian): ``half_width``
-  gives its central intervals. Real rating errors crowd the mean more than a Gaussian of
+  ν degrees of freedom (``prior.student_t_nu``; ν = ∞ is the Gaussian): the central
+  ``level`` interval is score ± ``student_t_quantile(0.5 + level / 2, ν)`` · score_sd. Real rating errors crowd the mean more than a Gaussian of
   their variance says, so its 50 % interval is narrower and its 95 % one a little wider.
 - **p_first_is_best**: the probability that the first entry's expected score is truly the
   highest of the ranking's, under the uncertainty of θ (noise excluded: it concerns what the
@@ -96,11 +96,6 @@ class Uncertainty:
         """Predictive sd on the rating scale [R] of rows x [R, dim+1] of ``actions`` [R]."""
         variance = np.einsum('rd,de,re->r', x, covariance, x) + self.foldin.noise[actions]
         return np.sqrt(np.maximum(variance, 0.0)) * self.inference.target_std[actions]
-
-    def half_width(self, sd: np.ndarray, level: float) -> np.ndarray:
-        """Half-width of the central ``level`` predictive interval of ratings whose predictive
-        standard deviation is ``sd`` (``rating_sd``): Student-t with the prior's ν."""
-        return np.asarray(sd) * student_t_quantile(0.5 + level / 2, self.foldin.user_prior.nu)
 
     def p_first_is_best(self, x: np.ndarray, c: np.ndarray, actions: np.ndarray, mean: np.ndarray,
                         covariance: np.ndarray, first: int) -> float:
