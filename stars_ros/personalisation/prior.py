@@ -29,8 +29,8 @@ estimates what that needs from the trained people and their training ratings:
   the same standardised residuals as the noise (ν = ∞: Gaussian).
 - **How far a person departs**: Σ₀ describes people on average; some groups deviate from μ₀
   in directions that do not carry over from one scene to the next. The fold-in therefore
-  treats a person's scale τ on Σ₀ as unknown, one of ``PRIOR_SCALES`` (E τ = 1, so the
-  population spread stays Σ₀), and weighs them by the marginal likelihood of the person's
+  treats a person's scale τ on Σ₀ as unknown, one of ``PRIOR_SCALES`` (E τ = 1.075, so the
+  population spread stays about Σ₀), and weighs them by the marginal likelihood of the person's
   own answers (``foldin.scale_mixture_posterior``).
 
 A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
