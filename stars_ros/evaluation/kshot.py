@@ -119,7 +119,7 @@ class Design:
         return self.fitted.clip(self.inference.to_rating_scale(z, actions))
 
     def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray) -> tuple:
-        """(mean, sd) of the Gaussian predictive distribution of ``rows`` on the rating scale (unclipped)."""
+        """(mean, sd) of the predictive distribution of ``rows`` on the rating scale (unclipped)."""
         x, c, _, actions = self.rows(rows)
         return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
 
