@@ -37,6 +37,7 @@ setup(
     entry_points={
         'console_scripts': [
             'ranker = stars_ros.ros.ranker:main',
+            'managed_ranker = stars_ros.ros.managed_ranker:main',
             'scene_publisher = stars_ros.ros.scene_publisher:main',
             'replay = stars_ros.ros.replay:main',
             'sign_feedback = stars_ros.sign_feedback:main',

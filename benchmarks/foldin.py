@@ -49,7 +49,7 @@ sys.path.insert(0, str(REPO / 'test'))
 
 from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
 from stars_ros import messages  # noqa: E402
-from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, solve_ridge  # noqa: E402
+from stars_ros.personalisation.foldin import FoldIn, Rating, solve_ridge  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
@@ -84,9 +84,8 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
             times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
             started = time.perf_counter()
             x, c, z = foldin.design(ratings)
-            mean, _, precision = foldin.prior_distribution(user)
-            theta = (solve_ridge(x, z - c, mean, regularisation) if regularisation else
-                     gaussian_posterior(x, z - c, foldin.noise[np.zeros(len(z), dtype=int)], mean, precision)[0])
+            theta = (solve_ridge(x, z - c, foldin.prior(user), regularisation) if regularisation else
+                     foldin.posterior(x, z - c, np.zeros(len(z), dtype=int), user)[0])
             rebuilt.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
             assert np.allclose(theta, np.append(model.p, model.b), atol=1e-8)
     return {'update_ms': {n: percentiles(v) for n, v in times.items()},

@@ -1,17 +1,19 @@
-"""Launch the ranker with the packaged defaults (config/ranker.yaml).
+"""Launch the ranker with the packaged defaults (config/ranker.yaml), or a params file of yours.
 
     ros2 launch stars_ros ranker.launch.py record_folder:=/tmp/stars top_k:=3
-    ros2 launch stars_ros ranker.launch.py checkpoint:=$(ros2 pkg prefix --share stars_ros)/models/socnav1_gat_stars.pt
+    ros2 launch stars_ros ranker.launch.py params_file:=/etc/stars/ranker.yaml log_level:=debug use_sim_time:=true
     ros2 launch stars_ros ranker.launch.py record:=false
     ros2 launch stars_ros ranker.launch.py namespace:=robot1 fleet_sharing:=true fleet_topic:=/fleet/user_model
-    ros2 launch stars_ros ranker.launch.py feedback_key_file:=/etc/stars/keys.txt
+    ros2 launch stars_ros ranker.launch.py managed:=true   # unconfigured until a lifecycle manager configures it
 
-Leave ``checkpoint`` empty to serve the packaged SocNav1 GAT-StARS model and
-``record_folder`` empty for the node's default, ``$ROS_HOME/stars_ros/records/{node}``. A robot
-of a fleet runs in its ``namespace`` and remaps stars/user_model to ``fleet_topic``. An empty
+Every parameter of the node is an argument (``--show-args`` lists them with their meaning);
+left empty, the params file's value holds (the packaged one holds every default). A value
+that is not one of its parameter's type or range is refused before the node starts, as
+``ros2 run ... -p`` refuses it (``top_k:=abc``: "top_k:=abc is not an integer"). An empty
 launch argument is refused on the command line (``record_folder:=''``), so recording is
-turned off with ``record:=false``. ``ros2 launch stars_ros ranker.launch.py --show-args``
-lists the arguments.
+turned off with ``record:=false``. A robot of a fleet runs in its ``namespace`` and remaps
+stars/user_model to ``fleet_topic``. ``managed:=true`` starts the managed (lifecycle) ranker,
+``ros2 run stars_ros managed_ranker``: configure loads the checkpoint, activate serves.
 """
 from pathlib import Path
 
@@ -19,33 +21,49 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import Node
+from launch_ros.actions import LifecycleNode, Node
 
-OPTIONAL = {  # launch argument = node parameter; empty (the default): the node's own default
-    'checkpoint': 'checkpoint file; empty: the packaged default model',
-    'record_folder': 'folder for the MCAP recordings; empty: the node default $ROS_HOME/stars_ros/records/{node}',
-    'top_k': 'publish only the best k entries of each ranking; empty: the node default (0: all)',
-    'fleet_sharing': 'true: share folded-in users on stars/user_model; empty: the node default (false)',
-    'feedback_key_file': 'keys that sign feedback (docs/security.md); empty: feedback is not authenticated',
-}
+from stars_ros.node.parameters import PARAMETERS
+from stars_ros.ros.launch_arguments import parameter_value
+
+LOG_LEVELS = ['debug', 'info', 'warn', 'error', 'fatal']
 
 
 def _ranker(context):
-    """The node, given only the arguments that were set: launch_ros reads an empty
-    substitution as YAML null and refuses it, and left out, the node's own default holds."""
-    parameters = {name: LaunchConfiguration(name) for name in OPTIONAL if LaunchConfiguration(name).perform(context)}
-    if LaunchConfiguration('record').perform(context) == 'false':
+    """The node, given only the parameters whose arguments were set, each as its own type:
+    launch_ros reads an empty substitution as YAML null and refuses it, and left out, the
+    params file's value holds."""
+    def argument(name):
+        return LaunchConfiguration(name).perform(context)
+    parameters = {name: parameter_value(name, argument(name), PARAMETERS) for name in PARAMETERS if argument(name)}
+    if argument('record') == 'false':
         parameters['record_folder'] = ''  # a plain '' stays a string
-    defaults = Path(get_package_share_directory('stars_ros')) / 'config' / 'ranker.yaml'
-    namespace, fleet_topic = (LaunchConfiguration(name).perform(context) for name in ('namespace', 'fleet_topic'))
-    return [Node(package='stars_ros', executable='ranker', name='ranker', output='screen',
-                 parameters=[str(defaults), parameters], **({'namespace': namespace} if namespace else {}),
-                 remappings=[('stars/user_model', fleet_topic)] if fleet_topic else [])]
+    parameters['use_sim_time'] = argument('use_sim_time') == 'true'
+    params_file = argument('params_file') or str(Path(get_package_share_directory('stars_ros')) / 'config'
+                                                 / 'ranker.yaml')
+    namespace, fleet_topic, managed = argument('namespace'), argument('fleet_topic'), argument('managed') == 'true'
+    options = dict(package='stars_ros', executable='managed_ranker' if managed else 'ranker', name='ranker',
+                   output='screen', parameters=[params_file, parameters],
+                   ros_arguments=['--log-level', argument('log_level')],
+                   remappings=[('stars/user_model', fleet_topic)] if fleet_topic else [])
+    if managed:
+        return [LifecycleNode(namespace=namespace, **options)]
+    return [Node(**({'namespace': namespace} if namespace else {}), **options)]
 
 
 def generate_launch_description():
     return LaunchDescription([
-        *[DeclareLaunchArgument(name, default_value='', description=text) for name, text in OPTIONAL.items()],
+        *[DeclareLaunchArgument(name, default_value='', description=f'{spec[1]} (empty: the params file\'s value)')
+          for name, spec in PARAMETERS.items()],
+        DeclareLaunchArgument('params_file', default_value='',
+                              description="the node's params file; empty: the packaged config/ranker.yaml"),
+        DeclareLaunchArgument('log_level', default_value='info', choices=LOG_LEVELS,
+                              description="the node's log level"),
+        DeclareLaunchArgument('use_sim_time', default_value='false', choices=['true', 'false'],
+                              description='true: the node reads time from /clock (bag replays, simulators)'),
+        DeclareLaunchArgument('managed', default_value='false', choices=['true', 'false'],
+                              description='true: the managed (lifecycle) ranker, which serves once configured and '
+                              'activated'),
         DeclareLaunchArgument('record', default_value='true', choices=['true', 'false'],
                               description='false: do not record (record_folder is ignored)'),
         DeclareLaunchArgument('namespace', default_value='', description="the robot's namespace, e.g. robot1"),

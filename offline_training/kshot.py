@@ -16,7 +16,7 @@ other examples are the test rows, the same for every k and strategy. Per k each 
 covered people are scored:
 
 - ``unpersonalised``: the scene-only model (p_u = 0, b_u = 0);
-- ``fold-in (<strategy>)``: the node's default, the Gaussian posterior from the first k
+- ``fold-in (<strategy>)``: the node's default, the posterior (``FoldIn.posterior``) from the first k
   answers the strategy asked for (``random``: the pool's seeded order; ``uncertainty``: largest
   predictive variance; ``active``: the A-optimal expected variance reduction over the pool).
   k = 0 is the population prior's mean, what the node serves a stranger;
@@ -27,9 +27,11 @@ covered people are scored:
 
 Metrics (MSE, r, CCC on the rating scale, scores clipped as served) are pooled over a fold's
 covered test rows, then given as mean ± sd over folds. Calibration: the share of test ratings
-inside the central 50/80/90/95 % predictive intervals, for new people at each k (random
-order) and for known people (their held-out examples, each scored from their trained row and
-its covariance), pooled over folds. Writes results.json, results.md and kshot.png. Fits run
+inside the central 50/80/90/95 % predictive intervals (Student-t with each fold's ν), for new
+people at each k (random order) and for known people (their held-out examples, each scored
+from their trained row and its covariance), pooled over folds. Goals: each strategy at or below
+unpersonalised in every fold at every k ≥ 1, the node's strategy against random, coverage
+within ±3 points. Writes results.json, results.md and kshot.png. Fits run
 in worker processes with ``--jobs`` (one torch thread each) or as Ray tasks (``--executor
 ray``); a fold any of whose fits fails is left out and named, and the run ends with status 1.
 """

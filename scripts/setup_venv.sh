@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Create .venv (Python 3.11) with every pinned dependency (runtime, rclpy wheels, Ray and
-# test/build tools: requirements-dev.txt) and stars_ros installed editable, so `ranker`, `scene_publisher` and
+# test/build tools: requirements-dev.txt), the typed interfaces stars_ros_msgs built into it
+# (scripts/build_interfaces.sh) and stars_ros installed editable, so `ranker`, `scene_publisher` and
 # `replay` are on its PATH. Re-running is cheap: nothing is reinstalled while the
 # requirements files, setup.py, setup.cfg and package.xml are unchanged.
 set -euo pipefail
@@ -18,3 +19,4 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --no-deps --no-build-isolation -e .
   echo "$want" > "$stamp"
 fi
+bash scripts/build_interfaces.sh interfaces/stars_ros_msgs  # a no-op while unchanged

@@ -247,17 +247,21 @@ class StarsRecommender:
             on_epoch: Callable[[str, int], None] | None = None) -> 'StarsRecommender':
         """Train on ``rows`` of ``data`` (a RatingData, or what ``load_dataset`` reads;
         every rating by default); returns self. A personalised variant also gets the
-        fold-in's prior (``personalisation.prior``), its rating noise from ``noise_rows``
-        (held-out ratings of the trained people) when given, else from the training
-        ratings, which understate it and make score_sd too narrow. ``on_epoch(stage, epoch)``
-        is called after each epoch (``StarsTrainer.fit``; ``history`` holds the losses). Earlier fold-ins are dropped. Leaves torch's threads, default dtype and
-        random state as it found them."""
+        fold-in's prior (``personalisation.prior``), its rating noise and tails from
+        ``noise_rows`` (held-out ratings of the trained people) when given; else a seeded
+        ``prior.NOISE_SHARE`` of each person's examples is held out of the training for them
+        (``prior.held_out_split``), as ``train`` and ``kshot`` hold out theirs, so a person
+        folded in here is treated as on the robot. ``on_epoch(stage, epoch)`` is called after
+        each epoch (``StarsTrainer.fit``; ``history`` holds the losses). Earlier fold-ins are
+        dropped. Leaves torch's threads, default dtype and random state as it found them."""
         from stars_ros.model.training import StarsTrainer, torch_state_kept  # training (and pandas): only to fit
-        from stars_ros.personalisation.prior import estimate_prior
+        from stars_ros.personalisation.prior import estimate_prior, held_out_split
 
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
         started = time.perf_counter()
+        if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
+            rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
         self._trainer = trainer = StarsTrainer(self.config)
         with torch_state_kept():
             trainer.fit(data, rows, on_epoch=on_epoch)

@@ -226,3 +226,17 @@ def running_ranker(domain: int, params: dict, log_path: Path, probe: dict, timeo
         if process.poll() is None:
             process.kill()
         client.close()
+
+
+def call_service(client: RosClient, kind, name: str, request, timeout: float = 30.0):
+    """The response of service ``name`` (of type ``kind``) to ``request``, called from ``client``'s node."""
+    service = client.node.create_client(kind, name)
+    try:
+        if not service.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'{name} not available')
+        future = service.call_async(request)
+        if not wait_for(future.done, timeout):
+            raise TimeoutError(f'{name} did not answer')
+        return future.result()
+    finally:
+        client.node.destroy_client(service)

@@ -1,6 +1,9 @@
-"""`colcon build` of the package in a scratch workspace gives the install tree `ros2 run`
-and `ros2 launch` expect: executables in lib/stars_ros, the ament index marker, package.xml,
-config, schemas, launch file and the packaged model in share/stars_ros."""
+"""`colcon build` of the package and of its interface package (interfaces/stars_ros_msgs,
+found with `--base-paths src src/stars_ros/interfaces`: colcon does not look inside a package)
+in a scratch workspace gives the install tree `ros2 run` and `ros2 launch` expect: executables
+in lib/stars_ros, the ament index marker, package.xml, config, schemas, launch file and the
+packaged model in share/stars_ros, and both packages import from the install space once
+install/setup.bash is sourced (docs/interfaces.md)."""
 import importlib.metadata
 import os
 import shutil
@@ -23,33 +26,44 @@ def workspace(tmp_path_factory):
     return root
 
 
+BASE_PATHS = ('--base-paths', 'src', 'src/stars_ros/interfaces')
+
+
 @pytest.fixture(scope='module')
 def built(workspace):
-    """``colcon build`` run once in the workspace; every test that reads the install tree
-    asks for it, so none depends on running after another."""
-    return colcon(workspace, 'build', '--event-handlers', 'console_direct-')
+    """``colcon build`` of both packages run once in the workspace; every test that reads the
+    install tree asks for it, so none depends on running after another."""
+    return colcon(workspace, 'build', *BASE_PATHS, '--event-handlers', 'console_direct-', '--cmake-args',
+                  f'-DPython3_EXECUTABLE={sys.executable}', '-DBUILD_TESTING=OFF')
 
 
 def colcon(workspace, *args):
     return subprocess.run([str(BIN / 'colcon'), *args], cwd=workspace, env=_env(), capture_output=True, text=True,
-                          timeout=300)
+                          timeout=900)
 
 
 def _env():
-    return dict(os.environ, PATH=f'{BIN}{os.pathsep}{os.environ["PATH"]}')
+    """The venv's ROS (the wheels) as the underlay, as sourcing /opt/ros/jazzy/setup.bash
+    makes a ROS install the underlay: CMake finds ament_cmake and rosidl there."""
+    return dict(os.environ, PATH=f'{BIN}{os.pathsep}{os.environ["PATH"]}', CMAKE_PREFIX_PATH=sys.prefix,
+                AMENT_PREFIX_PATH=sys.prefix)
 
 
 def test_colcon_sees_an_ament_python_package(workspace):
     listed = colcon(workspace, 'list')
     assert listed.returncode == 0, listed.stderr
     name, path, build_type = listed.stdout.split()
-    assert (name, build_type) == ('stars_ros', '(ros.ament_python)')
+    assert (name, build_type) == ('stars_ros', '(ros.ament_python)')  # the nested package is not seen
+    listed = colcon(workspace, 'list', *BASE_PATHS)
+    assert listed.returncode == 0, listed.stderr
+    assert [line.split()[::2] for line in listed.stdout.splitlines()] == [
+        ['stars_ros', '(ros.ament_python)'], ['stars_ros_msgs', '(ros.ament_cmake)']]
 
 
 def test_colcon_build_installs_what_ros2_run_needs(workspace, built):
     assert built.returncode == 0, built.stdout + built.stderr
     prefix = workspace / 'install' / 'stars_ros'
-    for executable in ('ranker', 'scene_publisher', 'replay', 'sign_feedback', 'recording'):
+    for executable in ('ranker', 'managed_ranker', 'scene_publisher', 'replay', 'sign_feedback', 'recording'):
         path = prefix / 'lib' / 'stars_ros' / executable
         assert path.is_file() and os.access(path, os.X_OK), path
     share = prefix / 'share'
@@ -81,6 +95,21 @@ def test_source_install_setup_bash_finds_the_built_package(workspace, built):
     ament_prefix_path, module, launch_file = sourced.stdout.split()
     assert str(prefix) in ament_prefix_path.split(os.pathsep)
     assert module.startswith(str(prefix)) and launch_file.startswith(str(prefix / 'share' / 'stars_ros'))
+
+
+def test_both_packages_import_from_the_install_space(workspace, built):
+    """The typed messages and the node's adapter of them come from install/, not from the
+    venv this test runs in (which has stars_ros_msgs built into it too)."""
+    assert built.returncode == 0, built.stdout + built.stderr
+    code = ('import stars_ros_msgs.srv as s, stars_ros.ros.typed_interface as t; '
+            'from rclpy.serialization import serialize_message; '
+            'serialize_message(s.RankActions.Request()); print(s.__file__); print(t.__file__)')
+    sourced = subprocess.run(['bash', '-c', f"source install/setup.bash && python -c '{code}'"], cwd=workspace,
+                             env=_env(), capture_output=True, text=True, timeout=120)
+    assert sourced.returncode == 0, sourced.stderr
+    messages_module, adapter = sourced.stdout.split()
+    assert messages_module.startswith(str(workspace / 'install' / 'stars_ros_msgs')), messages_module
+    assert adapter.startswith(str(workspace / 'install' / 'stars_ros')), adapter
 
 
 def test_installed_ranker_finds_its_packaged_files(workspace, built):

@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-ROS_PACKAGES = ('rclpy', 'std_msgs', 'std_srvs', 'diagnostic_msgs', 'rcl_interfaces', 'geometry_msgs', 'hri_msgs', 'tf2_ros')
+ROS_PACKAGES = ('rclpy', 'std_msgs', 'std_srvs', 'diagnostic_msgs', 'rcl_interfaces', 'geometry_msgs', 'lifecycle_msgs',
+                'stars_ros_msgs', 'hri_msgs', 'tf2_ros')
 
 CHILD = '''
 import importlib, importlib.abc, json, pkgutil, sys

@@ -16,11 +16,13 @@ from stars_ros import recording
 from stars_ros.node.core import PARAMETERS
 from stars_ros.examples import demo
 from stars_ros.ros import hri_bridge, hri_world, replay, scene_publisher, usage
+from stars_ros.ros.launch_arguments import LaunchArgumentError
 from stars_ros.state.store import PersonUpdate, write_people
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))
-TABLES = {'stars_ros.ros.ranker': PARAMETERS, 'stars_ros.ros.scene_publisher': scene_publisher.PARAMETERS,
+TABLES = {'stars_ros.ros.ranker': PARAMETERS, 'stars_ros.ros.managed_ranker': PARAMETERS,
+          'stars_ros.ros.scene_publisher': scene_publisher.PARAMETERS,
           'stars_ros.ros.replay': replay.PARAMETERS, 'stars_ros.ros.hri_bridge': hri_bridge.PARAMETERS,
           'stars_ros.ros.hri_world': hri_world.PARAMETERS}
 
@@ -193,11 +195,12 @@ class _LaunchConfiguration:
 def _run_launch_file(monkeypatch, **given) -> tuple:
     """launch/ranker.launch.py run as ros2 launch runs it with ``given`` arguments, on
     stand-ins for launch and launch_ros (they do not install from PyPI): the declared
-    arguments and the ranker Node's keyword arguments."""
+    arguments and the ranker Node's keyword arguments (its ``kind``: Node or LifecycleNode)."""
     stand_ins = {'launch': {'LaunchDescription': _Recorded},
                  'launch.actions': {'DeclareLaunchArgument': _Recorded, 'OpaqueFunction': _Recorded},
                  'launch.substitutions': {'LaunchConfiguration': _LaunchConfiguration},
-                 'launch_ros': {}, 'launch_ros.actions': {'Node': _Recorded}}
+                 'launch_ros': {}, 'launch_ros.actions': {'Node': type('Node', (_Recorded,), {}),
+                                                           'LifecycleNode': type('LifecycleNode', (_Recorded,), {})}}
     for name, attributes in stand_ins.items():
         monkeypatch.setitem(sys.modules, name, types.SimpleNamespace(**attributes))
     import ament_index_python.packages
@@ -212,27 +215,50 @@ def _run_launch_file(monkeypatch, **given) -> tuple:
         assert configurations[name] in kwargs.get('choices', [configurations[name]]), f'launch refuses {name}'
     opaque = next(e for e in entities if 'function' in e.kwargs)
     [node] = opaque.kwargs['function'](types.SimpleNamespace(launch_configurations=configurations))
-    return declared, node.kwargs
+    return declared, {**node.kwargs, 'kind': type(node).__name__}
+
+
+LAUNCH_ONLY = {'record', 'namespace', 'fleet_topic', 'params_file', 'log_level', 'use_sim_time', 'managed'}
 
 
 def test_launch_arguments_are_node_parameters_and_record_false_turns_recording_off(monkeypatch):
     declared, node = _run_launch_file(monkeypatch)
-    assert set(declared) - {'record', 'namespace', 'fleet_topic'} <= set(PARAMETERS)
+    assert set(declared) - LAUNCH_ONLY == set(PARAMETERS)  # every parameter is an argument
     assert declared['record']['choices'] == ['true', 'false']
     assert 'namespace' not in node and node['remappings'] == []
     assert (node['package'], node['executable']) == ('stars_ros', 'ranker')
     defaults_file, overrides = node['parameters']
     assert defaults_file == '/share/stars_ros/config/ranker.yaml'
-    assert overrides == {}  # nothing given: the node's own defaults, record_folder under ROS_HOME included
+    assert overrides == {'use_sim_time': False}  # the node's own defaults, record_folder under ROS_HOME included
+    assert node['ros_arguments'] == ['--log-level', 'info']
     _, node = _run_launch_file(monkeypatch, record='false')
-    assert node['parameters'][1] == {'record_folder': ''}
-    _, node = _run_launch_file(monkeypatch, record_folder='/data/bags', top_k='3')
-    overrides = node['parameters'][1]
-    assert {name: value.name for name, value in overrides.items()} == {'record_folder': 'record_folder',
-                                                                      'top_k': 'top_k'}
+    assert node['parameters'][1] == {'record_folder': '', 'use_sim_time': False}
+    _, node = _run_launch_file(monkeypatch, record_folder='/data/bags', top_k='3', max_batch='8', explain='true',
+                               log_throttle='2.5')
+    assert node['parameters'][1] == {'record_folder': '/data/bags', 'top_k': 3, 'max_batch': 8, 'explain': True,
+                                     'log_throttle': 2.5, 'use_sim_time': False}  # each as its parameter's type
     _, node = _run_launch_file(monkeypatch, namespace='robot1', fleet_sharing='true', fleet_topic='/fleet/user_model')
     assert node['namespace'] == 'robot1' and node['remappings'] == [('stars/user_model', '/fleet/user_model')]
-    assert node['parameters'][1]['fleet_sharing'].name == 'fleet_sharing'
+    assert node['parameters'][1]['fleet_sharing'] is True
+
+
+def test_launch_takes_a_params_file_log_level_sim_time_and_a_managed_ranker(monkeypatch):
+    declared, node = _run_launch_file(monkeypatch, params_file='/etc/stars/ranker.yaml', log_level='debug',
+                                      use_sim_time='true')
+    assert declared['log_level']['choices'] == ['debug', 'info', 'warn', 'error', 'fatal']
+    assert node['parameters'] == ['/etc/stars/ranker.yaml', {'use_sim_time': True}]
+    assert node['ros_arguments'] == ['--log-level', 'debug']
+    _, node = _run_launch_file(monkeypatch, managed='true')
+    assert (node['kind'], node['executable'], node['namespace']) == ('LifecycleNode', 'managed_ranker', '')
+
+
+@pytest.mark.parametrize('given, refusal', [
+    ({'top_k': 'abc'}, 'top_k:=abc is not an integer'), ({'top_k': '-1'}, 'top_k:=-1 is outside its range'),
+    ({'explain': 'maybe'}, 'explain:=maybe is not a boolean'), ({'log_throttle': 'nan'}, 'not a finite number'),
+    ({'max_batch': '1.5'}, 'max_batch:=1.5 is not an integer')])
+def test_launch_refuses_a_value_its_parameter_cannot_take(monkeypatch, given, refusal):
+    with pytest.raises(LaunchArgumentError, match=re.escape(refusal)):
+        _run_launch_file(monkeypatch, **given)
 
 
 def test_demo_scores_print_with_the_digits_that_tell_them_apart():

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from stars_ros.evaluation.kshot import Design, Person
-from stars_ros.personalisation.foldin import gaussian_posterior
 
 
 @dataclass(frozen=True)
@@ -58,15 +57,14 @@ def mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, rn
     """(squared errors on the test rows, rows) after ``n`` implicit outcomes drawn on the
     pool's ratings in turn (a fresh draw each time)."""
     foldin = design.foldin
-    mean, _, precision = foldin.prior_distribution(None)
     if n == 0:
-        return _errors(design, person, mean)
+        return _errors(design, person, foldin.prior_distribution(None)[0])
     pool = person.rows(range(len(person.pool)))
     rows = pool[np.arange(n) % len(pool)]
     x, c, _, actions = design.rows(rows)
     stayed = model.stayed(rng, design.data.scores[rows], scale)
     z = foldin.to_z(np.where(stayed, scale[1], scale[0]), actions)
-    theta, _ = gaussian_posterior(x, z - c, foldin.noise_of(actions, np.ones(n, dtype=bool)), mean, precision)
+    theta, _ = foldin.posterior(x, z - c, actions, None, np.ones(n, dtype=bool))  # as the node folds them in
     return _errors(design, person, theta)
 
 

@@ -20,18 +20,19 @@ Neither looks at a test row or at an answer before it is given.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats as scipy_stats
 
 from stars_ros.errors import StarsError
 from stars_ros.model.predictor import Predictor
-from stars_ros.personalisation.foldin import FoldIn, gaussian_posterior, solve_ridge
+from stars_ros.personalisation.foldin import FoldIn, solve_ridge
 from stars_ros.personalisation.prior import encode_all, rows_design
-from stars_ros.personalisation.uncertainty import Uncertainty
+from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
 
 STRATEGIES = ('random', 'uncertainty', 'active')
+NODE_STRATEGY = 'active'  # the criterion the node's stars/question_request uses (node.questions)
 LEVELS = (0.5, 0.8, 0.9, 0.95)  # central predictive intervals whose coverage is measured
 
 
@@ -102,15 +103,13 @@ class Design:
 
     def posterior(self, rows: np.ndarray, user_id=None, regularisation: float | None = None) -> tuple:
         """(θ mean, covariance) after the ratings of ``rows`` (none: the prior of ``user_id``,
-        the population's for a new person); a positive ``regularisation``: the ridge solve."""
-        mean, covariance, precision = self.foldin.prior_distribution(user_id)
-        if len(rows) == 0:
-            return mean, covariance
+        the population's for a new person), by ``FoldIn.posterior`` as the node solves it; a
+        positive ``regularisation``: the ridge solve."""
         x, c, z, actions = self.rows(rows)
-        if regularisation:
-            theta = solve_ridge(x, z - c, mean, regularisation)
+        if regularisation and len(rows):
+            theta = solve_ridge(x, z - c, self.foldin.prior(user_id), regularisation)
             return theta, float(self.foldin.noise.mean()) * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta)))
-        return gaussian_posterior(x, z - c, self.foldin.noise[actions], mean, precision)
+        return self.foldin.posterior(x, z - c, actions, user_id)
 
     def predict(self, rows: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
         """Rating-scale predictions of ``rows``, clipped as served; θ None: the scene-only
@@ -120,7 +119,7 @@ class Design:
         return self.fitted.clip(self.inference.to_rating_scale(z, actions))
 
     def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray) -> tuple:
-        """(mean, sd) of the Gaussian predictive distribution of ``rows`` on the rating scale (unclipped)."""
+        """(mean, sd) of the predictive distribution of ``rows`` on the rating scale (unclipped)."""
         x, c, _, actions = self.rows(rows)
         return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
 
@@ -146,7 +145,8 @@ class Design:
         return asked
 
 
-def coverage(y: np.ndarray, mean: np.ndarray, sd: np.ndarray) -> dict:
-    """{level: share of ``y`` inside the central interval of N(mean, sd²)} for ``LEVELS``."""
-    return {str(level): float(np.mean(np.abs(y - mean) <= scipy_stats.norm.ppf(0.5 + level / 2) * sd))
+def coverage(y: np.ndarray, mean: np.ndarray, sd: np.ndarray, nu: float = math.inf) -> dict:
+    """{level: share of ``y`` inside the central interval of the predictive with ``mean``,
+    standard deviation ``sd`` and ν = ``nu`` (Student-t; inf: Gaussian)} for ``LEVELS``."""
+    return {str(level): float(np.mean(np.abs(y - mean) <= student_t_quantile(0.5 + level / 2, nu) * sd))
             for level in LEVELS}

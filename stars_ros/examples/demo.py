@@ -8,7 +8,9 @@ annotators it knows, the two whose rankings of alternative robot placements diff
 SocNav1 scenes both of them rated. Then it starts the ranker and one scene_publisher per
 person (separate processes, as ``ros2 launch`` would), prints each pair of rankings as it
 arrives, then sends each person's real SocNav1 rating of each scene as it was (placement
-``stay``) as feedback, stops the ranker with SIGINT and reads the feedback back from the
+``stay``) as feedback (before that, the first scene's placements are ranked once more for the
+first person through the typed service ``~/rank_candidates``, docs/interfaces.md, and printed
+beside its JSON twin's ranking), stops the ranker with SIGINT and reads the feedback back from the
 MCAP bag. Last, it draws the first scene for both people (``offline_training.plot_scene``'s
 picture) into its temporary folder and prints the PNG's path. Runs on the current
 ROS_DOMAIN_ID unless ``--domain-id`` is given.
@@ -41,6 +43,7 @@ from stars_ros.recording.bag import read_messages
 from stars_ros.resources import resolve_checkpoint
 from stars_ros.data.ratings import socnav1_root
 from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes
+from stars_ros.typed_messages import scene_message
 from stars_ros import state
 
 SOCNAV1 = socnav1_root()
@@ -128,6 +131,28 @@ def _line(user, reply, decimals: int) -> str:
     return f'  {user:>3}: ' + ' > '.join(f"{e['candidate']} {e['score']:.{decimals}f}" for e in reply['ranking'])
 
 
+def typed_ranking(node, user: str, scene: dict, placements: int, timeout: float):
+    """``scene``'s placements ranked for ``user`` through the typed service ~/rank_candidates
+    (stars_ros_msgs, REP 103): the response's ranking, as a reply dict ``_line`` prints."""
+    import rclpy
+    from geometry_msgs import msg as geometry
+    from stars_ros_msgs import msg as typed
+    from stars_ros_msgs.srv import RankCandidates
+
+    client = node.create_client(RankCandidates, '/ranker/rank_candidates')
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise StarsError('the ranker offers no ~/rank_candidates service')
+    request = RankCandidates.Request(scene_id=f'{user}/typed', user_id=user, candidates=[
+        typed.CandidateScene(label=c['candidate'], scene=scene_message(c['graph'], 'base_link', typed, geometry))
+        for c in placement_candidates(scene, placements)])
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    response = future.result()
+    if response is None or not response.success:
+        raise StarsError(f"~/rank_candidates failed: {'no answer' if response is None else response.message}")
+    return {'ranking': [{'candidate': e.name, 'score': e.score} for e in response.ranking.entries]}
+
+
 def run(args) -> int:
     checkpoint = resolve_checkpoint(args.checkpoint)
     predictor = Predictor.load(checkpoint)
@@ -196,6 +221,13 @@ def run(args) -> int:
                 print(_line(user_b, b, decimals))
         if len(shown) < len(chosen):
             raise StarsError(f'timed out: {len(shown)} of {len(chosen)} scenes ranked for both people')
+        served, twin = typed_ranking(node, user_a, chosen[0][0], args.placements,
+                                     max(1.0, deadline - time.monotonic())), replies[f'{user_a}/0']
+        theirs = {e['candidate']: e['score'] for e in twin['ranking']}
+        gap = max(abs(e['score'] - theirs.get(e['candidate'], np.inf)) for e in served['ranking'])
+        print(f"\nTyped service /ranker/rank_candidates (stars_ros_msgs, metres), the placements of "
+              f"{chosen[0][0]['identifier']} again: {_line(user_a, served, score_decimals(served, twin)).strip()} "
+              f'(largest difference from the JSON ranking above: {gap:.1e})')
         for n, (_, rating_a, rating_b) in enumerate(chosen):
             for user, rating in ((user_a, rating_a), (user_b, rating_b)):
                 feedback.publish(String(data=json.dumps({'user_id': user, 'scene_id': f'{user}/{n}',
@@ -217,7 +249,8 @@ def run(args) -> int:
     times = [replies[k]['processing_ms'] for k in replies]
     print(f'\nSummary: {len(times)} rankings (processing median {np.median(times):.1f} ms); '
           f'orders differ on {differ} of {len(chosen)} scenes; {sent} feedback ratings sent.')
-    print(f"Recorded in {bags[-1] if bags else '(no bag)'}: {count['/stars/ranking']} rankings and "
+    print(f"Recorded in {bags[-1] if bags else '(no bag)'}: {count['/stars/ranking']} rankings (the typed one "
+          f"included) and "
           f"{count['/stars/feedback']} feedback ratings read back from MCAP. Ranker exit code {ranker.returncode}.")
     first = chosen[0][0]
     try:

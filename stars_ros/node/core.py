@@ -55,8 +55,8 @@ class RankerCore:
             stars/errors or stars/user_model.
         logger: takes ``info``, ``warning`` and ``error`` lines.
         now (callable): the time recorded messages are logged at (ns of ROS time).
-        markers_out (optional): where stars/markers go: ``subscribed()`` (does anybody listen?),
-            ``publish(data)`` (a visualization_msgs/MarkerArray's CDR bytes) and ``message_type``
+        markers_out (optional): where stars/markers go: ``publish(data)`` (a
+            visualization_msgs/MarkerArray's CDR bytes, latched) and ``message_type``
             (``recording.MessageType``, for the bag); None: no markers.
         clock (callable): the system time in ns (``time.time_ns`` unless a test steps it),
             which ``received`` times, processing times and fold-in spans are read on.
@@ -74,6 +74,7 @@ class RankerCore:
         self.user_id, self.problems, self._strangers_reported = None, Problems(), set()
         self.queue = collections.deque()  # Pending requests
         self.questions = collections.deque()  # QuestionRequests waiting to be answered
+        self.replied = collections.deque()  # (Pending, reply, ranked) of rank_now: to record, markers to send
         self._fold_in_spans = BusySpans()  # when fold-in work was done (``clock``)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
@@ -207,6 +208,20 @@ class RankerCore:
             return
         self.queue.append(Pending(request, request.user_id or self.user_id, received, text, log_time))
 
+    def rank_now(self, text: str, received: int) -> tuple:
+        """Score one stars/scene request at once, as the queue's next batch would (a service
+        call, between two batches): (its stars/ranking payload, None), or (None, (kind,
+        message)) once the refusal is on stars/errors. The ranking is not published; the next
+        ``work`` records it and sends its markers (call it once the reply is out)."""
+        try:
+            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
+            return None, (error.kind, str(error))
+        self.personalisation.scenes.received(request.scene_id, text)
+        return self._serve([Pending(request, request.user_id or self.user_id, received, text, self._now())],
+                           publish=False)[0]
+
     def accept_user_id(self, text: str):
         try:
             self.user_id = messages.parse_user_id(text)
@@ -273,20 +288,36 @@ class RankerCore:
         self.questions.append(request)
         return True
 
-    def _answer_question(self, request: messages.QuestionRequest):
+    def question_now(self, text: str) -> tuple:
+        """Answer one stars/question_request at once (a service call): (its stars/question
+        payload, None), or (None, (kind, message)) once the refusal is on stars/errors. The
+        answer is recorded, not published."""
+        try:
+            request = messages.parse_question_request(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, str(error), self.topics['stars/question_request'])
+            return None, (error.kind, str(error))
+        self.record('stars/question_request', text)
+        return self._answer_question(request, publish=False)
+
+    def _answer_question(self, request: messages.QuestionRequest, publish: bool = True) -> tuple:
+        """(the stars/question payload, None) or (None, (kind, message)); ``publish``: it goes
+        out on stars/question."""
         try:
             answer = choose_question(self.personalisation, request.user_id, list(request.candidates),
                                      self.params['question_recent_scenes'])
         except NoQuestion as error:
             self.report('no_question', str(error), self.topics['stars/question_request'])
-            return
+            return None, ('no_question', str(error))
         except StarsError as error:
-            self.report(messages.error_kind(error), f'question request refused: {error}',
-                        self.topics['stars/question_request'])
-            return
+            kind, detail = messages.error_kind(error), f'question request refused: {error}'
+            self.report(kind, detail, self.topics['stars/question_request'])
+            return None, (kind, detail)
         payload = messages.dumps(answer)
-        self._publish('stars/question', payload)
+        if publish:
+            self._publish('stars/question', payload)
         self.record('stars/question', payload)
+        return answer, None
 
     def announce(self) -> bool:
         """A subscriber joined stars/user_model: send it every folded-in user (fleet
@@ -319,6 +350,8 @@ class RankerCore:
         personalisation = self.personalisation
         pending, to_announce, intake = personalisation.pending, personalisation.to_announce, personalisation.intake
         try:
+            while self.replied:
+                self._after_reply(*self.replied.popleft())
             if self.queue:
                 self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
             elif self.questions:
@@ -368,7 +401,10 @@ class RankerCore:
         else:
             self.store.when_committed(self.personalisation.durable_after(user_id), publish)
 
-    def _serve(self, batch: list):
+    def _serve(self, batch: list, publish: bool = True) -> list:
+        """Score ``batch``; per request (its ranking payload, None) or (None, (kind, message)).
+        ``publish``: the rankings go out on stars/ranking."""
+        outcomes = []
         predictor, top_k = self.predictor, self.params['top_k']
         started = self._clock()
         uncertainty = self.personalisation.uncertainty
@@ -378,37 +414,43 @@ class RankerCore:
             if isinstance(result, Exception):
                 self.record('stars/scene', item.text, item.log_time)
                 self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
+                outcomes.append((None, (messages.error_kind(result), str(result))))
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)
             processing_ms = max(0, self._clock() - item.received) / 1e6
-            payload = messages.dumps(messages.ranking_payload(
+            reply = messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
-                result.action, personalised, result.p_first_is_best))
-            self._publish('stars/ranking', payload)
+                result.action, personalised, result.p_first_is_best)
+            if publish:
+                self._publish('stars/ranking', messages.dumps(reply))
+                self._after_reply(item, reply, result.ranked)
+            else:  # the caller sends the reply: recording and markers wait for the next ``work``
+                self.replied.append((item, reply, result.ranked))
+            outcomes.append((reply, None))
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
-            self.record('stars/scene', item.text, item.log_time)  # after the reply: off its latency
-            self.record('stars/ranking', payload)
-            self._send_markers(request, result.ranked)
             self.personalisation.scenes.ranked(request.scene_id, item.text, predictor, result.h)
             self.problems.ranked()
             if item.user_id is not None and not known and not personalised:
                 self._report_stranger(item.user_id, request.scene_id)
+        return outcomes
+
+    def _after_reply(self, item: Pending, reply: dict, ranked: list):
+        """What follows a ranking's reply, off its latency: the request and the ranking
+        recorded, the markers sent."""
+        self.record('stars/scene', item.text, item.log_time)
+        self.record('stars/ranking', messages.dumps(reply))
+        self._send_markers(item.request, ranked)
 
     def _send_markers(self, request, ranked: list):
-        """stars/markers of a ranked request, after its reply (off its latency), built only
-        when somebody subscribes or the bag records them."""
+        """stars/markers of a ranked request, after its reply (off its latency): published
+        even while nobody listens, so the latched latest array reaches a viewer that joins later."""
         out = self.markers_out
         if out is None:
             return
-        record = self.recorder is not None and self.params['record_markers']
-        subscribed = out.subscribed()
-        if not (record or subscribed):
-            return
         stamp = self._now()
         data = markers.encode_marker_array(markers.ranking_markers(request, ranked), self.params['frame_id'], stamp)
-        if subscribed:
-            out.publish(data)
-        if record:
+        out.publish(data)
+        if self.recorder is not None and self.params['record_markers']:
             self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
 
     def _report_stranger(self, user_id: str, scene_id: str):
@@ -425,6 +467,10 @@ class RankerCore:
     def close(self):
         """Record the requests never scored, commit what waits for the state store, close
         the store and the recording (clean shutdown)."""
+        while self.replied:  # answered by rank_now since the last work
+            item, reply, _ = self.replied.popleft()
+            self.record('stars/scene', item.text, item.log_time)
+            self.record('stars/ranking', messages.dumps(reply))
         for item in self.queue:  # in the log even though they were never scored
             self.record('stars/scene', item.text, item.log_time)
         if self.queue:

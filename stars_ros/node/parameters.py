@@ -34,10 +34,11 @@ PARAMETERS = {  # name: (default, description, read_only, range)
     'explain': (False, "give every ranking entry its 'why' (the parts of its score and the entities that drive it, "
                 'docs/explanations.md), as a request with "explain": true does', False, None),
     'explain_entities': (5, "entities a 'why' names, largest |effect| first; 0: all", False, (0, 4096)),
-    'frame_id': ('base_link', "frame of stars/markers: the robot's, REP 103 axes (the scene converted from SocNav1 "
-                 'centimetres, docs/explanations.md)', False, None),
-    'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag even while nobody '
-                       'subscribes to it; false: markers are built only for a subscriber', False, None),
+    'frame_id': ('base_link', "the robot's frame, REP 103 axes: that of stars/markers (the scene converted from "
+                 'SocNav1 centimetres, docs/explanations.md) and the one typed scenes must be in (docs/interfaces.md)',
+                 False, None),
+    'record_markers': (True, 'record stars/markers (visualization_msgs/MarkerArray) in the bag; they are published '
+                       'latched either way, so a viewer that joins later gets the latest', False, None),
     'record_folder': (str(recording.default_folder() / recording.NODE_PLACEHOLDER), 'folder for the MCAP bags and '
                       'the state store (state.db), one node each; {node} stands for the node\'s namespace and name '
                       '(robot1/ranker); default $ROS_HOME/stars_ros/records/{node} (ROS_HOME: ~/.ros unless set); '

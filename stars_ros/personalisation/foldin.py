@@ -13,7 +13,15 @@ prior) and independent noise z_j − c_j − x_jᵀθ ~ N(0, σ²_{a_j}) give th
 
     Λ = S₀⁻¹ + Xᵀ D⁻¹ X,    m = Λ⁻¹ (S₀⁻¹ m₀ + Xᵀ D⁻¹ (z − c)),    D = diag(σ²_a),
 
-one (d+1)×(d+1) Cholesky solve in float64.
+one (d+1)×(d+1) Cholesky solve in float64 per prior scale: a person's departure from the
+population is not known in advance, so the prior covariance is τS₀ with τ one of
+``prior.PRIOR_SCALES`` (0: the person is the population mean), each weighted by the
+marginal likelihood of the person's answers under it (``scale_mixture_posterior``). A person
+whose answers the population explains keeps close to it; one who departs consistently moves
+as far as their answers warrant. The served θ is the mixture's mean, its covariance (the
+mixture's, moment-matched) what ``uncertainty`` turns into a score's standard deviation. A
+person the checkpoint knows starts from their own row and covariance, their departure
+already measured, and gets the plain Gaussian posterior above.
 
 **Implicit outcomes** (``Rating.implicit``: the person stayed engaged after the robot acted,
 score the rating scale's top H, or disengaged, its bottom L) are observations of their own
@@ -21,9 +29,9 @@ kind, not ratings: the outcome o is Bernoulli with P(o = H) = (y − L) / (H −
 person's rating, so E[o] = y and Var[o | y] ≤ (H − L)² / 4. Taken as Gaussian with that bound,
 an outcome's noise is σ²_a + ``implicit_variance`` / σ_a² (z units; default (H − L)² / 4 on
 the rating scale, the law of total variance): the same linear row as a rating of that scene
-and action, weighted less. Its mean is what the node serves, its
-covariance Λ⁻¹ what ``uncertainty`` turns into a score's standard deviation. No λ is set by
-hand; a positive ``regularisation`` λ overrides the posterior with the ridge solve
+and action, weighted less.
+
+No λ is set by hand; a positive ``regularisation`` λ overrides the posterior with the ridge solve
 argmin ‖Xθ − (z − c)‖² + λ‖θ − m₀‖² (covariance σ̄²(XᵀX + λI)⁻¹, σ̄² the mean noise).
 
 Encoding a scene is what costs, so h_i is cached per scene object, and the ranker node hands
@@ -44,7 +52,7 @@ from scipy import linalg
 
 from stars_ros.errors import OutOfScaleError, StarsError, UnknownActionError
 from stars_ros.model.model import UNKNOWN
-from stars_ros.personalisation.prior import UserPrior, prior_of
+from stars_ros.personalisation.prior import PRIOR_SCALES, UserPrior, prior_of
 from stars_ros.state.person import Rating, UserModel
 
 DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
@@ -100,6 +108,44 @@ def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_me
     return mean, linalg.cho_solve(factor, np.eye(len(mean)), check_finite=False)
 
 
+def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
+                            prior_precision: np.ndarray, prior_logdet: float,
+                            scales: Sequence[float] = PRIOR_SCALES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, covariance, weights) of θ given y ~ N(xθ, diag(noise)) and θ ~ N(prior_mean, τΣ)
+    with τ equally likely each of ``scales`` (Σ = prior_precision⁻¹, ``prior_logdet`` its log
+    determinant; τ = 0 pins θ to the mean). ``weights`` [scales] are the posterior
+    probabilities of the scales, from each one's marginal likelihood of y; the mean and
+    covariance are the mixture's."""
+    x, noise = np.asarray(x, dtype=np.float64), np.asarray(noise, dtype=np.float64)
+    size = len(prior_mean)
+    if not len(x):
+        return prior_mean.copy(), float(np.mean(scales)) * np.linalg.inv(prior_precision), np.full(len(scales), 1 / len(scales))
+    residual = np.asarray(y, dtype=np.float64) - x @ prior_mean
+    weighted = x / noise[:, None]
+    gram, pull = weighted.T @ x, weighted.T @ residual
+    base = float(residual @ (residual / noise) + np.sum(np.log(noise)))
+    means, covariances, log_evidence = [], [], []
+    for scale in scales:
+        if scale == 0:
+            means.append(prior_mean)
+            covariances.append(np.zeros((size, size)))
+            log_evidence.append(-0.5 * base)
+            continue
+        factor = linalg.cho_factor(prior_precision / scale + gram, lower=True, check_finite=False)
+        shift = linalg.cho_solve(factor, pull, check_finite=False)
+        logdet = 2 * np.sum(np.log(np.diag(factor[0])))
+        log_evidence.append(-0.5 * (base - pull @ shift + size * np.log(scale) + prior_logdet + logdet))
+        means.append(prior_mean + shift)
+        covariances.append(linalg.cho_solve(factor, np.eye(size), check_finite=False))
+    log_evidence = np.array(log_evidence)
+    weights = np.exp(log_evidence - log_evidence.max())
+    weights /= weights.sum()
+    mean = np.einsum('s,sd->d', weights, np.array(means))
+    spread = np.array(means) - mean
+    covariance = np.einsum('s,sde->de', weights, np.array(covariances)) + np.einsum('s,sd,se->de', weights, spread, spread)
+    return mean, covariance, weights
+
+
 def solve_ridge(x: np.ndarray, y: np.ndarray, prior: np.ndarray, regularisation: float) -> np.ndarray:
     """argmin_θ ‖xθ − y‖² + λ‖θ − prior‖² via the normal equations (λ > 0 keeps them regular)."""
     if not regularisation > 0:
@@ -148,14 +194,15 @@ class FoldIn:
         self.noise = self.user_prior.noise
         self.implicit_noise = self._implicit_noise(implicit_variance, fitted.rating_scale)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
+        self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
         self._cache = collections.OrderedDict()
         self._cache_scenes = cache_scenes
         self.scene_by_scene = scene_by_scene
         self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
         self._lock = threading.Lock()
-        gaussian_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
-                           self._population_precision)  # a process's first LAPACK solve costs
+        scale_mixture_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
+                                self._population_precision, self._population_logdet)  # a process's first LAPACK solve costs
         # milliseconds: paid at load, not by the first feedback
 
     def _implicit_noise(self, variance: float | None, scale) -> np.ndarray:
@@ -215,9 +262,26 @@ class FoldIn:
                     self._precisions.popitem(last=False)
         return self._user_row(row), prior.user_covariance[row], precision
 
+    def posterior(self, x: np.ndarray, y: np.ndarray, actions: np.ndarray, user_id=None, implicit=None) -> tuple:
+        """(mean, covariance) of θ of ``user_id`` after ratings with rows x [n, dim+1], targets
+        y = z − c [n] and action columns ``actions`` [n], the one way every caller folds a
+        person in: from the population prior, the scale mixture of the module docstring;
+        from a known person's own trained row and covariance, the Gaussian posterior (their
+        departure from the population is already measured). ``implicit`` (bools [n]) marks
+        implicit outcomes, which take ``noise_of``'s larger noise."""
+        noise = self.noise_of(actions, np.zeros(len(actions), dtype=bool) if implicit is None else implicit)
+        mean, covariance, precision = self.prior_distribution(user_id)
+        if precision is self._population_precision:
+            return scale_mixture_posterior(x, y, noise, mean, precision, self._population_logdet)[:2]
+        if not len(x):
+            return mean, covariance
+        return gaussian_posterior(x, y, noise, mean, precision)
+
     def covariance(self, user_id=None) -> np.ndarray:
-        """Cov θ of ``user_id`` before any feedback (``prior_distribution``)."""
-        return self.prior_distribution(user_id)[1]
+        """Cov θ of ``user_id`` before any feedback, as ``fit`` gives it with no ratings: a
+        known person's own, else the population's scale mixture's (Σ₀ times the mean scale)."""
+        _, covariance, precision = self.prior_distribution(user_id)
+        return float(np.mean(PRIOR_SCALES)) * covariance if precision is self._population_precision else covariance
 
     def action_index(self, actions: Sequence[str]) -> np.ndarray:
         unknown = sorted({a for a in actions if a not in self._action_index})
@@ -283,18 +347,19 @@ class FoldIn:
     def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:
         """The user's posterior θ = (p_u, b_u) from ``ratings`` (see the module docstring);
         a positive ``regularisation`` λ: the ridge solve towards the prior mean instead."""
-        mean, covariance, precision = self.prior_distribution(user_id)
         lam = float(regularisation or 0.0)
         if not ratings:
-            return UserModel(mean[:-1], float(mean[-1]), 0, lam, covariance)
+            theta, covariance = self.posterior(np.zeros((0, self.dim + 1)), np.zeros(0), np.zeros(0, dtype=np.int64),
+                                               user_id)
+            return UserModel(theta[:-1], float(theta[-1]), 0, lam, covariance)
         x, y = self.regression(ratings)
-        noise = self.rating_noise(ratings)
+        actions = self.action_index([r.action for r in ratings])
         if lam > 0:  # implicit outcomes weigh less here too: rows scaled by their noise ratio
-            weight = np.sqrt(self.noise[self.action_index([r.action for r in ratings])] / noise)[:, None]
-            theta = solve_ridge(x * weight, y * weight[:, 0], mean, lam)
+            weight = np.sqrt(self.noise[actions] / self.rating_noise(ratings))[:, None]
+            theta = solve_ridge(x * weight, y * weight[:, 0], self.prior(user_id), lam)
             covariance = float(self.noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
         else:
-            theta, covariance = gaussian_posterior(x, y, noise, mean, precision)
+            theta, covariance = self.posterior(x, y, actions, user_id, [r.implicit for r in ratings])
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)
 
     def regression(self, ratings: Sequence[Rating]) -> tuple:

@@ -23,6 +23,15 @@ estimates what that needs from the trained people and their training ratings:
   answers too much, and its intervals are too narrow.
 - **Known people**: each trained person starts from their own row with the posterior
   covariance (Σ₀⁻¹ + XᵀD⁻¹X)⁻¹ of their training ratings.
+- **Tails ν**: real rating errors are heavier-tailed than the Gaussian (more of them near the
+  mean and far out, fewer in between), so the predictive distribution is a Student-t with the
+  noise's variance and ν degrees of freedom, ν the maximum-likelihood value on ``NU_GRID`` of
+  the same standardised residuals as the noise (ν = ∞: Gaussian).
+- **How far a person departs**: Σ₀ describes people on average; some groups deviate from μ₀
+  in directions that do not carry over from one scene to the next. The fold-in therefore
+  treats a person's scale τ on Σ₀ as unknown, one of ``PRIOR_SCALES`` (E τ = 1.075, so the
+  population spread stays about Σ₀), and weighs them by the marginal likelihood of the person's
+  own answers (``foldin.scale_mixture_posterior``).
 
 A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
 written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its user rows, assumes
@@ -31,34 +40,41 @@ written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its us
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy import stats
 
 from stars_ros.model.numpy_model import InferenceModel
 
 log = logging.getLogger(__name__)
 DEFAULT_NOISE = 1.0  # z-scale noise variance assumed when a checkpoint stores none
+NU_GRID = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, math.inf)  # candidate degrees of freedom
+PRIOR_SCALES = (0.0, 0.3, 1.0, 3.0)  # a person's scale τ on Σ₀, equally likely a priori (mean 1.075)
+NOISE_SHARE = 0.1  # share of the examples a default fit holds out for the noise (``held_out_split``)
 
 
 @dataclass(frozen=True)
 class UserPrior:
     """N(mean, covariance) over θ = (p_u, b_u) [dim+1] (float64), the z-scale noise variance
     per action ``noise`` [actions], and for trained people ``user_covariance``
-    [users, dim+1, dim+1] (None: they start from Σ₀ around their row). ``details`` says how
-    it was estimated."""
+    [users, dim+1, dim+1] (None: they start from Σ₀ around their row), the predictive's
+    degrees of freedom ``nu`` (inf: Gaussian). ``details`` says how it was estimated."""
 
     mean: np.ndarray
     covariance: np.ndarray
     noise: np.ndarray
     user_covariance: np.ndarray | None = None
     details: dict = field(default_factory=dict)
+    nu: float = math.inf
 
     def to_dict(self) -> dict:
         """Tensors and plain values, as a weights-only checkpoint holds them."""
         values = {'mean': torch.from_numpy(self.mean.copy()), 'covariance': torch.from_numpy(self.covariance.copy()),
-                  'noise': torch.from_numpy(self.noise.copy()), 'details': dict(self.details)}
+                  'noise': torch.from_numpy(self.noise.copy()), 'details': dict(self.details),
+                  'nu': torch.tensor(float(self.nu), dtype=torch.float64)}
         if self.user_covariance is not None:
             values['user_covariance'] = torch.from_numpy(self.user_covariance.astype(np.float32))
         return values
@@ -68,7 +84,8 @@ class UserPrior:
         def array(name):
             return np.asarray(values[name].numpy() if torch.is_tensor(values[name]) else values[name], dtype=np.float64)
         users = array('user_covariance') if values.get('user_covariance') is not None else None
-        return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})))
+        nu = float(array('nu')) if values.get('nu') is not None else math.inf  # earlier checkpoints: Gaussian
+        return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})), nu)
 
 
 def ledoit_wolf(rows: np.ndarray) -> tuple[np.ndarray, float]:
@@ -83,6 +100,36 @@ def ledoit_wolf(rows: np.ndarray) -> tuple[np.ndarray, float]:
     delta = np.sum((sample - mu * np.eye(p)) ** 2) / p
     shrinkage = 0.0 if delta == 0 else float(np.clip(beta / delta, 0.0, 1.0))
     return (1 - shrinkage) * sample + shrinkage * mu * np.eye(p), shrinkage
+
+
+def student_t_nu(standardised: np.ndarray) -> float:
+    """The ν of ``NU_GRID`` under which unit-variance Student-t errors best explain
+    ``standardised`` residuals (maximum likelihood; inf: the Gaussian)."""
+    if len(standardised) < 20:  # too few to tell tails from chance
+        return math.inf
+
+    def log_likelihood(nu):
+        if math.isinf(nu):
+            return float(stats.norm.logpdf(standardised).sum())
+        return float(stats.t.logpdf(standardised, nu, scale=math.sqrt((nu - 2) / nu)).sum())
+    return max(NU_GRID, key=log_likelihood)
+
+
+def held_out_split(data, rows: np.ndarray, share: float = NOISE_SHARE, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(training rows, noise rows): a seeded ``share`` of each person's examples (never their
+    only one) held out, so the prior's noise and tails come from ratings the fit did not see,
+    as a new person's are."""
+    rows = np.asarray(rows, dtype=np.int64)
+    users, examples = data.users[rows], data.examples[rows]
+    rng = np.random.default_rng(seed)
+    held = np.zeros(len(rows), dtype=bool)
+    for name in sorted(set(users.tolist())):
+        mine = users == name
+        ids = np.unique(examples[mine])
+        count = min(int(round(share * len(ids))), len(ids) - 1)
+        if count > 0:
+            held[mine] = np.isin(examples[mine], rng.permutation(ids)[:count])
+    return rows[~held], rows[held]
 
 
 def population(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -160,14 +207,16 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
     for a in range(len(noise)):
         if (residual_actions == a).any():
             noise[a] = float(np.mean(residual[residual_actions == a] ** 2))
+    nu = student_t_nu(residual / np.sqrt(noise[residual_actions]))
     precision = np.linalg.inv(covariance)
     user_covariance = np.empty((len(trained), len(mean), len(mean)))
     for row in range(len(trained)):
         mine = users == row
         user_covariance[row] = np.linalg.inv(precision + (x[mine] / noise[actions[mine], None]).T @ x[mine])
     source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
-    details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows))}
-    return UserPrior(mean, covariance, noise, user_covariance, details)
+    details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows)),
+               'nu': f'maximum likelihood on {source}', 'prior_scales': list(PRIOR_SCALES)}
+    return UserPrior(mean, covariance, noise, user_covariance, details, nu)
 
 
 def prior_of(recommender, inference) -> UserPrior:

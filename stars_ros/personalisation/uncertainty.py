@@ -7,7 +7,11 @@ for a person the checkpoint knows, else the population prior). So
 - **score_sd**: the predictive standard deviation of the person's rating, on the rating
   scale: σ_a · sqrt(xᵀΣx + σ²_a(noise)), σ_a the action's training standard deviation.
   Clipping the served score to the rating scale does not change it: it describes the
-  unclipped Gaussian, whose mean the clipped score is.
+  unclipped predictive, whose mean the clipped score is.
+- **intervals**: the predictive is a Student-t with that standard deviation and the prior's
+  ν degrees of freedom (``prior.student_t_nu``; ν = ∞ is the Gaussian): the central
+  ``level`` interval is score ± ``student_t_quantile(0.5 + level / 2, ν)`` · score_sd. Real rating errors crowd the mean more than a Gaussian of
+  their variance says, so its 50 % interval is narrower and its 95 % one a little wider.
 - **p_first_is_best**: the probability that the first entry's expected score is truly the
   highest of the ranking's, under the uncertainty of θ (noise excluded: it concerns what the
   person would rate on average). For more than two entries it has no closed form, so it is
@@ -27,7 +31,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import math
+
 import numpy as np
+from scipy import stats
 
 from stars_ros.state import loaded
 
@@ -50,6 +57,14 @@ class Spread:
     def p_first_is_best(self, first: int) -> float:
         """P(entry ``first`` truly has the highest expected score of these entries)."""
         return self.uncertainty.p_first_is_best(self.x, self.c, self.actions, self.theta, self.covariance, first)
+
+
+def student_t_quantile(probability: float, nu: float) -> float:
+    """The ``probability`` quantile of the unit-variance Student-t with ``nu`` degrees of
+    freedom (the standard normal's for ν = ∞)."""
+    if math.isinf(nu):
+        return float(stats.norm.ppf(probability))
+    return float(stats.t.ppf(probability, nu) * math.sqrt((nu - 2) / nu))
 
 
 class Uncertainty:

@@ -63,8 +63,5 @@ class MarkerOutput:
         self.publisher = publisher
         self.message_type = MessageType(MARKER_ARRAY, message_definition(MarkerArray), type_hash)
 
-    def subscribed(self) -> bool:
-        return self.publisher.get_subscription_count() > 0
-
     def publish(self, data: bytes):
         self.publisher.publish(data)

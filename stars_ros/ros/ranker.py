@@ -3,7 +3,10 @@
 Subscribes ``stars/scene``, ``stars/user_id`` (transient local), ``stars/feedback`` and
 ``stars/question_request``; publishes ``stars/ranking``, ``stars/errors``, ``stars/question``,
 ``stars/user_model`` (transient local), ``stars/markers`` (visualization_msgs/MarkerArray,
-transient local: the latest scene in ``frame_id``) and ``/diagnostics``; serves ``~/reload``. With ``fleet_sharing`` it also subscribes to
+transient local: the latest scene in ``frame_id``) and ``/diagnostics``; serves ``~/reload``. The
+typed interface (``stars_ros_msgs``, ``ros.typed_interface``, docs/interfaces.md) beside it:
+services ``~/rank_actions``, ``~/rank_candidates``, ``~/choose_question`` and the topic
+``stars/typed/feedback``. With ``fleet_sharing`` it also subscribes to
 ``stars/user_model`` (its peers', and its own, which changes nothing) and sends every
 folded-in user again when a subscriber joins that topic (``stars_ros.personalisation.fleet``). See README.md
 ("The ranker node") and docs/personalisation.md. Run with ``ros2 run stars_ros ranker`` or
@@ -19,11 +22,14 @@ their turn. Handing requests to a worker thread cost more in waiting for the GIL
 group, so a multi-threaded executor keeps this order too.
 
 The work itself, ROS-free, is ``stars_ros.node.core.RankerCore``; this module declares the
-parameters (``node.core.PARAMETERS``), creates the topics, the service and the timers,
-and passes messages to and from the core.
+parameters (``node.core.PARAMETERS``; an override of a name it does not declare is warned
+about), creates the topics, the services and the timers, and passes messages to and from
+the core. ``ros2 run stars_ros managed_ranker`` is the same node managed (lifecycle):
+``ros.managed_ranker``.
 """
 from __future__ import annotations
 
+import difflib
 import gc
 import time
 
@@ -33,8 +39,13 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.service import Service
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
@@ -45,6 +56,7 @@ from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
+from stars_ros.ros.typed_interface import TypedInterface
 
 LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR}
 
@@ -66,46 +78,77 @@ def _received(info: dict) -> int:
     return info.get('received_timestamp') or time.time_ns()
 
 
-class RankerNode(Node):
-    """Serves rankings from a StARS checkpoint; see the module docstring."""
+class RankerParts:
+    """The ranker's life in three steps, shared by ``RankerNode`` (all three at once) and the
+    managed ``managed_ranker.ManagedRankerNode`` (configure, activate, deactivate): declare the
+    parameters; configure (load the checkpoint into the core, create the publishers); activate
+    (create the subscriptions, services and timers that serve). Mixed into a ``Node``."""
 
-    def __init__(self, **kwargs):
-        super().__init__('ranker', **kwargs)
+    core, _configured, _serving = None, (), ()  # before configure, after cleanup
+
+    def _declare_parameters(self):
         self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
                        for name, spec in PARAMETERS.items()}
         self.add_post_set_parameters_callback(self._on_parameters_set)
+        for name in unknown_overrides(self):
+            near = difflib.get_close_matches(name, list(PARAMETERS), n=1)
+            self.get_logger().warning(f"parameter '{name}' is not one of the ranker's: ignored"
+                                      + (f" (did you mean '{near[0]}'?)" if near else '')
+                                      + '; `ros2 run stars_ros ranker --help` lists them')
+
+    def _configure(self):
         torch.set_num_threads(1)
         # numpy's OpenBLAS spreads products above ~0.26 M multiply-adds (a fold-in solve over
         # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
         # cores the executor, the DDS threads and the node's neighbours need
         threadpool_limits(1, user_api='blas')
-        qos = {topic: QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-                                 durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-               for topic, (depth, latched) in topic_qos(self.params).items()}
+        durability = {True: DurabilityPolicy.TRANSIENT_LOCAL, False: DurabilityPolicy.VOLATILE}
+        self.qos = {topic: QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                                      durability=durability[latched])
+                    for topic, (depth, latched) in topic_qos(self.params).items()}
         sharing = self.params['fleet_sharing']
         self.publishers_by_topic = {
-            topic: self.create_publisher(String, topic, qos[topic], event_callbacks=(
+            topic: self.create_publisher(String, topic, self.qos[topic], event_callbacks=(
                 PublisherEventCallbacks(matched=self._on_model_subscriber)  # re-sends every user to a newcomer
                 if sharing and topic == 'stars/user_model' else None))
             for topic in ('stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model')}
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        markers_pub = self.create_publisher(MarkerArray, 'stars/markers', qos['stars/markers'])
+        markers_pub = self.create_publisher(MarkerArray, 'stars/markers', self.qos['stars/markers'])
         type_hash = next((str(i.topic_type_hash) for i in self.get_publishers_info_by_topic(markers_pub.topic_name)), '')
+        self._configured = [*self.publishers_by_topic.values(), self.diagnostics_pub, markers_pub]
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
                                self.get_fully_qualified_name(), self._publish, self.get_logger(),
                                lambda: self.get_clock().now().nanoseconds,
                                MarkerOutput(markers_pub, type_hash))
-        self._scene_subscription = self.create_subscription(String, 'stars/scene', self._on_scene, qos['stars/scene'])
-        self.create_subscription(String, 'stars/user_id', lambda msg: self.core.accept_user_id(msg.data),
-                                 qos['stars/user_id'])
-        self.create_subscription(String, 'stars/feedback', self._on_feedback, qos['stars/feedback'])
-        self.create_subscription(String, 'stars/question_request', self._on_question_request,
-                                 qos['stars/question_request'])
-        if sharing:
-            self.create_subscription(String, 'stars/user_model', self._on_user_model, qos['stars/user_model'])
-        self.create_service(Trigger, '~/reload', self._on_reload)
-        self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics)
+
+    def _activate(self):
+        callbacks = {'stars/scene': self._on_scene, 'stars/user_id': lambda msg: self.core.accept_user_id(msg.data),
+                     'stars/feedback': self._on_feedback, 'stars/question_request': self._on_question_request}
+        if self.params['fleet_sharing']:
+            callbacks['stars/user_model'] = self._on_user_model
+        subscriptions = {topic: self.create_subscription(String, topic, callback, self.qos[topic])
+                         for topic, callback in callbacks.items()}
+        self._scene_subscription = subscriptions['stars/scene']
         self._more_work = self.create_guard_condition(self._work)
+        self._serving = [*subscriptions.values(), self._more_work,
+                         self.create_service(Trigger, '~/reload', self._on_reload),
+                         self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics),
+                         *TypedInterface(self, self.core, self.params, self._more_work.trigger).entities]
+
+    def _deactivate(self):
+        """Stop serving: every subscription, service, timer and guard condition of ``_activate`` goes."""
+        destroy = {Subscription: self.destroy_subscription, Service: self.destroy_service, Timer: self.destroy_timer,
+                   GuardCondition: self.destroy_guard_condition}
+        for entity in self._serving:
+            destroy[type(entity)](entity)
+        self._serving = ()
+
+    def _unconfigure(self):
+        """Close the core (recording, state store) and destroy the publishers of ``_configure``."""
+        self.close()
+        for publisher in self._configured:
+            self.destroy_publisher(publisher)
+        self._configured, self.core = (), None
 
     def _on_parameters_set(self, parameters):
         """Apply what rclpy accepted: the descriptors have checked type, range and read-only."""
@@ -172,14 +215,35 @@ class RankerNode(Node):
             self._more_work.trigger()
 
     def close(self):
-        """Close the state store and the recording (clean shutdown). Called after
-        ``destroy_node``, which takes the node's /rosout publisher with it: a signal has shut
-        the context down by then, and each line logged while that publisher still existed
-        would end in "Failed to publish log message to rosout: publisher's context is invalid"."""
-        self.core.close()
+        """Close the state store and the recording (clean shutdown); nothing before configure.
+        Called after ``destroy_node``, which takes the node's /rosout publisher with it: a
+        signal has shut the context down by then, and each line logged while that publisher
+        still existed would end in "Failed to publish log message to rosout: publisher's
+        context is invalid"."""
+        if self.core is not None:
+            self.core.close()
 
 
-def _serve(node: RankerNode):
+class RankerNode(RankerParts, Node):
+    """Serves rankings from a StARS checkpoint as soon as it is made; see the module docstring."""
+
+    def __init__(self, **kwargs):
+        Node.__init__(self, 'ranker', **kwargs)
+        self._declare_parameters()
+        self._configure()
+        self._activate()
+
+
+def unknown_overrides(node) -> list:
+    """Names of the parameter overrides given to ``node`` (``-p``, params files) that it
+    has not declared: rclpy drops them without a word."""
+    with node.handle:
+        overrides = node.handle.get_parameters(Parameter)
+    return sorted(name for name in overrides if not node.has_parameter(name))
+
+
+def serve(node):
+    """Spin ``node`` until shutdown, the imports and the model out of the collector's way."""
     gc.collect()
     gc.freeze()  # the model and imports leave the collector's generations: full
     spin_until_shutdown(node)  # collections while serving then walk only what requests create
@@ -190,7 +254,7 @@ def main(args=None):
                                  'ros2 run stars_ros ranker --ros-args -p checkpoint:='
                                  '$(ros2 pkg prefix --share stars_ros)/models/socnav1_gat_stars.pt -p top_k:=3', args):
         return
-    run_node('ranker', RankerNode, _serve, (CheckpointError, ConfigError), args, close=RankerNode.close)
+    run_node('ranker', RankerNode, serve, (CheckpointError, ConfigError), args, close=RankerNode.close)
 
 
 if __name__ == '__main__':

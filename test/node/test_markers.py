@@ -2,6 +2,7 @@
 (x forward, y left), one marker per entity and candidate with stable ids, candidates placed
 where their robot stands and coloured by score, entities tinted by their effect; the core
 builds them after each ranking only when somebody listens or the bag records them."""
+import json
 import math
 
 import pytest
@@ -104,21 +105,19 @@ def test_the_marker_array_decodes_as_a_real_one():
 class FakeMarkers:
     message_type = recording.MessageType('visualization_msgs/msg/MarkerArray', MARKER_ARRAY_DEFINITION, 'RIHS01_x')
 
-    def __init__(self, listening):
-        self.listening, self.sent = listening, []
-
-    def subscribed(self):
-        return self.listening
+    def __init__(self):
+        self.sent = []
 
     def publish(self, data):
         self.sent.append(data)
 
 
-@pytest.mark.parametrize('listening, record_folder, record, built', [
-    (False, False, True, False), (True, False, True, True), (False, True, True, True), (False, True, False, False)])
-def test_the_core_builds_markers_only_for_a_listener_or_the_bag(tiny_checkpoint, synthetic_scenes, tmp_path,
-                                                              listening, record_folder, record, built):
-    node, out = Node(), FakeMarkers(listening)
+@pytest.mark.parametrize('record_folder, record', [(False, True), (True, True), (True, False)])
+def test_the_core_publishes_markers_always_and_records_them_when_asked(tiny_checkpoint, synthetic_scenes, tmp_path,
+                                                                       record_folder, record):
+    """Published even while nobody listens (the latched latest array reaches a viewer that
+    joins later); in the bag only with record_markers."""
+    node, out = Node(), FakeMarkers()
     values = {name: spec[0] for name, spec in PARAMETERS.items()}
     values.update(checkpoint=str(tiny_checkpoint), record_folder=str(tmp_path) if record_folder else '',
                   record_markers=record)
@@ -128,9 +127,8 @@ def test_the_core_builds_markers_only_for_a_listener_or_the_bag(tiny_checkpoint,
     core.accept_scene(messages.dumps(scene_request('s0', scene)), 0)
     drain(core)
     assert len(node.on('stars/ranking')) == 1
-    assert len(out.sent) == int(listening)
-    if listening:  # a DELETEALL, the robot and one marker per entity
-        assert int.from_bytes(out.sent[0][4:8], 'little') == 2 + len(entity_nodes(scene))
+    assert len(out.sent) == 1  # a DELETEALL, the robot and one marker per entity
+    assert int.from_bytes(out.sent[0][4:8], 'little') == 2 + len(entity_nodes(scene))
     core.close()
     stored = []
     if record_folder:
@@ -139,4 +137,29 @@ def test_the_core_builds_markers_only_for_a_listener_or_the_bag(tiny_checkpoint,
         if record:
             assert recording.bag_topics(bag, None)['/stars/markers'] == recording.qos_profile(1, True)
             assert '/stars/markers' not in recording.bag_topics(bag)  # the String topics a replay plays
-    assert len(stored) == int(built and record_folder)
+    assert len(stored) == int(record and record_folder)
+
+
+def test_rank_now_answers_at_once_and_records_and_draws_once_the_reply_is_out(tiny_checkpoint, synthetic_scenes,
+                                                                              tmp_path):
+    """A service call's ranking: returned, not published on stars/ranking; recorded and its
+    markers sent by the next ``work``, after the caller has sent the reply."""
+    node, out = Node(), FakeMarkers()
+    values = {name: spec[0] for name, spec in PARAMETERS.items()}
+    values.update(checkpoint=str(tiny_checkpoint), record_folder=str(tmp_path))
+    core = RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
+                      lambda: next(node.clock), out)
+    reply, refusal = core.rank_now(messages.dumps(scene_request('now', synthetic_scenes[0], 'b')), 0)
+    assert refusal is None and reply['scene_id'] == 'now' and reply['known_user'] is True
+    messages.check('ranking', reply)
+    assert not node.on('stars/ranking') and not out.sent
+    drain(core)
+    assert len(out.sent) == 1
+    assert core.rank_now('{"scene_id": "broken"}', 0) == (None, (
+        'schema', "scene_request message invalid: a scene request needs 'graph' (the scene to rank actions in) or "
+        "'candidates' that are scenes"))
+    assert node.on('stars/errors')[-1]['kind'] == 'schema'
+    core.close()
+    [bag] = tmp_path.glob('stars_*')
+    recorded = [json.loads(m.data) for _, m, _ in recording.read_decoded(bag, ['/stars/ranking'])]
+    assert [r['scene_id'] for r in recorded] == ['now']

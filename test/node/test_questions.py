@@ -23,7 +23,8 @@ def _feedback(core, user_id, scene_id, score):
         pass
 
 
-def test_every_entry_carries_score_sd_and_it_shrinks_with_feedback(tiny_checkpoint, synthetic_scenes):
+def test_every_entry_carries_score_sd_and_it_shrinks_with_feedback_the_population_explains(tiny_checkpoint,
+                                                                                           synthetic_scenes):
     node = Node()
     core = make_core(node, tiny_checkpoint)
     probe = synthetic_scenes[40]
@@ -32,9 +33,9 @@ def test_every_entry_carries_score_sd_and_it_shrinks_with_feedback(tiny_checkpoi
     messages.check('ranking', before)
     assert all(entry['score_sd'] > 0 for entry in before['ranking'])
     assert before['p_first_is_best'] == 1.0  # one action: the first is the only one
-    for k, scene in enumerate(synthetic_scenes[:12]):
+    for k, scene in enumerate(synthetic_scenes[:12]):  # answers as served: the small prior scales win
         _scene(core, scene, 'newcomer', f'rated-{k}')
-        _feedback(core, 'newcomer', f'rated-{k}', 0.3)
+        _feedback(core, 'newcomer', f'rated-{k}', node.on('stars/ranking')[-1]['ranking'][0]['score'])
     _scene(core, probe, 'newcomer', 'probe-1')
     after = node.on('stars/ranking')[-1]
     assert after['personalised_from'] == 12

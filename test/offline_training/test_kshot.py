@@ -90,7 +90,7 @@ def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(syntheti
     assert set(results['goals']['never_worse']) == {'fold-in (random)', 'fold-in (active)'}
     text = (out / 'results.md').read_text()
     assert '| 5 |' in text and 'retrained' in text and '| known |' in text
-    assert 'at or below unpersonalised MSE at every k ≥ 1' in capsys.readouterr().out
+    assert 'at or below unpersonalised MSE in every fold at every k ≥ 1' in capsys.readouterr().out
 
 
 @pytest.mark.slow

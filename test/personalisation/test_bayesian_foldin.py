@@ -4,6 +4,7 @@ import logging
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from conftest import TINY_CONFIG
 from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint
@@ -12,9 +13,9 @@ from stars_ros.model.numpy_model import InferenceModel
 from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation import prior as prior_module
-from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, solve_ridge
+from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, scale_mixture_posterior, solve_ridge
 from stars_ros.personalisation.prior import UserPrior, encode_all, estimate_prior, ledoit_wolf, population
-from stars_ros.personalisation.uncertainty import Uncertainty
+from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
 
 
 def test_posterior_is_the_textbook_closed_form_on_a_two_dimensional_toy():
@@ -36,6 +37,46 @@ def test_a_flat_prior_gives_least_squares_and_a_sharp_one_the_prior_mean():
     sharp, covariance = gaussian_posterior(x, y, np.ones(12), prior_mean, 1e10 * np.eye(3))
     assert sharp == pytest.approx(prior_mean, abs=1e-8)
     assert np.abs(covariance).max() < 1e-9
+
+
+def test_the_scale_mixture_is_bayes_rule_over_the_scales_by_hand():
+    # Each scale τ: the Gaussian posterior under prior N(m, τΣ), weighted by the evidence
+    # N(y; xm, τxΣxᵀ + D) (τ = 0: N(y; xm, D), θ = m); the mixture's mean and covariance.
+    x, y, noise = np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([1.0, 2.0]), np.array([1.0, 0.5])
+    prior_mean, prior_covariance = np.array([0.2, -0.1]), np.diag([2.0, 1.0])
+    scales = (0.0, 0.5, 2.0)
+    evidence, means, covariances = [], [], []
+    for scale in scales:
+        evidence.append(stats.multivariate_normal.pdf(y, x @ prior_mean, scale * x @ prior_covariance @ x.T
+                                                      + np.diag(noise)))
+        if scale:
+            mean, covariance = gaussian_posterior(x, y, noise, prior_mean, np.linalg.inv(scale * prior_covariance))
+        else:
+            mean, covariance = prior_mean, np.zeros((2, 2))
+        means.append(mean)
+        covariances.append(covariance)
+    weights = np.array(evidence) / np.sum(evidence)
+    mean = sum(w * m for w, m in zip(weights, means))
+    covariance = sum(w * (c + np.outer(m - mean, m - mean)) for w, m, c in zip(weights, means, covariances))
+    got_mean, got_covariance, got_weights = scale_mixture_posterior(
+        x, y, noise, prior_mean, np.linalg.inv(prior_covariance), np.log(2.0), scales)
+    assert got_weights == pytest.approx(weights, abs=1e-12)
+    assert got_mean == pytest.approx(mean, abs=1e-12)
+    assert got_covariance == pytest.approx(covariance, abs=1e-12)
+    none_mean, none_covariance, _ = scale_mixture_posterior(np.zeros((0, 2)), np.zeros(0), np.zeros(0), prior_mean,
+                                                            np.linalg.inv(prior_covariance), np.log(2.0), scales)
+    assert none_mean == pytest.approx(prior_mean) and none_covariance == pytest.approx(prior_covariance * 2.5 / 3)
+
+
+def test_the_student_t_tails_are_found_and_its_intervals_have_unit_variance():
+    rng = np.random.default_rng(4)
+    gaussian = rng.standard_normal(4000)
+    heavy = rng.standard_t(4, 4000) / np.sqrt(2)  # unit variance, ν = 4
+    assert prior_module.student_t_nu(gaussian) >= 30
+    assert prior_module.student_t_nu(heavy) <= 6
+    assert student_t_quantile(0.975, np.inf) == pytest.approx(1.959964, abs=1e-6)
+    # t₄ scaled to unit variance: its 75 % quantile 0.7407 · sqrt(2/4) = 0.5238, inside the normal's 0.6745
+    assert student_t_quantile(0.75, 4.0) == pytest.approx(0.740697 * np.sqrt(0.5), abs=1e-6)
 
 
 def test_ledoit_wolf_keeps_the_trace_and_is_positive_definite_with_fewer_rows_than_dimensions():
@@ -113,7 +154,8 @@ def test_fold_in_is_the_posterior_of_its_design_and_ridge_stays_an_override(pred
     model = foldin.fit(ratings, 'newcomer')
     x, y = foldin.regression(ratings)
     mean, covariance, precision = foldin.prior_distribution('newcomer')
-    expected, expected_covariance = gaussian_posterior(x, y, foldin.noise[np.zeros(5, dtype=int)], mean, precision)
+    expected, expected_covariance, _ = scale_mixture_posterior(x, y, foldin.noise[np.zeros(5, dtype=int)], mean,
+                                                               precision, np.linalg.slogdet(covariance)[1])
     assert np.append(model.p, model.b) == pytest.approx(expected)
     assert model.covariance == pytest.approx(expected_covariance)
     assert model.regularisation == 0

@@ -38,9 +38,13 @@ def test_an_outcome_is_the_same_row_with_the_noise_of_a_bernoulli_on_the_scale(p
     std = predictor.inference.target_std[foldin.action_index(['navigate'])[0]]
     assert foldin.rating_noise(implicit) == pytest.approx(foldin.rating_noise(explicit) + 0.25 / std ** 2)
     mean, covariance, precision = foldin.prior_distribution('u')
-    by_hand, _ = gaussian_posterior(x_i, y_i, foldin.rating_noise(implicit), mean, precision)
+    actions = foldin.action_index(['navigate'] * 4)
+    mixture, _ = foldin.posterior(x_i, y_i, actions, 'u', [True] * 4)
     model = foldin.fit(implicit, 'u')
-    assert np.append(model.p, model.b) == pytest.approx(by_hand)
+    assert np.append(model.p, model.b) == pytest.approx(mixture)  # the node's one way, with the outcome noise
+    assert not np.allclose(mixture, foldin.posterior(x_i, y_i, actions, 'u')[0])
+    plain, _ = gaussian_posterior(x_i, y_i, foldin.rating_noise(implicit), mean, precision)
+    assert not np.allclose(plain, gaussian_posterior(x_i, y_i, foldin.rating_noise(explicit), mean, precision)[0])
 
 
 def test_an_outcome_moves_the_person_less_than_a_rating_and_many_move_them_further(predictor, scenes):
@@ -54,7 +58,9 @@ def test_an_outcome_moves_the_person_less_than_a_rating_and_many_move_them_furth
         return np.linalg.norm(np.append(model.p, model.b) - prior)
     assert 0 < shift(one) < shift(explicit)
     assert shift(many) > shift(one)
-    assert np.trace(one.covariance) > np.trace(explicit.covariance)  # an outcome says less
+    known = [foldin.fit([r], 'e') for r in (Rating(scenes[0], 'navigate', 1.0, scenes[0]['identifier']),
+                                             outcome(scenes[0], True))]  # a trained person: the plain posterior
+    assert np.trace(known[1].covariance) > np.trace(known[0].covariance)  # an outcome says less
 
 
 def test_the_ridge_override_weighs_outcomes_less_too(predictor, scenes):

@@ -13,10 +13,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 POLICY = REPO / 'config' / 'security' / 'ranker.policy.xml'
 ENCLAVE = '/stars_ros/ranker'
-SUBSCRIBES = {'stars/scene', 'stars/user_id', 'stars/feedback', 'stars/question_request', 'stars/user_model'}
+SUBSCRIBES = {'stars/scene', 'stars/user_id', 'stars/feedback', 'stars/question_request', 'stars/user_model',
+              'stars/typed/feedback'}
 PUBLISHES = {'stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model', 'stars/markers', 'diagnostics',
              'rosout', 'parameter_events'}
-SERVES = {'reload', 'describe_parameters', 'get_parameter_types', 'get_parameters', 'get_type_description',
+SERVES = {'reload', 'rank_actions', 'rank_candidates', 'choose_question', 'describe_parameters', 'get_parameter_types', 'get_parameters', 'get_type_description',
           'list_parameters', 'set_parameters', 'set_parameters_atomically'}
 
 

@@ -1,0 +1,180 @@
+"""The typed interface (``stars_ros_msgs``) as twins of the JSON payloads (``messages``).
+
+A typed request becomes the JSON text its twin on stars/scene, stars/feedback or
+stars/question_request would carry, and the ranker handles that text as it handles the
+JSON path's (same schema checks, same core, same error kinds); a ranking or question
+payload becomes its typed message. Geometry goes through ``data.frames``, the one
+conversion between SocNav1 and REP 103.
+
+ROS-free: messages are read by their fields, and built from the message classes the caller
+passes (``msgs``: a module or namespace holding ``stars_ros_msgs.msg``'s classes; ``geometry``:
+``geometry_msgs.msg``'s), so this module imports no ROS package and its tests can use plain objects.
+"""
+from __future__ import annotations
+
+import math
+
+from stars_ros import messages
+from stars_ros.data import frames
+
+FRAME = 'frame'  # error kind: a typed scene in a frame the ranker does not take
+
+
+def _yaw(q) -> float:
+    """The yaw (radians, about z) of quaternion ``q`` (x, y, z, w; need not be unit length)."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def _finite(*values) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def _check_frame(scene, robot_frame: str, scene_id: str | None):
+    frame = scene.header.frame_id
+    if frame != robot_frame:
+        need = ('header.frame_id is empty' if not frame else
+                f"it is in '{frame}': transform it first (TF {robot_frame} <- {frame}, e.g. tf2_ros "
+                f"Buffer.lookup_transform('{robot_frame}', '{frame}', stamp))")
+        raise messages.BadMessage(FRAME, f"the ranker takes scenes in its frame_id '{robot_frame}' (the robot's); "
+                                  f'{need}, or set the ranker parameter frame_id', scene_id)
+
+
+def _entity(item, scene_id) -> frames.Entity:
+    p, q = item.pose.position, item.pose.orientation
+    if not _finite(p.x, p.y, q.x, q.y, q.z, q.w):
+        raise messages.BadMessage('non_finite', f'pose of entity {item.id} holds a non-finite number (NaN or '
+                                  'infinity)', scene_id)
+    return frames.Entity(int(item.id), float(p.x), float(p.y), _yaw(q))
+
+
+def scene_graph(scene, robot_frame: str, scene_id: str | None = None) -> dict:
+    """The SocNav1 scene dict (``msg_schemas/scene_graph.schema.json``) of a typed
+    ``SceneGraph``, which must be in ``robot_frame``; BadMessage (``frame``, ``non_finite``)
+    otherwise. The schema checks the rest, as for a JSON scene."""
+    _check_frame(scene, robot_frame, scene_id)
+    if not all(_finite(p.x, p.y) for p in scene.room):
+        raise messages.BadMessage('non_finite', 'a room point holds a non-finite number (NaN or infinity)', scene_id)
+    rep103 = frames.Rep103Scene(humans=tuple(_entity(h, scene_id) for h in scene.humans),
+                                objects=tuple(_entity(o, scene_id) for o in scene.objects),
+                                room=tuple((float(p.x), float(p.y)) for p in scene.room),
+                                interactions=tuple((int(i.a), int(i.b)) for i in scene.interactions))
+    return frames.to_socnav(rep103)
+
+
+def _scene_request(payload: dict, user_id: str, explain: bool) -> str:
+    """``payload`` with the optional fields a typed request leaves empty when unset."""
+    if user_id:
+        payload['user_id'] = user_id
+    if explain:
+        payload['explain'] = True
+    return messages.dumps(payload)
+
+
+def rank_actions_text(request, robot_frame: str) -> str:
+    """The stars/scene JSON twin of a ``RankActions`` request."""
+    payload = {'scene_id': request.scene_id,
+               'graph': scene_graph(request.scene, robot_frame, request.scene_id or None)}
+    if request.actions:
+        payload['candidates'] = list(request.actions)
+    return _scene_request(payload, request.user_id, request.explain)
+
+
+def rank_candidates_text(request, robot_frame: str) -> str:
+    """The stars/scene JSON twin of a ``RankCandidates`` request. Without candidates it
+    carries ``candidates: []``, which the schema refuses, as it would the JSON request."""
+    payload = {'scene_id': request.scene_id,
+               'candidates': [{'candidate': c.label, 'graph': scene_graph(c.scene, robot_frame,
+                                                                          request.scene_id or None)}
+                              for c in request.candidates]}
+    if request.action:
+        payload['action'] = request.action
+    return _scene_request(payload, request.user_id, request.explain)
+
+
+def feedback_fields(feedback) -> dict:
+    """The fields of a typed ``Feedback``'s JSON twin, ``auth`` aside: what a signer signs
+    (``feedback_auth.mac(secret, feedback_fields(msg), stamp)`` is its ``auth_mac``)."""
+    fields = {'user_id': feedback.user_id, 'scene_id': feedback.scene_id, 'score': float(feedback.score)}
+    fields.update({key: value for key in ('action', 'candidate') if (value := getattr(feedback, key))})
+    return fields
+
+
+def feedback_text(feedback) -> str:
+    """The stars/feedback JSON twin of a typed ``Feedback`` (with ``auth`` when signed)."""
+    if not math.isfinite(feedback.score):
+        raise messages.BadMessage('non_finite', f'feedback score {feedback.score} is not a finite number',
+                                  feedback.scene_id or None)
+    payload = feedback_fields(feedback)
+    if feedback.auth_key_id:
+        payload['auth'] = {'key_id': feedback.auth_key_id, 'stamp': int(feedback.auth_stamp),
+                           'mac': feedback.auth_mac}
+    return messages.dumps(payload)
+
+
+def question_request_text(request, robot_frame: str) -> str:
+    """The stars/question_request JSON twin of a ``ChooseQuestion`` request."""
+    if len(request.scene_ids) != len(request.scenes):
+        raise messages.BadMessage('schema', f'question request invalid: {len(request.scenes)} scenes but '
+                                  f'{len(request.scene_ids)} scene_ids (one each)')
+    payload = {'user_id': request.user_id}
+    if request.scenes:
+        payload['candidates'] = [
+            {'scene_id': scene_id, 'graph': scene_graph(scene, robot_frame, scene_id or None),
+             **({'candidates': list(request.candidate_actions)} if request.candidate_actions else {})}
+            for scene, scene_id in zip(request.scenes, request.scene_ids)]
+    return messages.dumps(payload)
+
+
+def _nan_if_none(value) -> float:
+    return math.nan if value is None else float(value)
+
+
+def ranking_message(payload: dict, msgs):
+    """The typed ``Ranking`` of a stars/ranking payload (header left for the caller)."""
+    entries = []
+    for entry in payload['ranking']:
+        why = entry.get('why')
+        typed = msgs.RankedEntry(name=entry.get('action', entry.get('candidate', '')), score=float(entry['score']),
+                                 score_sd=_nan_if_none(entry.get('score_sd')), rank=int(entry['rank']),
+                                 has_why=why is not None)
+        if why is not None:
+            typed.why = msgs.Why(content=float(why['content']), personal=float(why['personal']),
+                                 scene=float(why['scene']),
+                                 entities=[msgs.EntityEffect(kind=e['kind'], id=str(e['id']), effect=float(e['effect']))
+                                           for e in why['entities']])
+        entries.append(typed)
+    return msgs.Ranking(scene_id=payload['scene_id'], user_id=payload['user_id'] or '',
+                        known_user=bool(payload['known_user']),
+                        personalised_from=int(payload.get('personalised_from', 0)),
+                        action=payload.get('action', ''), entries=entries,
+                        p_first_is_best=_nan_if_none(payload.get('p_first_is_best')),
+                        fingerprint=payload['fingerprint'], processing_time=payload['processing_ms'] / 1e3)
+
+
+def question_message(payload: dict, msgs):
+    """The typed ``Question`` of a stars/question payload."""
+    return msgs.Question(user_id=payload['user_id'], scene_id=payload['scene_id'], action=payload['action'],
+                         candidate=payload.get('candidate', ''),
+                         expected_variance_reduction=float(payload['expected_variance_reduction']),
+                         score=float(payload['score']), score_sd=float(payload['score_sd']),
+                         candidates=int(payload['candidates']), targets=int(payload['targets']),
+                         fingerprint=payload['fingerprint'])
+
+
+def _pose(entity: frames.Entity, geometry):
+    half = entity.yaw / 2.0
+    return geometry.Pose(position=geometry.Point(x=entity.x, y=entity.y, z=0.0),
+                         orientation=geometry.Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)))
+
+
+def scene_message(scene: dict, frame_id: str, msgs, geometry):
+    """The typed ``SceneGraph`` (in ``frame_id``, the robot's) of a SocNav1 scene dict: what
+    a client that holds SocNav1 scenes sends (the inverse of ``scene_graph``)."""
+    rep103 = frames.from_socnav(scene)
+    typed = msgs.SceneGraph(
+        humans=[msgs.Human(id=h.id, pose=_pose(h, geometry)) for h in rep103.humans],
+        objects=[msgs.SceneObject(id=o.id, pose=_pose(o, geometry)) for o in rep103.objects],
+        room=[geometry.Point(x=x, y=y, z=0.0) for x, y in rep103.room],
+        interactions=[msgs.Interaction(a=a, b=b) for a, b in rep103.interactions])
+    typed.header.frame_id = frame_id
+    return typed
