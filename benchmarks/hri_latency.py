@@ -95,8 +95,11 @@ def main(argv=None) -> int:
         world.track(ids)
         for pid in ids:
             world.anonymous(pid, False)
-        if not client.wait(lambda: client.node.count_subscribers(f'/humans/persons/{ids[-1]}/anonymous') > 0, 120):
-            raise TimeoutError('the bridge did not subscribe')
+        def tracking_all():  # the bridge's /diagnostics say it has the tracked list
+            return any(kv.key == 'tracked' and kv.value == str(args.people) for array in client.diagnostics
+                       for status in array.status if status.name.endswith('hri_bridge') for kv in status.values)
+        if not client.wait(tracking_all, 120):
+            raise TimeoutError('the bridge did not take the tracked list')
         served = 0
 
         def through_bridge():
