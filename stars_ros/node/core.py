@@ -421,9 +421,10 @@ class RankerCore:
             reply = messages.ranking_payload(
                 request, item.user_id, known, result.ranked, predictor.fingerprint, round(processing_ms, 3),
                 result.action, personalised, result.p_first_is_best)
-            if publish:
+            if publish:  # recorded first: a ranking or markers anyone saw are in the bag, even if a signal follows
+                self._record_reply(item, reply)
                 self._publish('stars/ranking', messages.dumps(reply))
-                self._after_reply(item, reply, result.ranked)
+                self._send_markers(item.request, result.ranked)
             else:  # the caller sends the reply: recording and markers wait for the next ``work``
                 self.replied.append((item, reply, result.ranked))
             outcomes.append((reply, None))
@@ -435,11 +436,14 @@ class RankerCore:
         return outcomes
 
     def _after_reply(self, item: Pending, reply: dict, ranked: list):
-        """What follows a ranking's reply, off its latency: the request and the ranking
+        """What follows a service's reply, off its latency: the request and the ranking
         recorded, the markers sent."""
+        self._record_reply(item, reply)
+        self._send_markers(item.request, ranked)
+
+    def _record_reply(self, item: Pending, reply: dict):
         self.record('stars/scene', item.text, item.log_time)
         self.record('stars/ranking', messages.dumps(reply))
-        self._send_markers(item.request, ranked)
 
     def _send_markers(self, request, ranked: list):
         """stars/markers of a ranked request, after its reply (off its latency): published
@@ -449,9 +453,9 @@ class RankerCore:
             return
         stamp = self._now()
         data = markers.encode_marker_array(markers.ranking_markers(request, ranked), self.params['frame_id'], stamp)
-        out.publish(data)
         if self.recorder is not None and self.params['record_markers']:
             self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
+        out.publish(data)
 
     def _report_stranger(self, user_id: str, scene_id: str):
         """Warn once per unknown user and model, not per ranking: strangers are the normal
@@ -469,8 +473,7 @@ class RankerCore:
         the store and the recording (clean shutdown)."""
         while self.replied:  # answered by rank_now since the last work
             item, reply, _ = self.replied.popleft()
-            self.record('stars/scene', item.text, item.log_time)
-            self.record('stars/ranking', messages.dumps(reply))
+            self._record_reply(item, reply)
         for item in self.queue:  # in the log even though they were never scored
             self.record('stars/scene', item.text, item.log_time)
         if self.queue:
