@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from stars_ros.data import frames
-from stars_ros.data.scene_source import PLACEMENTS, placement_candidates
+from stars_ros.data import scene_source
+from stars_ros.data.scene_source import PLACEMENTS
 from stars_ros.hri.people import People
 from stars_ros.hri.poses import Pose, PoseSource
 
@@ -165,12 +166,4 @@ def build_scene(people: People, poses: PoseSource, interactions: Interactions, s
 def scene_request(scene_id: str, built: BuiltScene, placements: int, user_id: str | None = None) -> dict:
     """The stars/scene payload (``msg_schemas/scene_request.schema.json``) of a built scene:
     ``placements`` robot placements as candidate scenes, or (0) the model's actions."""
-    graph = frames.to_socnav(built.scene)
-    request = {'scene_id': scene_id}
-    if user_id:
-        request['user_id'] = user_id
-    if placements:
-        request['candidates'] = placement_candidates(graph, placements)
-    else:
-        request['graph'] = graph
-    return request
+    return scene_source.scene_request(scene_id, frames.to_socnav(built.scene), user_id, placements)
