@@ -75,3 +75,19 @@ class OutOfScaleError(StarsError):
 
 class StoreError(StarsError):
     """The state store cannot be read or written (the message says what to do)."""
+
+
+class StoreLockedError(ConfigError):
+    """Another process holds the state store (one store per node)."""
+
+
+class CommandLineError(Exception):
+    """``--ros-args`` that rcl cannot parse, or a parameter value the node refuses."""
+
+
+class LaunchArgumentError(ValueError):
+    """A launch argument that is not a valid value of its parameter."""
+
+
+class UntrackedPerson(ValueError):
+    """A per-person ROS4HRI message for an id that ``/humans/persons/tracked`` does not list."""

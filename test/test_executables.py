@@ -16,7 +16,7 @@ from stars_ros import recording
 from stars_ros.node.core import PARAMETERS
 from stars_ros.examples import demo
 from stars_ros.ros import hri_bridge, hri_world, replay, scene_publisher, usage
-from stars_ros.ros.launch_arguments import LaunchArgumentError
+from stars_ros.errors import LaunchArgumentError
 from stars_ros.state.store import PersonUpdate, write_people
 
 REPO = Path(__file__).resolve().parents[1]

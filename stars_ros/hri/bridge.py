@@ -26,8 +26,9 @@ from dataclasses import dataclass
 from typing import Callable
 
 from stars_ros import messages
+from stars_ros.errors import UntrackedPerson
 from stars_ros.hri.decisions import Decision, ImplicitOutcomes, decide
-from stars_ros.hri.people import People, Served, UntrackedPerson
+from stars_ros.hri.people import People, Served
 from stars_ros.hri.poses import PoseSource
 from stars_ros.hri.scene import (BuiltScene, Interactions, SceneSettings, build_scene, person_frame,
                                  scene_request)

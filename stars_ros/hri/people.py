@@ -26,14 +26,12 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
+from stars_ros.errors import UntrackedPerson
+
 UNKNOWN, DISENGAGED, ENGAGING, ENGAGED, DISENGAGING = range(5)  # hri_msgs/EngagementLevel
 ENGAGEMENT_NAMES = ('UNKNOWN', 'DISENGAGED', 'ENGAGING', 'ENGAGED', 'DISENGAGING')
 MAX_ALIAS_CHAIN = 32  # longer chains (or cycles) are refused as bad input
 MAX_KNOWN = 1000  # untracked ids whose latched facts (anonymous, alias) are kept for when they return
-
-
-class UntrackedPerson(ValueError):
-    """A per-person message for an id that ``/humans/persons/tracked`` does not list."""
 
 
 @dataclass

@@ -10,11 +10,9 @@ from __future__ import annotations
 import math
 from typing import Mapping
 
+from stars_ros.errors import LaunchArgumentError
+
 TRUE, FALSE = ('true', 'yes', 'on'), ('false', 'no', 'off')  # YAML 1.1 booleans, as rcl reads -p values
-
-
-class LaunchArgumentError(ValueError):
-    """A launch argument that is not a valid value of its parameter."""
 
 
 def parameter_value(name: str, text: str, parameters: Mapping[str, tuple]):

@@ -15,13 +15,11 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import LoggingSeverity, get_logger, get_logger_level, set_logger_level
 
+from stars_ros.errors import CommandLineError
+
 USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
 DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
 CLOSE_WAIT_S = 12.0  # longest wait for ``close`` then (the state store joins its writer for up to 10 s)
-
-
-class CommandLineError(Exception):
-    """``--ros-args`` that rcl cannot parse, or a parameter value the node refuses."""
 
 
 def _rcl_message(error: Exception) -> str:

@@ -40,7 +40,7 @@ from typing import Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from stars_ros.errors import ConfigError, StoreError
+from stars_ros.errors import ConfigError, StoreError, StoreLockedError
 from stars_ros.state import migration
 from stars_ros.state.person import Deferred, Rating, UserModel, scene_digest
 
@@ -69,10 +69,6 @@ CREATE TABLE IF NOT EXISTS feedback (
     data TEXT NOT NULL, committed REAL NOT NULL);
 """
 _RATING_TABLES = ('ratings', 'peer_ratings')
-
-
-class StoreLockedError(ConfigError):
-    """Another process holds the state store (one store per node)."""
 
 
 class PersonUpdate(NamedTuple):

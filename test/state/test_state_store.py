@@ -19,7 +19,8 @@ from stars_ros.errors import StoreError
 from stars_ros.recording import __main__ as inspect_cli
 from stars_ros.state import migration, store as state_store
 from stars_ros.state import Deferred, loaded
-from stars_ros.state.store import PersonUpdate, StateStore, StoreLockedError, open_reader
+from stars_ros.errors import StoreLockedError
+from stars_ros.state.store import PersonUpdate, StateStore, open_reader
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = {'identifier': 's1', 'humans': [{'id': 1, 'xPos': 0.5, 'yPos': -1.0, 'orientation': 90}]}
