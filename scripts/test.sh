@@ -4,6 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_venv.sh
+# The tests' stand-in for ROS4HRI's hri_msgs (test/interfaces/hri_msgs), never installed with the package;
+# built before pytest starts, so every module that looks for hri_msgs finds it.
+bash scripts/build_interfaces.sh test/interfaces/hri_msgs
 export STARS_SOCNAV1_ROOT=${STARS_SOCNAV1_ROOT:-$(cd .. && pwd)/shared/datasets/socnav1}
 set +e
 .venv/bin/python -m pytest "$@"

@@ -30,12 +30,20 @@ class Loop:
     """Ranker + bridge (subprocesses) and a client that plays the world and listens."""
 
     def __init__(self, tmp_path, hri_msgs):
-        from stars_ros.ros.hri_world import World
         self.domain = domain_id(DOMAIN_OFFSET)
         self.record = tmp_path / 'record'
         self._ranker = running_ranker(self.domain, {'record_folder': str(self.record)}, tmp_path / 'ranker.log',
                                       PROBE)
         self.ranker, self.client = self._ranker.__enter__()
+        self.bridge = None
+        try:
+            self._start(tmp_path)
+        except BaseException:  # a half-made loop leaves no ranker behind to answer later tests on its domain
+            self.close()
+            raise
+
+    def _start(self, tmp_path):
+        from stars_ros.ros.hri_world import World
         node = self.client.node
         self.world = World(node, 'base_link', use_tf=False)
         self.poses = dict(POSES)
@@ -82,10 +90,11 @@ class Loop:
 
     def close(self):
         try:
-            assert self.bridge.poll() is None, 'the bridge died during the tests'
-            assert stop(self.bridge, signal.SIGINT) == 0
+            if self.bridge is not None:
+                assert self.bridge.poll() is None, 'the bridge died during the tests'
+                assert stop(self.bridge, signal.SIGINT) == 0
         finally:
-            if self.bridge.poll() is None:
+            if self.bridge is not None and self.bridge.poll() is None:
                 self.bridge.kill()
             self._ranker.__exit__(None, None, None)
 
