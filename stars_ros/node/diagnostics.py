@@ -54,7 +54,7 @@ class PeriodStats:
         self.rankings += 1
         self.processing_max = max(self.processing_max, processing_ms)
         self.latest.append(processing_ms)
-        if fold_in_delay_ms > 0:
+        if round(fold_in_delay_ms, 3) > 0:  # under a microsecond is not a wait (and would print as 0)
             self.delayed += 1
             self.delay_max = max(self.delay_max, fold_in_delay_ms)
             self.delayed_processing_max = max(self.delayed_processing_max, processing_ms)

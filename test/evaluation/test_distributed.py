@@ -155,7 +155,9 @@ def test_dead_worker_processes_fail_the_fits_left_and_the_run_goes_on(synthetic)
 @pytest.mark.slow
 def test_a_killed_ray_run_resumes_without_refitting_what_it_finished(synthetic_root, tmp_path, ray_address, pool_run):
     """The driver of a run on a Ray cluster killed after some fits; a new driver with
-    --resume runs only the fits left and ends with the records of an uninterrupted run."""
+    --resume runs only the fits left and ends with the records of an uninterrupted run.
+    The kill lands wherever the driver is then (mid-fit, mid-write, or, on a rare fast turn,
+    after its last record): the resumed run must end the same from any of them."""
     out = tmp_path / 'killed'
     with (tmp_path / 'log.txt').open('w') as log:
         driver = subprocess.Popen(
@@ -165,12 +167,13 @@ def test_a_killed_ray_run_resumes_without_refitting_what_it_finished(synthetic_r
 
         def ten_records_or_ended():  # 2 population means + 8 fits
             return driver.poll() is not None or (out / 'records.jsonl').exists() and len(records(out)) >= 10
-        assert wait_for(ten_records_or_ended, 240) and driver.poll() is None, (tmp_path / 'log.txt').read_text()[-3000:]
+        assert wait_for(ten_records_or_ended, 240), (tmp_path / 'log.txt').read_text()[-3000:]
+        assert driver.poll() in (None, 0), (tmp_path / 'log.txt').read_text()[-3000:]  # running, or done just now
         driver.kill()
         driver.wait()
     kept = records(out)
     kept_fits = {key: entry for key, entry in kept.items() if entry.get('variant') != 'population_mean'}
-    assert len(kept) < len(records(pool_run))  # killed before the end
+    assert 10 <= len(kept) <= len(records(pool_run))
     assert evaluate.main([*QUICK, '--executor', 'ray', '--resume', '--data-root', str(synthetic_root),
                           '--out', str(out)]) == 0
     resumed = json.loads((out / 'results.json').read_text())

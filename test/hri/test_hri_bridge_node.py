@@ -13,6 +13,7 @@ from std_msgs.msg import String
 
 from hri_fixtures import hri_msgs  # noqa: F401 - the fixture
 from ros_helpers import LATCHED, RELIABLE, RosClient, domain_id, running_ranker, start_node, stop, stored_feedback
+from stars_ros import recording
 from stars_ros.data import frames
 from stars_ros.hri.people import DISENGAGED, ENGAGED
 from stars_ros.hri.scene import placement_offset
@@ -32,8 +33,8 @@ class Loop:
     def __init__(self, tmp_path, hri_msgs):
         self.domain = domain_id(DOMAIN_OFFSET)
         self.record = tmp_path / 'record'
-        self._ranker = running_ranker(self.domain, {'record_folder': str(self.record)}, tmp_path / 'ranker.log',
-                                      PROBE)
+        self.ranker_log_path = tmp_path / 'ranker.log'
+        self._ranker = running_ranker(self.domain, {'record_folder': str(self.record)}, self.ranker_log_path, PROBE)
         self.ranker, self.client = self._ranker.__enter__()
         self.bridge = None
         try:
@@ -87,6 +88,17 @@ class Loop:
                 if status.name.endswith('hri_bridge'):
                     return {kv.key: kv.value for kv in status.values}
         return {}
+
+    def ranker_status(self):
+        """The ranker's latest /diagnostics status values, as a dict."""
+        for array in reversed(self.client.snapshot(self.client.diagnostics)):
+            for status in array.status:
+                if status.name.endswith(': ranker'):
+                    return {kv.key: kv.value for kv in status.values}
+        return {}
+
+    def ranker_log(self) -> str:
+        return self.ranker_log_path.read_text()[-3000:]
 
     def close(self):
         try:
@@ -150,15 +162,18 @@ def test_an_anonymous_persons_feedback_is_not_stored(loop):
     loop.world.track(['alice', 'bob', 'passer'])
     loop.world.anonymous('passer', True)
     loop.poses['passer'] = (2.5, 0.0, 0.0)
-    scene_id = loop.scenes[-1]['scene_id']
     node = loop.client.node  # the bridge follows 'passer' once it has taken the new tracked list
     assert loop.client.wait(lambda: node.count_subscribers('/humans/persons/passer/engagement_status') > 0, 30)
+    ranked = len(loop.client.rankings)  # feedback on a scene of the bridge the ranker has ranked
+    assert loop.client.wait(lambda: any(r['scene_id'].startswith('hri-') for r in loop.client.rankings[ranked:]), 30)
+    scene_id = next(r['scene_id'] for r in loop.client.snapshot(loop.client.rankings)[ranked:]
+                    if r['scene_id'].startswith('hri-'))
     message = {'scene_id': scene_id, 'candidate': 'stay', 'score': 0.9}
     loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'passer'})))
     loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'alice', 'score': 0.1})))
     bag = next(loop.record.rglob('*.mcap')).parent
     assert loop.client.wait(lambda: any(f['user_id'] == 'alice' for f in stored_feedback(bag)), 30), (
-        loop.status(), loop.feedback[-3:], loop.client.errors[-3:])
+        loop.status(), loop.ranker_status(), loop.feedback[-3:], loop.client.errors[-3:], loop.ranker_log())
     assert [f['user_id'] for f in stored_feedback(bag)] == ['alice'], stored_feedback(bag)
     assert not any(f['user_id'] == 'passer' for f in loop.feedback)
     assert loop.client.wait(lambda: int(loop.status().get('problems.anonymous_dropped', 0)) >= 1, 30), loop.status()
@@ -195,6 +210,14 @@ def test_implicit_outcomes_move_the_next_ranking_and_are_in_the_bag(loop):
     bag = next(loop.record.rglob('*.mcap')).parent
     assert loop.client.wait(lambda: sum(bool(f.get('implicit')) for f in stored_feedback(bag)) >= 3, 30)
     assert all(f['user_id'] == 'alice' and f['score'] == 1.0 for f in stored_feedback(bag) if f.get('implicit'))
+
+    def implicit_in_the_bag():  # the log of record, as the recorder has flushed it so far (the file is open)
+        found = [json.loads(text) for path in recording.bag_files(bag)
+                 for topic, text, _ in recording.salvage_messages(path)[0] if topic == '/stars/feedback']
+        return [f for f in found if f.get('implicit')]
+    assert loop.client.wait(lambda: len(implicit_in_the_bag()) >= 3, 30)
+    assert sorted(map(json.dumps, implicit_in_the_bag())) == sorted(
+        json.dumps(f) for f in stored_feedback(bag) if f.get('implicit'))
 
 
 def test_bad_input_is_diagnosed_and_the_bridge_keeps_running(loop):

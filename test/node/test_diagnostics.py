@@ -30,14 +30,15 @@ def test_period_stats_report_the_delayed_rankings_apart():
         stats.ranking(processing, 0.0)
     stats.ranking(6.0, 0.5)
     stats.ranking(2.5, 0.75)
+    stats.ranking(2.0, 0.0004)  # under a microsecond: not counted as a wait
     stats.fold_in_update(0.4)
     stats.fold_in_update(0.9)
     values = stats.values()
-    assert values['period.rankings'] == 6 and values['period.fold_in_updates'] == 2
+    assert values['period.rankings'] == 7 and values['period.fold_in_updates'] == 2
     assert values['period.rankings_delayed_by_fold_in'] == 2
-    assert values['period.processing_ms.p50'] == pytest.approx(2.75)
+    assert values['period.processing_ms.p50'] == pytest.approx(2.5)
     assert values['period.processing_ms.max'] == 6.0
-    assert values['period.processing_ms.p99'] == pytest.approx(6.0 - 0.05 * 2.0)  # between 4.0 and 6.0
+    assert values['period.processing_ms.p99'] == pytest.approx(6.0 - 0.06 * 2.0)  # between 4.0 and 6.0
     assert values['period.fold_in_update_ms.max'] == 0.9
     assert values['period.fold_in_delay_ms.max'] == 0.75
     assert values['period.delayed_processing_ms.max'] == 6.0
