@@ -1,9 +1,9 @@
 """What the ranker node does, without ROS: the checkpoint served, the queue of scene
-requests and the work loop over them, problem reports, the recording, and the fold-in of
-feedback (``personalisation``). The rest of the node's logic sits beside it, one concern a
-module: its parameters and topics (``parameters``), the figures of /diagnostics
-(``diagnostics``), peers' user models (``fleet_intake``), batch ranking (``batching``),
-questions (``questions``) and markers (``markers``). ``stars_ros.ros.ranker`` declares the
+requests and the work loop over them, problem reports, and the fold-in of feedback
+(``personalisation``). The rest of the node's logic sits beside it, one concern a module:
+its parameters and topics (``parameters``), the figures of /diagnostics (``diagnostics``),
+the state store and the recording (``records``), peers' user models (``fleet_intake``),
+batch ranking (``batching``), questions (``questions``) and markers (``markers``). ``stars_ros.ros.ranker`` declares the
 parameters, turns messages into the text this class takes and publishes the text it gives.
 
 One thread (the node's executor) calls ``RankerCore``; the state store's thread
@@ -25,10 +25,9 @@ import time
 from typing import Callable, Mapping
 
 from stars_ros import feedback_auth, messages
-from stars_ros import recording
 from stars_ros.node import markers
-from stars_ros.errors import CheckpointError, StarsError, StoreError
-from stars_ros.state import StateStore, check_score
+from stars_ros.errors import CheckpointError, StarsError
+from stars_ros.state import check_score
 from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
 from stars_ros.personalisation.foldin import check_outcome
@@ -38,6 +37,7 @@ from stars_ros.node.batching import Pending, rank_batch
 from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos  # noqa: F401  (ros.ranker reads them here)
 from stars_ros.node.fleet_intake import FleetIntake
 from stars_ros.node.diagnostics import WARNINGS, BusySpans, PeriodStats, Problems, period_report
+from stars_ros.node.records import NodeRecords
 
 MAX_STRANGERS_REMEMBERED = 10000
 
@@ -78,11 +78,10 @@ class RankerCore:
         self._fold_in_spans = BusySpans()  # when fold-in work was done (``clock``)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
-        folder = params['record_folder']
-        self.record_folder = recording.node_folder(folder, node_name) if folder else None
-        self.recorder = None
-        self.store = self._open_store(node_name)  # first: StoreLockedError when another node holds the folder
-        self.recorder = self._start_recorder(node_name)
+        self.records = None  # while it opens, a problem is published and logged, not recorded
+        self.records = NodeRecords(params, self.topics, node_name,
+                                   {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
+                                   self.report, logger, now, None if markers_out is None else markers_out.message_type)
         self.personalisation = Personalisation(
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
             self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator)
@@ -103,57 +102,21 @@ class RankerCore:
         self.logger.info(f'feedback is taken only when signed by a key of {path} ({", ".join(keys)})')
         return feedback_auth.FeedbackAuthenticator(keys, lambda: self.params['feedback_max_age'])
 
-    # -- recording -----------------------------------------------------------------------
-    def _open_store(self, node_name: str):
-        if self.record_folder is None:
-            return None
-        store = StateStore(self.record_folder, node_name, self._on_store_error, self.logger.info,
-                           self.params['flush_interval'], on_feedback_committed=self._committed,
-                           on_progress=self.logger.info)
-        for imported in store.imported:
-            self.logger.info(f'imported {imported} into {store.path} (the files are kept as they were)')
-        return store
+    # -- recording ---------------------------------------------------------------------
+    @property
+    def store(self):
+        """The state store (``stars_ros.state.StateStore``), None when nothing is recorded."""
+        return self.records.store
 
-    def _on_store_error(self, text: str):
-        self.report('recording', text + '; ranking goes on, feedback is kept in memory until the disk works')
-
-    def _start_recorder(self, node_name: str):
-        folder = self.record_folder
-        if folder is None:
-            self.logger.warning('record_folder is empty: scenes, rankings and feedback are not recorded')
-            return None
-        try:
-            for bag in recording.abandoned_bags(folder):
-                self.logger.warning(f'recovered {bag} left by a hard kill: {recording.recover(bag)}')
-        except (OSError, ValueError, StoreError) as error:
-            self.report('recording', f'could not recover old bags in {folder}: {error}')
-        qos = {self.topics[topic]: recording.qos_profile(depth, latched)
-               for topic, (depth, latched) in topic_qos(self.params).items()
-               if topic != 'stars/markers' or self.markers_out is not None}
-        types = {} if self.markers_out is None else {self.topics['stars/markers']: self.markers_out.message_type}
-        recorder = recording.Recorder(
-            folder, qos, rotation_bytes=self.params['rotation_bytes'], flush_interval=self.params['flush_interval'],
-            custom={'node': node_name, 'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
-            on_event=self._on_recorder_event, types=types)
-        if recorder.error is None:
-            self.logger.info(f'recording to {recorder.path}')
-        return recorder
-
-    def _on_recorder_event(self, level: str, text: str):
-        if level == 'error':
-            self.report('recording', text + '; ranking goes on, feedback is kept in memory until the disk works')
-        else:
-            self.logger.info(text)
+    @property
+    def recorder(self):
+        """The recording (``stars_ros.recording.Recorder``), None when nothing is recorded."""
+        return self.records.recorder
 
     def record(self, topic: str, text: str, log_time: int | None = None):
         """Record ``text`` on ``topic`` (one of ``TOPICS``) at ``log_time`` (default: now)."""
-        if self.recorder is not None:
-            self.recorder.write(self.topics[topic], text, self._now() if log_time is None else log_time)
-
-    def _committed(self, entry: dict):
-        """Feedback the store committed (its thread): into the bag, the log of record."""
-        if self.recorder is not None:
-            self.recorder.write_feedback(entry['topic'], entry['data'], entry['log_time'])
+        if self.records is not None:
+            self.records.record(topic, text, log_time)
 
     # -- problems and diagnostics --------------------------------------------------------
     def report(self, kind: str, detail: str, topic: str = '', scene_id: str | None = None):
@@ -175,12 +138,9 @@ class RankerCore:
         """(level: 'ok', 'warn' or 'error'; summary; key-values; [(kind, level, count, latest
         detail)] of each kind of problem) of the period since the last call, which ends it."""
         period, counts = self.problems.take_period()
-        recorder, store = self.recorder, self.store
-        failure = (recorder and recorder.error) or (store and store.error)
+        failure, recording_values = self.records.status()
         values = {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint,
-                  'rankings': counts.get('ranking', 0), 'queued': len(self.queue),
-                  'recording': 'off' if recorder is None else (failure or str(recorder.path)),
-                  'feedback_not_on_disk': 0 if store is None else store.uncommitted_feedback,
+                  'rankings': counts.get('ranking', 0), 'queued': len(self.queue), **recording_values,
                   'folded_in_users': len(self.predictor.user_models), **self._period_stats.values()}
         self._period_stats = PeriodStats()
         return period_report(period, counts, failure, values)
@@ -262,8 +222,8 @@ class RankerCore:
         elif not self.store.healthy:
             self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
                         feedback.scene_id)
-        bag = self.recorder.name if self.recorder is not None else ''
-        journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text}, bag)
+        journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text},
+                                                   self.records.bag)
         if not self.params['fold_in']:
             self.personalisation.record_feedback(journal)
             return False
@@ -453,8 +413,7 @@ class RankerCore:
             return
         stamp = self._now()
         data = markers.encode_marker_array(markers.ranking_markers(request, ranked), self.params['frame_id'], stamp)
-        if self.recorder is not None and self.params['record_markers']:
-            self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
+        self.records.record_markers(data, stamp)
         out.publish(data)
 
     def _report_stranger(self, user_id: str, scene_id: str):
@@ -478,10 +437,4 @@ class RankerCore:
             self.record('stars/scene', item.text, item.log_time)
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
-        if self.store is not None:  # first: what it commits reaches the bag before the bag closes
-            self.personalisation.flush()
-            for entry in self.store.close():
-                self.logger.error(f'feedback that could not be stored: {entry}')
-        if self.recorder is not None:
-            self.recorder.close()
-            self.logger.info(f'recording closed: {self.recorder.path}')
+        self.records.close(self.personalisation.flush)
