@@ -7,7 +7,8 @@ and how long importing a state file of an earlier version takes.
         [--data-root ../shared/datasets/socnav1] [--out results/state_scale.json]
 
 For each size a store is filled (``state.write_people``: every person with a solved
-model and covariance of the served checkpoint, their ratings of scenes drawn from the data)
+model and covariance of the served checkpoint, their ratings of scenes drawn from the data,
+and the served checkpoint's h of those scenes, as the node stores them with the ratings)
 and then, in this process:
   * update: ``--updates`` times, one stored person's next rating arrives (the oldest leaves
     when they hold their maximum) with their new model, queued with its feedback as the node
@@ -64,15 +65,21 @@ def written_bytes() -> int:
     return int(dict(line.split(': ') for line in Path('/proc/self/io').read_text().splitlines())['wchar'])
 
 
-def fill(folder: Path, predictor, model, scenes: list, people: int, ratings: int, rng) -> list:
-    """A store of ``people`` × ``ratings``; returns the updates it holds."""
+def encodings(predictor, scenes: list) -> dict:
+    """id(scene) -> h_i of every scene, as the node hands them to the store with the ratings."""
+    h = np.concatenate([predictor.encode(scenes[start:start + 256]) for start in range(0, len(scenes), 256)])
+    return {id(scene): row for scene, row in zip(scenes, h.astype(np.float64))}
+
+
+def fill(folder: Path, predictor, model, scenes: list, people: int, ratings: int, rng, encoded: dict) -> list:
+    """A store of ``people`` × ``ratings``, with the h of their scenes; returns the updates it holds."""
     updates = []
     for k in range(people):
         held = [Rating(scenes[rng.randrange(len(scenes))], 'navigate', rng.random(), None, f'p{k}-r{j}', j, ORIGIN)
                 for j in range(ratings)]
-        updates.append(PersonUpdate(f'person-{k}', model, predictor.fingerprint, held, 0, [], True))
+        updates.append(PersonUpdate(f'person-{k}', model, predictor.fingerprint, held, 0, [], True, encoded))
     write_people(folder, predictor.fingerprint, updates)
-    return updates
+    return [update._replace(encoded=None) for update in updates]
 
 
 def measure_updates(folder: Path, predictor, model, scenes: list, updates: list, count: int, max_ratings: int,
@@ -242,12 +249,13 @@ def main(argv=None) -> int:
                                          'checkpoint': checkpoint, 'scenes': f'{len(scenes)} SocNav1 scenes (a-h)',
                                          'machine': machine()}}
     rng = random.Random(25)
+    encoded = encodings(predictor, scenes)
     with tempfile.TemporaryDirectory() as work:
         for people, ratings in sizes:
             name = f'{people}x{ratings}'
             folder = Path(work) / name
             started = time.perf_counter()
-            updates = fill(folder, predictor, model, scenes, people, ratings, rng)
+            updates = fill(folder, predictor, model, scenes, people, ratings, rng, encoded)
             figures = {'fill_s': time.perf_counter() - started,
                        'database_bytes': (folder / 'state.db').stat().st_size}
             shutil.copytree(folder, Path(work) / f'node-{name}')  # as filled: every model solved from its ratings

@@ -9,8 +9,9 @@ trained on the other people (SocNav1: config/socnav1_gat.yaml, the published set
 config/implicit_crowd.yaml) less a seeded tenth of their examples, which gives the prior its
 noise (``estimate_prior``). Each held-out person's seeded pool of ``--pool`` examples is where
 the robot acts; the rest are test rows.
-MSE per number n of implicit outcomes (``--flips``: ε of the outcome model, ``--draws``
-Bernoulli draws per person and n, averaged) and per number k of explicit ratings, pooled over
+MSE per number n of implicit outcomes (``--flips``: ε of the outcome model; its exact
+expectation over every outcome sequence up to ``--exact-up-to`` outcomes, above that
+``--draws`` Bernoulli draws per person and n, averaged) and per number k of explicit ratings, pooled over
 a fold's test rows, mean ± sd over folds; people whose pool has fewer than max k ratings are
 left out and counted. Writes results.json, results.md and implicit.png.
 """
@@ -43,7 +44,11 @@ def parse_args(argv=None):
     parser.add_argument('--pool', type=int, default=16, help='pool examples per held-out person (default: %(default)s)')
     parser.add_argument('--flips', type=float, nargs='+', default=[0.0, 0.2],
                         help='ε: share of outcomes that are coin flips (default: %(default)s)')
-    parser.add_argument('--draws', type=int, default=3, help='outcome draws per person and n (default: %(default)s)')
+    parser.add_argument('--draws', type=int, default=3,
+                        help='outcome draws per person and n above --exact-up-to (default: %(default)s)')
+    parser.add_argument('--exact-up-to', type=int, default=4,
+                        help='largest n whose expectation is computed exactly, over its 2^n outcome sequences '
+                             '(default: %(default)s)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--quick', action='store_true', help='pipeline check: 2 folds, 1 draw, n ≤ 16, k ≤ 4')
     parser.add_argument('--rewrite-report', action='store_true',
@@ -65,7 +70,8 @@ def main(argv=None) -> int:
         return 0
     started = time.time()
     results = {'command': 'python -m offline_training.implicit_feedback ' + shlex.join(argv or sys.argv[1:]),
-               'ns': list(ns), 'ks': list(ks), 'flips': args.flips, 'draws': args.draws, 'pool': args.pool,
+               'ns': list(ns), 'ks': list(ks), 'flips': args.flips, 'draws': args.draws, 'exact_up_to': args.exact_up_to,
+               'pool': args.pool,
                'folds': args.folds, 'seed': args.seed, 'machine': machine(),
                'datasets': {name: run_dataset(name, args, ns, ks) for name in args.datasets}}
     results['seconds'] = time.time() - started

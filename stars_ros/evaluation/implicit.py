@@ -21,6 +21,7 @@ never reaches it.
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -39,10 +40,15 @@ class OutcomeModel:
         if not 0.0 <= self.flip <= 1.0:
             raise ValueError(f'flip must be in [0, 1], got {self.flip}')
 
-    def stayed(self, rng: np.random.Generator, scores: np.ndarray, scale: tuple) -> np.ndarray:
+    def p_stayed(self, scores: np.ndarray, scale: tuple) -> np.ndarray:
+        """P(stayed) of each true score."""
         low, high = scale
         p = np.clip((np.asarray(scores, dtype=np.float64) - low) / (high - low), 0.0, 1.0)
-        return rng.random(len(p)) < self.flip / 2 + (1.0 - self.flip) * p
+        return self.flip / 2 + (1.0 - self.flip) * p
+
+    def stayed(self, rng: np.random.Generator, scores: np.ndarray, scale: tuple) -> np.ndarray:
+        p = self.p_stayed(scores, scale)
+        return rng.random(len(p)) < p
 
 
 def mse_explicit(design: Design, person: Person, k: int) -> tuple:
@@ -59,12 +65,38 @@ def mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, rn
     foldin = design.foldin
     if n == 0:
         return _errors(design, person, foldin.prior_distribution(None)[0])
+    rows = _acted_on(person, n)
+    return _errors_after(design, person, rows, model.stayed(rng, design.data.scores[rows], scale), scale)
+
+
+def expected_mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, scale: tuple) -> np.ndarray:
+    """The expectation of ``mse_implicit``'s squared errors over the outcomes of ``n``
+    actions: every one of the 2ⁿ outcome sequences, weighted by its probability (exact, no
+    draws; for small n, where one outcome moves the posterior most)."""
+    if n == 0:
+        return _errors(design, person, design.foldin.prior_distribution(None)[0])
+    rows = _acted_on(person, n)
+    p = model.p_stayed(design.data.scores[rows], scale)
+    expected = 0.0
+    for stayed in itertools.product((False, True), repeat=n):
+        stayed = np.array(stayed)
+        expected = expected + np.prod(np.where(stayed, p, 1.0 - p)) * _errors_after(design, person, rows, stayed,
+                                                                                      scale)
+    return expected
+
+
+def _acted_on(person: Person, n: int) -> np.ndarray:
+    """The pool's rows the robot acts on, in turn, for ``n`` outcomes."""
     pool = person.rows(range(len(person.pool)))
-    rows = pool[np.arange(n) % len(pool)]
+    return pool[np.arange(n) % len(pool)]
+
+
+def _errors_after(design: Design, person: Person, rows: np.ndarray, stayed: np.ndarray, scale: tuple) -> np.ndarray:
+    """Squared errors on the test rows once the outcomes ``stayed`` of ``rows`` are folded in."""
+    foldin = design.foldin
     x, c, _, actions = design.rows(rows)
-    stayed = model.stayed(rng, design.data.scores[rows], scale)
     z = foldin.to_z(np.where(stayed, scale[1], scale[0]), actions)
-    theta, _ = foldin.posterior(x, z - c, actions, None, np.ones(n, dtype=bool))  # as the node folds them in
+    theta, _ = foldin.posterior(x, z - c, actions, None, np.ones(len(rows), dtype=bool))  # as the node folds them in
     return _errors(design, person, theta)
 
 

@@ -12,7 +12,8 @@ import numpy as np
 
 from stars_ros.data import crowd_data
 from stars_ros.data.ratings import load_dataset
-from stars_ros.evaluation.implicit import OutcomeModel, exchange_rate, mse_explicit, mse_implicit
+from stars_ros.evaluation.implicit import (OutcomeModel, exchange_rate, expected_mse_implicit, mse_explicit,
+                                          mse_implicit)
 from stars_ros.evaluation.kshot import Design, annotator_folds, known_split, reveal_pools
 from stars_ros.evaluation.plots import pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
@@ -56,9 +57,13 @@ def run_dataset(name: str, args, ns, ks) -> dict:
             for flip in args.flips:
                 model = OutcomeModel(flip)
                 for n in ns:
+                    if n <= args.exact_up_to:  # the expectation itself: no draws' noise where one outcome moves most
+                        errors[f'implicit ε={flip}'][n].append(expected_mse_implicit(design, person, n, model,
+                                                                                     data.scale))
+                        continue
                     draws = [mse_implicit(design, person, n, model,
                                           np.random.default_rng([args.seed, fold, p_index, n, d]), data.scale)
-                             for d in range(args.draws if n else 1)]
+                             for d in range(args.draws)]
                     errors[f'implicit ε={flip}'][n].append(np.mean(draws, axis=0))
         per_fold.append({curve: {x: float(np.mean(np.concatenate(v))) for x, v in points.items() if v}
                          for curve, points in errors.items()})

@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import collections
 import threading
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy import linalg
@@ -196,7 +196,8 @@ class FoldIn:
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
-        self._cache = collections.OrderedDict()
+        self._cache = collections.OrderedDict()  # id(scene) -> (scene, h, not yet handed to the store)
+        self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
         self._cache_scenes = cache_scenes
         self.scene_by_scene = scene_by_scene
         self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
@@ -302,20 +303,47 @@ class FoldIn:
         rows = self.predictor.scene_rows(list(scene_keys))
         return self.inference.linear_form(np.asarray(h, dtype=np.float64), rows, actions)
 
-    def remember(self, scenes: Sequence, rows: np.ndarray) -> None:
+    def remember(self, scenes: Sequence, rows: np.ndarray, fresh: bool = True) -> None:
         """Cache h [len(scenes), dim] of ``scenes``, encoded by this FoldIn's predictor (the
-        node passes what ranking them computed). The key is the scene object, which the
-        entry keeps alive so its id cannot be reused."""
+        node passes what ranking them computed); ``fresh``: not read from a store, so
+        ``take_encodings`` hands it over. The key is the scene object, which the entry keeps
+        alive so its id cannot be reused."""
         rows = np.asarray(rows, dtype=np.float64)
         with self._lock:
             for scene, row in zip(scenes, rows):
-                self._cache[id(scene)] = (scene, row)
+                self._cache[id(scene)] = (scene, row, fresh)
                 self._cache.move_to_end(id(scene))
             while len(self._cache) > self._cache_scenes:
                 self._cache.popitem(last=False)
 
+    def take_encodings(self, scenes: Sequence) -> dict:
+        """id(scene) -> h of those of ``scenes`` encoded here and not handed over before: what
+        a store may keep (``PersonUpdate.encoded``)."""
+        taken = {}
+        with self._lock:
+            for scene in scenes:
+                entry = self._cache.get(id(scene))
+                if entry is not None and entry[2]:
+                    taken[id(scene)] = entry[1]
+                    self._cache[id(scene)] = (scene, entry[1], False)
+        return taken
+
+    def _read_stored(self, scenes: Sequence) -> None:
+        """Cache the h that ``stored`` keeps of those of ``scenes`` not cached: no encoding."""
+        if self.stored is None:
+            return
+        with self._lock:
+            missing = list({id(s): s for s in scenes if id(s) not in self._cache}.values())
+        if missing:
+            found = self.stored(missing)
+            kept = [s for s in missing if id(s) in found]
+            if kept:
+                self.remember(kept, np.stack([found[id(s)] for s in kept]), fresh=False)
+
     def encode(self, scenes: Sequence) -> np.ndarray:
-        """h_i [len(scenes), dim] (float64): cached rows, the other scenes encoded now."""
+        """h_i [len(scenes), dim] (float64): cached rows, then those a store keeps, the other
+        scenes encoded now."""
+        self._read_stored(scenes)
         with self._lock:
             found = {id(s): self._cache[id(s)][1] for s in scenes if id(s) in self._cache}
         missing = list({id(s): s for s in scenes if id(s) not in found}.values())
@@ -333,15 +361,21 @@ class FoldIn:
         return x, c, self.to_z([r.score for r in ratings], actions)
 
     def prepare(self, ratings: Sequence[Rating], limit: int) -> bool:
-        """Build the regression rows of at most ``limit`` of ``ratings`` not built yet
-        (encoding their scenes); True once every one is built. A caller that must stay
-        responsive (the node's executor, solving a person restored with hundreds of ratings)
-        spreads that person's first solve over several calls this way."""
+        """Build the regression rows of ``ratings`` not built yet whose scenes' h is cached
+        or stored, and of at most ``limit`` others (encoding their scenes); True once every
+        one is built. A caller that must stay responsive (the node's executor, solving a
+        person restored with hundreds of ratings) spreads that person's first solve over
+        several calls this way."""
         with self._lock:
             missing = [rating for rating in ratings if id(rating) not in self._rows]
-        if missing:
-            self.regression(missing[:limit])
-        return len(missing) <= limit
+        if not missing:
+            return True
+        self._read_stored([rating.scene for rating in missing])
+        with self._lock:
+            encoded = [rating for rating in missing if id(rating.scene) in self._cache]
+            to_encode = [rating for rating in missing if id(rating.scene) not in self._cache]
+        self.regression(encoded + to_encode[:limit])
+        return len(to_encode) <= limit
 
     # -- the solve ---------------------------------------------------------------------
     def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:

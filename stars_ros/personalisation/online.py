@@ -125,17 +125,22 @@ class Personalisation:
         self.unsaved = set()  # users whose served model the store does not hold yet
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
+        self.store = store
         self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
         self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
-        self.store = store
 
     def _fold_in_model(self, predictor) -> FoldIn | None:
-        """The FoldIn of ``predictor``; None (and a warning) for a model without users."""
+        """The FoldIn of ``predictor``, reading the h of restored people's scenes from the
+        store (not with fleet sharing, which encodes each scene on its own so that peers' models
+        agree to the last bit); None (and a warning) for a model without users."""
         try:
-            return FoldIn(predictor, scene_by_scene=self.sharing)
+            foldin = FoldIn(predictor, scene_by_scene=self.sharing)
         except StarsError as error:
             self._logger.warning(f'no online fold-in with this checkpoint: {error}')
             return None
+        if self.store is not None and not self.sharing:
+            foldin.stored = lambda scenes: self.store.encodings(scenes, predictor.fingerprint)
+        return foldin
 
     def use(self, predictor) -> None:
         """Serve ``predictor`` from now on (a reload). Users the new checkpoint was refit on
@@ -364,8 +369,11 @@ class Personalisation:
         solved_from = self.solved_from.get(user_id)
         solved = solved_from is not None and [r.rating_id for r in solved_from] == [
             r.rating_id for r in self.ratings(user_id)]
+        peer_ratings = self.peers.ratings(user_id)
+        encoded = None if self.foldin is None or self.sharing else self.foldin.take_encodings(
+            [r.scene for r in (*ratings, *peer_ratings)])
         return PersonUpdate(user_id, self.predictor.user_model(user_id), self.predictor.fingerprint, ratings, dropped,
-                            self.peers.ratings(user_id), solved)
+                            peer_ratings, solved, encoded)
 
     def _save(self, user_id: str, journal: tuple[dict, str] | None = None) -> None:
         """Write ``user_id`` as they are now, with the feedback entry that changed them."""

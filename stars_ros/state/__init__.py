@@ -28,6 +28,8 @@ class PersonWriter(Protocol):
 
     def signed_feedback(self) -> list: ...
 
+    def encodings(self, scenes: Sequence, fingerprint: str) -> dict: ...
+
 
 __all__ = ['DATABASE', 'Deferred', 'Person', 'PersonUpdate', 'PersonWriter', 'Rating', 'StateStore',
            'StoreLockedError', 'StoreReader', 'UserModel', 'check_ratings', 'check_score', 'committed_feedback',

@@ -64,6 +64,8 @@ CREATE TABLE IF NOT EXISTS peer_ratings (
     person TEXT NOT NULL, id TEXT NOT NULL, position INTEGER NOT NULL, stamp INTEGER NOT NULL,
     origin TEXT NOT NULL, action TEXT NOT NULL, score REAL NOT NULL, scene_id TEXT, scene TEXT NOT NULL,
     feedback TEXT, PRIMARY KEY (person, id)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS encodings (digest TEXT NOT NULL, fingerprint TEXT NOT NULL, h BLOB NOT NULL,
+    PRIMARY KEY (digest, fingerprint)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS feedback (
     seq INTEGER PRIMARY KEY, bag TEXT NOT NULL, topic TEXT NOT NULL, log_time INTEGER NOT NULL,
     data TEXT NOT NULL, committed REAL NOT NULL);
@@ -75,7 +77,10 @@ class PersonUpdate(NamedTuple):
     """What the store is to hold of one person now: ``model`` (None: none served),
     ``fingerprint`` of the checkpoint it was solved against, own ``ratings`` in arrival
     order, ``dropped`` (own ratings no longer kept), ``peer_ratings``, and ``solved``: the
-    model was solved from exactly these ratings (False: they changed since)."""
+    model was solved from exactly these ratings (False: they changed since); ``encoded``:
+    id(scene) -> h_i [dim] of rated scenes the checkpoint ``fingerprint`` has encoded and
+    the store may not hold yet (a deterministic function of the scene and the checkpoint,
+    kept so that a restored person is solved again without running the encoder)."""
 
     user_id: str
     model: UserModel | None
@@ -84,6 +89,7 @@ class PersonUpdate(NamedTuple):
     dropped: int
     peer_ratings: list
     solved: bool
+    encoded: dict | None = None
 
 
 @dataclass
@@ -166,6 +172,7 @@ class StoreReader:
         version = int(self.meta().get('schema_version', SCHEMA_VERSION))
         self._posteriors = 'people' if version == 1 else 'posteriors'  # where the covariances are
         self._scenes = {}  # digest -> scene object: ratings of one content share one
+        self._digests = {}  # id(scene object) -> its digest, of the scenes read
 
     @_reading
     def _connect(self):
@@ -239,9 +246,24 @@ class StoreReader:
             scene = self._scenes.get(digest)
             if scene is None:
                 scene = self._scenes[digest] = json.loads(content)
+                self._digests[id(scene)] = digest
             ratings.append(Rating(scene, action, score, scene_id, rating_id, stamp, origin,
                                   None if feedback is None else json.loads(feedback)))
         return ratings
+
+    @_reading
+    def encodings(self, scenes: Sequence, fingerprint: str) -> dict:
+        """id(scene) -> h_i [dim] stored for checkpoint ``fingerprint``, of those of ``scenes``
+        (scene objects this reader's ``ratings`` gave) that have one."""
+        digests = {self._digests[id(scene)]: id(scene) for scene in scenes if id(scene) in self._digests}
+        found, keys = {}, list(digests)
+        for start in range(0, len(keys), 500):
+            chunk = keys[start:start + 500]
+            for digest, h in self._connection.execute(
+                    f'SELECT digest, h FROM encodings WHERE fingerprint = ? AND digest IN ({",".join("?" * len(chunk))})',
+                    (fingerprint, *chunk)):
+                found[digests[digest]] = _array(h)
+        return found
 
     @_reading
     def covariance(self, person: str, size: int) -> np.ndarray | None:
@@ -544,6 +566,17 @@ class StateStore:
         """The signed feedback messages of the people ``load`` read (replays stay refused)."""
         return [] if self.reader is None else self.reader.signed_feedback()
 
+    def encodings(self, scenes: Sequence, fingerprint: str) -> dict:
+        """id(scene) -> h_i stored for ``fingerprint``, of the restored people's ``scenes``
+        (``StoreReader.encodings``; {} before ``load`` or when the disk refuses: the caller
+        encodes them)."""
+        if self.reader is None:
+            return {}
+        try:
+            return self.reader.encodings(scenes, fingerprint)
+        except StoreError:
+            return {}
+
     def close(self) -> list:
         """Commit what waits and close; returns the feedback entries that could not be
         committed (to be logged by the caller)."""
@@ -714,6 +747,11 @@ class StateStore:
                 held[rating_id] = digest
                 changed = True
             written[(table, user_id)] = held
+            for rating in ratings if update.encoded else ():
+                h = update.encoded.get(id(rating.scene))
+                if h is not None:
+                    connection.execute('INSERT OR IGNORE INTO encodings VALUES (?, ?, ?)',
+                                       (held[rating.rating_id], update.fingerprint, _blob(h)))
         if changed or user_id not in self._rated:
             self._counter += 1
             self._rated[user_id] = self._counter
@@ -745,7 +783,8 @@ class StateStore:
 
     def _release_scene(self, digest: str):
         self._connection.execute('UPDATE scenes SET refs = refs - 1 WHERE digest = ?', (digest,))
-        self._connection.execute('DELETE FROM scenes WHERE digest = ? AND refs <= 0', (digest,))
+        if self._connection.execute('DELETE FROM scenes WHERE digest = ? AND refs <= 0', (digest,)).rowcount:
+            self._connection.execute('DELETE FROM encodings WHERE digest = ?', (digest,))
 
 
 def write_people(folder, fingerprint: str, people: Iterable[PersonUpdate]) -> None:

@@ -1,12 +1,14 @@
-"""The implicit-outcome simulation: the stated outcome model, the exchange rate's
-interpolation, and the command line end to end on the generated crowd data (quick)."""
+"""The implicit-outcome simulation: the stated outcome model, the exact expectation over
+outcomes, the exchange rate's interpolation, and the command line end to end on the
+generated crowd data (quick)."""
 import json
 
 import numpy as np
 import pytest
 
 from offline_training import implicit_feedback
-from stars_ros.evaluation.implicit import OutcomeModel, exchange_rate
+from stars_ros.evaluation.implicit import OutcomeModel, exchange_rate, expected_mse_implicit, mse_implicit
+from stars_ros.evaluation.kshot import Person
 
 
 def test_outcomes_follow_the_stated_model():
@@ -37,3 +39,46 @@ def test_the_command_writes_curves_and_exchange_rates(tmp_path):
     assert crowd['curves']['implicit ε=0.0']['0'] == crowd['curves']['explicit']['0']  # both start unpersonalised
     assert {'never_worse_than_unpersonalised', 'implicit_outcomes_worth'} <= set(crowd['summary']['ε=0.0'])
     assert (tmp_path / 'implicit.png').stat().st_size > 0 and 'exchange' not in (tmp_path / 'results.md').read_text()
+
+
+class _Mean:
+    """A fold-in whose posterior is the mean of its targets (z = score): errors by hand."""
+
+    def prior_distribution(self, user_id):
+        return np.array([0.5]), None, None
+
+    def to_z(self, scores, actions):
+        return np.asarray(scores, dtype=np.float64)
+
+    def posterior(self, x, y, actions, user_id, implicit):
+        return np.array([np.mean(y)]), None
+
+
+class _Design:
+    def __init__(self, scores):
+        self.foldin = _Mean()
+        self.data = type('Data', (), {'scores': np.asarray(scores, dtype=np.float64)})()
+
+    def rows(self, rows):
+        return np.ones((len(rows), 1)), np.zeros(len(rows)), None, np.zeros(len(rows), dtype=np.int64)
+
+    def predict(self, test, theta):
+        return np.full(len(test), theta[0])
+
+
+def test_the_expected_errors_weigh_every_outcome_sequence_by_its_probability():
+    """Pool rows 0 (true 0.8) and 1 (true 0.3), test row 2 (true 0.6); the posterior is the
+    mean outcome. One outcome: stayed (1.0) with p 0.8, left (0.0) with 0.2. Two: the four
+    sequences. And the draws' average tends to the same expectation."""
+    design = _Design([0.8, 0.3, 0.6])
+    person = Person(pool=(np.array([0]), np.array([1])), test=np.array([2]))
+    model, scale = OutcomeModel(0.0), (0.0, 1.0)
+    one = expected_mse_implicit(design, person, 1, model, scale)
+    assert one == pytest.approx([0.8 * 0.4 ** 2 + 0.2 * 0.6 ** 2])
+    two = expected_mse_implicit(design, person, 2, model, scale)
+    by_hand = (0.8 * 0.3 * 0.4 ** 2 + 0.8 * 0.7 * 0.1 ** 2 + 0.2 * 0.3 * 0.1 ** 2 + 0.2 * 0.7 * 0.6 ** 2)
+    assert two == pytest.approx([by_hand])
+    rng = np.random.default_rng(0)
+    drawn = np.mean([mse_implicit(design, person, 2, model, rng, scale) for _ in range(20000)])
+    assert drawn == pytest.approx(by_hand, abs=0.003)
+    assert expected_mse_implicit(design, person, 0, model, scale) == pytest.approx([0.1 ** 2])  # the prior mean

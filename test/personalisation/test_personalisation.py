@@ -17,7 +17,7 @@ from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.node.batching import Pending, rank_batch
 from stars_ros.state import loaded
-from stars_ros.state.store import StateStore
+from stars_ros.state.store import PersonUpdate, StateStore, write_people
 
 
 class Log:
@@ -102,20 +102,42 @@ def test_feedback_that_names_no_usable_rating_says_why(predictor, scenes):
     assert rating.scene == placements['candidates'][2]['graph'] and rating.scene_id is None
 
 
-def test_a_person_with_many_ratings_is_solved_a_few_rows_a_call(predictor, scenes):
-    """The executor is held for PREPARE_ROWS ratings' rows at a time, not a whole history."""
-    core = _personalisation(predictor, Log())
-    for k in range(40):
-        assert _rate(core, 'ann', scenes[k % len(scenes)], score=(k % 5) / 4) is None
-    calls = 0
-    while (solved := core.solve_next()) is None:
-        assert list(core.pending) == ['ann']  # first in line until solved
-        calls += 1
-    assert calls == math.ceil(40 / personalisation.PREPARE_ROWS) - 1 and not core.pending
-    user_id, model = solved
-    expected = FoldIn(predictor).fit(core.ratings('ann'), 'ann')
+def test_a_restored_person_is_encoded_a_few_scenes_a_call_and_once(tiny_checkpoint, synthetic_root, tmp_path):
+    """A person restored with 40 ratings whose scenes the store holds no h of: the executor
+    is held for PREPARE_ROWS encodings at a time, not a whole history. The store then keeps
+    the h it computed, so the next time that person is restored unsolved, they are solved
+    in one call, to the same model, without the encoder."""
+    many = [scene for name in 'ab' for scene in read_scenes(synthetic_root / 'raw' / f'{name}.jsonl')][:40]
+    predictor = Predictor.load(tiny_checkpoint)
+    ratings = [Rating(scene, 'navigate', (k % 5) / 4, scene['identifier'], f'r{k}') for k, scene in enumerate(many)]
+    write_people(tmp_path, predictor.fingerprint, [PersonUpdate('ann', None, predictor.fingerprint, ratings, 0, [],
+                                                                False)])
+
+    def restored(predictor):
+        core = _personalisation(predictor, Log(), store=_store(tmp_path, pytest.fail))
+        core.restore()
+        assert list(core.pending) == ['ann']
+        calls = 0
+        while (solved := core.solve_next()) is None:
+            assert list(core.pending) == ['ann']  # first in line until solved
+            calls += 1
+        core.flush()
+        core.store.close()
+        return calls, solved
+
+    calls, (user_id, model) = restored(predictor)
+    assert calls == math.ceil(40 / personalisation.PREPARE_ROWS) - 1
+    expected = FoldIn(predictor).fit(ratings, 'ann')
     assert user_id == 'ann' and model.n_ratings == 40
     np.testing.assert_allclose(model.p, expected.p, rtol=1e-6, atol=1e-9)
+
+    unsolved = [PersonUpdate('ann', None, predictor.fingerprint, ratings, 0, [], False)]
+    write_people(tmp_path, predictor.fingerprint, unsolved)  # to be solved again: the h it needs are stored
+    predictor = Predictor.load(tiny_checkpoint)
+    predictor.encode = lambda scenes: pytest.fail('a stored h was encoded again')
+    calls, (_, again) = restored(predictor)
+    assert calls == 0
+    np.testing.assert_array_equal(again.p, model.p)
 
 
 def test_a_user_is_served_once_they_have_min_ratings(predictor, scenes):

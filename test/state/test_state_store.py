@@ -100,6 +100,32 @@ def test_an_update_writes_the_rows_it_changes_and_scenes_once(tmp_path):
     database.close()
 
 
+def test_the_h_of_rated_scenes_is_kept_per_checkpoint_until_no_rating_names_the_scene(tmp_path):
+    store = _open(tmp_path)
+    store.load(FINGERPRINT)
+    ratings = _ann()  # both of SCENE
+    newer = Rating(OTHER_SCENE, 'navigate', 0.1, None, 'r4', 40, '/ranker')
+    h = np.array([0.5, -0.25, 1.0])
+    store.write_person(PersonUpdate('ann', None, FINGERPRINT, ratings, 0, [], False, {id(SCENE): h}))
+    store.write_person(PersonUpdate('ann', None, FINGERPRINT, ratings + [newer], 0, [], False,
+                                    {id(SCENE): h + 1.0, id(OTHER_SCENE): -h}))  # SCENE's first h stays
+    store.close()
+    store = _open(tmp_path)
+    [ann] = store.load(FINGERPRINT)[0]
+    restored = loaded(ann.ratings)
+    found = store.encodings([r.scene for r in restored], FINGERPRINT)
+    assert set(found) == {id(restored[0].scene), id(restored[2].scene)} and restored[0].scene is restored[1].scene
+    np.testing.assert_array_equal(found[id(restored[0].scene)], h)
+    np.testing.assert_array_equal(found[id(restored[2].scene)], -h)
+    assert store.encodings([r.scene for r in restored], 'cd' * 32) == {}  # another checkpoint's h differ
+    assert store.encodings([dict(SCENE)], FINGERPRINT) == {}  # a scene the store did not give
+    store.write_person(PersonUpdate('ann', None, FINGERPRINT, ratings, 0, [], False))
+    store.close()
+    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    assert database.execute('SELECT COUNT(*) FROM encodings').fetchone() == (1,)  # OTHER_SCENE's went with it
+    database.close()
+
+
 def test_people_of_another_checkpoint_are_not_restored_and_replaced_by_the_first_update(tmp_path):
     store = _open(tmp_path)
     store.load(FINGERPRINT)
