@@ -5,6 +5,7 @@ file per block), so two runs of the suite on one machine never share a domain; e
 module takes its own domain of the block, and discovery is limited to this machine.
 """
 import contextlib
+import ctypes
 import fcntl
 import json
 import os
@@ -70,13 +71,24 @@ def ros_env(domain: int) -> dict:
                 PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''), PYTHONUNBUFFERED='1')
 
 
+_PR_SET_PDEATHSIG = 1
+_prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here, not in the forked child
+
+
+def die_with_the_tests():
+    """In a node's process before it starts: killed when the test process dies, however it
+    dies. A node left behind by a killed run would answer on domains the next run reserves."""
+    _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
 def start_node(module: str, domain: int, params: dict, log_path: Path, args=(), ros_args=()) -> subprocess.Popen:
     """``python -m <module> [args] --ros-args -p k:=v ... [ros_args]`` with its output in ``log_path``."""
     command = [sys.executable, '-m', module, *args, '--ros-args']
     for name, value in params.items():
         command += ['-p', f'{name}:={value}']
     command += list(ros_args)
-    return subprocess.Popen(command, env=ros_env(domain), stdout=open(log_path, 'w'), stderr=subprocess.STDOUT)
+    return subprocess.Popen(command, env=ros_env(domain), stdout=open(log_path, 'w'), stderr=subprocess.STDOUT,
+                            preexec_fn=die_with_the_tests)
 
 
 class RosClient:

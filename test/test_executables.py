@@ -63,7 +63,7 @@ def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_p
     for name, (default, description, *_) in TABLES[module].items():
         if name == 'record_folder':
             default = str(ros_home / 'stars_ros' / 'records' / '{node}')  # the child's ROS_HOME
-        assert f'  {name} (default {usage._value(default)})\n      {description}\n' in shown.stdout
+        assert f'  {name} (default {usage.shown_value(default)})\n      {description}\n' in shown.stdout
 
 
 def _run_executable(module: str, argv: list, tmp_path: Path) -> subprocess.CompletedProcess:
@@ -268,7 +268,7 @@ def test_demo_scores_print_with_the_digits_that_tell_them_apart():
     assert demo.score_decimals(reply(0.41237, 0.41231, 0.2)) == 4
     assert demo.score_decimals(reply(0.5, 0.25), reply(0.412347, 0.412341)) == 5  # the same digits on both lines
     assert demo.score_decimals(reply(0.7, 0.7, 0.1)) == 3  # ties stay ties
-    assert demo._line('a', reply(0.41237, 0.41231), 4) == '    a: c0 0.4124 > c1 0.4123'
+    assert demo.ranking_line('a', reply(0.41237, 0.41231), 4) == '    a: c0 0.4124 > c1 0.4123'
 
 
 def test_demo_records_into_a_folder_of_its_own_unless_told(tmp_path, capsys):

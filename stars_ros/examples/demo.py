@@ -127,13 +127,13 @@ def record_folder(given: Path | None, work: Path) -> Path:
     return given
 
 
-def _line(user, reply, decimals: int) -> str:
+def ranking_line(user, reply, decimals: int) -> str:
     return f'  {user:>3}: ' + ' > '.join(f"{e['candidate']} {e['score']:.{decimals}f}" for e in reply['ranking'])
 
 
 def typed_ranking(node, user: str, scene: dict, placements: int, timeout: float):
     """``scene``'s placements ranked for ``user`` through the typed service ~/rank_candidates
-    (stars_ros_msgs, REP 103): the response's ranking, as a reply dict ``_line`` prints."""
+    (stars_ros_msgs, REP 103): the response's ranking, as a reply dict ``ranking_line`` prints."""
     import rclpy
     from geometry_msgs import msg as geometry
     from stars_ros_msgs import msg as typed
@@ -217,8 +217,8 @@ def run(args) -> int:
                 differ += not same
                 decimals = score_decimals(a, b)
                 print(f"scene {scene['identifier']}: {'same order' if same else 'ORDERS DIFFER'}")
-                print(_line(user_a, a, decimals))
-                print(_line(user_b, b, decimals))
+                print(ranking_line(user_a, a, decimals))
+                print(ranking_line(user_b, b, decimals))
         if len(shown) < len(chosen):
             raise StarsError(f'timed out: {len(shown)} of {len(chosen)} scenes ranked for both people')
         served, twin = typed_ranking(node, user_a, chosen[0][0], args.placements,
@@ -226,7 +226,7 @@ def run(args) -> int:
         theirs = {e['candidate']: e['score'] for e in twin['ranking']}
         gap = max(abs(e['score'] - theirs.get(e['candidate'], np.inf)) for e in served['ranking'])
         print(f"\nTyped service /ranker/rank_candidates (stars_ros_msgs, metres), the placements of "
-              f"{chosen[0][0]['identifier']} again: {_line(user_a, served, score_decimals(served, twin)).strip()} "
+              f"{chosen[0][0]['identifier']} again: {ranking_line(user_a, served, score_decimals(served, twin)).strip()} "
               f'(largest difference from the JSON ranking above: {gap:.1e})')
         for n, (_, rating_a, rating_b) in enumerate(chosen):
             for user, rating in ((user_a, rating_a), (user_b, rating_b)):

@@ -18,14 +18,14 @@ def asked_for_help(argv: Sequence[str]) -> bool:
     return '-h' in own or '--help' in own
 
 
-def _value(default) -> str:
+def shown_value(default) -> str:
     """A default as it is written after ``-p name:=`` (the value is read as YAML)."""
     if isinstance(default, bool):
         return str(default).lower()
     if isinstance(default, str):
         return f"'{default}'"
     if isinstance(default, (list, tuple)):
-        return '[' + ', '.join(_value(item) for item in default) + ']'
+        return '[' + ', '.join(shown_value(item) for item in default) + ']'
     return str(default)
 
 
@@ -39,7 +39,7 @@ def help_text(executable: str, doc: str, parameters: Mapping[str, tuple], exampl
              'parameters (set with --ros-args -p NAME:=VALUE, values read as YAML: -p "name:=\'\'" is an',
              'empty string; or --params-file FILE; remap topics with -r stars/scene:=/other):']
     for name, (default, description, *_) in parameters.items():
-        lines += [f'  {name} (default {_value(default)})', f'      {description}']
+        lines += [f'  {name} (default {shown_value(default)})', f'      {description}']
     lines += ['', f'example: {example}']
     return '\n'.join(lines)
 

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from ros_helpers import RosClient, domain_id, ros_env, start_node, stop, stored_feedback
+from ros_helpers import RosClient, die_with_the_tests, domain_id, ros_env, start_node, stop, stored_feedback
 from stars_ros.ros import spinning
 from waiting import wait_for
 
@@ -64,7 +64,8 @@ def test_a_hung_middleware_still_ends_the_ranker_with_its_feedback_stored(tiny_c
     log = tmp_path / 'ranker.log'
     command = [sys.executable, '-c', HANGING_RANKER, '--ros-args', '-p', f'checkpoint:={tiny_checkpoint}',
                '-p', f'record_folder:={tmp_path}', '-p', 'flush_interval:=60.0']
-    process = subprocess.Popen(command, env=ros_env(domain), stdout=open(log, 'w'), stderr=subprocess.STDOUT)
+    process = subprocess.Popen(command, env=ros_env(domain), stdout=open(log, 'w'), stderr=subprocess.STDOUT,
+                               preexec_fn=die_with_the_tests)
     try:
         client.wait_ready(process, START_TIMEOUT, {'scene_id': 'rated', 'graph': scenes[0]})
         feedback = {'user_id': 'ann', 'scene_id': 'rated', 'action': 'navigate', 'score': 0.5}
