@@ -3,8 +3,9 @@ requests and the work loop over them, problem reports, and the fold-in of feedba
 (``personalisation``). The rest of the node's logic sits beside it, one concern a module:
 its parameters and topics (``parameters``), the figures of /diagnostics (``diagnostics``),
 the state store and the recording (``records``), peers' user models (``fleet_intake``),
-batch ranking (``batching``), questions (``questions``) and markers (``markers``). ``stars_ros.ros.ranker`` declares the
-parameters, turns messages into the text this class takes and publishes the text it gives.
+batch ranking (``batching``), questions (``questions``) and markers (``markers``).
+``stars_ros.ros.ranker`` declares the parameters, turns messages into the text this class
+takes and publishes the text it gives.
 
 One thread (the node's executor) calls ``RankerCore``; the state store's thread
 (``stars_ros.state``) commits feedback and people, and the recorder's flushes the bag,

@@ -259,9 +259,9 @@ class StoreReader:
         found, keys = {}, list(digests)
         for start in range(0, len(keys), 500):
             chunk = keys[start:start + 500]
+            marks = ','.join('?' * len(chunk))
             for digest, h in self._connection.execute(
-                    f'SELECT digest, h FROM encodings WHERE fingerprint = ? AND digest IN ({",".join("?" * len(chunk))})',
-                    (fingerprint, *chunk)):
+                    f'SELECT digest, h FROM encodings WHERE fingerprint = ? AND digest IN ({marks})', (fingerprint, *chunk)):
                 found[digests[digest]] = _array(h)
         return found
 
