@@ -18,7 +18,7 @@ from stars_ros.data import frames
 from stars_ros.hri.people import DISENGAGED, ENGAGED
 from stars_ros.hri.scene import placement_offset
 
-pytestmark = pytest.mark.slow  # real nodes: ~45 s
+pytestmark = pytest.mark.slow  # real nodes, a ranker and a bridge for each test
 DOMAIN_OFFSET = 15
 PROBE = {'scene_id': 'probe', 'graph': {'humans': [{'id': 1, 'xPos': 0.0, 'yPos': 100.0, 'orientation': 0.0}],
                                         'objects': [], 'links': [],
@@ -111,9 +111,10 @@ class Loop:
             self._ranker.__exit__(None, None, None)
 
 
-@pytest.fixture(scope='module')
-def loop(tmp_path_factory, hri_msgs):
-    running = Loop(tmp_path_factory.mktemp('hri'), hri_msgs)
+@pytest.fixture()
+def loop(tmp_path, hri_msgs):
+    """A loop of its own for each test: people, aliases and stored feedback start as ``POSES`` says."""
+    running = Loop(tmp_path, hri_msgs)
     yield running
     running.close()
 
@@ -133,12 +134,20 @@ def test_the_served_user_follows_engagement_and_aliases(loop):
     assert loop.wait_user('alice')
 
 
+def _positions(scene: dict) -> list:
+    """(x, y) in metres, REP 103, to the centimetre, of the humans of a scene request's 'stay' candidate."""
+    stay = next(c['graph'] for c in scene['candidates'] if c['candidate'] == 'stay')
+    return sorted((round(h.x, 2), round(h.y, 2)) for h in frames.from_socnav(stay).humans)
+
+
+def _wanted(people) -> list:
+    return sorted((round(x, 2), round(y, 2)) for pid, (x, y, _) in POSES.items() if pid in people)
+
+
 def test_scene_positions_match_the_poses_to_a_centimetre(loop):
     count = len(loop.scenes)
     assert loop.client.wait(lambda: len(loop.scenes) > count + 1, 10)
-    stay = next(c['graph'] for c in loop.scenes[-1]['candidates'] if c['candidate'] == 'stay')
-    got = sorted((round(h.x, 2), round(h.y, 2)) for h in frames.from_socnav(stay).humans)
-    want = sorted((round(x, 2), round(y, 2)) for pid, (x, y, _) in POSES.items() if pid != 'tmp')  # tmp is alice now
+    got, want = _positions(loop.scenes[-1]), _wanted(POSES)  # everyone tracked, the anonymous 'tmp' too
     assert len(got) == len(want)
     for (gx, gy), (wx, wy) in zip(got, want):
         assert abs(gx - wx) <= 0.01 and abs(gy - wy) <= 0.01
@@ -147,15 +156,9 @@ def test_scene_positions_match_the_poses_to_a_centimetre(loop):
 def test_a_stale_pose_is_left_out_and_counted(loop):
     loop.ages['bob'] = 5.0
     count = len(loop.scenes)
-
-    def bob_gone():
-        if len(loop.scenes) <= count:
-            return False
-        stay = next(c['graph'] for c in loop.scenes[-1]['candidates'] if c['candidate'] == 'stay')
-        return len(stay['humans']) == 1
-    assert loop.client.wait(bob_gone, 15)
+    assert loop.client.wait(lambda: len(loop.scenes) > count and _positions(loop.scenes[-1]) == _wanted(
+        ['alice', 'tmp']), 15)
     assert loop.client.wait(lambda: int(loop.status().get('left_out.stale', 0)) > 0, 10)
-    loop.ages.pop('bob')
 
 
 def test_an_anonymous_persons_feedback_is_not_stored(loop):

@@ -60,18 +60,18 @@ def test_a_key_file_the_ranker_cannot_use_stops_it(tiny_checkpoint, tmp_path):
     assert 'line 1' in log and 'fewer than 16' in log and not (tmp_path / 'records').exists()
 
 
-@pytest.fixture(scope='module')
-def ranker(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
-    folder = tmp_path_factory.mktemp('signed_ranker')
-    key_file = folder / 'keys.txt'
+@pytest.fixture()
+def ranker(tiny_checkpoint, synthetic_scenes, tmp_path):
+    """A signed-feedback ranker of its own for each test."""
+    key_file = tmp_path / 'keys.txt'
     key_file.write_text(f'tablet:{SECRET.hex()}\n')
     key_file.chmod(0o600)
     domain = domain_id(13)
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records', 'flush_interval': 0.2,
               'diagnostics_period': 0.3, 'fleet_sharing': True, 'feedback_key_file': key_file}
     probe = {'scene_id': 'probe', 'graph': synthetic_scenes[0]}
-    with running_ranker(domain, params, folder / 'ranker.log', probe, START_TIMEOUT) as (process, client):
-        yield process, client, key_file, folder
+    with running_ranker(domain, params, tmp_path / 'ranker.log', probe, START_TIMEOUT) as (process, client):
+        yield process, client, key_file, tmp_path
 
 
 def test_the_ranker_uses_exactly_what_its_sros2_policy_allows(ranker):

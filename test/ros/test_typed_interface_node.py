@@ -31,11 +31,11 @@ def scores(entries) -> dict:
     return {entry.name: entry.score for entry in entries}
 
 
-@pytest.fixture(scope='module')
-def ranker(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
-    folder = tmp_path_factory.mktemp('typed')
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records'}
-    with running_ranker(domain_id(15), params, folder / 'ranker.log', scene_request('probe', synthetic_scenes[0])) \
+@pytest.fixture()
+def ranker(tiny_checkpoint, synthetic_scenes, tmp_path):
+    """A ranker of its own for each test (no test sees another's people or errors)."""
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records'}
+    with running_ranker(domain_id(15), params, tmp_path / 'ranker.log', scene_request('probe', synthetic_scenes[0])) \
             as (process, client):
         yield process, client
 
