@@ -91,6 +91,10 @@ def start_node(module: str, domain: int, params: dict, log_path: Path, args=(), 
                             preexec_fn=die_with_the_tests)
 
 
+CLIENT_NAMES = ('stars_test_client',)  # the node name of every RosClient
+SETTLE_TIMEOUT = 10.0
+
+
 class RosClient:
     """A test-side node on its own context: publishes requests, collects replies."""
 
@@ -198,7 +202,12 @@ class RosClient:
         return future.result().results
 
     def close(self):
+        """Destroy the client once the nodes it talked to have left its graph (at most
+        ``SETTLE_TIMEOUT``): Fast DDS 2.14 can deadlock when a participant is destroyed while
+        it still takes in a leaving participant's endpoints (seen once: the whole run hung,
+        the destroying thread holding the GIL)."""
         self.executor.shutdown()
+        wait_for(lambda: set(self.node.get_node_names()) <= set(CLIENT_NAMES), SETTLE_TIMEOUT)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 

@@ -66,11 +66,10 @@ class Robot:
         assert reply['personalised_from'] == n_ratings
         return reply
 
-    def close(self):
+    def stop(self):
         if self.process.poll() is None:
             self.process.terminate()
             self.process.wait(timeout=30)
-        self.client.close()
 
 
 class FleetTopic:
@@ -141,7 +140,9 @@ def test_a_fleet_of_three_rankers_shares_what_it_learns(tiny_checkpoint, scenes,
         fleet.publisher.publish(String(data=json.dumps(other)))
         assert robot_b.client.wait(lambda: any(e['kind'] == 'fleet' for e in robot_b.client.errors), 20)
         assert 'personalised_from' not in robot_b.rank(probe, 'jogger')
-    finally:
+    finally:  # every robot gone before any client is destroyed (RosClient.close)
         for robot in robots:
-            robot.close()
+            robot.stop()
+        for robot in robots:
+            robot.client.close()
         fleet.close()
