@@ -255,9 +255,11 @@ def test_the_scripted_world_drives_the_bridge(hri_msgs, socnav1_root, tmp_path):
                             tmp_path / 'world.log'),
                  start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'topic'}, tmp_path / 'bridge.log')]
     try:
-        assert client.wait(lambda: {'p1', 'p2'} <= {u.data for u in users}, 90)
-        humans = [len(s['candidates'][0]['graph']['humans']) for s in scenes]
-        assert humans and max(humans) >= 3, humans
+        def served_and_seen():  # both people served, and a scene that holds at least three of the scene's people
+            humans = [len(s['candidates'][0]['graph']['humans']) for s in client.snapshot(scenes)]
+            return {'p1', 'p2'} <= {u.data for u in client.snapshot(users)} and max(humans, default=0) >= 3
+        assert client.wait(served_and_seen, 90), ([u.data for u in users], len(scenes),
+                                                  (tmp_path / 'bridge.log').read_text()[-2000:])
         assert all(s.get('user_id', 'p').startswith('p') for s in scenes)
         for process, log in zip(processes, ('world.log', 'bridge.log')):
             assert process.poll() is None and stop(process, signal.SIGINT) == 0, (tmp_path / log).read_text()[-2000:]
