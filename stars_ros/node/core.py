@@ -61,10 +61,13 @@ class RankerCore:
             (``recording.MessageType``, for the bag); None: no markers.
         clock (callable): the system time in ns (``time.time_ns`` unless a test steps it),
             which ``received`` times, processing times and fold-in spans are read on.
+        after_person_read (callable, optional): ``Personalisation``'s, called once a person
+            restored from the store has their ratings read.
     """
 
     def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
-                 logger, now: Callable[[], int], markers_out=None, clock: Callable[[], int] = time.time_ns):
+                 logger, now: Callable[[], int], markers_out=None, clock: Callable[[], int] = time.time_ns,
+                 after_person_read: Callable[[], None] | None = None):
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
         self._clock = clock
         self.markers_out = markers_out
@@ -85,7 +88,8 @@ class RankerCore:
                                    self.report, logger, now, None if markers_out is None else markers_out.message_type)
         self.personalisation = Personalisation(
             self.predictor, params['fold_in_max_ratings'], params['fold_in_max_users'], self.report, logger,
-            self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator)
+            self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator,
+            after_person_read=after_person_read)
         self.fleet = FleetIntake(params, self.topics['stars/user_model'], self.report)
         self.personalisation.restore()
 

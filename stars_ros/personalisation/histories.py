@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import collections
 import threading
-from typing import Sequence
+from typing import Callable, Sequence
 
 from stars_ros.state.person import Deferred, Rating
 
@@ -24,6 +24,7 @@ class BoundedUsers:
         self.max_ratings, self.max_users = max_ratings, max_users
         self._users = collections.OrderedDict()  # user -> their ratings, least recently rated first
         self._lock = threading.Lock()
+        self.after_read: Callable[[], None] = lambda: None  # called once a Deferred person is read
 
     def __len__(self) -> int:
         return len(self._users)
@@ -43,6 +44,7 @@ class BoundedUsers:
         if isinstance(held, Deferred):
             held = self._users[user_id] = self._holding(held.load())
             self._loaded(user_id)
+            self.after_read()
         return held
 
     def _holding(self, ratings: list):

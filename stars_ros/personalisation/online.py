@@ -108,13 +108,18 @@ class Personalisation:
         authenticator (feedback_auth.FeedbackAuthenticator, optional): feedback is signed
             (the node has checked it): each rating keeps its signed message and is named by
             its MAC, and a peer's rating is taken only when it passes ``check_rating``.
+        after_person_read (callable, optional): called after a person restored from the
+            store has their ratings read (the ranker process moves them out of the garbage
+            collector's generations then: ``gc.freeze``).
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
                  logger=None, store: PersonWriter | None = None, scene_memory: int = SCENE_MEMORY, origin: str = '',
-                 sharing: bool = False, authenticator=None):
+                 sharing: bool = False, authenticator=None, after_person_read: Callable[[], None] | None = None):
         self.histories = FeedbackHistories(max_ratings, max_users)
         self.peers = fleet.PeerRatings(max_ratings, max_users)
+        if after_person_read is not None:
+            self.histories.after_read = self.peers.after_read = after_person_read
         self.origin, self.sharing, self.authenticator = origin, sharing, authenticator
         self.scenes = SceneMemory(scene_memory)
         self.pending = collections.OrderedDict()  # users to re-solve, longest waiting first

@@ -41,11 +41,9 @@ def _ratings(user_id: str, entries: list, kind: str) -> list:
     """Ratings of the file; one written before ratings had ids is named by a digest of the
     user, its place and its content, the same at every import."""
     def fallback(k, entry):
-        if entry.get('id'):
-            return ''
         text = json.dumps([user_id, kind, k, entry['scene'], entry['action'], entry['score']], sort_keys=True)
         return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
-    return [Rating.from_json(entry, fallback(k, entry)) for k, entry in enumerate(entries)]
+    return [Rating.from_json(entry, '' if entry.get('id') else fallback(k, entry)) for k, entry in enumerate(entries)]
 
 
 def from_dict(state) -> LegacyState:

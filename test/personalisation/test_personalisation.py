@@ -231,6 +231,27 @@ def test_folded_in_users_survive_a_restart_with_the_same_checkpoint_only(tiny_ch
     other.store.close()
 
 
+def test_a_restored_persons_ratings_are_read_at_first_use_and_then_reported_once(tiny_checkpoint, scenes,
+                                                                                  tmp_path):
+    first = _personalisation(Predictor.load(tiny_checkpoint), Log(), store=_store(tmp_path, pytest.fail))
+    _rate(first, 'ann', scenes[0])
+    _rate(first, 'bob', scenes[1])
+    first.solve_next(), first.solve_next()
+    assert first.store.close() == []
+    reads = []
+    restarted = _personalisation(Predictor.load(tiny_checkpoint), Log(), store=_store(tmp_path, pytest.fail),
+                                 after_person_read=lambda: reads.append(len(reads)))
+    restarted.restore()
+    assert reads == []  # a restart reads people, not their ratings
+    assert [r.score for r in restarted.histories.ratings('ann')] == [1.0]
+    assert len(reads) == 1
+    restarted.histories.ratings('ann')
+    _rate(restarted, 'ann', scenes[2])
+    assert len(reads) == 1  # once per person
+    assert len(restarted.histories.ratings('bob')) == 1 and len(reads) == 2
+    restarted.store.close()
+
+
 def test_a_model_without_users_serves_without_fold_in(predictor, scenes, monkeypatch):
     def refuse(predictor, **options):
         raise StarsError("fold-in needs a personalised model; this one is 'base'")
