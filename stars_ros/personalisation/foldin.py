@@ -363,9 +363,10 @@ class FoldIn:
     def prepare(self, ratings: Sequence[Rating], limit: int) -> bool:
         """Build the regression rows of ``ratings`` not built yet whose scenes' h is cached
         or stored, and of at most ``limit`` others (encoding their scenes); True once every
-        one is built. A caller that must stay responsive (the node's executor, solving a
-        person restored with hundreds of ratings) spreads that person's first solve over
-        several calls this way."""
+        one is built, unless this call built more than ``limit`` rows (then the next call
+        says so). A caller that must stay responsive (the node's executor, solving a person
+        restored with hundreds of ratings) spreads that person's first solve over several
+        calls this way: the rows in one, the solve in the next."""
         with self._lock:
             missing = [rating for rating in ratings if id(rating) not in self._rows]
         if not missing:
@@ -374,8 +375,9 @@ class FoldIn:
         with self._lock:
             encoded = [rating for rating in missing if id(rating.scene) in self._cache]
             to_encode = [rating for rating in missing if id(rating.scene) not in self._cache]
-        self.regression(encoded + to_encode[:limit])
-        return len(to_encode) <= limit
+        built = encoded + to_encode[:limit]
+        self.regression(built)
+        return len(to_encode) <= limit and len(built) <= limit
 
     # -- the solve ---------------------------------------------------------------------
     def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:

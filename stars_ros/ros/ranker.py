@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import difflib
 import gc
+import sys
 import time
 
 import torch
@@ -58,6 +59,9 @@ from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 from stars_ros.ros.typed_interface import TypedInterface
 
+# s: how long a thread that holds the GIL keeps it while another waits (Python's default 5 ms);
+# the state store's writer thread then holds a ranking back for at most this long
+SWITCH_INTERVAL = 0.001
 LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR}
 
 
@@ -250,6 +254,7 @@ def serve(node):
     """Spin ``node`` until shutdown, the imports and the model out of the collector's way."""
     gc.collect()
     gc.freeze()  # the model and imports leave the collector's generations: full
+    sys.setswitchinterval(SWITCH_INTERVAL)
     spin_until_shutdown(node)  # collections while serving then walk only what requests create
 
 
