@@ -126,7 +126,7 @@ class RankerParts:
                                MarkerOutput(markers_pub, type_hash),
                                # a stored person's ratings, read at their first feedback, live as long as the
                                # model: out of the collector's generations too (a full collection walking
-                               # them held the executor 20-30 ms)
+                               # them held the executor 20-33 ms)
                                after_person_read=gc.freeze)
 
     def _activate(self):
