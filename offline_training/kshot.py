@@ -17,8 +17,10 @@ covered people are scored:
 
 - ``unpersonalised``: the scene-only model (p_u = 0, b_u = 0);
 - ``fold-in (<strategy>)``: the node's default, the posterior (``FoldIn.posterior``) from the first k
-  answers the strategy asked for (``random``: the pool's seeded order; ``uncertainty``: largest
-  predictive variance; ``active``: the A-optimal expected variance reduction over the pool).
+  answers the strategy asked for (``random``: the pool's seeded order, or the mean over
+  ``--random-orders`` seeded orders; ``uncertainty``: largest predictive variance; ``active``:
+  the A-optimal expected variance reduction over the pool; ``decision``: the largest expected
+  gain in the choices made on the pool, ``Uncertainty.log_decision_value``).
   k = 0 is the population prior's mean, what the node serves a stranger;
 - ``ridge λ=<--ridge-lambda> (random)``: the ridge solve the node did before the posterior;
 - ``retrained``: the whole model trained again on the fold's rows plus the first k random
@@ -75,6 +77,8 @@ def parse_args(argv=None):
                         help='the ks at which the model is also retrained (default: every k; 0 is always fitted)')
     parser.add_argument('--known-test', type=float, default=0.2,
                         help="share of the training people's examples held out for their calibration (default: %(default)s)")
+    parser.add_argument('--random-orders', type=int, default=1,
+                        help='seeded orders of each pool that random questions are averaged over (default: %(default)s)')
     parser.add_argument('--ridge-lambda', type=float, default=1.0,
                         help='λ of the ridge fold-in shown beside the posterior (default: %(default)s, the node\'s '
                              'former default)')
@@ -98,8 +102,10 @@ def configure(args) -> ExperimentConfig:
     training = {'threads': 1, **({'device': args.device} if args.device else {})}
     if args.epochs:
         training.update(pretrain_epochs=args.epochs[0], joint_epochs=args.epochs[1])
-    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2 or not 0 <= args.known_test < 1:
-        raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2 and --known-test in [0, 1)')
+    if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2 or not 0 <= args.known_test < 1 \
+            or args.random_orders < 1:
+        raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2, --known-test in [0, 1) and '
+                         '--random-orders at least 1')
     return config.replace(training=training)
 
 
@@ -120,12 +126,13 @@ def main(argv=None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     settings = KShotSettings(args.folds, tuple(args.seeds), args.pool, tuple(args.ks), tuple(args.strategies),
                              None if args.retrain_ks is None else tuple(args.retrain_ks), args.known_test,
-                             args.ridge_lambda, args.max_train_rows)
+                             args.ridge_lambda, args.max_train_rows, args.random_orders)
     started = time.perf_counter()
     header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
               'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,
+              'random_orders': args.random_orders,
               'retrain_ks': retrained_ks(settings),
               'executor': fits.settings, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),

@@ -11,16 +11,22 @@ one with fewer than ``pool + 1`` gets a smaller pool and covers only the k it al
 Strategies choose the next question from the person's unrevealed pool examples, given the
 posterior after the answers so far:
 
-- ``random``: the pool's seeded order (the default, comparable with earlier runs);
+- ``random``: the pool's seeded order, and with ``random_orders`` > 1 as many seeded
+  permutations of it (``random_orders``), whose metrics are averaged: one draw of which
+  scenes a person happens to rate first is a noisy estimate of what unprompted feedback gives;
 - ``uncertainty``: the example whose ratings have the largest summed predictive variance;
 - ``active``: the example whose answer most reduces the summed predictive variance over the
-  whole pool (``Uncertainty.variance_reduction``: the A-optimal criterion the node uses).
+  whole pool (``Uncertainty.variance_reduction``: the A-optimal criterion);
+- ``decision``: the example whose answer is expected to improve the choices made on the pool
+  most (``Uncertainty.log_decision_value``): each pool example's actions are one decision, or,
+  where the data have a single action, the pool's scenes are ranked as one set of candidates.
 
 Neither looks at a test row or at an answer before it is given.
 """
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,9 +37,16 @@ from stars_ros.personalisation.foldin import FoldIn, solve_ridge
 from stars_ros.personalisation.prior import encode_all, rows_design
 from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
 
-STRATEGIES = ('random', 'uncertainty', 'active')
+STRATEGIES = ('random', 'uncertainty', 'active', 'decision')
 NODE_STRATEGY = 'active'  # the criterion the node's stars/question_request uses (node.questions)
 LEVELS = (0.5, 0.8, 0.9, 0.95)  # central predictive intervals whose coverage is measured
+
+
+def random_orders(person: 'Person', name: str, count: int, seed: int) -> list:
+    """``count`` orders of ``person``'s pool: the pool's own (the first), then seeded permutations."""
+    size = len(person.pool)
+    rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
+    return [list(range(size))] + [[int(e) for e in rng.permutation(size)] for _ in range(count - 1)]
 
 
 def annotator_folds(users: np.ndarray, k: int, seed: int) -> list:
@@ -131,13 +144,19 @@ class Design:
             raise StarsError(f"unknown strategy '{strategy}'; choose from {list(STRATEGIES)}")
         blocks = [self.rows(rows) for rows in person.pool]
         targets = (np.concatenate([b[0] for b in blocks]), np.concatenate([b[3] for b in blocks]))
+        decisions = [(b[0], b[1], b[3]) for b in blocks]
+        if all(len(b[0]) == 1 for b in blocks):
+            decisions = [(targets[0], np.concatenate([b[1] for b in blocks]), targets[1])]
         asked = []
         while len(asked) < min(count, len(person.pool)):
-            _, covariance = self.posterior(person.rows(asked))
+            theta, covariance = self.posterior(person.rows(asked))
             remaining = [e for e in range(len(person.pool)) if e not in asked]
             if strategy == 'uncertainty':
                 gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance) ** 2)
                          for e in remaining]
+            elif strategy == 'decision':
+                gains = self.uncertainty.log_decision_value([(blocks[e][0], blocks[e][3]) for e in remaining], decisions,
+                                                        theta, covariance)
             else:
                 gains = self.uncertainty.variance_reduction([(blocks[e][0], blocks[e][3]) for e in remaining], targets,
                                                             covariance)

@@ -14,13 +14,15 @@ import numpy as np
 
 from stars_ros import StarsRecommender
 from stars_ros.evaluation.executors import FitFailure, fit_outcome, worker_data
-from stars_ros.evaluation.kshot import LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage, known_split, reveal_pools
+from stars_ros.evaluation.kshot import (LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage, known_split,
+                                       random_orders, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.model.metrics import regression_report
 
 METRICS = ('mse', 'pearson_r', 'ccc')
-NAMES = {'mse': 'MSE', 'pearson_r': 'Pearson r', 'ccc': 'CCC'}
+RANKING = 'regret'  # first-choice regret, where an example rates several actions
+NAMES = {'mse': 'MSE', 'pearson_r': 'Pearson r', 'ccc': 'CCC', RANKING: 'first-choice regret'}
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,7 @@ class KShotSettings:
     known_test: float
     ridge_lambda: float
     max_train_rows: int | None = None
+    random_orders: int = 1  # seeded orders of each pool the random strategy's metrics average over
 
 
 def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, noise_rows=None, data=None) -> dict:
@@ -52,8 +55,24 @@ def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, 
     return {'seconds': seconds, 'predictions': fitted.predict_rows(data, test), 'recommender': fitted if keep else None}
 
 
-def report(data, rows, predictions) -> dict:
-    return regression_report(data.scores[rows], predictions, data.actions[rows])
+def report(data, rows, predictions, examples) -> dict:
+    """The metrics of ``predictions`` of ``rows``; ``examples``: ``data.examples`` (computed once)."""
+    values = regression_report(data.scores[rows], predictions, data.actions[rows])
+    regret = first_choice_regret(data.scores[rows], predictions, examples[rows])
+    return values if regret is None else {**values, RANKING: regret}
+
+
+def first_choice_regret(y: np.ndarray, p: np.ndarray, groups: np.ndarray) -> float | None:
+    """Mean over ``groups`` of two or more rows (one person's ratings of one scene, every
+    action: a choice the robot makes) of the best true score less the true score of the row
+    predicted best; None where no group has two rows (one action, as SocNav1)."""
+    order = np.lexsort((-np.asarray(p, dtype=np.float64), groups))
+    grouped, scores = groups[order], np.asarray(y, dtype=np.float64)[order]
+    starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1]])
+    several = np.diff(np.r_[starts, len(grouped)]) > 1
+    if not several.any():
+        return None
+    return float(np.mean((np.maximum.reduceat(scores, starts) - scores[starts])[several]))
 
 
 def plan_folds(settings, data) -> list:
@@ -91,8 +110,11 @@ def test_rows(people: dict, k: int) -> tuple[list, np.ndarray]:
 def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> tuple[list, dict]:
     """(records, calibration samples) of one fold whose fits are ``outcomes`` {k: fit}."""
     seed, fold_id, held, _, people, _, known, _ = fold
-    orders = {(name, strategy): design.reveal_order(person, strategy, max(settings.ks))
-              for name, person in people.items() for strategy in settings.strategies}
+    examples = data.examples
+    orders = {(name, strategy): [design.reveal_order(person, strategy, max(settings.ks))]
+              for name, person in people.items() for strategy in settings.strategies if strategy != 'random'}
+    orders.update({(name, 'random'): random_orders(person, name, settings.random_orders, seed)
+                   for name, person in people.items()})
     methods = [f'fold-in ({s})' for s in settings.strategies]
     ridge = f'ridge λ={settings.ridge_lambda:g} ({settings.strategies[0]})'
     records, calibration = [], {'new': {}, 'known': None}
@@ -101,29 +123,31 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
         if not len(rows):
             continue
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
-                 'unpersonalised': report(data, rows, design.predict(rows, None))}
-        predictions = {method: np.zeros(len(data)) for method in [*methods, ridge]}
+                 'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
+        predictions = {method: [np.zeros(len(data)) for _ in orders[covered[0], strategy]]
+                       for strategy, method in zip(settings.strategies, methods)}
+        predictions[ridge] = [np.zeros(len(data))]
         samples = {'y': [], 'mean': [], 'sd': []}
         for name in covered:
             person = people[name]
             for strategy, method in zip(settings.strategies, methods):
-                answered = person.rows(orders[name, strategy][:k])
-                theta, covariance = design.posterior(answered)
-                predictions[method][person.test] = design.predict(person.test, theta)
-                if strategy == settings.strategies[0]:
-                    mean, sd = design.predictive(person.test, theta, covariance)
-                    samples['y'].append(data.scores[person.test])
-                    samples['mean'].append(mean)
-                    samples['sd'].append(sd)
-                    if k:
-                        ridge_theta, _ = design.posterior(answered, regularisation=settings.ridge_lambda)
-                        predictions[ridge][person.test] = design.predict(person.test, ridge_theta)
-                    else:
-                        predictions[ridge][person.test] = predictions[method][person.test]
+                for number, order in enumerate(orders[name, strategy]):
+                    answered = person.rows(order[:k])
+                    theta, covariance = design.posterior(answered)
+                    predictions[method][number][person.test] = design.predict(person.test, theta)
+                    if strategy == settings.strategies[0] and number == 0:  # calibration and ridge: the first order
+                        mean, sd = design.predictive(person.test, theta, covariance)
+                        samples['y'].append(data.scores[person.test])
+                        samples['mean'].append(mean)
+                        samples['sd'].append(sd)
+                        ridge_theta = design.posterior(answered, regularisation=settings.ridge_lambda)[0] if k else theta
+                        predictions[ridge][0][person.test] = design.predict(person.test, ridge_theta)
         for method, values in predictions.items():
-            entry[method] = report(data, rows, values[rows])
+            reports = [report(data, rows, v[rows], examples) for v in values]
+            entry[method] = {key: type(value)(np.mean([r[key] for r in reports])) for key, value in reports[0].items()}
         if k in outcomes:
-            entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)])
+            entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)],
+                                        examples)
         calibration['new'][k] = {**{key: np.concatenate(v) for key, v in samples.items()},
                                  'nu': design.foldin.user_prior.nu}
         records.append(entry)
@@ -227,41 +251,51 @@ def calibration_table(pooled: dict) -> dict:
     return table
 
 
+def metrics_of(records: list) -> tuple:
+    """The metrics the records hold: ``METRICS``, and ``RANKING`` where examples rate several actions."""
+    return METRICS + ((RANKING,) if records and RANKING in records[0]['unpersonalised'] else ())
+
+
 def summarise(records: list) -> dict:
     """{method: {k: {metric: [mean, sd, n_folds]}}}"""
     summary = {}
     for method in methods_of(records[0]) if records else []:
         summary[method] = {}
         for k in sorted({r['k'] for r in records if method in r}):
-            values = {m: [r[method][m] for r in records if r['k'] == k] for m in METRICS}
+            values = {m: [r[method][m] for r in records if r['k'] == k] for m in metrics_of(records)}
             summary[method][k] = {m: [*mean_sd(v), len(v)] for m, v in values.items()}
     return summary
 
 
 def goals(records: list, summary: dict, strategies: list, ks: list) -> dict:
     """The issue's goals, measured: each fold-in strategy at or below unpersonalised MSE in
-    every fold at every k >= 1 (the folds that fail named); for the node's question strategy
-    (``NODE_STRATEGY``), the fewest questions reaching random's mean MSE at k = 10 and whether
-    it is never behind random on the mean."""
+    every fold at every k >= 1 (the folds that fail named); for each question strategy (the
+    node's is ``NODE_STRATEGY``), the fewest questions reaching random's mean MSE at k = 10
+    and whether it is never behind random on the mean."""
     never_worse = {}
     for method in summary:
         if method.startswith('fold-in'):
             failing = sorted({(r['seed'], r['fold'], r['k']) for r in records
                               if r['k'] >= 1 and method in r and r[method]['mse'] > r['unpersonalised']['mse']})
             never_worse[method] = {'met': not failing, 'failing': [list(f) for f in failing]}
-    out = {'never_worse': never_worse}
-    node = f'fold-in ({NODE_STRATEGY})'
-    if NODE_STRATEGY in strategies and 'random' in strategies and 10 in summary.get('fold-in (random)', {}):
-        target = summary['fold-in (random)'][10]['mse'][0]
-        reached = [k for k in sorted(summary[node]) if summary[node][k]['mse'][0] <= target]
-        out['node_questions_to_match_random_at_10'] = reached[0] if reached else None
-        out['node_never_behind_random'] = all(summary[node][k]['mse'][0] <= summary['fold-in (random)'][k]['mse'][0]
-                                              for k in ks if k in summary[node])
+    out = {'never_worse': never_worse, 'questions': {}}
+    if 'random' in strategies and 10 in summary.get('fold-in (random)', {}):
+        random = summary['fold-in (random)']
+        for strategy in strategies:
+            method = f'fold-in ({strategy})'
+            if strategy == 'random' or method not in summary:
+                continue
+            reached = [k for k in sorted(summary[method]) if summary[method][k]['mse'][0] <= random[10]['mse'][0]]
+            out['questions'][strategy] = {
+                'to_match_random_at_10': reached[0] if reached else None,
+                'never_behind_random': all(summary[method][k]['mse'][0] <= random[k]['mse'][0]
+                                           for k in ks if k in summary[method])}
     return out
 
 
 def write_results(folder: Path, result: dict, header: dict) -> dict:
     summary = summarise(result['records'])
+    metrics = metrics_of(result['records'])
     ks = sorted(summary.get('unpersonalised', {}))
     checks = goals(result['records'], summary, header['strategies'], ks) if summary else {}
     payload = {**header, 'folds': result['folds'], 'left_out': result['left_out'], 'records': result['records'],
@@ -275,12 +309,17 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
              f"{len({(r['seed'], r['fold']) for r in result['records']})} folds of held-out people ({partitions}); "
              f"pools of up to {header['pool']} examples per person; {len(result['left_out'])} people left out for "
              f"having a single example; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "
-             'Mean ± sd over folds.', '',
-             '| k | people covered | method | MSE | Pearson r | CCC |', '| --- | --- | --- | --- | --- | --- |']
+             'Mean ± sd over folds.'
+             + (f" Random questions: each fold's metrics averaged over {header['random_orders']} seeded orders of "
+                'each pool.' if header.get('random_orders', 1) > 1 else '') + (' First-choice regret: per test example (a person\'s ratings of one scene, '
+                                        'every action), the best true score less the true score of the action '
+                                        'predicted best, averaged.' if RANKING in metrics else ''), '',
+             '| k | people covered | method | ' + ' | '.join(NAMES[m] for m in metrics) + ' |',
+             '| --- | --- | --- |' + ' --- |' * len(metrics)]
     for k in ks:
         for method in summary:
             if k in summary[method]:
-                cells = [f'{s[0]:.4f} ± {s[1]:.4f}' for s in (summary[method][k][m] for m in METRICS)]
+                cells = [f'{s[0]:.4f} ± {s[1]:.4f}' for s in (summary[method][k][m] for m in metrics)]
                 lines.append(f'| {k} | {len(covered[k])} | {method} | ' + ' | '.join(cells) + ' |')
     calibration = result['calibration']
     levels = [str(level) for level in LEVELS]
@@ -300,12 +339,12 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
             lines.append(f"- {method} at or below unpersonalised MSE in every fold at every k ≥ 1: "
                          + ('met' if held['met'] else 'NOT met (seed, fold, k: '
                             + ', '.join(f'{s}/{f}/{k}' for s, f, k in held['failing']) + ')'))
-        if 'node_questions_to_match_random_at_10' in checks:
-            reached = checks['node_questions_to_match_random_at_10']
-            lines.append(f"- {NODE_STRATEGY} questions (the node's) needed to reach random's MSE at k = 10: "
-                         f"{reached if reached is not None else 'not reached'} (goal ≤ 5: "
-                         f"{'met' if reached is not None and reached <= 5 else 'NOT met'}); never behind random: "
-                         f"{'met' if checks['node_never_behind_random'] else 'NOT met'}")
+        for strategy, held in checks['questions'].items():
+            reached = held['to_match_random_at_10']
+            mark = " (the node's)" if strategy == NODE_STRATEGY else ''
+            lines.append(f"- {strategy} questions{mark} needed to reach random's MSE at k = 10: {reached if reached is not None else 'not reached'} "
+                         f"(goal ≤ 5: {'met' if reached is not None and reached <= 5 else 'NOT met'}); never behind "
+                         f"random: {'met' if held['never_behind_random'] else 'NOT met'}")
         worst = max((abs(100 * cells[l] - 100 * float(l)) for _, _, cells in rows for l in levels), default=0.0)
         lines.append(f"- interval coverage within ±3 points of nominal: {'met' if worst <= 3 else 'NOT met'} "
                      f'(largest gap {worst:.1f} points)')

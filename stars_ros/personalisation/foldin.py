@@ -195,6 +195,8 @@ class FoldIn:
         self.implicit_noise = self._implicit_noise(implicit_variance, fitted.rating_scale)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
+        self._stranger_covariance = float(np.mean(PRIOR_SCALES)) * self.user_prior.covariance  # read per ranking
+        self._stranger_covariance.flags.writeable = False
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
         self._cache = collections.OrderedDict()  # id(scene) -> (scene, h, not yet handed to the store)
         self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
@@ -282,7 +284,7 @@ class FoldIn:
         """Cov θ of ``user_id`` before any feedback, as ``fit`` gives it with no ratings: a
         known person's own, else the population's scale mixture's (Σ₀ times the mean scale)."""
         _, covariance, precision = self.prior_distribution(user_id)
-        return float(np.mean(PRIOR_SCALES)) * covariance if precision is self._population_precision else covariance
+        return self._stranger_covariance if precision is self._population_precision else covariance
 
     def action_index(self, actions: Sequence[str]) -> np.ndarray:
         unknown = sorted({a for a in actions if a not in self._action_index})

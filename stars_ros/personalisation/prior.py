@@ -14,8 +14,14 @@ estimates what that needs from the trained people and their training ratings:
   the data by a consistent estimate of the optimal one.) b_u is rescaled to the average p
   variance before shrinking and back after, so the identity target fits both.
 - **Mean μ₀**: the mean trained row, shrunk towards θ = 0 (the scene-only prediction every
-  stranger got before) by the positive-part James–Stein factor: from U people the mean is
-  itself uncertain, and its estimate with Σ₀/U error is shrunk as far as that error warrants.
+  stranger got before). With held-out ratings of the trained people (``noise_rows``) the
+  weight is the one that predicts them best when each person is served the mean of the
+  *others* (``held_out_mean_weight``: least squares, clipped to [0, 1]): the mean helps a
+  stranger only as far as it carries over to a person it was not fitted on. On SocNav1 the
+  James–Stein factor kept 0.82 of a mean that made every held-out person of one fold worse
+  (k = 0 MSE 0.0275 against 0.0249 at θ = 0); the held-out weight there is 0. Without
+  held-out ratings (``prior_of``'s fallback) the positive-part James–Stein factor shrinks the
+  mean as far as its own Σ₀/U error warrants.
 - **Noise σ²_a**: per action, the mean squared z-residual of held-out ratings of the trained
   people (``noise_rows``: examples the fit did not see, scored from their trained rows),
   else of the training ratings. Training residuals understate the noise a new person's
@@ -154,6 +160,22 @@ def population(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
                                             'users': int(users)}
 
 
+def held_out_mean_weight(trained: np.ndarray, people: np.ndarray, x: np.ndarray, r: np.ndarray) -> float | None:
+    """The w in [0, 1] for which θ = w · (mean of the other trained rows) best predicts each
+    trained person's held-out ratings: rows x [n, dim+1] of ``people`` [n] (rows of ``trained``
+    [users, dim+1]) with targets r = z − c [n]; None when it cannot be told (fewer than two
+    people, or rows the others' mean does not load on)."""
+    users = len(trained)
+    if users < 2 or len(r) == 0:
+        return None
+    others = (trained.sum(0) - trained[people]) / (users - 1)  # [n, dim+1]: each row's leave-one-out mean
+    a = np.einsum('nd,nd->n', x, others)
+    energy = float(a @ a)
+    if energy <= 0:
+        return None
+    return float(np.clip(a @ r / energy, 0.0, 1.0))
+
+
 def user_rows(inference) -> np.ndarray:
     """θ = (p_u, b_u) [users, dim+1] (float64) of a model's trained people."""
     return np.concatenate([inference.user_rows, inference.user_offsets[:, None]], axis=1).astype(np.float64)
@@ -201,6 +223,11 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
         noise_x, noise_c, noise_z = rows_design(fitted, inference, data, noise_rows, h)
         residual, residual_actions = noise_z - (np.einsum('nd,nd->n', noise_x, trained[known]) + noise_c), \
             data.actions[noise_rows]
+        weight = held_out_mean_weight(trained, known, noise_x, noise_z - noise_c)
+        if weight is not None:
+            mean = weight * trained.mean(0)
+            details = {**details, 'mean': 'weight from held-out ratings, each person against the others\' mean',
+                       'mean_weight': round(weight, 6), 'james_stein_weight': details.get('mean_weight')}
     else:
         residual, residual_actions = z - (np.einsum('nd,nd->n', x, trained[users]) + c), actions
     noise = np.ones(len(inference.target_mean))

@@ -8,7 +8,7 @@ import pytest
 
 from offline_training import kshot
 from stars_ros.evaluation import kshot_run
-from stars_ros.evaluation.kshot import Design, annotator_folds, coverage, known_split, reveal_pools
+from stars_ros.evaluation.kshot import STRATEGIES, Design, annotator_folds, coverage, known_split, reveal_pools
 from stars_ros import StarsRecommender
 from conftest import TINY_CONFIG
 
@@ -46,7 +46,7 @@ def design(synthetic):
 def test_strategies_ask_only_pool_examples_each_once(design, synthetic):
     people, _ = reveal_pools(synthetic, ['a', 'b', 'c'], 8, seed=0)
     for person in people.values():
-        for strategy in ('random', 'uncertainty', 'active'):
+        for strategy in STRATEGIES:
             order = design.reveal_order(person, strategy, 6)
             assert len(order) == min(6, len(person.pool)) and len(set(order)) == len(order)
             assert set(order) <= set(range(len(person.pool)))
@@ -61,6 +61,28 @@ def test_the_first_active_question_is_the_one_with_the_largest_expected_variance
     targets = (np.concatenate([b[0] for b in blocks]), np.concatenate([b[3] for b in blocks]))
     gains = design.uncertainty.variance_reduction([(b[0], b[3]) for b in blocks], targets, covariance)
     assert design.reveal_order(person, 'active', 1) == [int(np.argmax(gains))]
+
+
+def test_the_first_decision_question_is_the_one_with_the_largest_log_decision_value(design, synthetic):
+    people, _ = reveal_pools(synthetic, ['b'], 8, seed=0)
+    person = people['b']
+    theta, covariance = design.posterior(np.zeros(0, dtype=np.int64))
+    blocks = [design.rows(rows) for rows in person.pool]
+    assert all(len(b[0]) == 1 for b in blocks)  # one action, as SocNav1: the pool's scenes are ranked as one set
+    pooled = tuple(np.concatenate([b[part] for b in blocks]) for part in (0, 1, 3))
+    values = design.uncertainty.log_decision_value([(b[0], b[3]) for b in blocks], [pooled], theta, covariance)
+    assert np.isfinite(values).all() and len(set(values.tolist())) > 1  # clear choices still tell questions apart
+    assert design.reveal_order(person, 'decision', 1) == [int(np.argmax(values))]
+
+
+def test_first_choice_regret_is_the_best_true_score_less_that_of_the_predicted_best_by_hand():
+    y = np.array([5.0, 3.0, 1.0, 4.0, 2.0, 3.0])
+    p = np.array([1.0, 2.0, 0.0, 3.0, 9.0, 0.0])
+    groups = np.array([0, 0, 0, 1, 1, 2])  # group 2 rates one action: no choice
+    # group 0 picks row 1 (true 3, best 5): 2; group 1 picks row 4 (true 2, best 4): 2
+    assert kshot_run.first_choice_regret(y, p, groups) == pytest.approx(2.0)
+    assert kshot_run.first_choice_regret(y[:3], np.array([9.0, 0.0, 0.0]), groups[:3]) == 0.0
+    assert kshot_run.first_choice_regret(y, p, np.arange(6)) is None
 
 
 def test_coverage_counts_ratings_inside_the_central_intervals():

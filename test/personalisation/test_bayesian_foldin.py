@@ -4,6 +4,7 @@ import logging
 
 import numpy as np
 import pytest
+import torch
 from scipy import stats
 
 from conftest import TINY_CONFIG
@@ -14,8 +15,9 @@ from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation import prior as prior_module
 from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, scale_mixture_posterior, solve_ridge
-from stars_ros.personalisation.prior import UserPrior, encode_all, estimate_prior, ledoit_wolf, population
-from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
+from stars_ros.personalisation.prior import (UserPrior, encode_all, estimate_prior, held_out_mean_weight, ledoit_wolf,
+                                             population)
+from stars_ros.personalisation.uncertainty import Uncertainty, log_psi, student_t_quantile
 
 
 def test_posterior_is_the_textbook_closed_form_on_a_two_dimensional_toy():
@@ -96,6 +98,34 @@ def test_the_population_mean_is_shrunk_towards_zero_as_far_as_its_own_error_warr
     centred -= centred.mean(0) - 0.01  # a mean well within its error: shrunk away
     mean, _, details = population(centred)
     assert details['mean_weight'] == 0 and not mean.any()
+
+
+def test_the_held_out_mean_weight_is_least_squares_against_the_others_mean_by_hand():
+    trained = np.array([[1.0, 0.0], [3.0, 0.0], [2.0, 6.0]])
+    people = np.array([0, 1, 2])
+    x = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    # leave-one-out means: (2.5, 3), (1.5, 3), (2, 0); so a = x · mean = 2.5, 1.5, 0
+    r = np.array([1.0, 0.6, 5.0])
+    assert held_out_mean_weight(trained, people, x, r) == pytest.approx((2.5 * 1.0 + 1.5 * 0.6) / (2.5 ** 2 + 1.5 ** 2))
+    assert held_out_mean_weight(trained, people, x, -r) == 0.0  # a mean that points away from people: not used
+    assert held_out_mean_weight(trained, people, x, 10 * r) == 1.0  # never beyond the mean itself
+    assert held_out_mean_weight(trained[:1], people[:1], x[:1], r[:1]) is None  # one person: no one else to ask
+
+
+def test_a_population_mean_that_points_against_held_out_people_is_not_used(synthetic):
+    train, held = split_rows(synthetic, 0.2, 0)
+    fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
+    inference = InferenceModel(fitted.require_model())
+    x, c, z = prior_module.rows_design(fitted, inference, synthetic, held, encode_all(fitted, synthetic))
+    # every trained person moved alike along p's first coordinate, against what their held-out ratings say
+    # (x does not depend on θ): a mean far beyond its own error, which James–Stein keeps
+    shift = np.zeros(fitted.config.model.dim)
+    shift[0] = -5.0 * np.sign(np.sum(x[:, 0] * (z - c)))
+    fitted.require_model().user_embedding.weight.data += torch.from_numpy(shift).float()
+    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert prior.details['james_stein_weight'] > 0.9
+    assert prior.details['mean_weight'] == 0.0 and not prior.mean.any()
+    assert 'held-out' in prior.details['mean']
 
 
 def test_the_noise_comes_from_held_out_ratings_when_given(synthetic):
@@ -218,3 +248,37 @@ def test_the_question_that_teaches_most_is_the_one_along_the_targets_uncertainty
     gains = uncertainty.variance_reduction([along, across], targets, covariance)
     # by hand: asking x = e₀: k_t = 4 for both targets, innovation 4 + 0.5; 2 · 4 · 16 / 4.5; across: k_t = 0
     assert gains == pytest.approx([2 * 4 * 16 / 4.5, 0.0])
+
+
+def test_the_decision_value_is_the_expected_gain_of_re_choosing_by_hand():
+    class Stub:
+        dim = 1
+        noise = np.array([0.5])
+
+        class inference:  # noqa: N801
+            target_std, target_mean = np.array([2.0]), np.array([0.0])
+    uncertainty = Uncertainty(Stub())
+    covariance, mean = np.diag([4.0, 0.25]), np.array([0.3, 0.0])
+    # one decision of two entries: scores 2·θ₀ and 2·θ₁ (rating scale), now 0.6 against 0: the first leads
+    decision = (np.array([[1.0, 0.0], [0.0, 1.0]]), np.zeros(2), np.zeros(2, dtype=int))
+    along, far = (np.array([[1.0, 0.0]]), np.zeros(1, dtype=int)), (np.array([[0.0, 0.0]]), np.zeros(1, dtype=int))
+    values = uncertainty.log_decision_value([along, far], [decision], mean, covariance)
+    # by hand: the gap's row g = 2·(1, −1), its mean 0.6; asking x = e₀: X Σ g = 8, innovation 4 + 0.5,
+    # s² = 64 / 4.5; the gain s·ψ(0.6 / s), ψ(z) = φ(z) − z(1 − Φ(z)); a question that loads on nothing gains 0
+    s = np.sqrt(64 / 4.5)
+    z = 0.6 / s
+    assert np.exp(values) == pytest.approx([s * (stats.norm.pdf(z) - z * stats.norm.sf(z)), 0.0])
+    clear, far_clear = uncertainty.log_decision_value([along], [decision], np.array([30.0, 0.0]), covariance)[0], \
+        uncertainty.log_decision_value([along], [decision], np.array([300.0, 0.0]), covariance)[0]
+    assert values[0] - 10 > clear > far_clear > -np.inf  # a clear choice is worth little, yet still ordered
+    single = (decision[0][:1], decision[1][:1], decision[2][:1])
+    assert uncertainty.log_decision_value([along], [single], mean, covariance)[0] == -np.inf  # nothing to choose
+
+
+def test_log_psi_is_the_expected_shortfall_and_keeps_its_digits_far_out():
+    z = np.array([0.0, 0.5, 2.0, 8.0])
+    assert np.exp(log_psi(z)) == pytest.approx(stats.norm.pdf(z) - z * stats.norm.sf(z), rel=1e-9)
+    far = log_psi(np.array([50.0, 5e3, 5e5]))
+    assert np.all(np.isfinite(far)) and np.all(np.diff(far) < 0)
+    # the asymptotic series ψ(z) = φ(z) / z² · (1 − 3 / z² + ...)
+    assert far[0] == pytest.approx(stats.norm.logpdf(50.0) - 2 * np.log(50.0) + np.log1p(-3 / 50.0 ** 2), abs=1e-5)
