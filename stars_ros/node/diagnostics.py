@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 # kinds of problem that are warnings, not errors
-WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet', 'no_question')
+WARNINGS = ('unknown_user', 'unknown_scene', 'user_models', 'fleet', 'no_question', 'qos')
 
 
 class BusySpans:

@@ -30,6 +30,7 @@ from stars_ros.hri.bridge import BridgeCore, BridgeSettings
 from stars_ros.hri.poses import Pose, TransformTable, quaternion_of_yaw, yaw_of_quaternion
 from stars_ros.hri.scene import DEFAULT_ROOM, SceneSettings
 from stars_ros.ros import usage
+from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
 from stars_ros.ros.spinning import run_node
 
 try:
@@ -105,29 +106,40 @@ class HriBridge(Node):
                               tuple((room[k], room[k + 1]) for k in range(0, len(room), 2)), v['placements'])
         settings = BridgeSettings(scene, v['rate'], v['goal_frame'], v['abstain_below'], v['outcome_window'],
                                   (v['rating_min'], v['rating_max']))
+        self.qos_watch = QosWatch(self)  # endpoints keep no QoS event handlers: with 20 people, 170 of them
         if v['pose_source'] == 'tf':
             self.poses = TfPoses(self)
         elif v['pose_source'] == 'topic':
             self.poses = TransformTable()
-            self.create_subscription(TransformStamped, 'hri/transforms', self._on_transform, RELIABLE)
+            self._subscribe(TransformStamped, 'hri/transforms', self._on_transform, RELIABLE)
         else:
             raise ValueError(f"pose_source must be 'tf' or 'topic', got '{v['pose_source']}'")
         self.core = BridgeCore(settings, self.poses, lambda: self.get_clock().now().nanoseconds)
-        self.out = {name: self.create_publisher(String, name, qos) for name, qos in (
+        self.out = {name: self._advertise(String, name, qos) for name, qos in (
             ('stars/user_id', LATCHED), ('stars/scene', RELIABLE), ('stars/feedback', RELIABLE),
             ('stars/decision', RELIABLE))}
-        self.goal_out = self.create_publisher(PoseStamped, 'stars/goal', LATCHED)
-        self.diagnostics_out = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(IdsList, '/humans/persons/tracked', self._on_tracked, LATCHED)
-        self.create_subscription(Group, '/humans/interactions/groups', self._on_group, RELIABLE)
-        self.create_subscription(Gaze, '/humans/interactions/gazing', self._on_gaze, RELIABLE)
-        self.create_subscription(String, 'stars/ranking', self._on_ranking, RELIABLE)
-        self.create_subscription(String, 'stars/executed', lambda m: self.core.on_executed(m.data), RELIABLE)
-        self.create_subscription(String, 'stars/person_feedback', self._on_person_feedback, RELIABLE)
+        self.goal_out = self._advertise(PoseStamped, 'stars/goal', LATCHED)
+        self.diagnostics_out = self._advertise(DiagnosticArray, '/diagnostics', 10)
+        self._subscribe(IdsList, '/humans/persons/tracked', self._on_tracked, LATCHED)
+        self._subscribe(Group, '/humans/interactions/groups', self._on_group, RELIABLE)
+        self._subscribe(Gaze, '/humans/interactions/gazing', self._on_gaze, RELIABLE)
+        self._subscribe(String, 'stars/ranking', self._on_ranking, RELIABLE)
+        self._subscribe(String, 'stars/executed', lambda m: self.core.on_executed(m.data), RELIABLE)
+        self._subscribe(String, 'stars/person_feedback', self._on_person_feedback, RELIABLE)
         self.person_subscriptions: dict[str, list] = {}
         self.counts = {'scenes_sent': 0, 'decisions': 0, 'goals': 0, 'outcomes_sent': 0, 'feedback_relayed': 0}
         self.create_timer(TICK, self._tick)
         self.create_timer(v['diagnostics_period'], self._diagnose)
+
+    def _advertise(self, msg_type, topic: str, qos):
+        publisher = self.create_publisher(msg_type, topic, qos, event_callbacks=NO_PUBLISHER_EVENTS)
+        self.qos_watch.watch(publisher, publishes=True)
+        return publisher
+
+    def _subscribe(self, msg_type, topic: str, callback, qos):
+        subscription = self.create_subscription(msg_type, topic, callback, qos, event_callbacks=NO_SUBSCRIPTION_EVENTS)
+        self.qos_watch.watch(subscription, publishes=False)
+        return subscription
 
     # -- ROS4HRI in -----------------------------------------------------------------------
     def _on_tracked(self, msg):
@@ -138,17 +150,19 @@ class HriBridge(Node):
         """Per-person subscriptions for ``wanted`` ids (and ids that publish while not tracked,
         so their messages are diagnosed), at most MAX_PEOPLE; others are dropped."""
         for person_id in [i for i in self.person_subscriptions if i not in wanted]:
-            for subscription in self.person_subscriptions.pop(person_id):
+            gone = self.person_subscriptions.pop(person_id)
+            self.qos_watch.forget(gone)
+            for subscription in gone:
                 self.destroy_subscription(subscription)
         for person_id in sorted(wanted - set(self.person_subscriptions))[:MAX_PEOPLE - len(self.person_subscriptions)]:
             base = f'/humans/persons/{person_id}/'
             self.person_subscriptions[person_id] = [
-                self.create_subscription(EngagementLevel, base + 'engagement_status',
-                                         self._fact('engagement_status', person_id, lambda m: m.level), RELIABLE),
-                self.create_subscription(Bool, base + 'anonymous', self._fact('anonymous', person_id), LATCHED),
-                self.create_subscription(String, base + 'alias', self._fact('alias', person_id), LATCHED),
-                self.create_subscription(Float32, base + 'location_confidence',
-                                         self._fact('location_confidence', person_id), RELIABLE)]
+                self._subscribe(EngagementLevel, base + 'engagement_status',
+                                self._fact('engagement_status', person_id, lambda m: m.level), RELIABLE),
+                self._subscribe(Bool, base + 'anonymous', self._fact('anonymous', person_id), LATCHED),
+                self._subscribe(String, base + 'alias', self._fact('alias', person_id), LATCHED),
+                self._subscribe(Float32, base + 'location_confidence', self._fact('location_confidence', person_id),
+                                RELIABLE)]
 
     def _fact(self, field: str, person_id: str, value=lambda m: m.data):
         return lambda msg: self.core.on_person(field, person_id, value(msg))
@@ -205,6 +219,8 @@ class HriBridge(Node):
         per-person topics of ids not tracked (their messages are then diagnosed)."""
         found = {m.group(1) for name, _ in self.get_topic_names_and_types() if (m := PERSON_TOPIC.match(name))}
         self._follow_people(set(self.core.people.tracked) | found)
+        for _, problem in self.qos_watch.new_mismatches():
+            self.core.report('qos', problem)
         period, totals = self.core.problems.take_period()
         built = self.core.last_scene
         values = {'served': self.core.served.describe(), 'tracked': len(self.core.people.tracked),

@@ -56,6 +56,7 @@ from stars_ros.errors import CheckpointError, ConfigError
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.markers import MarkerOutput
+from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 from stars_ros.ros.typed_interface import TypedInterface
 
@@ -111,13 +112,20 @@ class RankerParts:
                                       durability=durability[latched])
                     for topic, (depth, latched) in topic_qos(self.params).items()}
         sharing = self.params['fleet_sharing']
+        # no default QoS event handlers: each would join every executor turn's wait set; QosWatch checks instead
         self.publishers_by_topic = {
             topic: self.create_publisher(String, topic, self.qos[topic], event_callbacks=(
-                PublisherEventCallbacks(matched=self._on_model_subscriber)  # re-sends every user to a newcomer
-                if sharing and topic == 'stars/user_model' else None))
+                PublisherEventCallbacks(matched=self._on_model_subscriber,  # re-sends every user to a newcomer
+                                        use_default_callbacks=False)
+                if sharing and topic == 'stars/user_model' else NO_PUBLISHER_EVENTS))
             for topic in ('stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model')}
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        markers_pub = self.create_publisher(MarkerArray, 'stars/markers', self.qos['stars/markers'])
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10,
+                                                     event_callbacks=NO_PUBLISHER_EVENTS)
+        markers_pub = self.create_publisher(MarkerArray, 'stars/markers', self.qos['stars/markers'],
+                                            event_callbacks=NO_PUBLISHER_EVENTS)
+        self.qos_watch = QosWatch(self)
+        for publisher in [*self.publishers_by_topic.values(), self.diagnostics_pub, markers_pub]:
+            self.qos_watch.watch(publisher, publishes=True)
         type_hash = next((str(i.topic_type_hash) for i in self.get_publishers_info_by_topic(markers_pub.topic_name)), '')
         self._configured = [*self.publishers_by_topic.values(), self.diagnostics_pub, markers_pub]
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
@@ -134,19 +142,24 @@ class RankerParts:
                      'stars/feedback': self._on_feedback, 'stars/question_request': self._on_question_request}
         if self.params['fleet_sharing']:
             callbacks['stars/user_model'] = self._on_user_model
-        subscriptions = {topic: self.create_subscription(String, topic, callback, self.qos[topic])
+        subscriptions = {topic: self.create_subscription(String, topic, callback, self.qos[topic],
+                                                         event_callbacks=NO_SUBSCRIPTION_EVENTS)
                          for topic, callback in callbacks.items()}
+        for subscription in subscriptions.values():
+            self.qos_watch.watch(subscription, publishes=False)
         self._scene_subscription = subscriptions['stars/scene']
         self._more_work = self.create_guard_condition(self._work)
         self._serving = [*subscriptions.values(), self._more_work,
                          self.create_service(Trigger, '~/reload', self._on_reload),
                          self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics),
-                         *TypedInterface(self, self.core, self.params, self._more_work.trigger).entities]
+                         *TypedInterface(self, self.core, self.params, self._more_work.trigger,
+                                         self.qos_watch).entities]
 
     def _deactivate(self):
         """Stop serving: every subscription, service, timer and guard condition of ``_activate`` goes."""
         destroy = {Subscription: self.destroy_subscription, Service: self.destroy_service, Timer: self.destroy_timer,
                    GuardCondition: self.destroy_guard_condition}
+        self.qos_watch.forget([entity for entity in self._serving if isinstance(entity, Subscription)])
         for entity in self._serving:
             destroy[type(entity)](entity)
         self._serving = ()
@@ -170,6 +183,8 @@ class RankerParts:
                 raise  # are logged and recorded; a model whose write the close committed is in the store)
 
     def _publish_diagnostics(self):
+        for topic, problem in self.qos_watch.new_mismatches():
+            self.core.report('qos', problem, topic)
         level, summary, values, kinds = self.core.diagnostics()
         name = self.get_fully_qualified_name()
         statuses = [DiagnosticStatus(level=LEVELS[level], name=f'{name}: ranker', message=summary, hardware_id=name,

@@ -18,6 +18,7 @@ from stars_ros_msgs import msg as typed
 from stars_ros_msgs.srv import ChooseQuestion, RankActions, RankCandidates
 
 from stars_ros import messages, typed_messages
+from stars_ros.ros.qos_watch import NO_SUBSCRIPTION_EVENTS, QosWatch
 
 FEEDBACK_TOPIC = 'stars/typed/feedback'
 # seconds: how late the recording and markers of answered calls may come. Doing them right
@@ -32,14 +33,15 @@ class TypedInterface:
     ``core`` (``RankerCore``); ``more_work()`` brings the node's work loop back (a fold-in
     waits). ``entities`` lists what it created, for a managed node to destroy on deactivate."""
 
-    def __init__(self, node, core, params: dict, more_work):
+    def __init__(self, node, core, params: dict, more_work, qos_watch: QosWatch):
         self.node, self.core, self.params, self.more_work = node, core, params, more_work
         callbacks = {'rank_actions': self._on_rank_actions, 'rank_candidates': self._on_rank_candidates,
                      'choose_question': self._on_choose_question}
         self.entities = [node.create_service(kind, f'~/{name}', callbacks[name]) for name, kind in SERVICES.items()]
         self.entities.append(node.create_subscription(
             typed.Feedback, FEEDBACK_TOPIC, self._on_feedback,
-            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)))
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE), event_callbacks=NO_SUBSCRIPTION_EVENTS))
+        qos_watch.watch(self.entities[-1], publishes=False)
         self.entities.append(node.create_timer(AFTER_REPLY_PERIOD, self._after_replies))
         self._names = {name: node.resolve_service_name(f'~/{name}') for name in SERVICES}
         self._feedback_topic = node.resolve_topic_name(FEEDBACK_TOPIC)

@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 import yaml
 
-from std_msgs.msg import String
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Int32, String
 
 from mutations import mutate
 from ros_helpers import RosClient, domain_id, stored_feedback, ros_env, running_ranker, start_node, stop
@@ -213,6 +214,28 @@ def test_bad_input_is_reported_on_both_topics_and_serving_goes_on(ranker, scenes
     summary = [s for d in client.diagnostics for s in d.status if s.name.endswith(': ranker')][-1]
     values = {v.key: v.value for v in summary.values}
     assert int(values['errors.malformed_json']) >= 1 and values['fingerprint']
+    assert process.poll() is None
+
+
+def test_endpoints_that_can_never_match_are_reported_once_and_the_node_serves_on(ranker, scenes):
+    """The ranker keeps no QoS event handlers of its own (qos_watch): it finds a subscriber
+    that wants what stars/ranking does not offer, and a publisher of another type on
+    stars/question_request, by asking the graph each diagnostics period."""
+    process, client = ranker
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    client.node.create_subscription(String, '/stars/ranking', lambda _: None, latched)  # stars/ranking is volatile
+    client.node.create_publisher(Int32, '/stars/question_request', 10)
+    problems = lambda: [e for e in client.snapshot(client.errors) if e['kind'] == 'qos']  # noqa: E731
+    assert client.wait(lambda: len(problems()) >= 2, 20)
+    by_topic = {e['topic']: e for e in problems()}
+    assert 'transient local' in by_topic['/stars/ranking']['message'].lower()
+    assert 'std_msgs/msg/Int32' in by_topic['/stars/question_request']['message']
+    assert all(e['level'] == 'warning' for e in problems())
+    client.diagnostics.clear()
+    assert client.wait(lambda: len(client.snapshot(client.diagnostics)) >= 3, 20)  # three more periods
+    assert len(problems()) == 2  # each reported once
+    client.scene({'scene_id': 'after-qos', 'graph': scenes[0]})
+    assert client.wait(lambda: client.ranking_for('after-qos') is not None, 20)
     assert process.poll() is None
 
 
