@@ -124,8 +124,10 @@ class Served:
 
 def alternating(served: dict, scenes, count: int, blocks: int) -> tuple:
     """Round trips (ms) per node of ``count`` calls each, in ``blocks`` alternating blocks,
-    the calls that got no answer in 10 s, and each block's median."""
+    the calls that got no answer in 10 s, each block's median, and the ranker's own account
+    of each call's work (the ranking's ``processing_time``, ms)."""
     times = {name: [] for name in served}
+    processing = []
     medians = {name: [] for name in served}
     timeouts = {name: 0 for name in served}
     names = list(served)
@@ -138,9 +140,11 @@ def alternating(served: dict, scenes, count: int, blocks: int) -> tuple:
                     timeouts[name] += 1
                 else:
                     measured.append(seconds * 1e3)
+                    if name == 'ranker':
+                        processing.append(response.ranking.processing_time * 1e3)
             times[name] += measured
             medians[name].append(float(np.median(measured)) if measured else float('nan'))
-    return times, timeouts, medians
+    return times, timeouts, medians, processing
 
 
 def main(argv=None) -> int:
@@ -167,7 +171,7 @@ def main(argv=None) -> int:
             for offset, (name, command) in enumerate(commands.items()):
                 env = dict(base_env, ROS_DOMAIN_ID=str(domain + offset))
                 served[name] = Served(name, command, env, scenes, Path(records) / f'{name}.log')
-            times, timeouts, medians = alternating(served, scenes, args.count, args.blocks)
+            times, timeouts, medians, processing = alternating(served, scenes, args.count, args.blocks)
         finally:
             for node in served.values():
                 node.stop()
@@ -176,6 +180,8 @@ def main(argv=None) -> int:
                                         'max': float(np.max(times[name])), 'count': len(times[name]),
                                         'timeouts': timeouts[name]},
                       'block_p50_ms': medians[name]} for name in served}
+    results['ranker']['processing_ms'] = {'p50': float(np.percentile(processing, 50)),
+                                          'p99': float(np.percentile(processing, 99))}
     results['ratio'] = {'p50': results['ranker']['round_trip_ms']['p50'] / results['echo']['round_trip_ms']['p50'],
                         'p99': results['ranker']['round_trip_ms']['p99'] / results['echo']['round_trip_ms']['p99'],
                         'p50_per_block': [r / e for r, e in zip(medians['ranker'], medians['echo'])]}
@@ -185,6 +191,8 @@ def main(argv=None) -> int:
         trip = results[name]['round_trip_ms']
         print(f"{name:6s} round trip p50 {trip['p50']:.2f} ms  p99 {trip['p99']:.2f} ms  max {trip['max']:.2f} ms  "
               f"({trip['count']} calls, {trip['timeouts']} unanswered)")
+    print(f"ranker's own processing_time (from the service callback's start to the reply built) p50 "
+          f"{results['ranker']['processing_ms']['p50']:.2f} ms")
     ratio = results['ratio']
     print(f"ratio ranker/echo: p50 {ratio['p50']:.2f}, p99 {ratio['p99']:.2f}; p50 per block "
           + ' '.join(f'{r:.2f}' for r in ratio['p50_per_block']))
