@@ -155,8 +155,8 @@ class Design:
                 gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance) ** 2)
                          for e in remaining]
             elif strategy == 'decision':
-                gains = self.uncertainty.log_decision_value([(blocks[e][0], blocks[e][3]) for e in remaining], decisions,
-                                                        theta, covariance)
+                gains = self.uncertainty.log_decision_value([(blocks[e][0], blocks[e][3]) for e in remaining],
+                                                            decisions, theta, covariance)
             else:
                 gains = self.uncertainty.variance_reduction([(blocks[e][0], blocks[e][3]) for e in remaining], targets,
                                                             covariance)

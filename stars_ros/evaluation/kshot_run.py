@@ -113,8 +113,9 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
     examples = data.examples
     orders = {(name, strategy): [design.reveal_order(person, strategy, max(settings.ks))]
               for name, person in people.items() for strategy in settings.strategies if strategy != 'random'}
-    orders.update({(name, 'random'): random_orders(person, name, settings.random_orders, seed)
-                   for name, person in people.items()})
+    if 'random' in settings.strategies:
+        orders.update({(name, 'random'): random_orders(person, name, settings.random_orders, seed)
+                       for name, person in people.items()})
     methods = [f'fold-in ({s})' for s in settings.strategies]
     ridge = f'ridge λ={settings.ridge_lambda:g} ({settings.strategies[0]})'
     records, calibration = [], {'new': {}, 'known': None}
@@ -140,7 +141,8 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
                         samples['y'].append(data.scores[person.test])
                         samples['mean'].append(mean)
                         samples['sd'].append(sd)
-                        ridge_theta = design.posterior(answered, regularisation=settings.ridge_lambda)[0] if k else theta
+                        ridge_theta = (design.posterior(answered, regularisation=settings.ridge_lambda)[0] if k
+                                       else theta)
                         predictions[ridge][0][person.test] = design.predict(person.test, ridge_theta)
         for method, values in predictions.items():
             reports = [report(data, rows, v[rows], examples) for v in values]
@@ -303,17 +305,18 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
                'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()}, 'goals': checks}
     (folder / 'results.json').write_text(json.dumps(payload, indent=1))
     partitions = '; '.join(f'seed {seed}: {folds}' for seed, folds in result['folds'].items())
+    random_note = (f" Random questions: each fold's metrics averaged over {header['random_orders']} seeded orders "
+                   'of each pool.' if header.get('random_orders', 1) > 1 else '')
+    regret_note = (" First-choice regret: per test example (a person's ratings of one scene, every action), the "
+                   'best true score less the true score of the action predicted best, averaged.'
+                   if RANKING in metrics else '')
     covered = {k: sorted({(r['seed'], name) for r in result['records'] if r['k'] == k for name in r['covered']})
                for k in ks}
     lines = ['# k-shot personalisation of new people', '', f"`{header['command']}`", '',
              f"{len({(r['seed'], r['fold']) for r in result['records']})} folds of held-out people ({partitions}); "
              f"pools of up to {header['pool']} examples per person; {len(result['left_out'])} people left out for "
              f"having a single example; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "
-             'Mean ± sd over folds.'
-             + (f" Random questions: each fold's metrics averaged over {header['random_orders']} seeded orders of "
-                'each pool.' if header.get('random_orders', 1) > 1 else '') + (' First-choice regret: per test example (a person\'s ratings of one scene, '
-                                        'every action), the best true score less the true score of the action '
-                                        'predicted best, averaged.' if RANKING in metrics else ''), '',
+             'Mean ± sd over folds.' + random_note + regret_note, '',
              '| k | people covered | method | ' + ' | '.join(NAMES[m] for m in metrics) + ' |',
              '| --- | --- | --- |' + ' --- |' * len(metrics)]
     for k in ks:
@@ -342,7 +345,8 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
         for strategy, held in checks['questions'].items():
             reached = held['to_match_random_at_10']
             mark = " (the node's)" if strategy == NODE_STRATEGY else ''
-            lines.append(f"- {strategy} questions{mark} needed to reach random's MSE at k = 10: {reached if reached is not None else 'not reached'} "
+            lines.append(f"- {strategy} questions{mark} needed to reach random's MSE at k = 10: "
+                         f"{reached if reached is not None else 'not reached'} "
                          f"(goal ≤ 5: {'met' if reached is not None and reached <= 5 else 'NOT met'}); never behind "
                          f"random: {'met' if held['never_behind_random'] else 'NOT met'}")
         worst = max((abs(100 * cells[l] - 100 * float(l)) for _, _, cells in rows for l in levels), default=0.0)

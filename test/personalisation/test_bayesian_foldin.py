@@ -264,7 +264,7 @@ def test_the_decision_value_is_the_expected_gain_of_re_choosing_by_hand():
     along, far = (np.array([[1.0, 0.0]]), np.zeros(1, dtype=int)), (np.array([[0.0, 0.0]]), np.zeros(1, dtype=int))
     values = uncertainty.log_decision_value([along, far], [decision], mean, covariance)
     # by hand: the gap's row g = 2·(1, −1), its mean 0.6; asking x = e₀: X Σ g = 8, innovation 4 + 0.5,
-    # s² = 64 / 4.5; the gain s·ψ(0.6 / s), ψ(z) = φ(z) − z(1 − Φ(z)); a question that loads on nothing gains 0
+    # s² = 64 / 4.5; the gain s·ψ(0.6 / s), ψ(z) = φ(z) − z(1 − Φ(z)); a question loading on nothing gains 0
     s = np.sqrt(64 / 4.5)
     z = 0.6 / s
     assert np.exp(values) == pytest.approx([s * (stats.norm.pdf(z) - z * stats.norm.sf(z)), 0.0])
