@@ -1,6 +1,7 @@
 """The Bayesian fold-in's math by hand, its prior, its uncertainty and question criterion, and
 the prior's round trip through a checkpoint (on the generated data's tiny checkpoint)."""
 import logging
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -218,14 +219,16 @@ def test_score_sd_shrinks_with_feedback_and_is_the_hand_formula(predictor, synth
     assert after > floor
 
 
-def test_p_first_is_best_is_one_for_a_sure_gap_and_a_half_for_a_tie():
-    class Stub:
-        dim = 1
-        noise = np.array([0.1])
+def one_action_uncertainty(noise: float, std: float) -> Uncertainty:
+    """``Uncertainty`` over θ of dimension 2 for one action with z-noise ``noise`` and rating
+    scale ``std`` (mean 0), from a stand-in for the fold-in and its InferenceModel."""
+    foldin = SimpleNamespace(dim=1, noise=np.array([noise]),
+                             inference=SimpleNamespace(target_std=np.array([std]), target_mean=np.array([0.0])))
+    return Uncertainty(foldin)
 
-        class inference:  # noqa: N801 - stands in for InferenceModel
-            target_std, target_mean = np.array([1.0]), np.array([0.0])
-    uncertainty = Uncertainty(Stub())
+
+def test_p_first_is_best_is_one_for_a_sure_gap_and_a_half_for_a_tie():
+    uncertainty = one_action_uncertainty(noise=0.1, std=1.0)
     x = np.array([[1.0, 0.0], [0.0, 1.0]])
     actions = np.zeros(2, dtype=int)
     sure = uncertainty.p_first_is_best(x, np.array([0.0, 0.0]), actions, np.array([5.0, 0.0]), 0.01 * np.eye(2), 0)
@@ -235,13 +238,7 @@ def test_p_first_is_best_is_one_for_a_sure_gap_and_a_half_for_a_tie():
 
 
 def test_the_question_that_teaches_most_is_the_one_along_the_targets_uncertainty():
-    class Stub:
-        dim = 1
-        noise = np.array([0.5])
-
-        class inference:  # noqa: N801
-            target_std, target_mean = np.array([2.0]), np.array([0.0])
-    uncertainty = Uncertainty(Stub())
+    uncertainty = one_action_uncertainty(noise=0.5, std=2.0)
     covariance = np.diag([4.0, 0.25])
     targets = (np.array([[1.0, 0.0], [1.0, 0.0]]), np.zeros(2, dtype=int))  # both load on θ₀ only
     along, across = (np.array([[1.0, 0.0]]), np.zeros(1, dtype=int)), (np.array([[0.0, 1.0]]), np.zeros(1, dtype=int))
@@ -251,13 +248,7 @@ def test_the_question_that_teaches_most_is_the_one_along_the_targets_uncertainty
 
 
 def test_the_decision_value_is_the_expected_gain_of_re_choosing_by_hand():
-    class Stub:
-        dim = 1
-        noise = np.array([0.5])
-
-        class inference:  # noqa: N801
-            target_std, target_mean = np.array([2.0]), np.array([0.0])
-    uncertainty = Uncertainty(Stub())
+    uncertainty = one_action_uncertainty(noise=0.5, std=2.0)
     covariance, mean = np.diag([4.0, 0.25]), np.array([0.3, 0.0])
     # one decision of two entries: scores 2·θ₀ and 2·θ₁ (rating scale), now 0.6 against 0: the first leads
     decision = (np.array([[1.0, 0.0], [0.0, 1.0]]), np.zeros(2), np.zeros(2, dtype=int))
