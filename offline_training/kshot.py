@@ -49,7 +49,7 @@ import torch
 
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.kshot import STRATEGIES
-from stars_ros.evaluation.kshot_run import KShotSettings, retrained_ks, run, write_results
+from stars_ros.evaluation.kshot_run import SELECTABLE, KShotSettings, retrained_ks, run, write_results
 from stars_ros.model.config import ExperimentConfig
 
 from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, machine, read_inputs, setup_logging
@@ -79,6 +79,9 @@ def parse_args(argv=None):
                         help="share of the training people's examples held out for their calibration (default: %(default)s)")
     parser.add_argument('--random-orders', type=int, default=1,
                         help='seeded orders of each pool that random questions are averaged over (default: %(default)s)')
+    parser.add_argument('--select', action='append', default=[], metavar='SETTING=V1,V2',
+                        help='choose a training setting per fold among these values, inside the fold\'s training '
+                             f'people (repeatable; settings: {", ".join(SELECTABLE)}); default: the config\'s')
     parser.add_argument('--ridge-lambda', type=float, default=1.0,
                         help='λ of the ridge fold-in shown beside the posterior (default: %(default)s, the node\'s '
                              'former default)')
@@ -106,7 +109,23 @@ def configure(args) -> ExperimentConfig:
             or args.random_orders < 1:
         raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2, --known-test in [0, 1) and '
                          '--random-orders at least 1')
+    parse_select(args.select)  # refused here, before the data loads
     return config.replace(training=training)
+
+
+def parse_select(options: list) -> tuple:
+    """``--select`` options as KShotSettings.select: ((setting, (values...)), ...)."""
+    chosen = []
+    for option in options:
+        name, _, values = option.partition('=')
+        if name not in SELECTABLE or not values:
+            raise StarsError(f"--select takes SETTING=V1,V2 with a setting of {list(SELECTABLE)}, got '{option}'")
+        kind = int if name.endswith('epochs') else float
+        try:
+            chosen.append((name, tuple(kind(v) for v in values.split(','))))
+        except ValueError:
+            raise StarsError(f"--select {name}: the values must be {kind.__name__}s, got '{values}'") from None
+    return tuple(chosen)
 
 
 def main(argv=None) -> int:
@@ -126,13 +145,13 @@ def main(argv=None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     settings = KShotSettings(args.folds, tuple(args.seeds), args.pool, tuple(args.ks), tuple(args.strategies),
                              None if args.retrain_ks is None else tuple(args.retrain_ks), args.known_test,
-                             args.ridge_lambda, args.max_train_rows, args.random_orders)
+                             args.ridge_lambda, args.max_train_rows, args.random_orders, parse_select(args.select))
     started = time.perf_counter()
     header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
               'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,
-              'random_orders': args.random_orders,
+              'random_orders': args.random_orders, 'select': args.select,
               'retrain_ks': retrained_ks(settings),
               'executor': fits.settings, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),

@@ -5,6 +5,7 @@ pieces it is built from (folds, pools, the fold-in design) are ``evaluation.ksho
 """
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from dataclasses import dataclass
@@ -39,6 +40,22 @@ class KShotSettings:
     ridge_lambda: float
     max_train_rows: int | None = None
     random_orders: int = 1  # seeded orders of each pool the random strategy's metrics average over
+    select: tuple = ()  # ((training setting, (candidate values, ...)), ...) chosen per fold inside its training people
+
+
+SELECTABLE = ('lr', 'embedding_l2', 'weight_decay', 'pretrain_epochs', 'joint_epochs')  # training settings
+SELECTION_SHARE = 0.2  # of a fold's training examples, held out to choose its settings
+
+
+def setting_candidates(select: tuple) -> list:
+    """Every combination of ``select``'s values, as {setting: value}; [{}] when nothing is chosen."""
+    return [dict(zip([name for name, _ in select], values))
+            for values in itertools.product(*[values for _, values in select])]
+
+
+def with_settings(experiment: dict, chosen: dict) -> dict:
+    """``experiment`` (a config dict) with the training settings ``chosen``."""
+    return {**experiment, 'training': {**experiment['training'], **chosen}}
 
 
 def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, noise_rows=None, data=None) -> dict:
@@ -180,21 +197,22 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
     once: ``offline_training.common.FitExecutor``); ``on_fold(records, fits, folds, failed,
     left_out, calibration)`` after each fold, so that partial results survive a stop."""
     plan = plan_folds(settings, data)
-    experiment = config.to_dict()
     executor = fits.executor
-    submitted = {}
+    submitted, selection = {}, {}
 
     def submit(folds):  # the largest fits first, so that the last wave is short
         order = sorted(((fold, k) for fold in folds for k in retrained_ks(settings)), key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
+            experiment = with_settings(config.to_dict(), selection[fold[:2]]['chosen'])
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
                                                          k == 0, fold[7])
 
-    if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
-        submit(plan)
     records, timings, folds, failed, left_out = [], [], {}, [], {}
     pooled = {'new': {}, 'known': []}
     try:
+        selection.update(select_settings(settings, data, plan, config.to_dict(), executor, log))
+        if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
+            submit(plan)
         for fold in plan:
             seed, fold_id, held, train, people, skipped, known, _ = fold
             if fits.jobs == 1:
@@ -230,7 +248,39 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
     finally:
         executor.shutdown(cancel_futures=True)
     return {'records': records, 'fits': timings, 'folds': folds, 'failed': failed, 'left_out': left_out,
-            'calibration': calibration_table(pooled)}
+            'calibration': calibration_table(pooled),
+            'selection': [{'seed': key[0], 'fold': key[1], **value} for key, value in selection.items()]}
+
+
+def select_settings(settings, data, plan: list, experiment: dict, executor, log=print) -> dict:
+    """{(seed, fold id): {'chosen': {setting: value}, 'validation_mse': {candidate: MSE}}}: per
+    fold, each candidate of ``settings.select`` fitted on the fold's training rows less a seeded
+    ``SELECTION_SHARE`` of their examples and scored on those (MSE on the rating scale), the
+    lowest chosen. Only the fold's training people are seen; a candidate whose fit fails
+    counts as infinite error."""
+    candidates = setting_candidates(settings.select)
+    if len(candidates) == 1:
+        return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}
+    pending = {}
+    for fold in plan:
+        inner, validation = known_split(data, fold[3], SELECTION_SHARE, fold[0] + 2)
+        for number, candidate in enumerate(candidates):
+            pending[fold[:2] + (number,)] = (executor.submit(fit_rows, with_settings(experiment, candidate), inner,
+                                                             validation, False), validation)
+    selection = {}
+    for fold in plan:
+        errors = {}
+        for number, candidate in enumerate(candidates):
+            future, validation = pending.pop(fold[:2] + (number,))
+            outcome = fit_outcome(future, f'seed {fold[0]} fold {fold[1]} selection {candidate}')
+            errors[json.dumps(candidate, sort_keys=True)] = (
+                float('inf') if isinstance(outcome, FitFailure) else
+                regression_report(data.scores[validation], outcome['predictions'], data.actions[validation])['mse'])
+        best = min(errors, key=errors.get)
+        selection[fold[:2]] = {'chosen': json.loads(best), 'validation_mse': errors}
+        log(f'seed {fold[0]} fold {fold[1]}: chose {best} on its training people '
+            f'(validation MSE {errors[best]:.4f})')
+    return selection
 
 
 def methods_of(entry: dict) -> list:
@@ -301,6 +351,7 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
     ks = sorted(summary.get('unpersonalised', {}))
     checks = goals(result['records'], summary, header['strategies'], ks) if summary else {}
     payload = {**header, 'folds': result['folds'], 'left_out': result['left_out'], 'records': result['records'],
+               'selection': result.get('selection', []),
                'fits': result['fits'], 'failed': result['failed'], 'calibration': result['calibration'],
                'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()}, 'goals': checks}
     (folder / 'results.json').write_text(json.dumps(payload, indent=1))
@@ -324,6 +375,12 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
             if k in summary[method]:
                 cells = [f'{s[0]:.4f} ± {s[1]:.4f}' for s in (summary[method][k][m] for m in metrics)]
                 lines.append(f'| {k} | {len(covered[k])} | {method} | ' + ' | '.join(cells) + ' |')
+    if any(entry['validation_mse'] for entry in result.get('selection', [])):
+        lines += ['', f'Training settings chosen per fold inside its training people (fitted on their examples less '
+                      f'a seeded {SELECTION_SHARE:.0%}, lowest MSE on those):', '']
+        lines += [f"- seed {e['seed']} fold {e['fold']}: {e['chosen']} (validation MSE "
+                  + ', '.join(f'{k} {v:.4f}' for k, v in e['validation_mse'].items()) + ')'
+                  for e in result['selection']]
     calibration = result['calibration']
     levels = [str(level) for level in LEVELS]
     lines += ['', f"Calibration: share of held-out ratings inside the central predictive intervals "

@@ -115,6 +115,34 @@ def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(syntheti
     assert 'at or below unpersonalised MSE in every fold at every k ≥ 1' in capsys.readouterr().out
 
 
+def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root, synthetic, tmp_path, monkeypatch):
+    seen = []
+    original = kshot_run.fit_rows
+
+    def fit_rows(experiment, train, test, keep, noise_rows=None, data=None):
+        seen.append((experiment['training']['joint_epochs'], np.asarray(train), np.asarray(test), keep))
+        return original(experiment, train, test, keep, noise_rows, data)
+    monkeypatch.setattr(kshot_run, 'fit_rows', fit_rows)
+    out = tmp_path / 'kshot'
+    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out', str(out),
+                       '--quick', '--retrain-ks', '0', '--select', 'joint_epochs=1,3']) == 0
+    results = json.loads((out / 'results.json').read_text())
+    held_out = [set(people) for people in results['folds']['0']]
+    assert len(results['selection']) == 2
+    for entry, people in zip(results['selection'], held_out):
+        errors = entry['validation_mse']
+        assert set(errors) == {'{"joint_epochs": 1}', '{"joint_epochs": 3}'}
+        assert entry['chosen'] == json.loads(min(errors, key=errors.get))
+    selection_fits = [fit for fit in seen if not fit[3]]  # with --retrain-ks 0 the only fits not kept
+    assert len(selection_fits) == 4  # two candidates, two folds
+    for people in held_out:  # each fold's two candidates saw none of its held-out people, in either part
+        assert sum(set(synthetic.users[np.concatenate([train, validation])].tolist()).isdisjoint(people)
+                   for _, train, validation, _ in selection_fits) == 2
+    finals = [fit for fit in seen if fit[3]]
+    assert sorted(fit[0] for fit in finals) == sorted(e['chosen']['joint_epochs'] for e in results['selection'])
+    assert 'chosen per fold inside its training people' in (out / 'results.md').read_text()
+
+
 @pytest.mark.slow
 def test_fits_in_worker_processes_give_what_inline_fits_give(synthetic_root, tmp_path):
     """Two seeds' folds with their fits in 2 worker processes, then all inline: same records."""
