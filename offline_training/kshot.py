@@ -1,4 +1,4 @@
-"""k-shot personalisation of new people: unpersonalised vs Bayesian fold-in (three ways of
+"""k-shot personalisation of new people: unpersonalised vs Bayesian fold-in (four ways of
 choosing the questions) vs full retraining, with the calibration of the predictive intervals.
 
     python -m offline_training.kshot --config config/socnav1_gat.yaml \
@@ -8,7 +8,9 @@ Leave-people-out folds (people shuffled with each of ``--seeds`` and dealt into 
 groups). Per fold a model is trained on the other people's examples, less a seeded
 ``--known-test`` share of them: half of it gives the personalisation prior its noise
 variance (``estimate_prior``'s held-out rows), the other half checks the known people's
-calibration. For every held-out
+calibration. With ``--select SETTING=V1,V2`` (repeatable) the fold's training settings are
+chosen first, inside its training people: each combination is fitted on their examples less a
+seeded 20 % and scored on those, and the lowest MSE is the fold's (recorded per fold). For every held-out
 person ``stars_ros.evaluation.kshot`` sets aside a seeded pool of ``--pool`` examples (one
 person's ratings of one scene, every action; fewer for a person with fewer examples, who then
 covers only the k it allows, and a person with one example is left out and counted); their
