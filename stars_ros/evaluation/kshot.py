@@ -14,7 +14,8 @@ posterior after the answers so far:
 - ``random``: the pool's seeded order, and with ``random_orders`` > 1 as many seeded
   permutations of it (``random_orders``), whose metrics are averaged: one draw of which
   scenes a person happens to rate first is a noisy estimate of what unprompted feedback gives;
-- ``uncertainty``: the example whose ratings have the largest summed predictive variance;
+- ``uncertainty``: the example whose ratings have the largest summed predictive variance (the
+  node's criterion);
 - ``active``: the example whose answer most reduces the summed predictive variance over the
   whole pool (``Uncertainty.variance_reduction``: the A-optimal criterion);
 - ``decision``: the example whose answer is expected to improve the choices made on the pool
@@ -38,7 +39,7 @@ from stars_ros.personalisation.prior import encode_all, rows_design
 from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
 
 STRATEGIES = ('random', 'uncertainty', 'active', 'decision')
-NODE_STRATEGY = 'active'  # the criterion the node's stars/question_request uses (node.questions)
+NODE_STRATEGY = 'uncertainty'  # the criterion the node's stars/question_request uses (node.questions)
 LEVELS = (0.5, 0.8, 0.9, 0.95)  # central predictive intervals whose coverage is measured
 
 

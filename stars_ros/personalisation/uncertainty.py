@@ -17,14 +17,14 @@ for a person the checkpoint knows, else the population prior). So
   person would rate on average). For more than two entries it has no closed form, so it is
   estimated from ``SAMPLES`` draws of θ with one fixed set of standard normals, drawn once:
   the same model and scene always give the same figure.
-- **question choice**: asking the person to rate candidate (scene, action) rows X_c reduces
-  the summed predictive variance over a target set T (rating scale) by
+- **expected variance reduction** (``variance_reduction``): asking the person to rate
+  candidate (scene, action) rows X_c reduces the summed predictive variance over a target set
+  T (rating scale) by
       Σ_t σ_t² k_tᵀ (X_c Σ X_cᵀ + D_c)⁻¹ k_t,   k_t = X_c Σ x_t,
-  whatever they answer (a Gaussian posterior's covariance does not depend on y). This is the
-  A-optimal (expected-variance) criterion of transductive experimental design. It is chosen
-  over information gain on θ (D-optimal) because the robot needs better predictions on the
-  scenes it will meet, not a better θ: directions of θ those scenes never load on would pull
-  a D-optimal question towards them for nothing.
+  whatever they answer (a Gaussian posterior's covariance does not depend on y): the
+  A-optimal criterion of transductive experimental design. The node reports it for the
+  question it asks; it asks the one of largest predictive variance (``node.questions``),
+  which did better on held-out people.
 - **decision value** (``log_decision_value``): what the robot is asked is to choose, not to
   predict. Each decision is a set of entries ranked together (one scene's actions, or
   candidate scenes under one action); its incumbent is the entry ranked first now. For each

@@ -65,17 +65,20 @@ def test_a_question_request_picks_the_candidate_the_criterion_ranks_first(tiny_c
     answer, = node.on('stars/question')
     messages.check('question', answer)
     assert answer['user_id'] == 'newcomer' and answer['action'] == 'navigate' and answer['candidates'] == 6
-    # the criterion by hand over the same rows: targets = the six candidates
+    # the criterion by hand over the same rows: the largest predictive variance; its expected
+    # variance reduction over the targets (the six candidates)
     personalisation = core.personalisation
     predictor, uncertainty = personalisation.predictor, personalisation.uncertainty
     h = predictor.encode(synthetic_scenes[50:56]).astype(np.float64)
     x, _ = predictor.inference.linear_form(h, np.full(6, -1), np.zeros(6, dtype=np.int64))
     covariance = uncertainty.covariance('newcomer')
-    weight = predictor.inference.target_std[0] ** 2
-    gains = [weight * np.sum((x @ covariance @ x[k]) ** 2) / (x[k] @ covariance @ x[k] + uncertainty.foldin.noise[0])
-             for k in range(6)]
-    assert answer['scene_id'] == f'ask-{int(np.argmax(gains))}'
-    assert answer['expected_variance_reduction'] == pytest.approx(max(gains))
+    weight, noise = predictor.inference.target_std[0] ** 2, uncertainty.foldin.noise[0]
+    variances = [weight * (x[k] @ covariance @ x[k] + noise) for k in range(6)]
+    best = int(np.argmax(variances))
+    assert answer['scene_id'] == f'ask-{best}'
+    assert answer['score_sd'] == pytest.approx(np.sqrt(variances[best]))
+    gain = weight * np.sum((x @ covariance @ x[best]) ** 2) / (x[best] @ covariance @ x[best] + noise)
+    assert answer['expected_variance_reduction'] == pytest.approx(gain)
     # the answer, given as feedback, is folded in: the asked scene was remembered
     _feedback(core, 'newcomer', answer['scene_id'], 0.9)
     assert core.predictor.personalised_from('newcomer') == 1
