@@ -186,7 +186,11 @@ class TrainConfig(Section):
     """Two-step training: ``pretrain_epochs`` (T1) of encoder + temporary head, then
     ``joint_epochs`` (T2) of the whole model. AdamW defaults are the published ones.
     ``embedding_l2`` weighs the L2 penalty on the user and scene rows of each batch during
-    joint training (0 leaves only AdamW's weight decay). ``device`` is where ``fit`` trains
+    joint training (0 leaves only AdamW's weight decay). ``average_last`` > 0: the fitted
+    weights are the mean of the weights after each of the last ``average_last`` joint epochs
+    (all of them when there are fewer): stochastic weight averaging (Izmailov et al. 2018),
+    one model served at the same cost that averages along its trajectory instead of keeping
+    its last point; 0 keeps the last point. ``device`` is where ``fit`` trains
     ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
     fold-in and serving never see a GPU tensor."""
 
@@ -197,6 +201,7 @@ class TrainConfig(Section):
     weight_decay: Annotated[Float, Field(ge=0.0)] = 1e-5
     grad_clip: Annotated[Float, Field(gt=0.0)] = 1.0
     embedding_l2: Annotated[Float, Field(ge=0.0)] = 0.0
+    average_last: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
     device: str = 'cpu'

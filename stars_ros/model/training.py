@@ -156,7 +156,7 @@ class StarsTrainer(FittedModel):
             if model.personalised:
                 model.start_from_head(head)
         self._run_epochs('joint', cfg.joint_epochs, data, examples, model, self.trainable_parameters(), rng,
-                         cfg.embedding_l2, on_epoch)
+                         cfg.embedding_l2, on_epoch, average_last=cfg.average_last)
         model.cpu()
         model.eval()
         return self
@@ -200,17 +200,29 @@ class StarsTrainer(FittedModel):
         return TrainingSet(self.user_index(data.users[rows[first]]), self.scene_index([items[s] for s in scenes]),
                            torch.from_numpy(scenes), targets, rated)
 
-    def _run_epochs(self, stage, epochs, data, examples, score, parameters, rng, l2, on_epoch=None) -> list:
+    def _run_epochs(self, stage, epochs, data, examples, score, parameters, rng, l2, on_epoch=None,
+                    average_last: int = 0) -> list:
+        """``epochs`` epochs of ``stage``; with ``average_last``, ``parameters`` end as the mean of
+        their values after each of the last ``average_last`` epochs (``TrainConfig``)."""
         cfg = self.config.training
         optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
-        losses = []
+        losses, sums, averaged = [], [torch.zeros_like(p, dtype=torch.float64) for p in parameters], 0
         for epoch in range(epochs):
             loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2)
             losses.append(loss)
             self.history[stage].append(loss)
             log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
+            if epoch >= epochs - average_last:
+                with torch.no_grad():
+                    for total, parameter in zip(sums, parameters):
+                        total += parameter
+                averaged += 1
             if on_epoch is not None:
                 on_epoch(stage, epoch + 1)
+        if averaged:
+            with torch.no_grad():
+                for total, parameter in zip(sums, parameters):
+                    parameter.copy_(total / averaged)
         return losses
 
     def _set_statistics(self, data, rows, train_scenes):

@@ -104,6 +104,37 @@ def test_training_is_deterministic(synthetic, rows):
     assert np.array_equal(first, second)
 
 
+def test_weight_averaging_is_the_mean_of_the_last_joint_epochs_and_off_is_todays_fit(synthetic, rows):
+    train, test = rows
+    config = ExperimentConfig.from_dict(SMALL)
+    trainer = StarsTrainer(config.replace(training={'average_last': 0}))
+    snapshots = []
+
+    def keep(stage, epoch):
+        if stage == 'joint':
+            snapshots.append([p.detach().clone() for p in trainer.trainable_parameters()])
+    trainer.fit(synthetic, train[:800], on_epoch=keep)
+    assert np.array_equal(trainer.predict_rows(synthetic, test),  # switched off: the fit of before
+                          StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test))
+    averaging = StarsTrainer(config.replace(training={'average_last': 3}))
+    averaging.fit(synthetic, train[:800])
+    for k, parameter in enumerate(averaging.trainable_parameters()):  # the same trajectory, its last 3 points
+        by_hand = torch.stack([snapshot[k].double() for snapshot in snapshots[-3:]]).mean(0)
+        assert torch.allclose(parameter.double(), by_hand, atol=1e-6)
+    assert not np.array_equal(averaging.predict_rows(synthetic, test), trainer.predict_rows(synthetic, test))
+
+
+def test_weight_averaging_never_reads_a_test_row(synthetic, rows):
+    train, test = rows
+    config = ExperimentConfig.from_dict(SMALL).replace(training={'average_last': 3})
+    low, high = synthetic.scale
+    turned = dataclasses.replace(synthetic, scores=synthetic.scores.copy())
+    turned.scores[test] = high + low - turned.scores[test]  # every test score turned over
+    first = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
+    second = StarsTrainer(config).fit(turned, train[:800]).predict_rows(turned, test)
+    assert np.array_equal(first, second)
+
+
 def test_vocabularies_come_from_training_rows_only(synthetic, rows):
     train, _ = rows
     recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(
