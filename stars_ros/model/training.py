@@ -206,7 +206,8 @@ class StarsTrainer(FittedModel):
         their values after each of the last ``average_last`` epochs (``TrainConfig``)."""
         cfg = self.config.training
         optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
-        losses, sums, averaged = [], [torch.zeros_like(p, dtype=torch.float64) for p in parameters], 0
+        losses, averaged = [], 0
+        sums = [torch.zeros_like(p, dtype=torch.float64) for p in parameters] if average_last else []
         for epoch in range(epochs):
             loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2)
             losses.append(loss)

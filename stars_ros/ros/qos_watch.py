@@ -3,8 +3,8 @@ event handlers.
 
 rclpy gives every publisher and subscription two default event handlers (incompatible QoS,
 incompatible type) unless told otherwise. Each is a waitable that every executor turn adds to
-its wait set and checks again: on the ranker, with its dozen endpoints, they were the largest
-cost of the executor's own work per service call (docs/performance.md). The ranker creates
+its wait set and checks again: in a profile of the ranker, with its dozen endpoints, they were
+the largest part of the executor's own work per service call (docs/performance.md). The ranker creates
 its endpoints with ``NO_PUBLISHER_EVENTS`` / ``NO_SUBSCRIPTION_EVENTS`` and ``QosWatch``
 checks instead, once per diagnostics period, every endpoint on the other side of each of its
 topics: a publisher or subscriber whose QoS can never match, or whose type differs, is
@@ -43,7 +43,7 @@ class QosWatch:
     def __init__(self, node):
         self.node = node
         self.endpoints: list[Endpoint] = []
-        self._reported = set()  # (own topic, side, the other endpoint's gid)
+        self._checked = set()  # (own topic, side, the other endpoint's gid)
 
     def watch(self, entity, publishes: bool) -> None:
         """Check ``entity`` (a publisher or subscription of the node)."""
@@ -55,24 +55,27 @@ class QosWatch:
         self.endpoints = [e for e in self.endpoints if (e.topic, e.type_name) not in gone]
 
     def new_mismatches(self) -> list[tuple[str, str]]:
-        """(topic, what is wrong) for each endpoint of another node that cannot talk with one
-        of this node's, not reported before."""
+        """(topic, what is wrong) for each endpoint of another node, new since the last call,
+        that cannot talk with one of this node's. An endpoint's QoS and type are fixed for its
+        life, so each is checked once: a period costs one graph query per own endpoint, and the
+        own endpoint's QoS is looked up only when something new has joined its topic."""
         found = []
         for own in self.endpoints:
+            others = [info for info in (self.node.get_subscriptions_info_by_topic(own.topic) if own.publishes
+                                        else self.node.get_publishers_info_by_topic(own.topic))
+                      if (own.topic, own.publishes, bytes(info.endpoint_gid)) not in self._checked
+                      and not self._is_mine(info)]
+            if not others:
+                continue
             mine = [info for info in (self.node.get_publishers_info_by_topic(own.topic) if own.publishes
                                       else self.node.get_subscriptions_info_by_topic(own.topic))
                     if self._is_mine(info) and info.topic_type == own.type_name]
-            if not mine:  # not in the graph yet
+            if not mine:  # not in the graph yet: the next period checks them
                 continue
-            others = (self.node.get_subscriptions_info_by_topic(own.topic) if own.publishes
-                      else self.node.get_publishers_info_by_topic(own.topic))
             for other in others:
-                key = (own.topic, own.publishes, bytes(other.endpoint_gid))
-                if key in self._reported or self._is_mine(other):
-                    continue
+                self._checked.add((own.topic, own.publishes, bytes(other.endpoint_gid)))
                 problem = self._problem(own, mine[0].qos_profile, other)
                 if problem is not None:
-                    self._reported.add(key)
                     found.append((own.topic, problem))
         return found
 
