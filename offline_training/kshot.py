@@ -19,8 +19,9 @@ covered people are scored:
 
 - ``unpersonalised``: the scene-only model (p_u = 0, b_u = 0);
 - ``fold-in (<strategy>)``: the node's default, the posterior (``FoldIn.posterior``) from the first k
-  answers the strategy asked for (``random``: the pool's seeded order, or the mean over
-  ``--random-orders`` seeded orders; ``uncertainty``: largest predictive variance; ``active``:
+  answers the strategy asked for (``random``: the mean over every set of k pool examples, the
+  exact expectation over a random draw, or over ``--random-sets`` seeded sets where there are
+  more than ``evaluation.kshot.EXACT_SETS``; ``uncertainty``: largest predictive variance; ``active``:
   the A-optimal expected variance reduction over the pool; ``decision``: the largest expected
   gain in the choices made on the pool, ``Uncertainty.log_decision_value``).
   k = 0 is the population prior's mean, what the node serves a stranger;
@@ -48,6 +49,7 @@ import time
 from pathlib import Path
 
 import torch
+from threadpoolctl import threadpool_limits
 
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.kshot import STRATEGIES
@@ -79,8 +81,9 @@ def parse_args(argv=None):
                         help='the ks at which the model is also retrained (default: every k; 0 is always fitted)')
     parser.add_argument('--known-test', type=float, default=0.2,
                         help="share of the training people's examples held out for their calibration (default: %(default)s)")
-    parser.add_argument('--random-orders', type=int, default=1,
-                        help='seeded orders of each pool that random questions are averaged over (default: %(default)s)')
+    parser.add_argument('--random-sets', type=int, default=64,
+                        help='seeded sets of k pool examples that random answers are averaged over where there are '
+                             'too many to take every one (default: %(default)s)')
     parser.add_argument('--select', action='append', default=[], metavar='SETTING=V1,V2',
                         help='choose a training setting per fold among these values, inside the fold\'s training '
                              f'people (repeatable; settings: {", ".join(SELECTABLE)}); default: the config\'s')
@@ -108,9 +111,9 @@ def configure(args) -> ExperimentConfig:
     if args.epochs:
         training.update(pretrain_epochs=args.epochs[0], joint_epochs=args.epochs[1])
     if min(args.ks) < 0 or max(args.ks) > args.pool or args.folds < 2 or not 0 <= args.known_test < 1 \
-            or args.random_orders < 1:
+            or args.random_sets < 1:
         raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2, --known-test in [0, 1) and '
-                         '--random-orders at least 1')
+                         '--random-sets at least 1')
     parse_select(args.select)  # refused here, before the data loads
     return config.replace(training=training)
 
@@ -134,6 +137,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging(args.verbose)
     torch.set_num_threads(1)
+    threadpool_limits(1, user_api='blas')  # the fold-ins' small solves: extra BLAS threads only wait for each other
     inputs = read_inputs(lambda: configure(args), args.data_root)
     if inputs is None:
         return 2
@@ -147,13 +151,13 @@ def main(argv=None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     settings = KShotSettings(args.folds, tuple(args.seeds), args.pool, tuple(args.ks), tuple(args.strategies),
                              None if args.retrain_ks is None else tuple(args.retrain_ks), args.known_test,
-                             args.ridge_lambda, args.max_train_rows, args.random_orders, parse_select(args.select))
+                             args.ridge_lambda, args.max_train_rows, args.random_sets, parse_select(args.select))
     started = time.perf_counter()
     header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
               'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,
-              'random_orders': args.random_orders, 'select': args.select,
+              'random_sets': args.random_sets, 'select': args.select,
               'retrain_ks': retrained_ks(settings),
               'executor': fits.settings, 'quick': args.quick,
               'max_train_rows': args.max_train_rows, 'machine': machine(),

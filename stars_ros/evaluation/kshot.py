@@ -11,9 +11,10 @@ one with fewer than ``pool + 1`` gets a smaller pool and covers only the k it al
 Strategies choose the next question from the person's unrevealed pool examples, given the
 posterior after the answers so far:
 
-- ``random``: the pool's seeded order, and with ``random_orders`` > 1 as many seeded
-  permutations of it (``random_orders``), whose metrics are averaged: one draw of which
-  scenes a person happens to rate first is a noisy estimate of what unprompted feedback gives;
+- ``random``: k pool examples drawn at random, what unprompted feedback gives; its metrics are
+  the mean over ``random_sets``: every set of k pool examples where there are at most
+  ``EXACT_SETS`` of them (the exact expectation over the draw), else that many seeded sets
+  (a few seeded orders are too noisy an estimate to tell a small gain from a loss);
 - ``uncertainty``: the example whose ratings have the largest summed predictive variance (the
   node's criterion);
 - ``active``: the example whose answer most reduces the summed predictive variance over the
@@ -26,6 +27,7 @@ Neither looks at a test row or at an answer before it is given.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import zlib
 from dataclasses import dataclass
@@ -43,11 +45,19 @@ NODE_STRATEGY = 'uncertainty'  # the criterion the node's stars/question_request
 LEVELS = (0.5, 0.8, 0.9, 0.95)  # central predictive intervals whose coverage is measured
 
 
-def random_orders(person: 'Person', name: str, count: int, seed: int) -> list:
-    """``count`` orders of ``person``'s pool: the pool's own (the first), then seeded permutations."""
+EXACT_SETS = 1140  # the most sets of k pool examples enumerated whole (every 3 of 20)
+
+
+def random_sets(person: 'Person', name: str, k: int, count: int, seed: int) -> list:
+    """The sets of k of ``person``'s pool examples whose mean stands for a random draw:
+    every one when there are at most ``EXACT_SETS`` (the first is the pool's first k), else
+    the pool's first k and ``count`` − 1 seeded draws."""
     size = len(person.pool)
-    rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
-    return [list(range(size))] + [[int(e) for e in rng.permutation(size)] for _ in range(count - 1)]
+    k = min(k, size)
+    if math.comb(size, k) <= EXACT_SETS:
+        return [list(chosen) for chosen in itertools.combinations(range(size), k)]
+    rng = np.random.default_rng([seed, k, zlib.crc32(name.encode())])
+    return [list(range(k))] + [sorted(int(e) for e in rng.choice(size, k, replace=False)) for _ in range(count - 1)]
 
 
 def annotator_folds(users: np.ndarray, k: int, seed: int) -> list:
@@ -132,9 +142,24 @@ class Design:
         z = c if theta is None else x @ theta + c
         return self.fitted.clip(self.inference.to_rating_scale(z, actions))
 
+    def predict_design(self, design: tuple, theta: np.ndarray) -> np.ndarray:
+        """``predict`` of rows whose ``rows(...)`` is ``design`` (computed once, for many θ)."""
+        x, c, _, actions = design
+        return self.fitted.clip(self.inference.to_rating_scale(x @ theta + c, actions))
+
+    def posterior_design(self, design: tuple, with_covariance: bool = True) -> tuple:
+        """``posterior`` of a new person from rows whose ``rows(...)`` is ``design`` (covariance
+        None unless ``with_covariance``)."""
+        x, c, z, actions = design
+        return self.foldin.posterior(x, z - c, actions, with_covariance=with_covariance)
+
     def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray) -> tuple:
         """(mean, sd) of the predictive distribution of ``rows`` on the rating scale (unclipped)."""
-        x, c, _, actions = self.rows(rows)
+        return self.predictive_design(self.rows(rows), theta, covariance)
+
+    def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray) -> tuple:
+        """``predictive`` of rows whose ``rows(...)`` is ``design``."""
+        x, c, _, actions = design
         return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
 
     def reveal_order(self, person: Person, strategy: str, count: int) -> list:

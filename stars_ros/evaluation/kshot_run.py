@@ -15,8 +15,8 @@ import numpy as np
 
 from stars_ros import StarsRecommender
 from stars_ros.evaluation.executors import FitFailure, fit_outcome, worker_data
-from stars_ros.evaluation.kshot import (LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage, known_split,
-                                       random_orders, reveal_pools)
+from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage, known_split,
+                                       random_sets, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.model.metrics import regression_report
@@ -39,12 +39,13 @@ class KShotSettings:
     known_test: float
     ridge_lambda: float
     max_train_rows: int | None = None
-    random_orders: int = 1  # seeded orders of each pool the random strategy's metrics average over
+    random_sets: int = 1  # seeded sets of k pool examples random answers average over, beyond EXACT_SETS
     select: tuple = ()  # ((training setting, (candidate values, ...)), ...) chosen per fold inside its training people
 
 
 SELECTABLE = ('lr', 'embedding_l2', 'weight_decay', 'pretrain_epochs', 'joint_epochs')  # training settings
 SELECTION_SHARE = 0.2  # of a fold's training examples, held out to choose its settings
+CALIBRATION_DRAWS = 64  # of the first strategy's draws at one k, seeded, whose intervals the calibration pools
 
 
 def setting_candidates(select: tuple) -> list:
@@ -124,15 +125,25 @@ def test_rows(people: dict, k: int) -> tuple[list, np.ndarray]:
     return covered, np.sort(rows)
 
 
+def _stacked(designs: list, empty: tuple) -> tuple:
+    """The ``Design.rows`` of the union of pool examples whose designs are ``designs``."""
+    if not designs:
+        return empty
+    return tuple(np.concatenate(parts) for parts in zip(*designs))
+
+
 def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> tuple[list, dict]:
-    """(records, calibration samples) of one fold whose fits are ``outcomes`` {k: fit}."""
+    """(records, calibration parts) of one fold whose fits are ``outcomes`` {k: fit}. A
+    strategy's metrics at k are the mean over its answer sets: one per person for a question
+    strategy, ``random_sets`` for random answers (set ``number`` of every covered person is one
+    draw of the fold's metrics)."""
     seed, fold_id, held, _, people, _, known, _ = fold
     examples = data.examples
-    orders = {(name, strategy): [design.reveal_order(person, strategy, max(settings.ks))]
+    orders = {(name, strategy): design.reveal_order(person, strategy, max(settings.ks))
               for name, person in people.items() for strategy in settings.strategies if strategy != 'random'}
-    if 'random' in settings.strategies:
-        orders.update({(name, 'random'): random_orders(person, name, settings.random_orders, seed)
-                       for name, person in people.items()})
+    pools = {name: [design.rows(rows) for rows in person.pool] for name, person in people.items()}
+    tests = {name: design.rows(person.test) for name, person in people.items()}
+    empty = design.rows(np.zeros(0, dtype=np.int64))
     methods = [f'fold-in ({s})' for s in settings.strategies]
     ridge = f'ridge λ={settings.ridge_lambda:g} ({settings.strategies[0]})'
     records, calibration = [], {'new': {}, 'known': None}
@@ -142,33 +153,42 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
             continue
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
-        predictions = {method: [np.zeros(len(data)) for _ in orders[covered[0], strategy]]
-                       for strategy, method in zip(settings.strategies, methods)}
-        predictions[ridge] = [np.zeros(len(data))]
-        samples = {'y': [], 'mean': [], 'sd': []}
-        for name in covered:
-            person = people[name]
-            for strategy, method in zip(settings.strategies, methods):
-                for number, order in enumerate(orders[name, strategy]):
-                    answered = person.rows(order[:k])
-                    theta, covariance = design.posterior(answered)
-                    predictions[method][number][person.test] = design.predict(person.test, theta)
-                    if strategy == settings.strategies[0] and number == 0:  # calibration and ridge: the first order
-                        mean, sd = design.predictive(person.test, theta, covariance)
+        ridge_predictions, nu = np.zeros(len(data)), design.foldin.user_prior.nu
+        for strategy, method in zip(settings.strategies, methods):
+            sets = ({name: random_sets(people[name], name, k, settings.random_sets, seed) for name in covered}
+                    if strategy == 'random' else {name: [orders[name, strategy][:k]] for name in covered})
+            draws = max(len(chosen) for chosen in sets.values())
+            first = strategy == settings.strategies[0]  # its draws are the calibration's, its first the ridge's
+            calibrated = (set(range(draws)) if draws <= CALIBRATION_DRAWS else
+                          set(np.random.default_rng([seed, fold_id, k]).choice(draws, CALIBRATION_DRAWS, replace=False).tolist()))
+            predictions, reports = np.zeros(len(data)), []
+            for number in range(draws):
+                samples = {'y': [], 'mean': [], 'sd': []}
+                for name in covered:
+                    person, answered = people[name], sets[name][number % len(sets[name])]
+                    calibrating = first and number in calibrated
+                    theta, covariance = design.posterior_design(_stacked([pools[name][e] for e in answered], empty),
+                                                                with_covariance=calibrating)
+                    predictions[person.test] = design.predict_design(tests[name], theta)
+                    if calibrating:
+                        mean, sd = design.predictive_design(tests[name], theta, covariance)
                         samples['y'].append(data.scores[person.test])
                         samples['mean'].append(mean)
                         samples['sd'].append(sd)
-                        ridge_theta = (design.posterior(answered, regularisation=settings.ridge_lambda)[0] if k
-                                       else theta)
-                        predictions[ridge][0][person.test] = design.predict(person.test, ridge_theta)
-        for method, values in predictions.items():
-            reports = [report(data, rows, v[rows], examples) for v in values]
+                    if first and number == 0:
+                        ridge_theta = (design.posterior(person.rows(answered), regularisation=settings.ridge_lambda)[0]
+                                       if k else theta)
+                        ridge_predictions[person.test] = design.predict_design(tests[name], ridge_theta)
+                if samples['y']:
+                    parts = calibration['new'].setdefault(k, [])
+                    parts.append(coverage_part(*(np.concatenate(samples[key]) for key in ('y', 'mean', 'sd')), nu,
+                                               len(parts)))
+                reports.append(report(data, rows, predictions[rows], examples))
             entry[method] = {key: type(value)(np.mean([r[key] for r in reports])) for key, value in reports[0].items()}
+        entry[ridge] = report(data, rows, ridge_predictions[rows], examples)
         if k in outcomes:
             entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)],
                                         examples)
-        calibration['new'][k] = {**{key: np.concatenate(v) for key, v in samples.items()},
-                                 'nu': design.foldin.user_prior.nu}
         records.append(entry)
     if len(known):
         users = np.asarray(data.users[known])
@@ -177,8 +197,15 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
             mine = users == name
             theta, covariance = design.posterior(np.zeros(0, dtype=np.int64), user_id=name)
             means[mine], sds[mine] = design.predictive(known[mine], theta, covariance)
-        calibration['known'] = {'y': data.scores[known], 'mean': means, 'sd': sds, 'nu': design.foldin.user_prior.nu}
+        calibration['known'] = [coverage_part(data.scores[known], means, sds, design.foldin.user_prior.nu)]
     return records, calibration
+
+
+def coverage_part(y: np.ndarray, mean: np.ndarray, sd: np.ndarray, nu: float, draw: int = 0) -> dict:
+    """One draw's share of ratings ``y`` inside each central interval (``coverage``), with
+    what pooling needs: its count, its summed sd, its ν and which of its fold's it is."""
+    return {'coverage': coverage(y, mean, sd, nu), 'n': len(y), 'sd_sum': float(np.sum(sd)), 'nu': float(nu),
+            'draw': int(draw)}
 
 
 def retrained_ks(settings) -> list:
@@ -236,10 +263,10 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
                 f"{len(train)} ratings in {base['seconds']:.0f} s")
             fold_records, calibration = score_fold(settings, data, Design(base['recommender'], data), fold, outcomes)
             records += fold_records
-            for k, samples in calibration['new'].items():
-                pooled['new'].setdefault(k, []).append(samples)
+            for k, parts in calibration['new'].items():
+                pooled['new'].setdefault(k, []).extend(parts)
             if calibration['known'] is not None:
-                pooled['known'].append(calibration['known'])
+                pooled['known'].extend(calibration['known'])
             for entry in fold_records:
                 log(f"seed {seed} fold {fold_id} k={entry['k']}: MSE " + '  '.join(
                     f"{m} {entry[m]['mse']:.4f}" for m in methods_of(entry)))
@@ -290,13 +317,15 @@ def methods_of(entry: dict) -> list:
 
 def calibration_table(pooled: dict) -> dict:
     """{'new': {k: {level: coverage}}, 'known': {level: coverage}, 'n': ...} pooled over folds
-    (each fold's intervals from its own prior's ν)."""
+    and draws (``coverage_part``s; each fold's intervals from its own prior's ν, each draw of a
+    fold weighted by its ratings); ``n``: the ratings of one draw of every fold."""
     def cover(parts):
-        sizes = np.array([len(p['y']) for p in parts])
-        shares = [coverage(p['y'], p['mean'], p['sd'], p['nu']) for p in parts]
-        return {**{level: float(np.average([share[level] for share in shares], weights=sizes)) for level in shares[0]},
-                'n': int(sizes.sum()), 'mean_sd': float(np.mean(np.concatenate([p['sd'] for p in parts]))),
-                'nu': sorted({float(p['nu']) for p in parts})}
+        sizes = np.array([p['n'] for p in parts])
+        return {**{level: float(np.average([p['coverage'][level] for p in parts], weights=sizes))
+                   for level in parts[0]['coverage']},
+                'n': int(sum(p['n'] for p in parts if p['draw'] == 0)),
+                'mean_sd': float(sum(p['sd_sum'] for p in parts) / sizes.sum()),
+                'nu': sorted({p['nu'] for p in parts})}
     table = {'new': {str(k): cover(parts) for k, parts in sorted(pooled['new'].items())}}
     if pooled['known']:
         table['known'] = cover(pooled['known'])
@@ -356,8 +385,8 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
                'summary': {m: {str(k): v for k, v in s.items()} for m, s in summary.items()}, 'goals': checks}
     (folder / 'results.json').write_text(json.dumps(payload, indent=1))
     partitions = '; '.join(f'seed {seed}: {folds}' for seed, folds in result['folds'].items())
-    random_note = (f" Random questions: each fold's metrics averaged over {header['random_orders']} seeded orders "
-                   'of each pool.' if header.get('random_orders', 1) > 1 else '')
+    random_note = (f" Random answers: each fold's metrics are the mean over every set of k pool examples where there "
+                   f"are at most {EXACT_SETS} (the exact expectation), else over {header['random_sets']} seeded sets.")
     regret_note = (" First-choice regret: per test example (a person's ratings of one scene, every action), the "
                    'best true score less the true score of the action predicted best, averaged.'
                    if RANKING in metrics else '')
@@ -384,7 +413,8 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
     calibration = result['calibration']
     levels = [str(level) for level in LEVELS]
     lines += ['', f"Calibration: share of held-out ratings inside the central predictive intervals "
-                  f"(new people: {header['strategies'][0]} questions; pooled over folds).", '',
+                  f"(new people: {header['strategies'][0]} questions, up to {CALIBRATION_DRAWS} of its draws at each k; "
+                  'pooled over folds; ratings: those of one draw).', '',
               '| people | k | ratings | mean score_sd | ν | ' + ' | '.join(f'{float(l):.0%}' for l in levels) + ' |',
               '| --- | --- | --- | --- | --- |' + ' --- |' * len(levels)]
     rows = [('new', k, calibration['new'][k]) for k in calibration.get('new', {})]

@@ -2,8 +2,8 @@
 least sure of for them (the largest predictive variance; for one Gaussian rating the same
 choice as BALD, the expected information gain about θ_u of Houlsby et al. 2014), answered on
 stars/question. ROS-free; ``RankerCore`` calls it. Chosen over the A-optimal and the
-choice-aimed criteria (``uncertainty``) on held-out people: it alone was never worse than
-unpersonalised in any fold and never behind random questions on both data sets
+choice-aimed criteria (``uncertainty``) on held-out people: all three were never worse than
+unpersonalised in any fold, and it alone was never behind random answers on both data sets
 (docs/personalisation.md).
 
 The candidates are the scene requests of a stars/question_request, or without them the

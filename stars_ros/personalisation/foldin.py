@@ -110,12 +110,13 @@ def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_me
 
 def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
                             prior_precision: np.ndarray, prior_logdet: float,
-                            scales: Sequence[float] = PRIOR_SCALES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            scales: Sequence[float] = PRIOR_SCALES,
+                            with_covariance: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """(mean, covariance, weights) of θ given y ~ N(xθ, diag(noise)) and θ ~ N(prior_mean, τΣ)
     with τ equally likely each of ``scales`` (Σ = prior_precision⁻¹, ``prior_logdet`` its log
     determinant; τ = 0 pins θ to the mean). ``weights`` [scales] are the posterior
     probabilities of the scales, from each one's marginal likelihood of y; the mean and
-    covariance are the mixture's."""
+    covariance are the mixture's (``with_covariance`` False: None, and d fewer solves per scale)."""
     x, noise = np.asarray(x, dtype=np.float64), np.asarray(noise, dtype=np.float64)
     size = len(prior_mean)
     if not len(x):
@@ -136,11 +137,14 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
         logdet = 2 * np.sum(np.log(np.diag(factor[0])))
         log_evidence.append(-0.5 * (base - pull @ shift + size * np.log(scale) + prior_logdet + logdet))
         means.append(prior_mean + shift)
-        covariances.append(linalg.cho_solve(factor, np.eye(size), check_finite=False))
+        if with_covariance:
+            covariances.append(linalg.cho_solve(factor, np.eye(size), check_finite=False))
     log_evidence = np.array(log_evidence)
     weights = np.exp(log_evidence - log_evidence.max())
     weights /= weights.sum()
     mean = np.einsum('s,sd->d', weights, np.array(means))
+    if not with_covariance:
+        return mean, None, weights
     spread = np.array(means) - mean
     covariance = np.einsum('s,sde->de', weights, np.array(covariances)) + np.einsum('s,sd,se->de', weights, spread, spread)
     return mean, covariance, weights
@@ -265,17 +269,20 @@ class FoldIn:
                     self._precisions.popitem(last=False)
         return self._user_row(row), prior.user_covariance[row], precision
 
-    def posterior(self, x: np.ndarray, y: np.ndarray, actions: np.ndarray, user_id=None, implicit=None) -> tuple:
+    def posterior(self, x: np.ndarray, y: np.ndarray, actions: np.ndarray, user_id=None, implicit=None,
+                  with_covariance: bool = True) -> tuple:
         """(mean, covariance) of θ of ``user_id`` after ratings with rows x [n, dim+1], targets
         y = z − c [n] and action columns ``actions`` [n], the one way every caller folds a
         person in: from the population prior, the scale mixture of the module docstring;
         from a known person's own trained row and covariance, the Gaussian posterior (their
         departure from the population is already measured). ``implicit`` (bools [n]) marks
-        implicit outcomes, which take ``noise_of``'s larger noise."""
+        implicit outcomes, which take ``noise_of``'s larger noise. ``with_covariance`` False:
+        the covariance of a new person's posterior is not computed (None), only its mean."""
         noise = self.noise_of(actions, np.zeros(len(actions), dtype=bool) if implicit is None else implicit)
         mean, covariance, precision = self.prior_distribution(user_id)
         if precision is self._population_precision:
-            return scale_mixture_posterior(x, y, noise, mean, precision, self._population_logdet)[:2]
+            return scale_mixture_posterior(x, y, noise, mean, precision, self._population_logdet,
+                                           with_covariance=with_covariance)[:2]
         if not len(x):
             return mean, covariance
         return gaussian_posterior(x, y, noise, mean, precision)

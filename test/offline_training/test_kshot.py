@@ -8,7 +8,8 @@ import pytest
 
 from offline_training import kshot
 from stars_ros.evaluation import kshot_run
-from stars_ros.evaluation.kshot import STRATEGIES, Design, annotator_folds, coverage, known_split, reveal_pools
+from stars_ros.evaluation.kshot import (EXACT_SETS, STRATEGIES, Design, Person, annotator_folds, coverage, known_split,
+                                       random_sets, reveal_pools)
 from stars_ros import StarsRecommender
 from conftest import TINY_CONFIG
 
@@ -51,6 +52,40 @@ def test_strategies_ask_only_pool_examples_each_once(design, synthetic):
             assert len(order) == min(6, len(person.pool)) and len(set(order)) == len(order)
             assert set(order) <= set(range(len(person.pool)))
         assert design.reveal_order(person, 'random', 6) == list(range(min(6, len(person.pool))))
+
+
+def test_random_answers_take_every_set_of_k_pool_examples_while_there_are_few_else_seeded_ones():
+    person = Person(pool=tuple(np.array([e]) for e in range(20)), test=np.array([20]))
+    assert random_sets(person, 'a', 1, 64, seed=0) == [[e] for e in range(20)]
+    every = random_sets(person, 'a', 3, 64, seed=0)
+    assert len(every) == 1140 == EXACT_SETS and every[0] == [0, 1, 2]
+    assert len({tuple(chosen) for chosen in every}) == 1140 and all(len(set(chosen)) == 3 for chosen in every)
+    drawn = random_sets(person, 'a', 5, 64, seed=0)  # C(20, 5) = 15504: too many to take whole
+    assert len(drawn) == 64 and drawn[0] == [0, 1, 2, 3, 4]
+    assert all(len(set(chosen)) == 5 and set(chosen) <= set(range(20)) for chosen in drawn)
+    assert drawn == random_sets(person, 'a', 5, 64, seed=0) != random_sets(person, 'a', 5, 64, seed=1)
+    assert random_sets(person, 'a', 20, 64, seed=0) == [list(range(20))]
+
+
+def test_random_answers_score_the_mean_over_every_first_answer(design, synthetic):
+    """k = 1: the fold's random MSE is the mean, over each pool example answered first, of the
+    MSE of the posterior from that one answer (by hand, through ``Design``)."""
+    held = ['a', 'b']
+    people, left_out = reveal_pools(synthetic, held, 4, seed=0)
+    fold = (0, 0, held, np.zeros(0, dtype=np.int64), people, left_out, np.zeros(0, dtype=np.int64),
+            np.zeros(0, dtype=np.int64))
+    settings = kshot_run.KShotSettings(folds=2, seeds=(0,), pool=4, ks=(1,), strategies=('random',), retrain_ks=(0,),
+                                       known_test=0.0, ridge_lambda=1.0, random_sets=64)
+    records, _ = kshot_run.score_fold(settings, synthetic, design, fold, {})
+    _, rows = kshot_run.test_rows(people, 1)
+    by_hand = []
+    for first in range(4):
+        predictions = np.zeros(len(synthetic))
+        for person in people.values():
+            theta, _ = design.posterior(person.rows([first]))
+            predictions[person.test] = design.predict(person.test, theta)
+        by_hand.append(np.mean((predictions[rows] - synthetic.scores[rows]) ** 2))
+    assert records[0]['fold-in (random)']['mse'] == pytest.approx(np.mean(by_hand), rel=1e-9)
 
 
 def test_the_first_active_question_is_the_one_with_the_largest_expected_variance_reduction(design, synthetic):
