@@ -120,7 +120,8 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
     x, noise = np.asarray(x, dtype=np.float64), np.asarray(noise, dtype=np.float64)
     size = len(prior_mean)
     if not len(x):
-        return prior_mean.copy(), float(np.mean(scales)) * np.linalg.inv(prior_precision), np.full(len(scales), 1 / len(scales))
+        covariance = float(np.mean(scales)) * np.linalg.inv(prior_precision) if with_covariance else None
+        return prior_mean.copy(), covariance, np.full(len(scales), 1 / len(scales))
     residual = np.asarray(y, dtype=np.float64) - x @ prior_mean
     weighted = x / noise[:, None]
     gram, pull = weighted.T @ x, weighted.T @ residual

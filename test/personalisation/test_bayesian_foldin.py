@@ -66,6 +66,10 @@ def test_the_scale_mixture_is_bayes_rule_over_the_scales_by_hand():
     assert got_weights == pytest.approx(weights, abs=1e-12)
     assert got_mean == pytest.approx(mean, abs=1e-12)
     assert got_covariance == pytest.approx(covariance, abs=1e-12)
+    mean_only = scale_mixture_posterior(x, y, noise, prior_mean, np.linalg.inv(prior_covariance), np.log(2.0), scales,
+                                        with_covariance=False)
+    assert mean_only[0] == pytest.approx(mean, abs=1e-12) and mean_only[1] is None
+    assert mean_only[2] == pytest.approx(weights, abs=1e-12)
     none_mean, none_covariance, _ = scale_mixture_posterior(np.zeros((0, 2)), np.zeros(0), np.zeros(0), prior_mean,
                                                             np.linalg.inv(prior_covariance), np.log(2.0), scales)
     assert none_mean == pytest.approx(prior_mean) and none_covariance == pytest.approx(prior_covariance * 2.5 / 3)
