@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import torch
+from threadpoolctl import threadpool_limits
 
 from stars_ros.evaluation.implicit_run import CONFIGS, rewrite, run_dataset, write_report
 
@@ -44,7 +45,7 @@ def parse_args(argv=None):
     parser.add_argument('--pool', type=int, default=16, help='pool examples per held-out person (default: %(default)s)')
     parser.add_argument('--flips', type=float, nargs='+', default=[0.0, 0.2],
                         help='ε: share of outcomes that are coin flips (default: %(default)s)')
-    parser.add_argument('--draws', type=int, default=3,
+    parser.add_argument('--draws', type=int, default=16,
                         help='outcome draws per person and n above --exact-up-to (default: %(default)s)')
     parser.add_argument('--exact-up-to', type=int, default=4,
                         help='largest n whose expectation is computed exactly, over its 2^n outcome sequences '
@@ -61,6 +62,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     setup_logging(args.verbose)
     torch.set_num_threads(1)
+    threadpool_limits(1, user_api='blas')  # the fold-ins' small solves: extra BLAS threads only wait for each other
     ns, ks = (NS, KS) if not args.quick else (tuple(n for n in NS if n <= 16), tuple(k for k in KS if k <= 4))
     if args.quick:
         args.folds, args.draws = 2, 1

@@ -1,8 +1,9 @@
 """What implicit outcomes are worth: a simulation on held-out people's real ratings.
 
 For a held-out person (``kshot.reveal_pools``: a seeded pool of their ratings, the rest are
-test rows) the robot acts in the pool's scenes, cycling through them, and observes one
-outcome per action with the **stated noisy model**
+test rows) the robot acts in the pool's scenes, cycling through them from one drawn at random
+(``starts``: each pool example's first rating, equally likely), and observes one outcome per
+action with the **stated noisy model**
 
     P(stayed) = ε / 2 + (1 − ε) · (y − L) / (H − L),
 
@@ -12,8 +13,8 @@ for their own reasons). A stayed outcome is the score H, a disengagement L, fold
 node folds implicit feedback in (``FoldIn.noise_of``: the rating noise plus the Bernoulli
 bound (H − L)² / 4). The fold-in's model is exact for ε = 0 and misspecified for ε > 0.
 
-Against it, ``k`` explicit ratings: the first k pool ratings, their true scores, folded in as
-feedback. Both are scored by MSE on the person's test rows (clipped as served); n = 0 (k = 0)
+Against it, ``k`` explicit ratings: k pool ratings in the same turn, their true scores,
+folded in as feedback, averaged over every start. Both are scored by MSE on the person's test rows (clipped as served); n = 0 (k = 0)
 is the population prior's mean, what the node serves a stranger: the unpersonalised model.
 The exchange rate at k is the number of implicit outcomes whose MSE equals that of k explicit
 ratings (interpolated linearly in log2 n between measured n), None when the measured range
@@ -51,44 +52,50 @@ class OutcomeModel:
         return rng.random(len(p)) < p
 
 
-def mse_explicit(design: Design, person: Person, k: int) -> tuple:
-    """(squared errors on the test rows, rows) after the first ``k`` pool ratings."""
-    pool = person.rows(range(len(person.pool)))
-    theta, _ = design.posterior(pool[:k])
-    return _errors(design, person, theta)
+def starts(person: Person) -> np.ndarray:
+    """Where in the pool's ratings the robot may start acting: each pool example's first."""
+    return np.cumsum([0] + [len(example) for example in person.pool[:-1]])
+
+
+def mse_explicit(design: Design, person: Person, k: int) -> np.ndarray:
+    """Squared errors on the test rows after ``k`` pool ratings in turn, their expectation
+    over the start."""
+    return np.mean([_errors(design, person, design.posterior(_acted_on(person, k, start))[0])
+                    for start in starts(person)], axis=0)
 
 
 def mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, rng: np.random.Generator,
                  scale: tuple) -> tuple:
-    """(squared errors on the test rows, rows) after ``n`` implicit outcomes drawn on the
-    pool's ratings in turn (a fresh draw each time)."""
+    """Squared errors on the test rows after ``n`` implicit outcomes drawn on the pool's
+    ratings in turn from a start drawn by ``rng`` (a fresh draw each time)."""
     foldin = design.foldin
     if n == 0:
         return _errors(design, person, foldin.prior_distribution(None)[0])
-    rows = _acted_on(person, n)
+    rows = _acted_on(person, n, int(rng.choice(starts(person))))
     return _errors_after(design, person, rows, model.stayed(rng, design.data.scores[rows], scale), scale)
 
 
 def expected_mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, scale: tuple) -> np.ndarray:
-    """The expectation of ``mse_implicit``'s squared errors over the outcomes of ``n``
-    actions: every one of the 2ⁿ outcome sequences, weighted by its probability (exact, no
-    draws; for small n, where one outcome moves the posterior most)."""
+    """The expectation of ``mse_implicit``'s squared errors over the start and the outcomes
+    of ``n`` actions: every start, and every one of the 2ⁿ outcome sequences weighted by its
+    probability (exact, no draws; for small n, where one outcome moves the posterior most)."""
     if n == 0:
         return _errors(design, person, design.foldin.prior_distribution(None)[0])
-    rows = _acted_on(person, n)
-    p = model.p_stayed(design.data.scores[rows], scale)
     expected = 0.0
-    for stayed in itertools.product((False, True), repeat=n):
-        stayed = np.array(stayed)
-        expected = expected + np.prod(np.where(stayed, p, 1.0 - p)) * _errors_after(design, person, rows, stayed,
-                                                                                      scale)
-    return expected
+    for start in starts(person):
+        rows = _acted_on(person, n, start)
+        p = model.p_stayed(design.data.scores[rows], scale)
+        for stayed in itertools.product((False, True), repeat=n):
+            stayed = np.array(stayed)
+            expected = expected + np.prod(np.where(stayed, p, 1.0 - p)) * _errors_after(design, person, rows, stayed,
+                                                                                          scale)
+    return expected / len(starts(person))
 
 
-def _acted_on(person: Person, n: int) -> np.ndarray:
-    """The pool's rows the robot acts on, in turn, for ``n`` outcomes."""
+def _acted_on(person: Person, n: int, start: int) -> np.ndarray:
+    """The pool's rows the robot acts on, in turn from row ``start``, for ``n`` outcomes."""
     pool = person.rows(range(len(person.pool)))
-    return pool[np.arange(n) % len(pool)]
+    return pool[(start + np.arange(n)) % len(pool)]
 
 
 def _errors_after(design: Design, person: Person, rows: np.ndarray, stayed: np.ndarray, scale: tuple) -> np.ndarray:

@@ -65,21 +65,25 @@ def run_dataset(name: str, args, ns, ks) -> dict:
                                           np.random.default_rng([args.seed, fold, p_index, n, d]), data.scale)
                              for d in range(args.draws)]
                     errors[f'implicit ε={flip}'][n].append(np.mean(draws, axis=0))
-        per_fold.append({curve: {x: float(np.mean(np.concatenate(v))) for x, v in points.items() if v}
-                         for curve, points in errors.items()})
+        per_fold.append({curve: {str(x): float(np.mean(np.concatenate(v))) for x, v in points.items() if v}
+                         for curve, points in errors.items()})  # keyed as results.json keeps them
         LOGGER.info(f'{name}: fold {fold + 1}/{args.folds} done ({len(people)} people)')
     curves = {}
     for curve, points in per_fold[0].items():
-        curves[curve] = {str(x): dict(zip(('mean', 'sd'), mean_sd([f[curve][x] for f in per_fold]))) for x in points}
+        curves[curve] = {x: dict(zip(('mean', 'sd'), mean_sd([f[curve][x] for f in per_fold]))) for x in points}
     return {'data': data.source, 'fingerprint': data.fingerprint, 'scale': list(data.scale), 'config': CONFIGS[name],
             'people_covered': covered, 'people_left_out': left_out, 'folds': per_fold, 'curves': curves,
-            'unpersonalised_mse': curves['explicit']['0']['mean'], 'summary': summarise(curves, ns, ks, args.flips)}
+            'unpersonalised_mse': curves['explicit']['0']['mean'],
+            'summary': summarise(curves, ns, ks, args.flips, per_fold)}
 
 
-def summarise(curves: dict, ns, ks, flips) -> dict:
-    """Per ε: is every n no worse than unpersonalised, and per k > 0 how many implicit
-    outcomes match k explicit ratings (``exchange_rate``): 'measured', 'beyond range' (more
-    than max n), or 'explicit no better' (k ratings do not beat unpersonalised: no rate)."""
+def summarise(curves: dict, ns, ks, flips, per_fold: list) -> dict:
+    """Per ε: is every n no worse than unpersonalised on the mean over folds, and in every fold
+    (``failing_folds``: (fold, n, excess) where one is worse; the mean can hide a fold that
+    loses), and per k > 0 how many implicit outcomes match k explicit ratings
+    (``exchange_rate``): 'measured', 'beyond range' (more than max n), or 'explicit no
+    better' (k ratings do not beat unpersonalised: no rate). Explicit ratings get the same
+    per-fold check (``explicit``)."""
     baseline = curves['explicit']['0']['mean']
     summary = {}
     for flip in flips:
@@ -92,15 +96,23 @@ def summarise(curves: dict, ns, ks, flips) -> dict:
             worth[str(k)] = {'explicit_mse': target, 'implicit_outcomes': rate, 'status': status}
         summary[f'ε={flip}'] = {'never_worse_than_unpersonalised': all(m <= baseline + 1e-12 for m in means),
                                 'worst_excess_over_unpersonalised': max(m - baseline for m in means),
+                                'failing_folds': _failing_folds(per_fold, f'implicit ε={flip}'),
                                 'implicit_outcomes_worth': worth}
+    summary['explicit'] = {'failing_folds': _failing_folds(per_fold, 'explicit')}
     return summary
+
+
+def _failing_folds(per_fold: list, curve: str) -> list:
+    """[(fold, n, excess)] where ``curve``'s MSE is above that fold's unpersonalised one."""
+    return [(fold, int(n), value - errors['explicit']['0']) for fold, errors in enumerate(per_fold)
+            for n, value in errors[curve].items() if value > errors['explicit']['0'] + 1e-12]
 
 
 def rewrite(out: Path) -> None:
     """Recompute the summary and results.md from ``out``'s results.json, running nothing."""
     results = json.loads((out / 'results.json').read_text())
     for found in results['datasets'].values():
-        found['summary'] = summarise(found['curves'], results['ns'], results['ks'], results['flips'])
+        found['summary'] = summarise(found['curves'], results['ns'], results['ks'], results['flips'], found['folds'])
     (out / 'results.json').write_text(json.dumps(results, indent=1) + '\n')
     write_report(out, results, results['ns'], results['ks'])
 
@@ -129,12 +141,19 @@ def write_report(out: Path, results: dict, ns, ks) -> None:
         axis.legend(fontsize=7)
         lines += ['']
         for flip, summary in found['summary'].items():
+            failing = summary['failing_folds']
+            in_folds = ('in every fold: yes' if not failing else f'in every fold: no ({len({f for f, _, _ in failing})} of '
+                        f"{len(found['folds'])} folds, largest excess {max(e for _, _, e in failing):+.5f})")
+            if flip == 'explicit':
+                lines.append(f'- explicit ratings never worse than unpersonalised {in_folds}')
+                continue
             worth = '; '.join(f"{k} explicit ≈ {v['implicit_outcomes']:.1f} implicit" if v['status'] == 'measured' else
                               f'{k} explicit: more than {max(ns)} implicit' if v['status'] == 'beyond range' else
                               f'{k} explicit: no better than unpersonalised, no rate'
                               for k, v in summary['implicit_outcomes_worth'].items())
-            lines.append(f"- {flip}: never worse than unpersonalised: {summary['never_worse_than_unpersonalised']} "
-                         f"(largest excess {summary['worst_excess_over_unpersonalised']:+.5f}); {worth}")
+            lines.append(f"- {flip}: never worse than unpersonalised on the mean: "
+                         f"{summary['never_worse_than_unpersonalised']} (largest excess "
+                         f"{summary['worst_excess_over_unpersonalised']:+.7f}), {in_folds}; {worth}")
         lines.append('')
     lines += [f"Measured on {results['machine']['platform']}, {results['seconds']:.0f} s."]
     (out / 'results.md').write_text('\n'.join(lines) + '\n')

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from offline_training import implicit_feedback
-from stars_ros.evaluation.implicit import OutcomeModel, exchange_rate, expected_mse_implicit, mse_implicit
+from stars_ros.evaluation.implicit import (OutcomeModel, exchange_rate, expected_mse_implicit, mse_explicit,
+                                          mse_implicit)
+from stars_ros.evaluation import implicit_run
 from stars_ros.evaluation.kshot import Person
 
 
@@ -65,16 +67,20 @@ class _Design:
     def predict(self, test, theta):
         return np.full(len(test), theta[0])
 
+    def posterior(self, rows):
+        return np.array([np.mean(self.data.scores[rows])]), None
+
 
 def test_the_expected_errors_weigh_every_outcome_sequence_by_its_probability():
     """Pool rows 0 (true 0.8) and 1 (true 0.3), test row 2 (true 0.6); the posterior is the
-    mean outcome. One outcome: stayed (1.0) with p 0.8, left (0.0) with 0.2. Two: the four
-    sequences. And the draws' average tends to the same expectation."""
+    mean outcome. One outcome, on row 0 or row 1 (the start, equally likely): stayed (1.0)
+    with p 0.8 or 0.3, left (0.0) with 0.2 or 0.7. Two: the four sequences, the same from
+    either start. And the draws' average tends to the same expectation."""
     design = _Design([0.8, 0.3, 0.6])
     person = Person(pool=(np.array([0]), np.array([1])), test=np.array([2]))
     model, scale = OutcomeModel(0.0), (0.0, 1.0)
     one = expected_mse_implicit(design, person, 1, model, scale)
-    assert one == pytest.approx([0.8 * 0.4 ** 2 + 0.2 * 0.6 ** 2])
+    assert one == pytest.approx([((0.8 * 0.4 ** 2 + 0.2 * 0.6 ** 2) + (0.3 * 0.4 ** 2 + 0.7 * 0.6 ** 2)) / 2])
     two = expected_mse_implicit(design, person, 2, model, scale)
     by_hand = (0.8 * 0.3 * 0.4 ** 2 + 0.8 * 0.7 * 0.1 ** 2 + 0.2 * 0.3 * 0.1 ** 2 + 0.2 * 0.7 * 0.6 ** 2)
     assert two == pytest.approx([by_hand])
@@ -82,3 +88,26 @@ def test_the_expected_errors_weigh_every_outcome_sequence_by_its_probability():
     drawn = np.mean([mse_implicit(design, person, 2, model, rng, scale) for _ in range(20000)])
     assert drawn == pytest.approx(by_hand, abs=0.003)
     assert expected_mse_implicit(design, person, 0, model, scale) == pytest.approx([0.1 ** 2])  # the prior mean
+
+
+def test_explicit_ratings_are_averaged_over_where_the_robot_starts():
+    """k = 1 from row 0 (true 0.8) or row 1 (true 0.3), test row 2 (true 0.6): errors 0.2² and
+    0.3², equally likely; k = 2 rates both from either start (posterior 0.55)."""
+    design = _Design([0.8, 0.3, 0.6])
+    person = Person(pool=(np.array([0]), np.array([1])), test=np.array([2]))
+    assert mse_explicit(design, person, 1) == pytest.approx([(0.2 ** 2 + 0.3 ** 2) / 2])
+    assert mse_explicit(design, person, 2) == pytest.approx([0.05 ** 2])
+
+
+def test_a_fold_that_loses_is_named_though_the_mean_over_folds_gains():
+    """Two folds: unpersonalised 0.5 and 0.3; one implicit outcome gives 0.4 (−0.1) and 0.32
+    (+0.02): the mean gains (0.36 < 0.40), fold 1 loses by 0.02, and explicit ratings lose nowhere."""
+    folds = [{'explicit': {'0': 0.5, '1': 0.45}, 'implicit ε=0.0': {'0': 0.5, '1': 0.4}},
+             {'explicit': {'0': 0.3, '1': 0.29}, 'implicit ε=0.0': {'0': 0.3, '1': 0.32}}]
+    curves = {curve: {n: {'mean': np.mean([f[curve][n] for f in folds]), 'sd': 0.0} for n in ('0', '1')}
+              for curve in folds[0]}
+    summary = implicit_run.summarise(curves, [0, 1], [0, 1], [0.0], folds)
+    assert summary['ε=0.0']['never_worse_than_unpersonalised']
+    assert [(fold, n) for fold, n, _ in summary['ε=0.0']['failing_folds']] == [(1, 1)]
+    assert summary['ε=0.0']['failing_folds'][0][2] == pytest.approx(0.02)
+    assert summary['explicit']['failing_folds'] == []
