@@ -146,11 +146,16 @@ def _refuse_constant(name: str):
     raise ValueError(f'{name} is not a number')
 
 
-def load_json(text, max_bytes: int = DEFAULT_MAX_BYTES):
-    """Parse ``text`` (str or bytes), refusing oversized input, NaN and infinities."""
+def check_size(text, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    """BadMessage ``oversized`` when ``text`` (str or bytes) is larger than ``max_bytes``."""
     size = len(text) if isinstance(text, (bytes, bytearray)) else len(text.encode('utf-8', 'surrogatepass'))
     if size > max_bytes:
         raise BadMessage('oversized', f'message of {size} bytes exceeds the limit of {max_bytes} bytes')
+
+
+def load_json(text, max_bytes: int = DEFAULT_MAX_BYTES):
+    """Parse ``text`` (str or bytes), refusing oversized input, NaN and infinities."""
+    check_size(text, max_bytes)
     try:
         return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float)
     except ValueError as error:
@@ -206,9 +211,14 @@ def check(name: str, payload) -> None:
         raise BadMessage('schema', f'{name} message invalid: {_explain(name, error)}', _scene_id(payload)) from None
 
 
-def parse_scene_request(text, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneRequest:
-    """Validate a /stars/scene message and return it as a ``SceneRequest``."""
-    payload = load_json(text, max_bytes)
+def parse_scene_request(text, max_bytes: int = DEFAULT_MAX_BYTES, payload: dict | None = None) -> SceneRequest:
+    """Validate a /stars/scene message and return it as a ``SceneRequest``. ``payload``: what
+    ``text`` decodes to, where the caller built ``text`` from it (a typed request's twin,
+    finite by construction): the size and the schema are checked, the decoding is not redone."""
+    if payload is None:
+        payload = load_json(text, max_bytes)
+    else:
+        check_size(text, max_bytes)
     check('scene_request', payload)
     candidates = payload.get('candidates')
     user_id = payload.get('user_id')

@@ -2,7 +2,8 @@
 
 A typed request becomes the JSON text its twin on stars/scene, stars/feedback or
 stars/question_request would carry, and the ranker handles that text as it handles the
-JSON path's (same schema checks, same core, same error kinds); a ranking or question
+JSON path's (same schema checks, same core, same error kinds; a scene request's twin comes
+with the payload it was written from, so it is not decoded again); a ranking or question
 payload becomes its typed message. Geometry goes through ``data.frames``, the one
 conversion between SocNav1 and REP 103.
 
@@ -26,7 +27,9 @@ def _yaw(q) -> float:
 
 
 def _finite(*values) -> bool:
-    return all(math.isfinite(v) for v in values)
+    """Every one of ``values`` finite: their sum is unless one is NaN or infinite (or they
+    overflow it, when each is looked at)."""
+    return math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)
 
 
 def _check_frame(scene, robot_frame: str, scene_id: str | None):
@@ -61,17 +64,18 @@ def scene_graph(scene, robot_frame: str, scene_id: str | None = None) -> dict:
     return frames.to_socnav(rep103)
 
 
-def _scene_request(payload: dict, user_id: str, explain: bool) -> str:
-    """``payload`` with the optional fields a typed request leaves empty when unset."""
+def _scene_request(payload: dict, user_id: str, explain: bool) -> tuple[str, dict]:
+    """(JSON text, payload): ``payload`` with the optional fields a typed request leaves
+    empty when unset."""
     if user_id:
         payload['user_id'] = user_id
     if explain:
         payload['explain'] = True
-    return messages.dumps(payload)
+    return messages.dumps(payload), payload
 
 
-def rank_actions_text(request, robot_frame: str) -> str:
-    """The stars/scene JSON twin of a ``RankActions`` request."""
+def rank_actions_text(request, robot_frame: str) -> tuple[str, dict]:
+    """The stars/scene JSON twin of a ``RankActions`` request: (its text, its payload)."""
     payload = {'scene_id': request.scene_id,
                'graph': scene_graph(request.scene, robot_frame, request.scene_id or None)}
     if request.actions:
@@ -79,9 +83,10 @@ def rank_actions_text(request, robot_frame: str) -> str:
     return _scene_request(payload, request.user_id, request.explain)
 
 
-def rank_candidates_text(request, robot_frame: str) -> str:
-    """The stars/scene JSON twin of a ``RankCandidates`` request. Without candidates it
-    carries ``candidates: []``, which the schema refuses, as it would the JSON request."""
+def rank_candidates_text(request, robot_frame: str) -> tuple[str, dict]:
+    """The stars/scene JSON twin of a ``RankCandidates`` request: (its text, its payload).
+    Without candidates it carries ``candidates: []``, which the schema refuses, as it would
+    the JSON request."""
     payload = {'scene_id': request.scene_id,
                'candidates': [{'candidate': c.label, 'graph': scene_graph(c.scene, robot_frame,
                                                                           request.scene_id or None)}

@@ -173,13 +173,14 @@ class RankerCore:
             return
         self.queue.append(Pending(request, request.user_id or self.user_id, received, text, log_time))
 
-    def rank_now(self, text: str, received: int) -> tuple:
+    def rank_now(self, text: str, received: int, payload: dict | None = None) -> tuple:
         """Score one stars/scene request at once, as the queue's next batch would (a service
         call, between two batches): (its stars/ranking payload, None), or (None, (kind,
-        message)) once the refusal is on stars/errors. The ranking is not published; the next
-        ``work`` records it and sends its markers (call it once the reply is out)."""
+        message)) once the refusal is on stars/errors. ``payload``: what ``text`` decodes to,
+        where it was written from it (a typed request's twin). The ranking is not published;
+        the next ``work`` records it and sends its markers (call it once the reply is out)."""
         try:
-            request = messages.parse_scene_request(text, self.params['max_message_bytes'])
+            request = messages.parse_scene_request(text, self.params['max_message_bytes'], payload)
         except messages.BadMessage as error:
             self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
             return None, (error.kind, str(error))

@@ -106,7 +106,7 @@ class Uncertainty:
 
     def rating_sd(self, x: np.ndarray, actions: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         """Predictive sd on the rating scale [R] of rows x [R, dim+1] of ``actions`` [R]."""
-        variance = np.einsum('rd,de,re->r', x, covariance, x) + self.foldin.noise[actions]
+        variance = np.einsum('rd,rd->r', x @ covariance, x) + self.foldin.noise[actions]  # one product, then rows
         return np.sqrt(np.maximum(variance, 0.0)) * self.inference.target_std[actions]
 
     def p_first_is_best(self, x: np.ndarray, c: np.ndarray, actions: np.ndarray, mean: np.ndarray,

@@ -59,8 +59,8 @@ class TypedInterface:
         frame = self.params['frame_id']
 
         def answer():
-            text, refusal = self._twin(lambda r: convert(r, frame), request, self._names[name])
-            payload, refusal = (None, refusal) if text is None else self.core.rank_now(text, received)
+            twin, refusal = self._twin(lambda r: convert(r, frame), request, self._names[name])
+            payload, refusal = (None, refusal) if twin is None else self.core.rank_now(twin[0], received, twin[1])
             if payload is not None:
                 response.ranking = typed_messages.ranking_message(payload, typed)
                 response.ranking.header.stamp = self.node.get_clock().now().to_msg()
