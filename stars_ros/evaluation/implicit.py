@@ -14,8 +14,9 @@ node folds implicit feedback in (``FoldIn.noise_of``: the rating noise plus the 
 bound (H − L)² / 4). The fold-in's model is exact for ε = 0 and misspecified for ε > 0.
 
 Against it, ``k`` explicit ratings: k pool ratings in the same turn, their true scores,
-folded in as feedback, averaged over every start. Both are scored by MSE on the person's test rows (clipped as served); n = 0 (k = 0)
-is the population prior's mean, what the node serves a stranger: the unpersonalised model.
+folded in as feedback, averaged over every start. Both are scored by MSE on the person's test
+rows (clipped as served); n = 0 (k = 0) is the population prior's mean, what the node serves a
+stranger: the unpersonalised model.
 The exchange rate at k is the number of implicit outcomes whose MSE equals that of k explicit
 ratings (interpolated linearly in log2 n between measured n), None when the measured range
 never reaches it.
@@ -65,7 +66,7 @@ def mse_explicit(design: Design, person: Person, k: int) -> np.ndarray:
 
 
 def mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, rng: np.random.Generator,
-                 scale: tuple) -> tuple:
+                 scale: tuple) -> np.ndarray:
     """Squared errors on the test rows after ``n`` implicit outcomes drawn on the pool's
     ratings in turn from a start drawn by ``rng`` (a fresh draw each time)."""
     foldin = design.foldin

@@ -142,8 +142,10 @@ def write_report(out: Path, results: dict, ns, ks) -> None:
         lines += ['']
         for flip, summary in found['summary'].items():
             failing = summary['failing_folds']
-            in_folds = ('in every fold: yes' if not failing else f'in every fold: no ({len({f for f, _, _ in failing})} of '
-                        f"{len(found['folds'])} folds, largest excess {max(e for _, _, e in failing):+.5f})")
+            losing = len({fold for fold, _, _ in failing})
+            in_folds = ('in every fold: yes' if not failing else
+                        f"in every fold: no ({losing} of {len(found['folds'])} folds, largest excess "
+                        f'{max(e for _, _, e in failing):+.5f})')
             if flip == 'explicit':
                 lines.append(f'- explicit ratings never worse than unpersonalised {in_folds}')
                 continue

@@ -15,8 +15,8 @@ import numpy as np
 
 from stars_ros import StarsRecommender
 from stars_ros.evaluation.executors import FitFailure, fit_outcome, worker_data
-from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage, known_split,
-                                       random_sets, reveal_pools)
+from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Design, annotator_folds, coverage,
+                                       known_split, random_sets, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.model.metrics import regression_report
@@ -159,8 +159,9 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
                     if strategy == 'random' else {name: [orders[name, strategy][:k]] for name in covered})
             draws = max(len(chosen) for chosen in sets.values())
             first = strategy == settings.strategies[0]  # its draws are the calibration's, its first the ridge's
+            rng = np.random.default_rng([seed, fold_id, k])
             calibrated = (set(range(draws)) if draws <= CALIBRATION_DRAWS else
-                          set(np.random.default_rng([seed, fold_id, k]).choice(draws, CALIBRATION_DRAWS, replace=False).tolist()))
+                          set(rng.choice(draws, CALIBRATION_DRAWS, replace=False).tolist()))
             predictions, reports = np.zeros(len(data)), []
             for number in range(draws):
                 samples = {'y': [], 'mean': [], 'sd': []}
@@ -413,8 +414,8 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
     calibration = result['calibration']
     levels = [str(level) for level in LEVELS]
     lines += ['', f"Calibration: share of held-out ratings inside the central predictive intervals "
-                  f"(new people: {header['strategies'][0]} questions, up to {CALIBRATION_DRAWS} of its draws at each k; "
-                  'pooled over folds; ratings: those of one draw).', '',
+                  f"(new people: {header['strategies'][0]} questions, up to {CALIBRATION_DRAWS} of its draws at "
+                  'each k; pooled over folds; ratings: those of one draw).', '',
               '| people | k | ratings | mean score_sd | ν | ' + ' | '.join(f'{float(l):.0%}' for l in levels) + ' |',
               '| --- | --- | --- | --- | --- |' + ' --- |' * len(levels)]
     rows = [('new', k, calibration['new'][k]) for k in calibration.get('new', {})]
