@@ -27,9 +27,7 @@ def _yaw(q) -> float:
 
 
 def _finite(*values) -> bool:
-    """Every one of ``values`` finite: their sum is unless one is NaN or infinite (or they
-    overflow it, when each is looked at)."""
-    return math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)
+    return all(math.isfinite(v) for v in values)
 
 
 def _check_frame(scene, robot_frame: str, scene_id: str | None):
@@ -74,7 +72,7 @@ def _scene_request(payload: dict, user_id: str, explain: bool) -> tuple[str, dic
     return messages.dumps(payload), payload
 
 
-def rank_actions_text(request, robot_frame: str) -> tuple[str, dict]:
+def rank_actions_twin(request, robot_frame: str) -> tuple[str, dict]:
     """The stars/scene JSON twin of a ``RankActions`` request: (its text, its payload)."""
     payload = {'scene_id': request.scene_id,
                'graph': scene_graph(request.scene, robot_frame, request.scene_id or None)}
@@ -83,7 +81,7 @@ def rank_actions_text(request, robot_frame: str) -> tuple[str, dict]:
     return _scene_request(payload, request.user_id, request.explain)
 
 
-def rank_candidates_text(request, robot_frame: str) -> tuple[str, dict]:
+def rank_candidates_twin(request, robot_frame: str) -> tuple[str, dict]:
     """The stars/scene JSON twin of a ``RankCandidates`` request: (its text, its payload).
     Without candidates it carries ``candidates: []``, which the schema refuses, as it would
     the JSON request."""

@@ -62,7 +62,7 @@ def test_non_finite_poses_room_points_and_scores_are_refused(synthetic_scenes):
 def test_requests_become_the_json_twins_the_schemas_take(synthetic_scenes):
     request = RankActions.Request(scene_id='s', user_id='u', actions=['a', 'b'], explain=True,
                                   scene=scene_message(synthetic_scenes[0], 'base_link', typed, geometry))
-    text, payload = typed_messages.rank_actions_text(request, 'base_link')
+    text, payload = typed_messages.rank_actions_twin(request, 'base_link')
     assert json.loads(text) == payload  # the text is what the payload decodes from
     twin = messages.parse_scene_request(text)
     assert twin == messages.parse_scene_request(text, payload=payload)
@@ -72,7 +72,7 @@ def test_requests_become_the_json_twins_the_schemas_take(synthetic_scenes):
         messages.parse_scene_request(text, payload={**payload, 'scene_id': ''})
     assert (twin.scene_id, twin.user_id, twin.actions, twin.explain) == ('s', 'u', ('a', 'b'), True)
     request.user_id, request.actions, request.explain = '', [], False
-    twin = messages.parse_scene_request(typed_messages.rank_actions_text(request, 'base_link')[0])
+    twin = messages.parse_scene_request(typed_messages.rank_actions_twin(request, 'base_link')[0])
     assert (twin.user_id, twin.actions, twin.explain) == (None, None, False)
     question = ChooseQuestion.Request(user_id='u', scene_ids=['x'], scenes=[request.scene])
     parsed = messages.parse_question_request(typed_messages.question_request_text(question, 'base_link'))

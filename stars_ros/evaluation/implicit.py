@@ -82,15 +82,15 @@ def expected_mse_implicit(design: Design, person: Person, n: int, model: Outcome
     probability (exact, no draws; for small n, where one outcome moves the posterior most)."""
     if n == 0:
         return _errors(design, person, design.foldin.prior_distribution(None)[0])
-    expected = 0.0
-    for start in starts(person):
+    expected, begins = 0.0, starts(person)
+    for start in begins:
         rows = _acted_on(person, n, start)
         p = model.p_stayed(design.data.scores[rows], scale)
         for stayed in itertools.product((False, True), repeat=n):
             stayed = np.array(stayed)
             expected = expected + np.prod(np.where(stayed, p, 1.0 - p)) * _errors_after(design, person, rows, stayed,
                                                                                           scale)
-    return expected / len(starts(person))
+    return expected / len(begins)
 
 
 def _acted_on(person: Person, n: int, start: int) -> np.ndarray:

@@ -138,14 +138,13 @@ class Design:
     def predict(self, rows: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
         """Rating-scale predictions of ``rows``, clipped as served; θ None: the scene-only
         model (p_u = 0, b_u = 0)."""
-        x, c, _, actions = self.rows(rows)
-        z = c if theta is None else x @ theta + c
-        return self.fitted.clip(self.inference.to_rating_scale(z, actions))
+        return self.predict_design(self.rows(rows), theta)
 
-    def predict_design(self, design: tuple, theta: np.ndarray) -> np.ndarray:
+    def predict_design(self, design: tuple, theta: np.ndarray | None) -> np.ndarray:
         """``predict`` of rows whose ``rows(...)`` is ``design`` (computed once, for many θ)."""
         x, c, _, actions = design
-        return self.fitted.clip(self.inference.to_rating_scale(x @ theta + c, actions))
+        z = c if theta is None else x @ theta + c
+        return self.fitted.clip(self.inference.to_rating_scale(z, actions))
 
     def posterior_design(self, design: tuple, with_covariance: bool = True) -> tuple:
         """``posterior`` of a new person from rows whose ``rows(...)`` is ``design`` (covariance

@@ -69,10 +69,10 @@ class TypedInterface:
         return _answer(response, self._guarded(answer, self._names[name], request.scene_id))
 
     def _on_rank_actions(self, request, response):
-        return self._rank(typed_messages.rank_actions_text, request, response, 'rank_actions')
+        return self._rank(typed_messages.rank_actions_twin, request, response, 'rank_actions')
 
     def _on_rank_candidates(self, request, response):
-        return self._rank(typed_messages.rank_candidates_text, request, response, 'rank_candidates')
+        return self._rank(typed_messages.rank_candidates_twin, request, response, 'rank_candidates')
 
     def _on_choose_question(self, request, response):
         def answer():
