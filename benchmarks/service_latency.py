@@ -103,14 +103,19 @@ class Served:
     def __init__(self, name: str, command: list, env: dict, scenes, log: Path):
         self.name = name
         self.process = subprocess.Popen(command, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
+        self.log = log
         self.caller = Caller(int(env['ROS_DOMAIN_ID']), name)
         while not self.caller.client.wait_for_service(timeout_sec=1.0):
-            if self.process.poll() is not None:
-                raise RuntimeError(f'{name} exited with {self.process.returncode}: {log.read_text()[-2000:]}')
+            self.check_running()
         for request in typed_requests(scenes, f'{name}-warmup', 100):
             _, response = self.caller.call(request)
             if response is None or not response.success:
                 raise RuntimeError(f'{name} did not answer a warm-up call: {response}')
+
+    def check_running(self):
+        """RuntimeError with the end of its log once the node's process has exited."""
+        if self.process.poll() is not None:
+            raise RuntimeError(f'{self.name} exited with {self.process.returncode}: {self.log.read_text()[-2000:]}')
 
     def stop(self):
         self.caller.close()
@@ -137,6 +142,7 @@ def alternating(served: dict, scenes, count: int, blocks: int) -> tuple:
             for request in typed_requests(scenes, f'{name}-{block}', max(1, count // blocks)):
                 seconds, response = served[name].caller.call(request)
                 if response is None or not response.success:
+                    served[name].check_running()
                     timeouts[name] += 1
                 else:
                     measured.append(seconds * 1e3)

@@ -153,6 +153,31 @@ def check_size(text, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
         raise BadMessage('oversized', f'message of {size} bytes exceeds the limit of {max_bytes} bytes')
 
 
+@dataclass(frozen=True)
+class Twin:
+    """A typed message's JSON twin: the ``payload`` its text would carry (finite by
+    construction) and ``size_bound``, bytes that text cannot exceed. It is checked as its text
+    would be (``check_size``, then the schema) without being written, which a request would
+    wait for; ``text`` writes it for the bag and the logs."""
+
+    payload: dict
+    size_bound: int
+
+    @property
+    def text(self) -> str:
+        return dumps(self.payload)
+
+    def check_size(self, max_bytes: int) -> None:
+        """``check_size`` of ``text``, which is written only when ``size_bound`` exceeds ``max_bytes``."""
+        if self.size_bound > max_bytes:
+            check_size(self.text, max_bytes)
+
+
+def text_of(message) -> str:
+    """The text of a message: itself, or a ``Twin``'s."""
+    return message.text if isinstance(message, Twin) else message
+
+
 def load_json(text, max_bytes: int = DEFAULT_MAX_BYTES):
     """Parse ``text`` (str or bytes), refusing oversized input, NaN and infinities."""
     check_size(text, max_bytes)
@@ -174,21 +199,26 @@ def _scene_id(payload) -> str | None:
 def _explain(name: str, error) -> str:
     """fastjsonschema's complaint in a user's words: the field by its place in the message
     (``graph.humans[0].xPos``, not ``data.graph.humans[0].xPos``), missing and unknown fields
-    by name, and the choices the schemas' ``oneOf``/``not`` rules stand for."""
+    by name, and the choices the schemas' ``oneOf``/``anyOf`` rules stand for."""
     where = error.name.removeprefix('data').lstrip('.')
     subject = f"'{where}'" if where else _SUBJECTS[name]
     if error.rule == 'oneOf' and name == 'feedback' and not where:
         return ("feedback needs either 'action' (the action rated) or 'candidate' (the candidate scene rated), "
                 'exactly one of them')
-    if error.rule == 'oneOf' and where == 'candidates':
+    request = error.value if name == 'scene_request' and not where and isinstance(error.value, dict) else {}
+    candidates = request.get('candidates')
+    mixed = isinstance(candidates, list) and not all(isinstance(c, str) for c in candidates) \
+        and not all(isinstance(c, dict) for c in candidates)
+    if error.rule == 'oneOf' and where == 'candidates' or error.rule == 'anyOf' and mixed:
         return ("'candidates' must be a list of action names or a list of candidate scenes "
                 "({'candidate': label, 'graph': scene})")
-    if error.rule == 'not' and name == 'scene_request':
+    if error.rule == 'anyOf' and request:
+        if 'graph' not in request and not (candidates and isinstance(candidates, list) and not mixed
+                                           and isinstance(candidates[0], dict)):
+            return "a scene request needs 'graph' (the scene to rank actions in) or 'candidates' that are scenes"
         return "'graph' goes with action candidates, 'action' with candidate scenes, not the other way round"
     if error.rule == 'required':
         missing = [key for key in error.rule_definition if key not in error.value]
-        if name == 'scene_request' and missing == ['graph'] and not where:
-            return "a scene request needs 'graph' (the scene to rank actions in) or 'candidates' that are scenes"
         return f"{subject} needs {' and '.join(repr(key) for key in missing)}"
     if error.rule == 'additionalProperties':
         known = error.definition.get('properties', {})
@@ -211,14 +241,14 @@ def check(name: str, payload) -> None:
         raise BadMessage('schema', f'{name} message invalid: {_explain(name, error)}', _scene_id(payload)) from None
 
 
-def parse_scene_request(text, max_bytes: int = DEFAULT_MAX_BYTES, payload: dict | None = None) -> SceneRequest:
-    """Validate a /stars/scene message and return it as a ``SceneRequest``. ``payload``: what
-    ``text`` decodes to, where the caller built ``text`` from it (a typed request's twin,
-    finite by construction): the size and the schema are checked, the decoding is not redone."""
-    if payload is None:
-        payload = load_json(text, max_bytes)
+def parse_scene_request(message, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneRequest:
+    """Validate a /stars/scene message (its text, or the ``Twin`` of a typed request) and
+    return it as a ``SceneRequest``."""
+    if isinstance(message, Twin):
+        message.check_size(max_bytes)
+        payload = message.payload
     else:
-        check_size(text, max_bytes)
+        payload = load_json(message, max_bytes)
     check('scene_request', payload)
     candidates = payload.get('candidates')
     user_id = payload.get('user_id')

@@ -2,10 +2,10 @@
 
 A typed request becomes the JSON text its twin on stars/scene, stars/feedback or
 stars/question_request would carry, and the ranker handles that text as it handles the
-JSON path's (same schema checks, same core, same error kinds; a scene request's twin comes
-with the payload it was written from, so it is not decoded again); a ranking or question
-payload becomes its typed message. Geometry goes through ``data.frames``, the one
-conversion between SocNav1 and REP 103.
+JSON path's (same schema checks, same core, same error kinds); a scene request becomes a
+``messages.Twin``, its payload and a bound of its text's size, so it is neither written
+nor decoded before it is ranked. A ranking or question payload becomes its typed
+message. Geometry goes through ``data.frames``, the one conversion between SocNav1 and REP 103.
 
 ROS-free: messages are read by their fields, and built from the message classes the caller
 passes (``msgs``: a module or namespace holding ``stars_ros_msgs.msg``'s classes; ``geometry``:
@@ -62,36 +62,61 @@ def scene_graph(scene, robot_frame: str, scene_id: str | None = None) -> dict:
     return frames.to_socnav(rep103)
 
 
-def _scene_request(payload: dict, user_id: str, explain: bool) -> tuple[str, dict]:
-    """(JSON text, payload): ``payload`` with the optional fields a typed request leaves
-    empty when unset."""
+# Bytes a scene request twin's parts can take as JSON text (``messages.dumps``): ids are
+# int64 (at most 20 characters), coordinates and headings floats (a float's repr is at most
+# 24), and a string's character escapes to at most 12 bytes (a surrogate pair, \uXXXX\uXXXX)
+_INT, _FLOAT = 20, 24
+_ENTITY = len('{"id":,"xPos":,"yPos":,"orientation":},') + _INT + 3 * _FLOAT
+_POINT = len('[,],') + 2 * _FLOAT
+_LINK = len('[,,"interact"],') + 2 * _INT
+_GRAPH = len(messages.dumps(frames.to_socnav(frames.Rep103Scene())))
+_REQUEST = len(messages.dumps({'scene_id': '', 'graph': None, 'candidates': [], 'action': '', 'user_id': '',
+                               'explain': True}))
+_CANDIDATE = len('{"candidate":"","graph":},')
+
+
+def _text_bound(text: str) -> int:
+    return 12 * len(text) + 3  # quoted, and a comma
+
+
+def _graph_bound(scene) -> int:
+    """Bytes the twin of typed ``SceneGraph`` ``scene`` cannot exceed."""
+    return (_GRAPH + _ENTITY * (len(scene.humans) + len(scene.objects)) + _POINT * len(scene.room)
+            + _LINK * len(scene.interactions))
+
+
+def _scene_request(payload: dict, user_id: str, explain: bool, size_bound: int) -> messages.Twin:
+    """``payload`` with the optional fields a typed request leaves empty when unset, as the
+    twin of a request whose other parts take at most ``size_bound`` bytes."""
     if user_id:
         payload['user_id'] = user_id
     if explain:
         payload['explain'] = True
-    return messages.dumps(payload), payload
+    return messages.Twin(payload, _REQUEST + _text_bound(payload['scene_id']) + _text_bound(user_id) + size_bound)
 
 
-def rank_actions_twin(request, robot_frame: str) -> tuple[str, dict]:
-    """The stars/scene JSON twin of a ``RankActions`` request: (its text, its payload)."""
+def rank_actions_twin(request, robot_frame: str) -> messages.Twin:
+    """The stars/scene JSON twin of a ``RankActions`` request."""
     payload = {'scene_id': request.scene_id,
                'graph': scene_graph(request.scene, robot_frame, request.scene_id or None)}
     if request.actions:
         payload['candidates'] = list(request.actions)
-    return _scene_request(payload, request.user_id, request.explain)
+    return _scene_request(payload, request.user_id, request.explain,
+                          _graph_bound(request.scene) + sum(_text_bound(a) for a in request.actions))
 
 
-def rank_candidates_twin(request, robot_frame: str) -> tuple[str, dict]:
-    """The stars/scene JSON twin of a ``RankCandidates`` request: (its text, its payload).
-    Without candidates it carries ``candidates: []``, which the schema refuses, as it would
-    the JSON request."""
+def rank_candidates_twin(request, robot_frame: str) -> messages.Twin:
+    """The stars/scene JSON twin of a ``RankCandidates`` request. Without candidates it
+    carries ``candidates: []``, which the schema refuses, as it would the JSON request."""
     payload = {'scene_id': request.scene_id,
                'candidates': [{'candidate': c.label, 'graph': scene_graph(c.scene, robot_frame,
                                                                           request.scene_id or None)}
                               for c in request.candidates]}
     if request.action:
         payload['action'] = request.action
-    return _scene_request(payload, request.user_id, request.explain)
+    return _scene_request(payload, request.user_id, request.explain,
+                          _text_bound(request.action) + sum(_CANDIDATE + _text_bound(c.label) + _graph_bound(c.scene)
+                                                            for c in request.candidates))
 
 
 def feedback_fields(feedback) -> dict:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from geometry_msgs import msg as geometry
 from stars_ros_msgs import msg as typed
-from stars_ros_msgs.srv import ChooseQuestion, RankActions
+from stars_ros_msgs.srv import ChooseQuestion, RankActions, RankCandidates
 
 from stars_ros import feedback_auth, messages, typed_messages
 from stars_ros.typed_messages import scene_graph, scene_message
@@ -62,17 +62,18 @@ def test_non_finite_poses_room_points_and_scores_are_refused(synthetic_scenes):
 def test_requests_become_the_json_twins_the_schemas_take(synthetic_scenes):
     request = RankActions.Request(scene_id='s', user_id='u', actions=['a', 'b'], explain=True,
                                   scene=scene_message(synthetic_scenes[0], 'base_link', typed, geometry))
-    text, payload = typed_messages.rank_actions_twin(request, 'base_link')
-    assert json.loads(text) == payload  # the text is what the payload decodes from
-    twin = messages.parse_scene_request(text)
-    assert twin == messages.parse_scene_request(text, payload=payload)
-    with pytest.raises(messages.BadMessage, match='exceeds the limit of 100 bytes'):  # the size still counts
-        messages.parse_scene_request(text, 100, payload)
+    twin_message = typed_messages.rank_actions_twin(request, 'base_link')
+    text = twin_message.text
+    assert json.loads(text) == twin_message.payload and len(text) <= twin_message.size_bound
+    twin = messages.parse_scene_request(twin_message)
+    assert twin == messages.parse_scene_request(text)
+    with pytest.raises(messages.BadMessage, match=f'message of {len(text)} bytes exceeds the limit of 100 bytes'):
+        messages.parse_scene_request(twin_message, 100)  # the size still counts, measured once over the bound
     with pytest.raises(messages.BadMessage, match="'scene_id'"):  # and the schema
-        messages.parse_scene_request(text, payload={**payload, 'scene_id': ''})
+        messages.parse_scene_request(messages.Twin({**twin_message.payload, 'scene_id': ''}, 0))
     assert (twin.scene_id, twin.user_id, twin.actions, twin.explain) == ('s', 'u', ('a', 'b'), True)
     request.user_id, request.actions, request.explain = '', [], False
-    twin = messages.parse_scene_request(typed_messages.rank_actions_twin(request, 'base_link')[0])
+    twin = messages.parse_scene_request(typed_messages.rank_actions_twin(request, 'base_link'))
     assert (twin.user_id, twin.actions, twin.explain) == (None, None, False)
     question = ChooseQuestion.Request(user_id='u', scene_ids=['x'], scenes=[request.scene])
     parsed = messages.parse_question_request(typed_messages.question_request_text(question, 'base_link'))
@@ -80,6 +81,28 @@ def test_requests_become_the_json_twins_the_schemas_take(synthetic_scenes):
     question.scene_ids = []
     with pytest.raises(messages.BadMessage, match='1 scenes but 0 scene_ids'):
         typed_messages.question_request_text(question, 'base_link')
+
+
+def test_a_twins_size_bound_holds_for_the_longest_numbers_and_strings(synthetic_scenes):
+    """The bound a typed request's twin is size-checked by (without writing it) is never
+    below its text: ids of 20 characters, floats of 24, strings that escape to 12 bytes a
+    character, for actions and candidates alike."""
+    longest = -2.2250738585072014e-306  # 24 characters in metres, as many in centimetres
+    scene = scene_message(synthetic_scenes[0], 'base_link', typed, geometry)
+    for k, human in enumerate(scene.humans):
+        human.id = -2 ** 63 + k
+        human.pose.position.x, human.pose.position.y = -1.2345678901234567e-7, longest
+        human.pose.orientation.z, human.pose.orientation.w = 0.12345678901234567, 0.9876543210987654
+    for point in scene.room:
+        point.x, point.y = -1.2345678901234567e-7, -9.876543210987654e-7
+    name = '\U0001F916\u00e9"\n'  # a surrogate pair, a BMP character, two escapes
+    actions = RankActions.Request(scene_id=name * 3, user_id=name, actions=[name, name * 2], explain=True, scene=scene)
+    candidates = RankCandidates.Request(scene_id=name, user_id=name * 5, action=name, candidates=[
+        typed.CandidateScene(label=name * k, scene=scene) for k in range(1, 4)])
+    for twin in (typed_messages.rank_actions_twin(actions, 'base_link'),
+                 typed_messages.rank_candidates_twin(candidates, 'base_link')):
+        text = twin.text
+        assert len(text.encode()) <= twin.size_bound < 4 * len(text)
 
 
 def test_signed_typed_feedback_verifies_as_its_json_twin():

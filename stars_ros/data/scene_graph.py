@@ -21,6 +21,7 @@ relational encoders (RGCN) see what links what.
 """
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass
@@ -37,6 +38,7 @@ RELATIONS = ('robot-room', 'robot-human', 'robot-object', 'robot-wall',
              'room-human', 'room-object', 'room-wall',
              'interaction-human', 'interaction-object')
 CENTIMETRES_PER_METRE = 100.0
+TOPOLOGIES_KEPT = 256  # scene layouts whose edges featurise keeps
 FEATURISER_VERSION = 1  # bump whenever features or edges change: it keys the feature cache
 
 
@@ -141,24 +143,32 @@ def featurise(scene: dict, validate: bool = True) -> SceneGraph:
         _, xb, yb, _ = entities[index_of[second] - 2]
         dx, dy = xb - xa, yb - ya
         geometry.append(_geometry_row((xa + xb) / 2, (ya + yb) / 2, math.atan2(dx, dy), math.hypot(dx, dy)))
+    one_hot, edge_index, edge_type = _topology(n_h, n_o, n_w, tuple((index_of[a], index_of[b]) for a, b in pairs))
+    x = one_hot.copy()
+    x[:, len(NODE_TYPES):] = geometry
+    return SceneGraph(x=x, edge_index=edge_index.copy(), edge_type=edge_type.copy())
+
+
+@functools.lru_cache(maxsize=TOPOLOGIES_KEPT)
+def _topology(n_h: int, n_o: int, n_w: int, pairs: tuple) -> tuple:
+    """(x [nodes, features], only its one-hot types set; edge_index; edge_type) of a scene
+    of ``n_h`` humans, ``n_o`` objects, ``n_w`` walls and interactions ``pairs`` (node
+    indices): what ``featurise`` gives every scene of that layout. Kept, since a robot's
+    scenes change their positions far more often than who is in them; callers copy."""
+    n_i = len(pairs)
     counts = (1, 1, n_h, n_o, n_w, n_i)
     x = np.zeros((sum(counts), len(NODE_FEATURES)), dtype=np.float32)
     x[np.arange(len(x)), np.repeat(np.arange(len(NODE_TYPES)), counts)] = 1.0
-    x[:, len(NODE_TYPES):] = geometry
-
     first_h, first_o, first_w, first_i = 2, 2 + n_h, 2 + n_h + n_o, 2 + n_h + n_o + n_w
     humans_, objects_, walls = range(first_h, first_o), range(first_o, first_w), range(first_w, first_i)
-    is_object = {e[0] for e in objects}
-    links_h = [(first_i + k, index_of[e]) for k, p in enumerate(pairs) for e in p if e not in is_object]
-    links_o = [(first_i + k, index_of[e]) for k, p in enumerate(pairs) for e in p if e in is_object]
+    links_h = [(first_i + k, n) for k, pair in enumerate(pairs) for n in pair if n < first_o]
+    links_o = [(first_i + k, n) for k, pair in enumerate(pairs) for n in pair if n >= first_o]
     groups = [[(0, 1)], [(0, n) for n in humans_], [(0, n) for n in objects_], [(0, n) for n in walls],
               [(1, n) for n in humans_], [(1, n) for n in objects_], [(1, n) for n in walls], links_h, links_o]
     forward = [edge for group in groups for edge in group]
     types = [relation for relation, group in enumerate(groups) for _ in group]
     edges = np.array(forward, dtype=np.int64).reshape(-1, 2).T
-    edge_index = np.concatenate([edges, edges[::-1]], axis=1)
-    edge_type = np.array(types + types, dtype=np.int64)
-    return SceneGraph(x=x, edge_index=edge_index, edge_type=edge_type)
+    return x, np.concatenate([edges, edges[::-1]], axis=1), np.array(types + types, dtype=np.int64)
 
 
 def entity_nodes(scene: dict) -> list:

@@ -110,7 +110,10 @@ class FittedModel:
 
     def clip(self, scores: np.ndarray) -> np.ndarray:
         """``scores`` limited to the rating scale of the training data (when it has one)."""
-        return scores if self.rating_scale is None else np.clip(scores, *self.rating_scale)
+        if self.rating_scale is None:
+            return scores
+        low, high = self.rating_scale
+        return np.minimum(np.maximum(scores, low), high)  # np.clip's, without its wrappers' cost per request
 
     @torch.no_grad()
     def set_user_row(self, user, p, b: float) -> None:

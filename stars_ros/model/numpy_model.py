@@ -104,7 +104,9 @@ class InferenceModel:
             raise ValueError('a model without users has no user term')
         q, scene_offset = self.scene_terms(scene_rows)
         r = self.action_rows[actions]
-        x = np.concatenate([(q + h) * r, np.ones((len(h), 1), dtype=h.dtype)], axis=1)
+        x = np.empty((len(h), h.shape[1] + 1), dtype=h.dtype)
+        np.multiply(q + h, r, out=x[:, :-1])
+        x[:, -1] = 1.0
         content = (h * r).sum(1) if self.residual else np.zeros(len(h), dtype=h.dtype)
         return x, content + np.asarray(scene_offset, dtype=h.dtype) + self.bias
 

@@ -221,7 +221,9 @@ class Predictor:
     def user_theta(self, user_id) -> np.ndarray:
         """θ = (p_u, b_u) [dim+1] (float64) that scores ``user_id`` (see ``scores_from_h``)."""
         p, b = self._user_row(user_id)
-        return np.append(np.asarray(p, dtype=np.float64), float(b))
+        theta = np.empty(len(p) + 1)
+        theta[:-1], theta[-1] = p, b
+        return theta
 
     def _user_row(self, user_id) -> tuple:
         """(p_u, b_u) that scores ``user_id``: folded in, trained, or zero for a stranger."""

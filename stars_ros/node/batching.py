@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from stars_ros.errors import StarsError
-from stars_ros.messages import SceneRequest
+from stars_ros.messages import SceneRequest, Twin
 
 
 @dataclass(frozen=True)
@@ -22,14 +22,15 @@ class Pending:
     ``user_id`` is the one it is served for (the message's own, else the latest on
     /stars/user_id at arrival); ``received`` is when the middleware received it (system
     clock, ns, as ``time.time_ns()``), so a ranking's processing time includes any wait
-    behind other callbacks; ``text`` and ``log_time`` (ROS time, ns) are the message as
-    received, which the node records once the ranking is out.
+    behind other callbacks; ``message`` (its text, or a typed request's ``Twin``) and
+    ``log_time`` (ROS time, ns) are the message as received, which the node records once the
+    ranking is out.
     """
 
     request: SceneRequest
     user_id: str | None
     received: int
-    text: str = ''
+    message: str | Twin = ''
     log_time: int = 0
 
 

@@ -173,19 +173,21 @@ class RankerCore:
             return
         self.queue.append(Pending(request, request.user_id or self.user_id, received, text, log_time))
 
-    def rank_now(self, text: str, received: int, payload: dict | None = None) -> tuple:
-        """Score one stars/scene request at once, as the queue's next batch would (a service
-        call, between two batches): (its stars/ranking payload, None), or (None, (kind,
-        message)) once the refusal is on stars/errors. ``payload``: what ``text`` decodes to,
-        where it was written from it (a typed request's twin). The ranking is not published;
-        the next ``work`` records it and sends its markers (call it once the reply is out)."""
+    def rank_now(self, message, received: int, log_time: int | None = None) -> tuple:
+        """Score one stars/scene request (its text, or a typed request's ``Twin``) at once, as
+        the queue's next batch would (a service call, between two batches): (its stars/ranking
+        payload, None), or (None, (kind, message)) once the refusal is on stars/errors.
+        ``log_time``: when the request was taken (ROS time, ns; default now). The ranking is
+        not published; the next ``work`` records it and sends its markers (call it once the
+        reply is out)."""
         try:
-            request = messages.parse_scene_request(text, self.params['max_message_bytes'], payload)
+            request = messages.parse_scene_request(message, self.params['max_message_bytes'])
         except messages.BadMessage as error:
             self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
             return None, (error.kind, str(error))
-        self.personalisation.scenes.received(request.scene_id, text)
-        return self._serve([Pending(request, request.user_id or self.user_id, received, text, self._now())],
+        self.personalisation.scenes.received(request.scene_id, message)
+        log_time = self._now() if log_time is None else log_time
+        return self._serve([Pending(request, request.user_id or self.user_id, received, message, log_time)],
                            publish=False)[0]
 
     def accept_user_id(self, text: str):
@@ -378,7 +380,7 @@ class RankerCore:
         for item, result in zip(batch, rank_batch(predictor, batch, top_k, uncertainty, explanations)):
             request = item.request
             if isinstance(result, Exception):
-                self.record('stars/scene', item.text, item.log_time)
+                self.record('stars/scene', messages.text_of(item.message), item.log_time)
                 self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
                 outcomes.append((None, (messages.error_kind(result), str(result))))
                 continue
@@ -395,7 +397,7 @@ class RankerCore:
                 self.replied.append((item, reply, result.ranked))
             outcomes.append((reply, None))
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
-            self.personalisation.scenes.ranked(request.scene_id, item.text, predictor, result.h)
+            self.personalisation.scenes.ranked(request.scene_id, item.message, predictor, result.h)
             self.problems.ranked()
             if item.user_id is not None and not known and not personalised:
                 self._report_stranger(item.user_id, request.scene_id)
@@ -408,7 +410,7 @@ class RankerCore:
         self._send_markers(item.request, ranked)
 
     def _record_reply(self, item: Pending, reply: dict):
-        self.record('stars/scene', item.text, item.log_time)
+        self.record('stars/scene', messages.text_of(item.message), item.log_time)
         self.record('stars/ranking', messages.dumps(reply))
 
     def _send_markers(self, request, ranked: list):
@@ -440,7 +442,7 @@ class RankerCore:
             item, reply, _ = self.replied.popleft()
             self._record_reply(item, reply)
         for item in self.queue:  # in the log even though they were never scored
-            self.record('stars/scene', item.text, item.log_time)
+            self.record('stars/scene', messages.text_of(item.message), item.log_time)
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
         self.records.close(self.personalisation.flush)

@@ -67,8 +67,8 @@ def choose_question(personalisation, user_id: str, requests: list, recent_scenes
         memory.received(request.scene_id, text)
         memory.ranked(request.scene_id, text, predictor, h)
         offered += candidates_of(predictor, request, h)
-    for scene_id, text, encoded in remembered:
-        request = messages.parse_scene_request(text)
+    for scene_id, message, encoded in remembered:
+        request = messages.parse_scene_request(message)
         mine = encoded is not None and encoded[0] is predictor
         if not requests or mine:
             try:

@@ -42,32 +42,33 @@ PREPARE_ROWS = 8  # ratings' scenes encoded per call of solve_next: bounds how l
 
 
 class SceneMemory:
-    """The latest ``size`` scene requests by scene id: the request text and, once it is
-    ranked, the predictor that ranked it and the h of its scenes (so feedback on them is
+    """The latest ``size`` scene requests by scene id: the request (its text, or a typed
+    request's ``messages.Twin``; ``messages.parse_scene_request`` takes either) and, once it
+    is ranked, the predictor that ranked it and the h of its scenes (so feedback on them is
     folded in without encoding them again)."""
 
     def __init__(self, size: int = SCENE_MEMORY):
         self.size = size
-        self._scenes = collections.OrderedDict()  # scene_id -> [text, (predictor, h) once ranked]
+        self._scenes = collections.OrderedDict()  # scene_id -> [request, (predictor, h) once ranked]
 
     def __len__(self) -> int:
         return len(self._scenes)
 
-    def received(self, scene_id: str, text: str) -> None:
-        self._scenes[scene_id] = [text, None]
+    def received(self, scene_id: str, request) -> None:
+        self._scenes[scene_id] = [request, None]
         self._scenes.move_to_end(scene_id)
         if len(self._scenes) > self.size:
             self._scenes.popitem(last=False)
 
-    def ranked(self, scene_id: str, text: str, predictor, h) -> None:
-        """Keep the h [len(graphs), dim] that ranking ``text`` computed, unless a newer
+    def ranked(self, scene_id: str, request, predictor, h) -> None:
+        """Keep the h [len(graphs), dim] that ranking ``request`` computed, unless a newer
         request took its scene id since."""
         remembered = self._scenes.get(scene_id)
-        if remembered is not None and remembered[0] is text:
+        if remembered is not None and remembered[0] is request:
             remembered[1] = (predictor, h)
 
     def recent(self, count: int) -> list:
-        """[(scene_id, request text, (predictor, h) or None)] of the ``count`` latest, newest first."""
+        """[(scene_id, request, (predictor, h) or None)] of the ``count`` latest, newest first."""
         latest = []
         for scene_id in reversed(self._scenes):
             if len(latest) == count:
@@ -76,7 +77,7 @@ class SceneMemory:
         return latest
 
     def get(self, scene_id: str) -> tuple:
-        """(request text, (predictor, h) or None); (None, None) for a scene not remembered."""
+        """(request, (predictor, h) or None); (None, None) for a scene not remembered."""
         return tuple(self._scenes.get(scene_id, (None, None)))
 
 
@@ -193,12 +194,12 @@ class Personalisation:
 
     def _rating(self, feedback, max_bytes: int) -> Rating | str:
         """The Rating ``feedback`` gives, or why it cannot be folded in."""
-        text, encoded = self.scenes.get(feedback.scene_id)
-        if text is None:
+        remembered, encoded = self.scenes.get(feedback.scene_id)
+        if remembered is None:
             return (f"feedback for scene '{feedback.scene_id}', which this node has not ranked (or no longer "
                     'remembers): recorded, not folded in')
         try:  # parsed again: it passed before, unless max_message_bytes was lowered since
-            request = messages.parse_scene_request(text, max_bytes)
+            request = messages.parse_scene_request(remembered, max_bytes)
         except messages.BadMessage as error:
             return f"feedback for scene '{feedback.scene_id}' not folded in: its request no longer passes: {error}"
         rating = rating_from_feedback(feedback, request, self.predictor)

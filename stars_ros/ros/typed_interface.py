@@ -55,15 +55,16 @@ class TypedInterface:
             return None, (error.kind, str(error))
 
     def _rank(self, convert, request, response, name: str):
-        received = time.time_ns()
+        received, taken = time.time_ns(), self.node.get_clock().now()
         frame = self.params['frame_id']
 
         def answer():
             twin, refusal = self._twin(lambda r: convert(r, frame), request, self._names[name])
-            payload, refusal = (None, refusal) if twin is None else self.core.rank_now(twin[0], received, twin[1])
+            payload, refusal = (None, refusal) if twin is None else self.core.rank_now(twin, received,
+                                                                                        taken.nanoseconds)
             if payload is not None:
                 response.ranking = typed_messages.ranking_message(payload, typed)
-                response.ranking.header.stamp = self.node.get_clock().now().to_msg()
+                response.ranking.header.stamp = taken.to_msg()
                 response.ranking.header.frame_id = frame
             return refusal
         return _answer(response, self._guarded(answer, self._names[name], request.scene_id))

@@ -74,6 +74,29 @@ def test_featurisation_is_deterministic():
     assert np.array_equal(first.edge_index, second.edge_index)
 
 
+def test_a_kept_layout_gives_each_scene_its_own_positions_and_arrays():
+    """Scenes of one layout share featurise's kept edges, not its arrays: a scene moved
+    gets its own geometry, and changing one graph's arrays changes no later graph."""
+    first = featurise(scene())
+    moved = scene(humans=[{'id': 1, 'xPos': -50, 'yPos': 300, 'orientation': 10},
+                          {'id': 2, 'xPos': 20, 'yPos': 100, 'orientation': -90}])
+    second = featurise(moved)
+    assert np.array_equal(first.edge_index, second.edge_index) and np.array_equal(first.edge_type, second.edge_type)
+    assert second.x[2, column('x')] == pytest.approx(-0.5) and first.x[2, column('x')] == pytest.approx(1.0)
+    for graph in (first, second):
+        graph.x[:] = 7.0
+        graph.edge_index[:] = 0
+        graph.edge_type[:] = 0
+    again = featurise(scene())
+    assert again.x[0, column('cos_orientation')] == 1.0 and again.x[:, :len(NODE_TYPES)].sum() == again.num_nodes
+    assert sorted(set(again.edge_type.tolist())) == list(range(len(RELATIONS)))
+    def links_of(graph):
+        return set(zip(graph.edge_index[0].tolist(), graph.edge_index[1].tolist(), graph.edge_type.tolist()))
+    other_pairs = featurise(scene(links=[[1, 3, 'interact'], [2, 3, 'interact']]))  # same counts, other pairs
+    object_link = (9, 4, RELATIONS.index('interaction-object'))  # interaction 1-3 (node 9) to the object
+    assert object_link in links_of(other_pairs) and object_link not in links_of(again)
+
+
 def test_open_polygon_and_no_humans_are_fine():
     graph = featurise(scene(room=SQUARE_ROOM[:-1], humans=[], links=[]))
     assert graph.num_nodes == 1 + 1 + 1 + 4  # robot, room, object, walls
