@@ -205,18 +205,10 @@ def _explain(name: str, error) -> str:
     if error.rule == 'oneOf' and name == 'feedback' and not where:
         return ("feedback needs either 'action' (the action rated) or 'candidate' (the candidate scene rated), "
                 'exactly one of them')
-    request = error.value if name == 'scene_request' and not where and isinstance(error.value, dict) else {}
-    candidates = request.get('candidates')
-    mixed = isinstance(candidates, list) and not all(isinstance(c, str) for c in candidates) \
-        and not all(isinstance(c, dict) for c in candidates)
-    if error.rule == 'oneOf' and where == 'candidates' or error.rule == 'anyOf' and mixed:
-        return ("'candidates' must be a list of action names or a list of candidate scenes "
-                "({'candidate': label, 'graph': scene})")
-    if error.rule == 'anyOf' and request:
-        if 'graph' not in request and not (candidates and isinstance(candidates, list) and not mixed
-                                           and isinstance(candidates[0], dict)):
-            return "a scene request needs 'graph' (the scene to rank actions in) or 'candidates' that are scenes"
-        return "'graph' goes with action candidates, 'action' with candidate scenes, not the other way round"
+    if error.rule == 'oneOf' and where == 'candidates':
+        return _CANDIDATES_SHAPE
+    if error.rule == 'anyOf' and name == 'scene_request' and not where:
+        return _request_shape(error.value)
     if error.rule == 'required':
         missing = [key for key in error.rule_definition if key not in error.value]
         return f"{subject} needs {' and '.join(repr(key) for key in missing)}"
@@ -225,6 +217,22 @@ def _explain(name: str, error) -> str:
         unknown = ', '.join(repr(key) for key in sorted(error.value) if key not in known)
         return f"{unknown}: not a field of {subject}" + (f" (its fields: {', '.join(known)})" if known else '')
     return subject + error.message[len(error.name):]
+
+
+_CANDIDATES_SHAPE = ("'candidates' must be a list of action names or a list of candidate scenes "
+                     "({'candidate': label, 'graph': scene})")
+
+
+def _request_shape(request: dict) -> str:
+    """Why a scene request is neither actions ranked in a 'graph' nor candidate scenes (the
+    schema's ``anyOf``, which fastjsonschema checks before the fields themselves)."""
+    candidates = request.get('candidates')
+    kinds = {type(c) for c in candidates} if isinstance(candidates, list) else set()
+    if len(kinds) > 1 or kinds - {str, dict}:
+        return _CANDIDATES_SHAPE
+    if 'graph' not in request and kinds != {dict}:
+        return "a scene request needs 'graph' (the scene to rank actions in) or 'candidates' that are scenes"
+    return "'graph' goes with action candidates, 'action' with candidate scenes, not the other way round"
 
 
 _SUBJECTS = {'feedback': 'feedback', 'scene_request': 'a scene request', 'scene_graph': 'a scene graph',

@@ -126,6 +126,11 @@ GRAPH = {'humans': [], 'room': [[0, 0], [1, 1], [2, 3]]}
         {'id': 1, 'xPos': 'near', 'yPos': 0, 'orientation': 0}])}, "'graph.humans[0].xPos' must be number"),
     (messages.parse_scene_request, {'scene_id': 's', 'graph': GRAPH, 'candidates': [1]},
      "'candidates' must be a list of action names or a list of candidate scenes"),
+    (messages.parse_scene_request, {'scene_id': 's', 'graph': GRAPH, 'candidates': ['a', {'candidate': 'b'}]},
+     "'candidates' must be a list of action names or a list of candidate scenes"),
+    (messages.parse_scene_request, {'scene_id': 's', 'candidates': ['a']}, "a scene request needs 'graph'"),
+    (messages.parse_scene_request, {'scene_id': 's', 'graph': GRAPH, 'action': 'a'},
+     "'graph' goes with action candidates, 'action' with candidate scenes"),
 ])
 def test_schema_errors_name_the_field_in_words(parse, payload, words):
     with pytest.raises(messages.BadMessage) as caught:
