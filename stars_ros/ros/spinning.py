@@ -130,8 +130,17 @@ def _shut_down(name: str, node, close: Callable | None) -> None:
 
 
 def _ignore_signals():
+    """Ignore SIGINT and SIGTERM from now on. A SIGINT that came while the thread waited in
+    rcl (rclpy's handler passes it on to Python's) raises KeyboardInterrupt at the first
+    Python-level check, which can be this very call (seen once in CI): that signal is the
+    ending already under way, so the handler is set again."""
     for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, signal.SIG_IGN)
+        while True:
+            try:
+                signal.signal(number, signal.SIG_IGN)
+                break
+            except KeyboardInterrupt:
+                continue
 
 
 def _usage_error(name: str, message: str):
