@@ -9,7 +9,9 @@ temporary linear head on per-action z-scored targets; (2) ``joint_epochs`` of th
 model. For the ``base`` variant the linear head is the model's own head, so both steps
 train the same network. A personalised model takes over the pre-trained head as its action
 embeddings (``StarsModel.start_from_head``), so joint training starts from the scene-only
-model rather than from a random head. A batch holds examples (one user's ratings of one
+model rather than from a random head. With ``posterior_sweeps``, a Gibbs sampler then
+replaces the trained factorisation part by its posterior means (``model.posterior``).
+A batch holds examples (one user's ratings of one
 scene, every action a target), as in the paper. AdamW with gradient clipping; seeds fixed;
 each distinct scene of a batch is encoded once.
 
@@ -32,6 +34,7 @@ from stars_ros.data.ratings import RatingData
 from stars_ros.errors import ConfigError, TrainingDivergedError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import FittedModel, build_model
+from stars_ros.model.posterior import posterior_head, training_observations
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +162,12 @@ class StarsTrainer(FittedModel):
                          cfg.embedding_l2, on_epoch, average_last=cfg.average_last)
         model.cpu()
         model.eval()
+        if cfg.posterior_sweeps:
+            summary = posterior_head(model, training_observations(model, data.store, examples),
+                                     cfg.posterior_sweeps, cfg.posterior_burn_in, cfg.seed)
+            log.info('posterior head: %d sweeps (%d kept) in %.1f s, noise precision %.3f, plug-in means '
+                     '%.4f (z RMS) from the averaged prediction on the training entries', summary.sweeps,
+                     summary.kept, summary.seconds, summary.noise_precision, summary.plug_in_gap)
         return self
 
     def fine_tune(self, data: RatingData, epochs: int, rows: np.ndarray | None = None) -> list:
