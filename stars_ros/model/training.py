@@ -22,6 +22,7 @@ everything after training (checkpoints, fold-in, serving) is the same as for a C
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 from typing import Callable, NamedTuple, Sequence
@@ -163,12 +164,25 @@ class StarsTrainer(FittedModel):
         model.cpu()
         model.eval()
         if cfg.posterior_sweeps:
-            summary = posterior_head(model, training_observations(model, data.store, examples),
-                                     cfg.posterior_sweeps, cfg.posterior_burn_in, cfg.seed)
-            log.info('posterior head: %d sweeps (%d kept) in %.1f s, noise precision %.3f, plug-in means '
-                     '%.4f (z RMS) from the averaged prediction on the training entries', summary.sweeps,
-                     summary.kept, summary.seconds, summary.noise_precision, summary.plug_in_gap)
+            self._apply_posterior_head(data, examples)
         return self
+
+    def with_posterior_head(self, data: RatingData, rows: np.ndarray) -> 'StarsTrainer':
+        """A copy, on the CPU, whose factorisation part is the posterior head (``posterior_sweeps``)
+        of the current weights on ``rows``: what ``fit`` would return were joint training to end
+        now, so that a learning curve scored in ``on_epoch`` scores the model its settings describe."""
+        child = self.copy_into(StarsTrainer(self.config))
+        child.model = copy.deepcopy(self.require_model()).cpu()
+        child._apply_posterior_head(data, child.training_set(data, rows))
+        return child
+
+    def _apply_posterior_head(self, data, examples) -> None:
+        cfg, model = self.config.training, self.model
+        summary = posterior_head(model, training_observations(model, data.store, examples),
+                                 cfg.posterior_sweeps, cfg.posterior_burn_in, cfg.seed)
+        log.info('posterior head: %d sweeps (%d kept) in %.1f s, noise precision %.3f, plug-in means '
+                 '%.4f (z RMS) from the averaged prediction on the training entries', summary.sweeps,
+                 summary.kept, summary.seconds, summary.noise_precision, summary.plug_in_gap)
 
     def fine_tune(self, data: RatingData, epochs: int, rows: np.ndarray | None = None) -> list:
         """``epochs`` joint epochs on ``rows`` of ``data`` from the current weights (a refit

@@ -10,6 +10,9 @@ import torch
 
 from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import ConfigError
+from stars_ros.evaluation.executors import FitTask, run_fit
+from stars_ros.evaluation.protocol import ProtocolConfig
+from stars_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import build_model
 from stars_ros.model.posterior import Chain, Layout, Observations, gaussian_rows, training_observations
@@ -62,6 +65,34 @@ def test_parts_a_variant_holds_at_zero_stay_zero_and_base_is_refused(synthetic, 
         config.replace(model={'variant': 'base'})
     with pytest.raises(ConfigError, match=r'posterior_burn_in \(50\) must be below posterior_sweeps \(50\)'):
         config.replace(training={'posterior_sweeps': 50, 'posterior_burn_in': 50})
+
+
+def test_a_posterior_head_checkpoint_round_trips_and_old_configs_still_load(synthetic, rows, tmp_path):
+    train, test = rows
+    fitted = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(training=SAMPLED)).fit(synthetic, train)
+    save_checkpoint(fitted, tmp_path / 'bayes.pt', data={'fingerprint': synthetic.fingerprint})
+    loaded, metadata = load_checkpoint(tmp_path / 'bayes.pt')
+    assert np.array_equal(loaded.predict_rows(synthetic, test), fitted.predict_rows(synthetic, test))
+    assert metadata['config']['training']['posterior_sweeps'] == 40
+    written_before = fitted.config.to_dict()
+    for key in ('posterior_sweeps', 'posterior_burn_in'):
+        del written_before['training'][key]
+    assert ExperimentConfig.from_dict(written_before).training.posterior_sweeps == 0
+
+
+def test_nested_selection_scores_the_posterior_head_at_every_point_of_its_curves(synthetic, rows):
+    """An inner fit scores its curve at each T2 of the grid during one fit: with a posterior
+    head each point is the head on that epoch's weights, so the last point is the fit's score
+    and posterior_sweeps (searchable) is chosen on what it changes."""
+    train, test = rows
+    protocol = ProtocolConfig.from_dict({'search': {'stars': {'posterior_sweeps': [0, 100]}}})
+    assert protocol.experiment_config(None, 'stars', {'posterior_sweeps': 100}).training.posterior_sweeps == 100
+    experiment = ExperimentConfig.from_dict(SMALL).replace(training=SAMPLED)
+    scores = run_fit(FitTask('StARS', '0:0', 'inner', experiment.to_dict(), train, test, curve_at=(2, 4)), synthetic)
+    assert scores['curve'][-1]['mse'] == scores['mse']
+    off = run_fit(FitTask('StARS', '0:0', 'inner', experiment.replace(training={'posterior_sweeps': 0}).to_dict(),
+                          train, test, curve_at=(2, 4)), synthetic)
+    assert all(on['mse'] != point['mse'] for on, point in zip(scores['curve'], off['curve']))
 
 
 # -- the math by hand ----------------------------------------------------------------------
