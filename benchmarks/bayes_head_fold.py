@@ -38,8 +38,9 @@ def test_queries(trainer: StarsTrainer, data, rows: np.ndarray) -> Observations:
     """The test rows as the sampler's queries (their scores are not read)."""
     model = trainer.model
     items = data.item_keys(trainer.config.model.item_key)
-    return Observations(trainer.user_index(data.users[rows]), trainer.scene_index([items[s] for s in data.scenes[rows]]),
-                        torch.from_numpy(data.actions[rows]), encoded(model, data.store, torch.from_numpy(data.scenes[rows])),
+    scenes = data.scenes[rows]
+    return Observations(trainer.user_index(data.users[rows]), trainer.scene_index([items[s] for s in scenes]),
+                        torch.from_numpy(data.actions[rows]), encoded(model, data.store, torch.from_numpy(scenes)),
                         torch.zeros(len(rows), dtype=torch.float64))
 
 
@@ -78,8 +79,9 @@ def main(argv=None) -> None:
     for sweeps in args.sweeps:
         model.load_state_dict(trained)
         summary = posterior_head(model, observations, sweeps, args.burn_in, config.training.seed, queries)
-        averaged_z = summary.averaged_queries.float().unsqueeze(1).expand(-1, model.n_actions)
-        averaged = trainer.clip(model.to_rating_scale(averaged_z).numpy().astype(np.float64))[np.arange(len(y)), actions]
+        averaged_z = summary.averaged_queries.float().unsqueeze(1).expand(-1, model.n_actions)  # each row: its action
+        averaged = trainer.clip(model.to_rating_scale(averaged_z).numpy().astype(np.float64))
+        averaged = averaged[np.arange(len(y)), actions]
         head = {'sweeps': sweeps, 'burn_in': args.burn_in, 'sampler_seconds': summary.seconds,
                 'noise_precision': summary.noise_precision, 'plug_in_gap_z_train': summary.plug_in_gap,
                 'posterior_mean': regression_report(y, trainer.predict_rows(data, fold.test), actions),

@@ -127,7 +127,9 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
 
     def score_curve(stage, epoch):
         if stage == 'joint' and epoch in task.curve_at:  # with a posterior head: the model fit would return now
-            scored = recommender.with_posterior_head(data, task.train) if config.training.posterior_sweeps else recommender
+            scored = recommender
+            if config.training.posterior_sweeps:
+                scored = recommender.with_posterior_head(data, task.train)
             curve.append({'epoch': epoch, **scores(scored)})
     try:
         recommender.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)

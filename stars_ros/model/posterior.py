@@ -7,8 +7,9 @@ With h_i fixed, the StARS prediction
 is linear in each block given the others: in (p_u, b_u) with features ((q_i + h_i) ⊙ r_a, 1),
 in (q_i, b_i) with features (p_u ⊙ r_a, 1), in r_a with features p_u ⊙ (q_i + h_i) + ρ h_i,
 and in b. So under Gaussian priors every block's conditional is Gaussian, and a Gibbs sweep
-draws each block in turn (one batched Cholesky solve per block), then the prior precisions
-and the noise precision from their Gamma conditionals, as in BPMF (Salakhutdinov & Mnih 2008)
+draws the prior precisions and the noise precision from their Gamma conditionals, then each
+block in turn (one batched Cholesky solve per block: k × k, or m × m in observation form for
+scenes with fewer ratings m than weights k), as in BPMF (Salakhutdinov & Mnih 2008)
 and myFM. The priors have mean zero (an unseen user or scene is a zero row, the population's)
 and a learned precision per group and factor dimension (users' factors, scenes' factors,
 actions' factors; one for each offset group), so the shrinkage ``embedding_l2`` sets by hand
@@ -50,7 +51,7 @@ class Observations(NamedTuple):
 
 class GaussianRows(NamedTuple):
     """Independent Gaussians, one per row of a block, in precision form: means [R, k] and the
-    Cholesky factors [R, k, k] of their precisions (for rows with more observations than weights)."""
+    Cholesky factors [R, k, k] of their precisions (for rows with as many observations as weights, or more)."""
 
     mean: torch.Tensor
     precision_cholesky: torch.Tensor
@@ -92,11 +93,14 @@ class ObservedGaussianRows(NamedTuple):
         return torch.diag_embed(self.prior_variance) - scaled.mT @ torch.cholesky_solve(scaled, self.gram_cholesky)
 
     def draw(self, rng: np.random.Generator) -> torch.Tensor:
-        """w₀ + S Xᵀ K⁻¹ (t − X w₀ − ε) with w₀ ~ N(0, S), ε ~ N(0, σ²I) is a draw of the posterior."""
+        """w₀ + S Xᵀ K⁻¹ (t − X w₀ − ε), w₀ ~ N(0, S), ε ~ N(0, σ²I), is a draw of the posterior."""
         prior_draw = torch.from_numpy(rng.standard_normal(self.prior_variance.shape)) * self.prior_variance.sqrt()
         noise = torch.from_numpy(rng.standard_normal(self.targets.shape)) * self.noise_variance.sqrt()
         fitted = (self.features @ prior_draw.unsqueeze(-1)).squeeze(-1)
         return prior_draw + self._posterior_shift(self.targets - fitted - noise)
+
+
+RowPosteriors = GaussianRows | ObservedGaussianRows
 
 
 class Layout(NamedTuple):
@@ -120,7 +124,7 @@ class Layout(NamedTuple):
 
 
 def gaussian_rows(features: torch.Tensor, targets: torch.Tensor, layout: Layout,
-                  prior_precision: torch.Tensor, noise_precision: torch.Tensor):
+                  prior_precision: torch.Tensor, noise_precision: torch.Tensor) -> RowPosteriors:
     """The posterior of each row's weights w_r in targets ≈ features · w_row, noise precision τ,
     prior w_r ~ N(0, diag(prior_precision)⁻¹): precision Λ + τ XᵀX, mean its inverse times τ Xᵀt.
     With observations laid out per row, each row is one batched product; in observation form
@@ -186,9 +190,10 @@ class Chain:
     """A Gibbs chain over ``model``'s factorisation part on fixed ``observations``; its state
     (``factors``, ``precisions``) starts at the model's weights and moves with ``sweep``.
 
-    ``precisions`` holds the prior precision of each group (per factor dimension for p, q and
-    r; one for each offset group) and the noise precision; the first sweep draws them afresh
-    from the start, so their initial values only matter to a caller of the conditionals."""
+    ``precisions`` holds, by part, the prior precision of each group (per factor dimension for
+    p, q and r; one for each offset group b_u, b_i) and the noise precision (``noise``); the
+    first sweep draws them afresh from the start, so their initial values only matter to a
+    caller of the conditionals."""
 
     def __init__(self, model: StarsModel, observations: Observations, seed: int):
         self.parts = model.parts
@@ -197,9 +202,8 @@ class Chain:
         self.observations = observations
         self.rng = np.random.default_rng(seed)
         dim = self.factors.r.shape[1]
-        self.precisions = {'p': torch.ones(dim, dtype=torch.float64), 'q': torch.ones(dim, dtype=torch.float64),
-                           'r': torch.ones(dim, dtype=torch.float64), 'user_bias': torch.ones(1, dtype=torch.float64),
-                           'scene_bias': torch.ones(1, dtype=torch.float64), 'noise': torch.ones((), dtype=torch.float64)}
+        sizes = {'p': dim, 'q': dim, 'r': dim, 'b_u': 1, 'b_i': 1, 'noise': ()}
+        self.precisions = {part: torch.ones(size, dtype=torch.float64) for part, size in sizes.items()}
         self.layouts = {'users': Layout.of(observations.users, len(self.factors.p)),
                         'scenes': Layout.of(observations.items, len(self.factors.q)),
                         'actions': Layout.of(observations.actions, len(self.factors.r))}
@@ -213,35 +217,35 @@ class Chain:
                 + _rows(f.scene_bias, o.items) + f.bias)
 
     # -- the conditionals of the blocks -------------------------------------------------
-    def user_conditional(self) -> GaussianRows:
+    def user_conditional(self) -> RowPosteriors:
         """(p_u, b_u) for each user: features ((q_i + h_i) ⊙ r_a, 1), the parts the variant has."""
         o, f = self.observations, self.factors
         return self._conditional('users', [('p', (f.q[o.items] + o.h) * f.r[o.actions], f.p),
                                            ('b_u', torch.ones(len(o.users), 1, dtype=torch.float64),
                                             f.user_bias.unsqueeze(1))])
 
-    def scene_conditional(self) -> GaussianRows:
+    def scene_conditional(self) -> RowPosteriors:
         """(q_i, b_i) for each scene: features (p_u ⊙ r_a, 1), the parts the variant has."""
         o, f = self.observations, self.factors
         return self._conditional('scenes', [('q', f.p[o.users] * f.r[o.actions], f.q),
                                             ('b_i', torch.ones(len(o.users), 1, dtype=torch.float64),
                                              f.scene_bias.unsqueeze(1))])
 
-    def action_conditional(self) -> GaussianRows:
+    def action_conditional(self) -> RowPosteriors:
         """r_a for each action: features p_u ⊙ (q_i + h_i) + ρ h_i."""
         o, f = self.observations, self.factors
         return self._conditional('actions', [('r', f.p[o.users] * (f.q[o.items] + o.h) + self.residual * o.h, f.r)])
 
-    def _conditional(self, group: str, columns: list) -> GaussianRows:
+    def _conditional(self, group: str, columns: list) -> RowPosteriors:
         """The block of ``columns`` (part, features [N, k], current weights [rows, k]) that the
         variant has, given everything else: its targets are y minus the rest of ŷ."""
         rows = {'users': self.observations.users, 'scenes': self.observations.items,
                 'actions': self.observations.actions}[group]
-        kept = [(part, x, w) for part, x, w in columns if part in self.parts or part == 'r']
+        kept = [(part, x, w) for part, x, w in columns if part in self.parts or part == 'r']  # r: asked when it acts
         features = torch.cat([x for _, x, _ in kept], 1)
         weights = torch.cat([w for _, _, w in kept], 1)
         targets = self.observations.targets - self.predict() + (features * weights[rows]).sum(1)
-        precision = torch.cat([self.precisions[_PRECISION[part]] for part, _, _ in kept])
+        precision = torch.cat([self.precisions[part] for part, _, _ in kept])
         return gaussian_rows(features, targets, self.layouts[group], precision, self.precisions['noise'])
 
     # -- one sweep ----------------------------------------------------------------------
@@ -277,7 +281,7 @@ class Chain:
         for part, weights in (('p', f.p), ('q', f.q), ('r', f.r), ('b_u', f.user_bias.unsqueeze(1)),
                               ('b_i', f.scene_bias.unsqueeze(1))):
             if part in self.parts or (part == 'r' and self.acts):
-                self.precisions[_PRECISION[part]] = self._gamma(len(weights) / 2, weights.pow(2).sum(0) / 2)
+                self.precisions[part] = self._gamma(len(weights) / 2, weights.pow(2).sum(0) / 2)
         errors = self.observations.targets - self.predict()
         self.precisions['noise'] = self._gamma(len(errors) / 2, errors.pow(2).sum() / 2)
 
@@ -285,9 +289,6 @@ class Chain:
         scale = 1 / (GAMMA_RATE + rate_gain.numpy())
         return torch.as_tensor(self.rng.gamma(GAMMA_SHAPE + shape_gain, scale), dtype=torch.float64)
 
-
-#: The precision that holds each part's prior.
-_PRECISION = {'p': 'p', 'q': 'q', 'r': 'r', 'b_u': 'user_bias', 'b_i': 'scene_bias'}
 
 
 class PosteriorSummary(NamedTuple):

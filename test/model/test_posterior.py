@@ -97,6 +97,7 @@ def test_nested_selection_scores_the_posterior_head_at_every_point_of_its_curves
 
 # -- the math by hand ----------------------------------------------------------------------
 USERS, ITEMS, ACTIONS = [0, 0, 0, 0, 1, 1], [0, 0, 1, 2, 1, 2], [0, 1, 0, 1, 1, 0]
+PRECISIONS = {'p': [2.0, 3.0], 'q': [4.0, 5.0], 'r': [0.5, 1.5], 'b_u': [6.0], 'b_i': [7.0], 'noise': 8.0}
 
 
 def tiny_chain(variant: str) -> tuple:
@@ -119,9 +120,7 @@ def tiny_chain(variant: str) -> tuple:
     observations = Observations(torch.tensor(USERS), torch.tensor(ITEMS), torch.tensor(ACTIONS),
                                 torch.tensor(w['h']), torch.tensor(w['y']))
     chain = Chain(model, observations, seed=0)
-    chain.precisions.update(p=torch.tensor([2.0, 3.0], dtype=torch.float64), q=torch.tensor([4.0, 5.0], dtype=torch.float64),
-                            r=torch.tensor([0.5, 1.5], dtype=torch.float64), user_bias=torch.tensor([6.0], dtype=torch.float64),
-                            scene_bias=torch.tensor([7.0], dtype=torch.float64), noise=torch.tensor(8.0, dtype=torch.float64))
+    chain.precisions.update({part: torch.tensor(value, dtype=torch.float64) for part, value in PRECISIONS.items()})
     return chain, model, w
 
 
@@ -149,8 +148,9 @@ def test_a_blocks_conditional_is_the_gaussian_derived_by_hand(block):
             else:  # ŷ = r_a·(p_u ⊙ (q_i + h) + h) + (b_u + b_i + b)
                 features.append(p[u] * (q[i] + h[j]) + h[j])
                 offsets.append(w['b_u'][u] + w['b_i'][i] + w['b'])
-        prior = {'users': [2.0, 3.0, 6.0], 'scenes': [4.0, 5.0, 7.0], 'actions': [0.5, 1.5]}[block]
-        mean, covariance = by_hand(np.array(features), np.array(offsets), w['y'][entries], prior, 8.0)
+        prior = {'users': PRECISIONS['p'] + PRECISIONS['b_u'], 'scenes': PRECISIONS['q'] + PRECISIONS['b_i'],
+                 'actions': PRECISIONS['r']}[block]
+        mean, covariance = by_hand(np.array(features), np.array(offsets), w['y'][entries], prior, PRECISIONS['noise'])
         found = {'users': chain.user_conditional, 'scenes': chain.scene_conditional,
                  'actions': chain.action_conditional}[block]()
         np.testing.assert_allclose(found.mean[row].numpy(), mean, rtol=1e-9, atol=1e-12)
@@ -164,7 +164,8 @@ def test_draws_have_the_conditionals_mean_and_covariance(most):
     rng = np.random.default_rng(0)
     features, targets = torch.from_numpy(rng.normal(size=(most, 3))), torch.from_numpy(rng.normal(size=most))
     posterior = gaussian_rows(features, targets, Layout.of(torch.zeros(most, dtype=torch.long), 1),
-                              torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64), torch.tensor(4.0, dtype=torch.float64))
+                              torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64),
+                              torch.tensor(4.0, dtype=torch.float64))
     draws = torch.stack([posterior.draw(rng)[0] for _ in range(20000)]).numpy()
     np.testing.assert_allclose(draws.mean(0), posterior.mean[0].numpy(), atol=0.03)
     np.testing.assert_allclose(np.cov(draws.T), posterior.covariance[0].numpy(), atol=0.03)
@@ -214,7 +215,8 @@ def test_on_stars_form_data_the_posterior_means_do_no_worse_than_the_point_estim
         'training': {'pretrain_epochs': 30, 'joint_epochs': 60, 'lr': 1e-2, 'batch_size': 64, 'embedding_l2': 0.01,
                      'weight_decay': 0.0, 'threads': 1}})
     point = StarsTrainer(config).fit(stars_form, train)
-    bayes = StarsTrainer(config.replace(training={'posterior_sweeps': 200, 'posterior_burn_in': 50})).fit(stars_form, train)
+    bayes = StarsTrainer(config.replace(training={'posterior_sweeps': 200, 'posterior_burn_in': 50}))
+    bayes.fit(stars_form, train)
     point_mse, bayes_mse = point.evaluate(stars_form, test)['mse'], bayes.evaluate(stars_form, test)['mse']
     assert bayes_mse <= point_mse, (bayes_mse, point_mse)
     observations = training_observations(bayes.model, stars_form.store, bayes.training_set(stars_form, train))
