@@ -118,16 +118,19 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     y, actions = data.scores[task.test], data.actions[task.test]
     curve = []
 
-    def scores():
-        predictions = recommender.predict_rows(data, task.test)
-        model = recommender.model
+    def scores(scored):
+        predictions = scored.predict_rows(data, task.test)
+        model = scored.model
         return {**regression_report(y, predictions, actions),
                 'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.cpu().numpy(),
                                           model.target_std.cpu().numpy())}
 
     def score_curve(stage, epoch):
-        if stage == 'joint' and epoch in task.curve_at:
-            curve.append({'epoch': epoch, **scores()})
+        if stage == 'joint' and epoch in task.curve_at:  # with a posterior head: the model fit would return now
+            scored = recommender
+            if config.training.posterior_sweeps:
+                scored = recommender.with_posterior_head(data, task.train)
+            curve.append({'epoch': epoch, **scores(scored)})
     try:
         recommender.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
     except TrainingDivergedError as error:  # one diverged fit must not end a long run
@@ -135,7 +138,7 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
                 'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
                 'error': str(error), **({'curve': []} if task.curve_at else {})}
     fitted = time.perf_counter()
-    result = scores()
+    result = scores(recommender)
     predicted = time.perf_counter()
     model = recommender.model
     return {**result, 'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,

@@ -190,7 +190,13 @@ class TrainConfig(Section):
     weights are the mean of the weights after each of the last ``average_last`` joint epochs
     (all of them when there are fewer): stochastic weight averaging (Izmailov et al. 2018),
     one model served at the same cost that averages along its trajectory instead of keeping
-    its last point; 0 keeps the last point. ``device`` is where ``fit`` trains
+    its last point; 0 keeps the last point. ``posterior_sweeps`` > 0: after joint training,
+    with the encoder frozen, a blocked Gibbs sampler with learned prior precisions runs that
+    many sweeps over the factorisation part (user, scene and action rows and offsets) from
+    the trained weights, and the fitted rows are the means of the draws after the first
+    ``posterior_burn_in`` sweeps (``model.posterior``): a Bayesian head with myFM's edge, one
+    model served at the same cost; 0 keeps the trained point estimate. Not for ``base``, which
+    has no factorisation part. ``device`` is where ``fit`` trains
     ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
     fold-in and serving never see a GPU tensor."""
 
@@ -202,6 +208,8 @@ class TrainConfig(Section):
     grad_clip: Annotated[Float, Field(gt=0.0)] = 1.0
     embedding_l2: Annotated[Float, Field(ge=0.0)] = 0.0
     average_last: Annotated[Int, Field(ge=0)] = 0
+    posterior_sweeps: Annotated[Int, Field(ge=0)] = 0
+    posterior_burn_in: Annotated[Int, Field(ge=0)] = 50
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
     device: str = 'cpu'
@@ -212,6 +220,13 @@ class TrainConfig(Section):
         if not re.fullmatch(r'cpu|cuda(:\d+)?', device):
             raise ValueError(f"must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
         return device
+
+    @model_validator(mode='after')
+    def _burn_in_below_sweeps(self) -> 'TrainConfig':
+        if self.posterior_sweeps and self.posterior_burn_in >= self.posterior_sweeps:
+            raise ValueError(f'posterior_burn_in ({self.posterior_burn_in}) must be below posterior_sweeps '
+                             f'({self.posterior_sweeps}): no draw would be kept')
+        return self
 
 
 class SplitConfig(Section):
@@ -234,6 +249,12 @@ class ExperimentConfig(Section):
         if isinstance(values, dict):
             return {key: {} if value is None and key in cls.model_fields else value for key, value in values.items()}
         return values
+
+    @model_validator(mode='after')
+    def _posterior_needs_factors(self) -> 'ExperimentConfig':
+        if self.training.posterior_sweeps and self.model.variant == 'base':
+            raise ValueError("training.posterior_sweeps: the 'base' variant has no factorisation part to sample")
+        return self
 
     def to_dict(self) -> dict:
         return self.model_dump()

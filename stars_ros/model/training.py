@@ -9,7 +9,9 @@ temporary linear head on per-action z-scored targets; (2) ``joint_epochs`` of th
 model. For the ``base`` variant the linear head is the model's own head, so both steps
 train the same network. A personalised model takes over the pre-trained head as its action
 embeddings (``StarsModel.start_from_head``), so joint training starts from the scene-only
-model rather than from a random head. A batch holds examples (one user's ratings of one
+model rather than from a random head. With ``posterior_sweeps``, a Gibbs sampler then
+replaces the trained factorisation part by its posterior means (``model.posterior``).
+A batch holds examples (one user's ratings of one
 scene, every action a target), as in the paper. AdamW with gradient clipping; seeds fixed;
 each distinct scene of a batch is encoded once.
 
@@ -20,6 +22,7 @@ everything after training (checkpoints, fold-in, serving) is the same as for a C
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 from typing import Callable, NamedTuple, Sequence
@@ -32,6 +35,7 @@ from stars_ros.data.ratings import RatingData
 from stars_ros.errors import ConfigError, TrainingDivergedError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import FittedModel, build_model
+from stars_ros.model.posterior import posterior_head, training_observations
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +163,26 @@ class StarsTrainer(FittedModel):
                          cfg.embedding_l2, on_epoch, average_last=cfg.average_last)
         model.cpu()
         model.eval()
+        if cfg.posterior_sweeps:
+            self._apply_posterior_head(data, examples)
         return self
+
+    def with_posterior_head(self, data: RatingData, rows: np.ndarray) -> 'StarsTrainer':
+        """A copy, on the CPU, whose factorisation part is the posterior head (``posterior_sweeps``)
+        of the current weights on ``rows``: what ``fit`` would return were joint training to end
+        now, so that a learning curve scored in ``on_epoch`` scores the model its settings describe."""
+        child = self.copy_into(StarsTrainer(self.config))
+        child.model = copy.deepcopy(self.require_model()).cpu()
+        child._apply_posterior_head(data, child.training_set(data, rows))
+        return child
+
+    def _apply_posterior_head(self, data, examples) -> None:
+        cfg, model = self.config.training, self.model
+        summary = posterior_head(model, training_observations(model, data.store, examples),
+                                 cfg.posterior_sweeps, cfg.posterior_burn_in, cfg.seed)
+        log.info('posterior head: %d sweeps (%d kept) in %.1f s, noise precision %.3f, plug-in means '
+                 '%.4f (z RMS) from the averaged prediction on the training entries', summary.sweeps,
+                 summary.kept, summary.seconds, summary.noise_precision, summary.plug_in_gap)
 
     def fine_tune(self, data: RatingData, epochs: int, rows: np.ndarray | None = None) -> list:
         """``epochs`` joint epochs on ``rows`` of ``data`` from the current weights (a refit
