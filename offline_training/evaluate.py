@@ -76,6 +76,7 @@ def configure(args) -> ProtocolConfig:
         values = config.to_dict()
         values['backbones'] = {b: config.backbones[b] for b in chosen}
         values['sweep_backbones'] = [b for b in config.sweep_backbones if b in chosen]
+        values['ablation_backbones'] = [b for b in config.ablation_backbones if b in chosen]
         config = ProtocolConfig.from_dict(values)
     if args.device:
         config = ProtocolConfig.from_dict(config.to_dict(), {'experiment': {'training': {'device': args.device}}})

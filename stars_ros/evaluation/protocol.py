@@ -79,13 +79,15 @@ SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'tra
 FAMILIES = ('base', 'stars', 'mf')
 #: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.
 PEER_FAMILIES = ('surprise_svd', 'myfm')
-#: StARS ablations: label suffix and the model settings that differ from full StARS.
+#: StARS ablations: label suffix and the settings that differ from full StARS (they win over
+#: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off).
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
     'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
     'stars_no_q': ('StARS without q_i', {'variant': 'stars_no_q'}),
     'stars_no_residual': ('StARS without the h_i residual', {'variant': 'stars_no_residual'}),
     'stars_prefix': ('StARS, items keyed by prefix', {'item_key': 'prefix'}),
+    'stars_point': ('StARS, trained point estimate (no posterior head)', {'posterior_sweeps': 0}),
 }
 
 
@@ -180,7 +182,7 @@ class ProtocolConfig(Section):
             for spec in model_specs(self):
                 if spec.variant not in ('population_mean', *peers.PEERS):
                     for settings in _settings_candidates(self, spec):
-                        self.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
+                        self.experiment_config(spec.backbone, spec.variant, {**settings, **spec.model})
         except ConfigError as error:
             raise ValueError(str(error)) from None
         return self
@@ -483,7 +485,7 @@ class ProtocolRun:
         if spec.variant == 'myfm_encoder':  # base's encoder (with base's choice), then myFM's defaults
             return replace(self._task(ModelSpec(spec.label, spec.backbone, 'base'), fold_id, stage, settings, pair,
                                       train, test, **extra), peer='myfm_encoder')
-        base = self.config.experiment_config(spec.backbone, spec.variant, {**spec.model, **settings})
+        base = self.config.experiment_config(spec.backbone, spec.variant, {**settings, **spec.model})
         experiment = base.replace(training={'pretrain_epochs': pair[0], 'joint_epochs': pair[1],
                                             'threads': self.threads}).to_dict()
         return FitTask(spec.label, fold_id, stage, experiment, train, test, settings=settings_key(settings), **extra)

@@ -200,6 +200,28 @@ def test_ablations_follow_the_stars_choice_of_each_fold(synthetic, monkeypatch):
         ProtocolConfig.from_dict({'grid': [[10, 0]]})
 
 
+def test_the_point_estimate_ablation_is_the_stars_choice_with_the_posterior_head_off(synthetic, monkeypatch):
+    def fake_fit(task, data=None):
+        training = task.experiment['training']
+        error = 0.4 if training['posterior_sweeps'] else 0.6
+        mse = 0.01 if training['posterior_sweeps'] else 0.03  # tells which model was fitted
+        return {'mse': mse, 'rmse': 0.14, 'pearson_r': 0.9, 'ccc': 0.9, 'n': len(task.test), 'z_rmse': error,
+                'fit_seconds': 1.0, 'predict_seconds': 0.1, 'epochs': 2,
+                **({'curve': [{'epoch': t, 'z_rmse': error} for t in task.curve_at]} if task.curve_at else {})}
+
+    monkeypatch.setattr(executors, 'run_fit', fake_fit)
+    config = ProtocolConfig.from_dict({
+        'folds': 2, 'grid': [[1, 3]], 'backbones': {'gcn': {}}, 'baselines': [],
+        'search': {'stars': {'embedding_l2': [0.01, 0.1], 'posterior_sweeps': [0, 2]}},
+        'experiment': {'training': {'posterior_burn_in': 1}},
+        'ablation_backbones': ['gcn'], 'ablations': ['stars_point']})
+    final = {r['model']: r for r in run_protocol(synthetic, config, 'rows').final()}
+    chosen = final['GCN StARS']
+    assert chosen['settings']['posterior_sweeps'] == 2 and chosen['mse'] == 0.01
+    point = final['GCN StARS, trained point estimate (no posterior head)']
+    assert point['settings'] == chosen['settings'] and point['mse'] == 0.03  # its own setting wins over the choice
+
+
 @pytest.mark.slow
 def test_quick_cli_end_to_end(synthetic_root, tmp_path):
     out = tmp_path / 'quick'
