@@ -290,7 +290,6 @@ class Chain:
         return torch.as_tensor(self.rng.gamma(GAMMA_SHAPE + shape_gain, scale), dtype=torch.float64)
 
 
-
 class PosteriorSummary(NamedTuple):
     """What ``posterior_head`` did: sweeps run and kept, seconds, the posterior mean of the
     noise precision (z-scale), the RMS gap (z-scale) between the plug-in means' predictions
