@@ -1,7 +1,6 @@
 """The Bayesian head (``model.posterior``, ``training.posterior_sweeps``): off it is today's fit,
 it never reads a test row, its conditionals are the hand-derived Gaussians, and on data made
 by the StARS form it does no worse than the point estimate it starts from."""
-import csv
 import dataclasses
 
 import numpy as np
@@ -17,6 +16,8 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import build_model
 from stars_ros.model.posterior import Chain, Layout, Observations, gaussian_rows, training_observations
 from stars_ros.model.training import StarsTrainer, split_rows
+
+from generic_data import write_generic_data
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
          'training': {'pretrain_epochs': 2, 'joint_epochs': 4, 'lr': 3e-3, 'batch_size': 128, 'threads': 1}}
@@ -193,18 +194,13 @@ def stars_form(tmp_path_factory):
     h = np.tanh(x @ rng.normal(size=(features, dim)) / np.sqrt(features))
     p, q = rng.normal(scale=0.6, size=(n_users, dim)), rng.normal(scale=0.4, size=(n_scenes, dim))
     r, b_u, b_i = rng.normal(size=(2, dim)), rng.normal(scale=0.3, size=n_users), rng.normal(scale=0.3, size=n_scenes)
-    with (root / 'scenes.csv').open('w', newline='') as handle:
-        writer = csv.writer(handle)
-        writer.writerow(['scene'] + [f'f{j}' for j in range(features)])
-        writer.writerows([f's{i}'] + list(row) for i, row in enumerate(x))
-    with (root / 'annotations.csv').open('w', newline='') as handle:
-        writer = csv.writer(handle)
-        writer.writerow(['user', 'scene', 'action', 'score'])
-        for i in range(n_scenes):
-            for u in rng.choice(n_users, size=2, replace=False):
-                for a, action in enumerate(('pass', 'wait')):
-                    score = 3 + (p[u] * (q[i] + h[i]) + h[i]) @ r[a] + b_u[u] + b_i[i] + rng.normal(scale=0.3)
-                    writer.writerow([f'u{u}', f's{i}', action, f'{score:.4f}'])
+    ratings = []
+    for i in range(n_scenes):
+        for u in rng.choice(n_users, size=2, replace=False):
+            for a, action in enumerate(('pass', 'wait')):
+                score = 3 + (p[u] * (q[i] + h[i]) + h[i]) @ r[a] + b_u[u] + b_i[i] + rng.normal(scale=0.3)
+                ratings.append([f'u{u}', f's{i}', action, f'{score:.4f}'])
+    write_generic_data(root, x, ratings)
     return load_dataset(root)
 
 

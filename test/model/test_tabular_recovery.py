@@ -6,8 +6,6 @@ scene feature, plus noise). Averaged over users the taste cancels, so the best s
 predictor is near the population mean; the per-user factor p_u of StARS can flip the sign.
 The data goes through the generic tabular format and the same protocol as SocNav1.
 """
-import csv
-
 import numpy as np
 import pytest
 
@@ -16,6 +14,8 @@ from stars_ros.data.ratings import load_dataset
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
 from stars_ros.evaluation.summaries import by_model
 from stars_ros.model.training import StarsTrainer, split_rows
+
+from generic_data import write_generic_data
 
 NOISE = 0.2
 EXPERIMENT = {'encoder': {'name': 'mlp', 'hidden': 32, 'layers': 2},
@@ -30,18 +30,13 @@ def planted(tmp_path_factory):
     n_scenes, n_users, features = 200, 16, 4
     x = rng.normal(size=(n_scenes, features))
     taste = np.repeat([1.0, -1.0], n_users // 2)
-    with (root / 'scenes.csv').open('w', newline='') as handle:
-        writer = csv.writer(handle)
-        writer.writerow(['scene'] + [f'f{j}' for j in range(features)])
-        writer.writerows([f's{i}'] + list(row) for i, row in enumerate(x))
-    with (root / 'annotations.csv').open('w', newline='') as handle:
-        writer = csv.writer(handle)
-        writer.writerow(['user', 'scene', 'action', 'score'])
-        for u in range(n_users):
-            for i in rng.choice(n_scenes, size=60, replace=False):
-                for action, slope in (('pass', 1.0), ('wait', -0.5)):
-                    score = 3 + slope * taste[u] * x[i, 0] + rng.normal(scale=NOISE)
-                    writer.writerow([f'u{u}', f's{i}', action, f'{np.clip(score, 1, 5):.3f}'])
+    ratings = []
+    for u in range(n_users):
+        for i in rng.choice(n_scenes, size=60, replace=False):
+            for action, slope in (('pass', 1.0), ('wait', -0.5)):
+                score = 3 + slope * taste[u] * x[i, 0] + rng.normal(scale=NOISE)
+                ratings.append([f'u{u}', f's{i}', action, f'{np.clip(score, 1, 5):.3f}'])
+    write_generic_data(root, x, ratings)
     return load_dataset(root)
 
 
