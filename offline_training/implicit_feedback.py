@@ -6,7 +6,7 @@ generated crowd data.
 
 Per data set, people are dealt into ``--folds`` leave-people-out folds; per fold a model is
 trained on the other people (SocNav1: config/socnav1_gat.yaml, the published settings; crowd:
-config/implicit_crowd.yaml) less a seeded tenth of their examples, which gives the prior its
+config/implicit_crowd.yaml; ``--config DATASET=PATH`` trains with another) less a seeded tenth of their examples, which gives the prior its
 noise (``estimate_prior``). Each held-out person's seeded pool of ``--pool`` examples is where
 the robot acts; the rest are test rows.
 MSE per number n of implicit outcomes (``--flips``: ε of the outcome model; its exact
@@ -41,6 +41,9 @@ def parse_args(argv=None):
     parser.add_argument('--out', type=Path, default=Path('results/implicit-feedback'))
     parser.add_argument('--data-root', type=Path, default=DEFAULT_SOCNAV1, help='SocNav1 (default: %(default)s)')
     parser.add_argument('--datasets', nargs='+', choices=list(CONFIGS), default=list(CONFIGS))
+    parser.add_argument('--config', dest='configs', action='append', default=[], metavar='DATASET=PATH',
+                        help='train that data set\'s fold models with another config (default: '
+                             + ', '.join(f'{name}={path}' for name, path in CONFIGS.items()) + ')')
     parser.add_argument('--folds', type=int, default=4, help='leave-people-out folds (default: %(default)s)')
     parser.add_argument('--pool', type=int, default=16, help='pool examples per held-out person (default: %(default)s)')
     parser.add_argument('--flips', type=float, nargs='+', default=[0.0, 0.2],
@@ -55,7 +58,13 @@ def parse_args(argv=None):
     parser.add_argument('--rewrite-report', action='store_true',
                         help="recompute the summary and results.md from --out's results.json, running nothing")
     parser.add_argument('--verbose', action='store_true')
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    configs = [item.partition('=') for item in args.configs]
+    unknown = [name for name, _, _ in configs if name not in CONFIGS]
+    if unknown or any(not path for _, _, path in configs):
+        parser.error(f'--config takes DATASET=PATH, DATASET one of {list(CONFIGS)}; got {args.configs}')
+    args.configs = {name: path for name, _, path in configs}
+    return args
 
 
 def main(argv=None) -> int:

@@ -38,7 +38,8 @@ def run_dataset(name: str, args, ns, ks) -> dict:
     data = load(name, args)
     if data.scale is None:
         raise SystemExit(f'{name}: the simulation needs a bounded rating scale')
-    config = ExperimentConfig.from_yaml(CONFIGS[name])
+    config_path = {**CONFIGS, **args.configs}[name]
+    config = ExperimentConfig.from_yaml(config_path)
     per_fold, covered, left_out = [], 0, 0
     for fold, held_out in enumerate(annotator_folds(data.users, args.folds, args.seed)):
         rows = np.flatnonzero(~np.isin(data.users, held_out))
@@ -71,7 +72,7 @@ def run_dataset(name: str, args, ns, ks) -> dict:
     curves = {}
     for curve, points in per_fold[0].items():
         curves[curve] = {x: dict(zip(('mean', 'sd'), mean_sd([f[curve][x] for f in per_fold]))) for x in points}
-    return {'data': data.source, 'fingerprint': data.fingerprint, 'scale': list(data.scale), 'config': CONFIGS[name],
+    return {'data': data.source, 'fingerprint': data.fingerprint, 'scale': list(data.scale), 'config': str(config_path),
             'people_covered': covered, 'people_left_out': left_out, 'folds': per_fold, 'curves': curves,
             'unpersonalised_mse': curves['explicit']['0']['mean'],
             'summary': summarise(curves, ns, ks, args.flips, per_fold)}
