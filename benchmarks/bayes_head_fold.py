@@ -34,7 +34,7 @@ from stars_ros.model.training import StarsTrainer
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_queries(trainer: StarsTrainer, data, rows: np.ndarray) -> Observations:
+def query_observations(trainer: StarsTrainer, data, rows: np.ndarray) -> Observations:
     """The test rows as the sampler's queries (their scores are not read)."""
     model = trainer.model
     items = data.item_keys(trainer.config.model.item_key)
@@ -47,7 +47,7 @@ def test_queries(trainer: StarsTrainer, data, rows: np.ndarray) -> Observations:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--data', default='socnav1')
-    parser.add_argument('--protocol', default=str(REPO / 'config/eval_socnav1_peers.yaml'))
+    parser.add_argument('--protocol', default='config/eval_socnav1_peers.yaml', help='relative to the repository root')
     parser.add_argument('--backbone', default='gat')
     parser.add_argument('--epochs', type=int, nargs=2, default=(10, 40), metavar=('T1', 'T2'))
     parser.add_argument('--embedding-l2', type=float, default=0.01)
@@ -59,7 +59,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
 
     data = load_dataset(args.data)
-    protocol = ProtocolConfig.from_yaml(args.protocol)
+    protocol = ProtocolConfig.from_yaml(REPO / args.protocol)
     fold = make_folds(data, 'rows', protocol.folds, protocol.seeds[0])[0]
     config = protocol.experiment_config(args.backbone, 'stars', {'embedding_l2': args.embedding_l2}).replace(
         training={'pretrain_epochs': args.epochs[0], 'joint_epochs': args.epochs[1], 'threads': 1})
@@ -74,7 +74,7 @@ def main(argv=None) -> None:
     print(f'point estimate: test MSE {point["mse"]:.5f} (fit {fit_seconds:.0f} s)', flush=True)
 
     observations = training_observations(model, data.store, trainer.training_set(data, fold.train))
-    queries = test_queries(trainer, data, fold.test)
+    queries = query_observations(trainer, data, fold.test)
     heads = []
     for sweeps in args.sweeps:
         model.load_state_dict(trained)

@@ -72,7 +72,7 @@ def run_dataset(name: str, args, ns, ks) -> dict:
     curves = {}
     for curve, points in per_fold[0].items():
         curves[curve] = {x: dict(zip(('mean', 'sd'), mean_sd([f[curve][x] for f in per_fold]))) for x in points}
-    return {'data': data.source, 'fingerprint': data.fingerprint, 'scale': list(data.scale), 'config': str(config_path),
+    return {'data': data.source, 'fingerprint': data.fingerprint, 'scale': list(data.scale), 'config': config_path,
             'people_covered': covered, 'people_left_out': left_out, 'folds': per_fold, 'curves': curves,
             'unpersonalised_mse': curves['explicit']['0']['mean'],
             'summary': summarise(curves, ns, ks, args.flips, per_fold)}

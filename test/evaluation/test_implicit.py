@@ -32,6 +32,15 @@ def test_exchange_rate_interpolates_in_log_n_and_says_when_it_is_out_of_reach():
     assert exchange_rate(ns, mse, 0.5) is None
 
 
+def test_config_overrides_name_a_data_set_and_a_path(capsys):
+    args = implicit_feedback.parse_args(['--config', 'socnav1=config/socnav1_gat_posterior.yaml'])
+    assert args.configs == {'socnav1': 'config/socnav1_gat_posterior.yaml'}
+    for wrong in ('nope=x.yaml', 'socnav1', 'crowd='):
+        with pytest.raises(SystemExit):
+            implicit_feedback.parse_args(['--config', wrong])
+        assert '--config takes DATASET=PATH' in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_command_writes_curves_and_exchange_rates(tmp_path):
     assert implicit_feedback.main(['--quick', '--datasets', 'crowd', '--out', str(tmp_path)]) == 0
