@@ -1,3 +1,5 @@
+import copy
+
 import pytest
 import torch
 
@@ -75,3 +77,14 @@ def test_graceae_reconstruction_loss_only_in_training():
     first = encoder(torch.ones(2, 6))
     assert encoder.auxiliary_loss() is None
     assert torch.equal(first, encoder(torch.ones(2, 6)))  # no corruption at inference
+
+
+def test_graceae_copies_mid_training_once_its_loss_is_taken():
+    """The trainer takes the reconstruction loss every step; a copy made between steps (the
+    posterior head's curve points) must not meet the loss's graph."""
+    encoder = resolve_encoder('graceae', 6, 4)
+    encoder.train()
+    encoder(torch.randn(5, 6))
+    encoder.auxiliary_loss().backward()
+    assert encoder.auxiliary_loss() is None
+    copy.deepcopy(encoder)

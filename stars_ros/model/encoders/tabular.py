@@ -94,7 +94,11 @@ class GraceAE(TabularEncoder):
         return code
 
     def auxiliary_loss(self):
-        return self._reconstruction if self.training else None
+        """The last training forward's reconstruction loss, handed over once: holding on to it
+        would keep its graph, and a copy of the model mid-training (the posterior head's
+        curve points) cannot copy a tensor that is not a graph leaf."""
+        loss, self._reconstruction = self._reconstruction, None
+        return loss if self.training else None
 
 
 @register('fttransformer')
