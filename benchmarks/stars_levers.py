@@ -56,6 +56,7 @@ _DATA: RatingData | None = None  # each worker's copy
 
 
 def _hold(root: str) -> None:
+    """Load the data once per worker process, with one torch thread."""
     global _DATA
     import torch
     torch.set_num_threads(1)
@@ -194,6 +195,9 @@ def main(argv=None) -> None:
                 fold_id = f'{seed}:{number}'
                 folds[fold_id] = (fold, choices[f'{name} StARS', fold_id], choices[f'{name} base', fold_id])
         plan[backbone] = (folds, recorded(results, f'{name} StARS'), *best_peer(results, backbone))
+        if args.peer_members and plan[backbone][2] != peers.encoder_label(name):
+            raise SystemExit(f'{folder}: the best peer for {backbone} is {plan[backbone][2]}; --peer-members '
+                             'averages myFM on base h_i only')
         for fold_id, (fold, stars, base) in folds.items():
             for kind, choice, members, extra in (('stars', stars, args.members, args.extra_epochs),
                                                  ('peer', base, args.peer_members, 0)):
