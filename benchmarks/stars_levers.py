@@ -41,8 +41,9 @@ import yaml
 from stars_ros.data.ratings import RatingData, load_dataset
 from stars_ros.evaluation import peers
 from stars_ros.evaluation.folds import make_folds
-from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig
+from stars_ros.evaluation.protocol import DISPLAY, EvaluationResult, ProtocolConfig
 from stars_ros.evaluation.stats import corrected_resampled_ttest, holm
+from stars_ros.evaluation.summaries import best_peer
 from stars_ros.model.metrics import regression_report
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,29 +77,20 @@ def train_member(kind: str, experiment: dict, train: np.ndarray, test: np.ndarra
     return predictions, time.perf_counter() - started
 
 
-def read_run(folder: Path) -> tuple[ProtocolConfig, dict]:
-    """The run's protocol config (trained on the CPU here) and its results.json."""
+def read_run(folder: Path) -> EvaluationResult:
+    """The run's config (trained on the CPU here), records and choices."""
     settings = yaml.safe_load((folder / 'config.yaml').read_text())
     if settings['protocol'] != 'rows':
         raise SystemExit(f'{folder}: a {settings["protocol"]} run; this reads rows-protocol runs')
     values = {k: v for k, v in settings.items() if k in ProtocolConfig.model_fields}
     config = ProtocolConfig.from_dict(values, {'experiment': {'training': {'device': 'cpu'}}})
-    return config, json.loads((folder / 'results.json').read_text())
+    results = json.loads((folder / 'results.json').read_text())
+    return EvaluationResult('rows', config, records=results['records'], choices=results['choices'])
 
 
-def recorded(results: dict, label: str) -> dict:
+def recorded(run: EvaluationResult, label: str) -> dict:
     """Per-fold MSE of the run's model ``label``."""
-    return {r['fold']: r['mse'] for r in results['records'] if r['model'] == label and r['fraction'] == 1.0}
-
-
-def best_peer(results: dict, backbone: str) -> tuple[str, dict]:
-    """The peer (content-free, or myFM on this backbone's h_i) with the lowest mean MSE: its
-    label and per-fold MSE."""
-    labels = {peers.LABELS[p] for p in peers.PEERS if p in peers.LABELS} | {'MF (biased, no content)'}
-    labels |= {peers.encoder_label(DISPLAY.get(backbone, backbone))}
-    by_label = {label: recorded(results, label) for label in labels if recorded(results, label)}
-    label = min(by_label, key=lambda name: np.mean(list(by_label[name].values())))
-    return label, by_label[label]
+    return {r['fold']: r['mse'] for r in run.final() if r['model'] == label}
 
 
 def member_path(out: Path, backbone: str, kind: str, fold_id: str, member: int) -> Path:
@@ -184,20 +176,22 @@ def main(argv=None) -> None:
     plan, tasks = {}, []
     for spec in args.run:
         backbone, _, folder = spec.partition('=')
-        config, results = read_run(REPO / folder)
-        if backbone not in results['config'].get('backbones', {}):
+        run = read_run(REPO / folder)
+        config = run.config
+        if backbone not in config.backbones:
             raise SystemExit(f'{folder} has no backbone {backbone}')
         name = DISPLAY.get(backbone, backbone)
-        choices = {(c['model'], c['fold']): c for c in results['choices']}
+        choices = {(c['model'], c['fold']): c for c in run.choices}
         folds = {}
         for seed in config.seeds:
             for number, fold in enumerate(make_folds(data, 'rows', config.folds, seed)):
                 fold_id = f'{seed}:{number}'
                 folds[fold_id] = (fold, choices[f'{name} StARS', fold_id], choices[f'{name} base', fold_id])
-        plan[backbone] = (folds, recorded(results, f'{name} StARS'), *best_peer(results, backbone))
-        if args.peer_members and plan[backbone][2] != peers.encoder_label(name):
-            raise SystemExit(f'{folder}: the best peer for {backbone} is {plan[backbone][2]}; --peer-members '
-                             'averages myFM on base h_i only')
+        peer = best_peer(run, backbone)
+        if args.peer_members and peer != peers.encoder_label(name):
+            raise SystemExit(f'{folder}: the best peer for {backbone} is {peer}; --peer-members averages myFM on '
+                             'base h_i only')
+        plan[backbone] = (folds, recorded(run, f'{name} StARS'), peer, recorded(run, peer))
         for fold_id, (fold, stars, base) in folds.items():
             for kind, choice, members, extra in (('stars', stars, args.members, args.extra_epochs),
                                                  ('peer', base, args.peer_members, 0)):
