@@ -233,6 +233,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     import torch
 
     from stars_ros import messages
+    from stars_ros.model.checkpoint import load_checkpoint
     from stars_ros.model.predictor import Predictor
     from stars_ros.resources import resolve_checkpoint
     from stars_ros.data.scene_graph import featurise
@@ -247,7 +248,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     torch.set_num_threads(1)
     threadpool_limits(1, user_api='blas')  # as the node does; OpenBLAS threads on busy cores slow explained requests
     predictor = Predictor.load(resolve_checkpoint(checkpoint))
-    model = predictor.recommender.model
+    model = load_checkpoint(resolve_checkpoint(checkpoint))[0].require_model()  # the torch form, timed beside
     uncertainty = Uncertainty(FoldIn(predictor))  # as the node serves: score_sd and p_first_is_best
     steps = {}
 

@@ -26,6 +26,7 @@ from stars_ros.data.ratings import load_dataset
 from stars_ros.data.scene_source import read_scenes
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.explanations import compare_gnnexplainer, faithfulness, held_out_scenes
+from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.model.training import split_rows
 from stars_ros.resources import resolve_checkpoint
@@ -127,8 +128,9 @@ def main(argv=None) -> int:
                'faithfulness': faithfulness(predictor, scenes, users, column)}
     print(json.dumps(results['faithfulness']), flush=True)
     count = args.gnnexplainer_scenes
-    results['gnnexplainer'] = compare_gnnexplainer(predictor, scenes[:count], users[:count], column, args.epochs,
-                                                   args.seed)
+    model = load_checkpoint(checkpoint)[0].require_model()  # GNNExplainer differentiates the torch model
+    results['gnnexplainer'] = compare_gnnexplainer(predictor, model, scenes[:count], users[:count], column,
+                                                   args.epochs, args.seed)
     print(json.dumps(results['gnnexplainer']), flush=True)
     results['wall_seconds'] = time.perf_counter() - started
     results['machine'] = machine()

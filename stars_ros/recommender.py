@@ -37,15 +37,17 @@ for a term the variant has (``base`` has neither; ``user_bias`` no scene term). 
 returns a ``Ranking``, a list with the same ``details``.
 
 Serving goes through the one serving form the ranker node uses: the recommender holds a
-``Predictor`` (``predictor``), built from the fitted model in memory after ``fit`` and read
-from the checkpoint by ``load``; ``fold_in`` solves the user with
-``personalisation.foldin.FoldIn`` and serves them through ``Predictor.set_user_model``.
+``Predictor`` (``predictor``) over a ``model.serving.ServedModel``, built from the content
+the checkpoint holds, whether ``fit`` made it in memory or ``load`` read it (the node's
+``Predictor.load``); ``fold_in`` solves the user with ``personalisation.foldin.FoldIn`` and
+serves them through ``Predictor.set_user_model``.
 ``save`` writes a weights-only checkpoint (``model.checkpoint``) that ``load`` and the node
 read; folded-in users are served state, not part of it (the node keeps them in its state
 file, ``refit`` writes them into a checkpoint as trained rows).
 
-Serving imports neither training nor pandas: ``fit``, ``refit`` and ``load_dataset`` bring
-them in when called, so ``StarsRecommender.load`` and the predictor stay light.
+Serving imports neither training, torch-geometric nor pandas: ``fit``, ``refit``, ``test``,
+``save`` of a loaded model and ``load_dataset`` bring them in when called (``fitted``), so
+``StarsRecommender.load`` and the predictor stay light.
 """
 from __future__ import annotations
 
@@ -57,9 +59,7 @@ from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 import numpy as np
 
 from stars_ros.errors import NotFittedError, StarsError, UnknownActionError, UnknownSceneError
-from stars_ros.model.checkpoint import save_checkpoint
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.fitted import FittedModel
 from stars_ros.model.predictor import Predictor, RankQuery
 from stars_ros.personalisation.foldin import FoldIn
 from stars_ros.personalisation.uncertainty import Uncertainty
@@ -67,6 +67,7 @@ from stars_ros.state import Rating
 
 if TYPE_CHECKING:
     from stars_ros.data.ratings import RatingData
+    from stars_ros.model.fitted import FittedModel
 
 USER_TERMS = frozenset({'p', 'b_u'})
 SCENE_TERMS = frozenset({'q', 'b_i'})
@@ -177,6 +178,8 @@ class StarsRecommender:
         self._fold_in: FoldIn | None = None
         self._uncertainty: Uncertainty | None = None
         self._trainer = None  # the StarsTrainer of the latest fit (None for a loaded model)
+        self._fitted: FittedModel | None = None  # the torch model; a loaded one's is read when first needed
+        self._path = None  # the checkpoint a loaded model came from
         self._catalogue: SceneCatalogue | None = None
         self._checkpoint: dict = {}  # what save() writes besides the weights: data, metrics, provenance
 
@@ -185,7 +188,7 @@ class StarsRecommender:
         if self._predictor is None:
             return f'StarsRecommender({label}, not fitted)'
         return (f'StarsRecommender({label}, {len(self.users)} users, '
-                f'{len(self._predictor.recommender.scene_keys)} trained scenes, actions {list(self.actions)})')
+                f'{len(self._predictor.served.scene_keys)} trained scenes, actions {list(self.actions)})')
 
     # -- state ---------------------------------------------------------------------------
     @property
@@ -223,8 +226,14 @@ class StarsRecommender:
     @property
     def fitted(self) -> FittedModel:
         """The torch model and its vocabularies (``model.fitted``): what ``save`` writes,
-        what the offline programs fine-tune (``training.StarsTrainer.resume``)."""
-        return self.predictor.recommender
+        what the offline programs fine-tune (``training.StarsTrainer.resume``). A loaded
+        model's is read from its checkpoint when first asked for (serving never needs it)."""
+        self.predictor  # NotFittedError before fit or load
+        if self._fitted is None:
+            from stars_ros.model.checkpoint import load_checkpoint  # the torch modules: only for training
+
+            self._fitted = load_checkpoint(self._path)[0]
+        return self._fitted
 
     @property
     def history(self) -> dict:
@@ -238,9 +247,9 @@ class StarsRecommender:
         (a loaded model's are its file's)."""
         return {key: dict(value) for key, value in self._checkpoint.items()}
 
-    def _serve(self, fitted: FittedModel, predictor: Predictor, data: 'RatingData | None') -> None:
-        self._predictor, self._fold_in, self._uncertainty = predictor, None, None
-        self._catalogue = None if data is None else SceneCatalogue(data, fitted.config.model.item_key)
+    def _serve(self, fitted: 'FittedModel | None', predictor: Predictor, data: 'RatingData | None') -> None:
+        self._fitted, self._predictor, self._fold_in, self._uncertainty = fitted, predictor, None, None
+        self._catalogue = None if data is None else SceneCatalogue(data, predictor.served.config.model.item_key)
 
     # -- fit, save, load -----------------------------------------------------------------
     def fit(self, data, rows: Sequence[int] | None = None, noise_rows: Sequence[int] | None = None,
@@ -283,6 +292,8 @@ class StarsRecommender:
         ranker node read); returns its digest, the fingerprint rankings will carry. ``data``,
         ``metrics`` and ``provenance`` add to what ``fit`` recorded of each. Folded-in users
         are not written (see the module docstring)."""
+        from stars_ros.model.checkpoint import save_checkpoint
+
         extra = {'data': data, 'metrics': metrics, 'provenance': provenance}
         written = {key: {**value, **(extra[key] or {})} for key, value in self._checkpoint.items()}
         return save_checkpoint(self.fitted, path, **written)
@@ -294,14 +305,9 @@ class StarsRecommender:
         predict, rank and fold_in name its scenes by id; without it, scenes are given as
         content (the module docstring says why a checkpoint does not hold them)."""
         predictor = Predictor.load(path)
-        return cls.serving(predictor, data)
-
-    @classmethod
-    def serving(cls, predictor: Predictor, data=None) -> 'StarsRecommender':
-        """The recommender over a ``Predictor`` already loaded (``load``'s second half)."""
-        fitted = predictor.recommender
-        recommender = cls(fitted.config)
-        recommender._serve(fitted, predictor, None if data is None else _data(data))
+        recommender = cls(predictor.served.config)
+        recommender._path = path
+        recommender._serve(None, predictor, None if data is None else _data(data))
         metadata = predictor.metadata
         recommender._checkpoint = {key: dict(metadata.get(key) or {}) for key in ('data', 'metrics', 'provenance')}
         return recommender
@@ -367,11 +373,11 @@ class StarsRecommender:
 
     def _details(self, user, item_key) -> dict:
         predictor = self.predictor
-        fitted = predictor.recommender
+        served = predictor.served
         folded = predictor.user_model(user)
         details = {'known_user': predictor.knows_user(user), 'folded_in': 0 if folded is None else folded.n_ratings,
-                   'known_scene': item_key is not None and item_key in fitted.scene_vocabulary}
-        parts, reasons = fitted.config.model.parts, []
+                   'known_scene': item_key is not None and item_key in served.scene_vocabulary}
+        parts, reasons = served.config.model.parts, []
         if parts & USER_TERMS and not details['known_user'] and folded is None:
             reasons.append('unknown user')
         if parts & SCENE_TERMS and not details['known_scene']:

@@ -380,7 +380,7 @@ def test_the_signer_prints_what_the_ranker_takes(tiny_checkpoint, synthetic_scen
     signed = subprocess.run(command + served + ['--key-id', 'old', '--stamp', str(T0), fields], capture_output=True,
                             text=True, check=True).stdout
     assert json.loads(signed)['auth']['key_id'] == 'old'
-    low, high = Predictor.load(tiny_checkpoint).recommender.rating_scale
+    low, high = Predictor.load(tiny_checkpoint).rating_scale
     off_scale = json.dumps({**_feedback(scene), 'score': high + 79})  # a raw 0-100 score on a smaller scale
     unsigned = subprocess.run(command + served + ['--key-id', 'old', off_scale], capture_output=True, text=True)
     assert unsigned.returncode == 2 and unsigned.stdout == ''

@@ -41,7 +41,7 @@ def _ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
 
 class DenseGraphs(NamedTuple):
     """A few graphs padded to the largest one, for inference on small scene graphs
-    (numpy arrays: see ``DenseGraphEncoder.serving_form``).
+    (numpy arrays: see ``serving_forms.graph_serving_form``).
 
     ``x`` [G, N, F]; ``mask`` [G, N] (real nodes); ``adjacency`` [G, N, N] with
     ``adjacency[g, i, j]`` = number of edges j → i (messages flow to i, as in PyG);

@@ -22,7 +22,7 @@ from scipy.stats import spearmanr
 from stars_ros.data.scene_graph import SceneGraph, featurise
 from stars_ros.data.scene_store import GraphBatch
 from stars_ros.model.explain import removal_effects, score_parts
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.vocabulary import UNKNOWN
 
 
 def held_out_scenes(data, train_rows: np.ndarray, test_rows: np.ndarray) -> list:
@@ -98,14 +98,13 @@ class _ScoreOf(torch.nn.Module):
         return self.model.to_rating_scale(z)[:, self.column]
 
 
-def compare_gnnexplainer(predictor, scenes: list, users: list, column: int, epochs: int = 100,
+def compare_gnnexplainer(predictor, model, scenes: list, users: list, column: int, epochs: int = 100,
                          seed: int = 0) -> dict:
     """GNNExplainer's node mask against the removal effects on ``scenes``: Spearman ρ with
     |effect| over each scene's entities, how often its top entity beats a random other one
     (judged by the removal effects: what removing it does), and ms per scene for each."""
     from torch_geometric.explain import Explainer, GNNExplainer
 
-    model = predictor.recommender.require_model()
     model.eval()
     rhos, beats, gnn_ms, removal_ms, same_top = [], [], [], [], []
     for k, (scene, user) in enumerate(zip(scenes, users)):

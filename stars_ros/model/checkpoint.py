@@ -42,6 +42,25 @@ def _digest(metadata: dict, state: dict) -> str:
     return sha.hexdigest()
 
 
+def served_content(fitted: FittedModel) -> tuple:
+    """(metadata, state dict, personalisation prior or None) of ``fitted`` as its checkpoint
+    holds them: what ``serving.ServedModel`` is built from, whether read from a file or not."""
+    model = fitted.require_model()
+    metadata = {
+        'config': fitted.config.to_dict(),
+        'input_kind': model.encoder.input_kind,
+        'feature_dim': model.encoder.in_dim,
+        'users': list(fitted.users),
+        'scene_keys': list(fitted.scene_keys),
+        'actions': list(fitted.action_names),
+        'normalisation': {'mean': model.target_mean.tolist(), 'std': model.target_std.tolist()},
+        'rating_scale': list(fitted.rating_scale) if fitted.rating_scale is not None else None,
+    }
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    prior = None if fitted.user_prior is None else dict(fitted.user_prior)
+    return metadata, state, prior
+
+
 def save_checkpoint(fitted: FittedModel, path, *, data: dict, metrics: dict | None = None,
                     provenance: dict | None = None) -> str:
     """Write ``fitted`` to ``path`` atomically; returns the checkpoint's digest.
@@ -51,28 +70,20 @@ def save_checkpoint(fitted: FittedModel, path, *, data: dict, metrics: dict | No
         metrics (dict, optional): held-out figures to keep with the weights.
         provenance (dict, optional): anything else worth keeping (command line, logs used).
     """
-    model = fitted.require_model()
+    served, state, prior = served_content(fitted)
     metadata = {
         'format': FORMAT,
         'format_version': FORMAT_VERSION,
         'package_version': __version__,
         'torch_version': str(torch.__version__),
         'created_utc': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
-        'config': fitted.config.to_dict(),
-        'input_kind': model.encoder.input_kind,
-        'feature_dim': model.encoder.in_dim,
-        'users': list(fitted.users),
-        'scene_keys': list(fitted.scene_keys),
-        'actions': list(fitted.action_names),
-        'normalisation': {'mean': model.target_mean.tolist(), 'std': model.target_std.tolist()},
-        'rating_scale': list(fitted.rating_scale) if fitted.rating_scale is not None else None,
+        **served,
         'data': dict(data),
         'metrics': dict(metrics or {}),
         'provenance': dict(provenance or {}),
     }
-    content = {'metadata': metadata, 'state_dict': {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}}
-    if fitted.user_prior is not None:
-        prior = dict(fitted.user_prior)
+    content = {'metadata': metadata, 'state_dict': state}
+    if prior is not None:
         metadata['user_prior'] = prior.pop('details', {})
         content['user_prior'] = prior
     content['digest'] = digest = _digest(metadata, _tensors(content))

@@ -157,9 +157,9 @@ class EncoderConfig(Section):
     @field_validator('name')
     @classmethod
     def _registered(cls, name: str) -> str:
-        from stars_ros.model.encoders import ENCODERS, normalise_name  # torch: imported only when needed
-        if normalise_name(name) not in ENCODERS:
-            raise ValueError(f'unknown encoder {name!r}; registered: {", ".join(sorted(ENCODERS))}')
+        from stars_ros.model.encoders import BACKBONES, normalise_name  # torch: imported only when needed
+        if normalise_name(name) not in BACKBONES:
+            raise ValueError(f'unknown encoder {name!r}; registered: {", ".join(sorted(BACKBONES))}')
         return name
 
 

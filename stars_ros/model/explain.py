@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stars_ros.data.scene_graph import SceneGraph, entity_nodes, featurise, without_node
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.vocabulary import UNKNOWN
 
 
 @dataclass(frozen=True)
@@ -79,7 +79,7 @@ def _variants(predictor, scene, entities) -> list:
     if predictor.input_kind == 'graph':
         graph = scene if isinstance(scene, SceneGraph) else featurise(scene, validate=False)
         return [graph] + [without_node(graph, node) for _, _, node in entities]
-    reference = predictor.recommender.require_model().feature_mean.numpy()
+    reference = predictor.served.feature_mean
     rows = np.repeat(np.asarray(scene, dtype=np.float32)[None], len(entities) + 1, axis=0)
     for k, (_, _, column) in enumerate(entities, 1):
         rows[k, column] = reference[column]

@@ -17,7 +17,9 @@ from stars_ros.errors import ConfigError, NotFittedError, StarsError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.encoders import resolve_encoder
 from stars_ros.model.metrics import regression_report
-from stars_ros.model.model import UNKNOWN, StarsModel
+from stars_ros.model.model import StarsModel
+from stars_ros.model.serving import clip_to_scale
+from stars_ros.model.vocabulary import UNKNOWN, Vocabulary
 
 if TYPE_CHECKING:
     from stars_ros.data.ratings import RatingData
@@ -38,33 +40,6 @@ def build_model(config: ExperimentConfig, feature_dim: int, input_kind: str,
         raise ConfigError(f"encoder '{enc.name}' reads {encoder.input_kind} scenes, the data holds {input_kind} scenes")
     return StarsModel(encoder, n_users, n_scenes, n_actions, variant=config.model.variant,
                       feature_dim=feature_dim if input_kind == 'tabular' else None)
-
-
-class Vocabulary:
-    """Ids in row order: the rows of one embedding table (users, or scene items).
-
-    ``row(key)`` and ``rows(keys)`` give UNKNOWN (-1) for an id the table lacks (and for
-    None), which the model scores with zero rows; ``extended`` appends new ids after the
-    old ones, so existing rows keep their index."""
-
-    def __init__(self, keys=()):
-        self.keys = tuple(keys)
-        self._rows = {key: row for row, key in enumerate(self.keys)}
-
-    def __len__(self) -> int:
-        return len(self.keys)
-
-    def __contains__(self, key) -> bool:
-        return key in self._rows
-
-    def row(self, key) -> int:
-        return self._rows.get(key, UNKNOWN) if key is not None else UNKNOWN
-
-    def rows(self, keys: Sequence) -> np.ndarray:
-        return np.array([self.row(key) for key in keys], dtype=np.int64)
-
-    def extended(self, keys: Sequence) -> 'Vocabulary':
-        return Vocabulary(self.keys + tuple(k for k in dict.fromkeys(keys) if k not in self._rows))
 
 
 class FittedModel:
@@ -110,10 +85,7 @@ class FittedModel:
 
     def clip(self, scores: np.ndarray) -> np.ndarray:
         """``scores`` limited to the rating scale of the training data (when it has one)."""
-        if self.rating_scale is None:
-            return scores
-        low, high = self.rating_scale
-        return np.minimum(np.maximum(scores, low), high)  # np.clip's, without its wrappers' cost per request
+        return clip_to_scale(scores, self.rating_scale)
 
     @torch.no_grad()
     def set_user_row(self, user, p, b: float) -> None:

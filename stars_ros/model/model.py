@@ -23,8 +23,6 @@ from torch import nn
 from stars_ros.model.config import VARIANTS, ModelConfig
 from stars_ros.model.encoders import Encoder
 
-UNKNOWN = -1
-
 
 def _lookup(table: nn.Embedding, index: torch.Tensor) -> torch.Tensor:
     """Rows of ``table`` for ``index``, zeros where ``index`` is UNKNOWN."""

@@ -7,15 +7,18 @@ the others their dense numpy form) and the StARS scoring is two array products. 
 encoders keep their torch forward: one row through a few layers has no graph bookkeeping
 to save. ``InferenceModel`` holds the one numpy copy of the weights: the Predictor scores
 with it and ``stars_ros.personalisation.foldin`` builds its regression from it (``linear_form``).
-``test/model/test_inference.py`` checks that the result equals ``StarsModel`` within float32
-rounding.
+``model.serving`` builds it from a checkpoint's weights; ``test/model/test_inference.py``
+checks that the result equals ``StarsModel`` within float32 rounding.
 """
 from __future__ import annotations
+
+from typing import Callable, Mapping
 
 import numpy as np
 import torch
 
-from stars_ros.model.model import UNKNOWN, StarsModel
+from stars_ros.model.config import ModelConfig
+from stars_ros.model.vocabulary import UNKNOWN
 
 
 def _array(tensor: torch.Tensor) -> np.ndarray:
@@ -24,7 +27,15 @@ def _array(tensor: torch.Tensor) -> np.ndarray:
 
 class InferenceModel:
     """``StarsModel`` for scoring only: ``encode`` scene inputs, then ``scores`` on the
-    rating scale. Built once per loaded checkpoint (the weights are copied).
+    rating scale. Built once per loaded checkpoint from its weights (copied), never from a
+    torch model: serving needs no module of training.
+
+    Args:
+        state (Mapping): the model's state dict (tensors, names as ``StarsModel`` has them).
+        variant (str): the model variant (``ModelConfig.variant``).
+        dim (int): size of h_i, p_u, q_i and r_a.
+        encode (callable): the encoder's serving form, scene inputs -> h [count, dim]
+            (``serving.encoder_serving_form``).
 
     The weights are public, read-only float32 arrays: ``target_mean``, ``target_std``
     [actions] (float64) and, for personalised variants, ``user_rows`` [users, dim],
@@ -32,37 +43,28 @@ class InferenceModel:
     ``action_rows`` [actions, dim] (r_a) and ``bias`` (b).
     """
 
-    def __init__(self, model: StarsModel):
-        self.dim = model.encoder.out_dim
-        self.uses_content = model.uses_content
-        self.personalised = model.personalised
-        self.residual = model.residual
-        self.target_mean = _array(model.target_mean).astype(np.float64)
-        self.target_std = _array(model.target_std).astype(np.float64)
+    def __init__(self, state: Mapping[str, torch.Tensor], variant: str, dim: int, encode: Callable):
+        parts = ModelConfig(variant=variant).parts
+        self.dim = dim
+        self.uses_content = 'content' in parts
+        self.personalised = variant != 'base'
+        self.residual = 'residual' in parts
+        self.target_mean = _array(state['target_mean']).astype(np.float64)
+        self.target_std = _array(state['target_std']).astype(np.float64)
         if self.personalised:
-            self.user_rows = _array(model.user_embedding.weight)
-            self.user_offsets = _array(model.user_bias.weight)[:, 0]
-            self.scene_rows = _array(model.scene_embedding.weight)
-            self.scene_offsets = _array(model.scene_bias.weight)[:, 0]
-            self.action_rows = _array(model.action_embedding)
+            self.user_rows = _array(state['user_embedding.weight'])
+            self.user_offsets = _array(state['user_bias.weight'])[:, 0]
+            self.scene_rows = _array(state['scene_embedding.weight'])
+            self.scene_offsets = _array(state['scene_bias.weight'])[:, 0]
+            self.action_rows = _array(state['action_embedding'])
             self._actions_t = self.action_rows.T.copy()  # [dim, actions], contiguous for the product
-            self.bias = float(model.bias.detach())
+            self.bias = float(state['bias'][0])
             for array in (self.user_rows, self.user_offsets, self.scene_rows, self.scene_offsets, self.action_rows):
                 array.flags.writeable = False
         else:
-            self._head = (_array(model.head.weight).T.copy(), _array(model.head.bias))
+            self._head = (_array(state['head.weight']).T.copy(), _array(state['head.bias']))
         self.target_mean.flags.writeable = self.target_std.flags.writeable = False
-        if model.encoder.input_kind == 'graph':
-            self._encode = model.encoder.serving_form()
-        else:
-            self._encode = self._torch_encoder(model)
-
-    @staticmethod
-    def _torch_encoder(model: StarsModel):
-        def encode(features: np.ndarray) -> np.ndarray:
-            with torch.inference_mode():
-                return model.encode(torch.from_numpy(features)).numpy()
-        return encode
+        self._encode = encode
 
     def encode(self, scene_input, count: int) -> np.ndarray:
         """h [count, dim] (float32) of a list of SceneGraph or a [count, features] array."""

@@ -21,10 +21,10 @@ import numpy as np
 
 from stars_ros.data.scene_graph import SceneGraph, featurise
 from stars_ros.errors import SceneGraphError, StarsError, UnknownActionError
-from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.explain import explain, removal_effects
-from stars_ros.model.model import UNKNOWN
 from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.serving import ServedModel
+from stars_ros.model.vocabulary import UNKNOWN
 
 
 @dataclass(frozen=True)
@@ -84,27 +84,27 @@ class Predictor:
     """Scores scenes with a trained model.
 
     Args:
-        recommender (FittedModel): the model and its vocabularies (``model.fitted``).
+        served (ServedModel): the checkpoint in its serving form (``model.serving``).
         metadata (dict): the checkpoint's metadata (config, provenance, metrics).
         digest (str): the checkpoint's SHA-256 digest, its fingerprint.
     """
 
-    def __init__(self, recommender, metadata: dict, digest: str):
-        self.recommender = recommender
+    def __init__(self, served: ServedModel, metadata: dict, digest: str):
+        self.served = served
         self.metadata = metadata
         self.fingerprint = digest
-        self.actions = tuple(recommender.action_names)
+        self.actions = tuple(served.action_names)
         self._action_index = {a: i for i, a in enumerate(self.actions)}
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
-        self._inference = InferenceModel(recommender.require_model())
-        self._stranger = self._prior_mean(recommender)
+        self._inference = served.inference
+        self._stranger = self._prior_mean(served)
         self._scene_rows = np.array([UNKNOWN], dtype=np.int64)  # broadcasts: no scene id, no q_i
 
-    def _prior_mean(self, recommender) -> tuple:
+    def _prior_mean(self, served: ServedModel) -> tuple:
         """(p, b_u) a stranger is scored with: the personalisation prior's mean the checkpoint
         stores (personalisation.prior), else zero (content and population offsets only)."""
-        stored = getattr(recommender, 'user_prior', None)
+        stored = served.user_prior
         if stored is None or not self._inference.personalised:
             return np.zeros(self._inference.dim, dtype=np.float32), np.float32(0.0)
         mean = np.asarray(stored['mean'], dtype=np.float32)
@@ -113,14 +113,16 @@ class Predictor:
     @classmethod
     def load(cls, path) -> 'Predictor':
         """Raises CheckpointError for a missing, truncated, corrupted or incompatible file."""
-        recommender, metadata, digest = load_checkpoint(path, with_digest=True)
-        return cls(recommender, metadata, digest)
+        return cls(*ServedModel.load(path))
 
     @classmethod
-    def from_model(cls, recommender) -> 'Predictor':
-        """A predictor over a fitted ``StarsTrainer`` held in memory, not read from a file:
-        it has no checkpoint, so its metadata is empty and its fingerprint ''."""
-        return cls(recommender, {}, '')
+    def from_model(cls, fitted) -> 'Predictor':
+        """A predictor over a fitted model held in memory (``model.fitted.FittedModel``), served
+        from the content its checkpoint would hold: it has no file, so its metadata is empty
+        and its fingerprint ''."""
+        from stars_ros.model.checkpoint import served_content
+
+        return cls(ServedModel(*served_content(fitted)), {}, '')
 
     @property
     def inference(self) -> InferenceModel:
@@ -129,28 +131,28 @@ class Predictor:
 
     @property
     def input_kind(self) -> str:
-        return self.recommender.model.encoder.input_kind
+        return self.served.input_kind
 
     @property
     def users(self) -> tuple:
         """The users of the training data, in the rows of the user table."""
-        return self.recommender.users
+        return self.served.users
 
     @property
     def rating_scale(self) -> tuple | None:
         """(lowest, highest) score a rating can take (None: unbounded)."""
-        return self.recommender.rating_scale
+        return self.served.rating_scale
 
     def clip(self, scores: np.ndarray) -> np.ndarray:
         """``scores`` limited to the rating scale the checkpoint was trained on."""
-        return self.recommender.clip(scores)
+        return self.served.clip(scores)
 
     def knows_user(self, user_id) -> bool:
-        return user_id is not None and str(user_id) in self.recommender.user_vocabulary
+        return user_id is not None and str(user_id) in self.served.user_vocabulary
 
     def trained_row(self, user_id) -> int:
         """The row of p_u, b_u of a user of the training data (UNKNOWN, -1, for anyone else)."""
-        return self.recommender.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
+        return self.served.user_vocabulary.row(str(user_id)) if user_id is not None else UNKNOWN
 
     @property
     def user_models(self) -> dict:
@@ -186,8 +188,8 @@ class Predictor:
             return [scene if isinstance(scene, SceneGraph) else featurise(scene, validate=validate)
                     for scene in scenes]
         features = np.asarray(scenes, dtype=np.float32)
-        if features.ndim != 2 or features.shape[1] != self.recommender.model.encoder.in_dim or not np.isfinite(features).all():
-            raise SceneGraphError(f'tabular scenes must be finite rows of {self.recommender.model.encoder.in_dim} features')
+        if features.ndim != 2 or features.shape[1] != self.served.feature_dim or not np.isfinite(features).all():
+            raise SceneGraphError(f'tabular scenes must be finite rows of {self.served.feature_dim} features')
         return features
 
     def encode(self, scenes: Sequence, validate: bool = True) -> np.ndarray:
@@ -216,7 +218,7 @@ class Predictor:
     def scene_rows(self, scene_ids: Sequence) -> np.ndarray:
         """The rows of q_i, b_i of training scenes ``scene_ids`` (UNKNOWN, -1, for an id the
         model never trained on, and for None)."""
-        return self.recommender.scene_vocabulary.rows(scene_ids)
+        return self.served.scene_vocabulary.rows(scene_ids)
 
     def user_theta(self, user_id) -> np.ndarray:
         """θ = (p_u, b_u) [dim+1] (float64) that scores ``user_id`` (see ``scores_from_h``)."""

@@ -217,9 +217,9 @@ class RankerCore:
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
             return False
         try:  # before the store: a score off the scale is neither stored nor folded in
-            check_score(feedback.score, self.predictor.recommender.rating_scale, 'feedback score')
+            check_score(feedback.score, self.predictor.rating_scale, 'feedback score')
             if feedback.implicit:  # an outcome is the scale's top or bottom (docs/hri.md)
-                check_outcome(feedback.score, self.predictor.recommender.rating_scale)
+                check_outcome(feedback.score, self.predictor.rating_scale)
         except StarsError as error:
             self.report(messages.error_kind(error), f'feedback refused, not stored: {error}', topic, feedback.scene_id)
             return False

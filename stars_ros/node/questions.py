@@ -22,7 +22,7 @@ import numpy as np
 
 from stars_ros import messages
 from stars_ros.errors import NoQuestion, StarsError
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.vocabulary import UNKNOWN
 
 
 @dataclass(frozen=True)

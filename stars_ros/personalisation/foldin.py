@@ -51,7 +51,7 @@ import numpy as np
 from scipy import linalg
 
 from stars_ros.errors import OutOfScaleError, StarsError, UnknownActionError
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.vocabulary import UNKNOWN
 from stars_ros.personalisation.prior import PRIOR_SCALES, UserPrior, prior_of
 from stars_ros.state.person import Rating, UserModel
 
@@ -70,7 +70,7 @@ def rating_from_feedback(feedback, request, predictor) -> Rating | str:
     source = feedback.as_message() if feedback.implicit else None
     if feedback.implicit:
         try:
-            check_outcome(feedback.score, predictor.recommender.rating_scale)
+            check_outcome(feedback.score, predictor.rating_scale)
         except OutOfScaleError as error:
             return f"feedback on scene '{feedback.scene_id}': {error}"
     if feedback.action is not None:
@@ -185,19 +185,18 @@ class FoldIn:
 
     def __init__(self, predictor, cache_scenes: int = DEFAULT_CACHE_SCENES, scene_by_scene: bool = False,
                  prior: UserPrior | None = None, implicit_variance: float | None = None):
-        fitted = predictor.recommender
-        model = fitted.require_model()
-        if not model.personalised:
-            raise StarsError(f"fold-in needs a personalised model; this one is '{model.variant}'")
+        served = predictor.served
+        if not served.personalised:
+            raise StarsError(f"fold-in needs a personalised model; this one is '{served.variant}'")
         self.predictor = predictor
         self.inference = predictor.inference  # the weights and the scoring arithmetic, shared
         self.actions = tuple(predictor.actions)
         self._action_index = {a: k for k, a in enumerate(self.actions)}
         self.dim = self.inference.dim
-        self.user_prior = prior_of(fitted, self.inference) if prior is None else prior
+        self.user_prior = prior_of(served, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
-        self.implicit_noise = self._implicit_noise(implicit_variance, fitted.rating_scale)
+        self.implicit_noise = self._implicit_noise(implicit_variance, served.rating_scale)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
         self._stranger_covariance = float(np.mean(PRIOR_SCALES)) * self.user_prior.covariance  # read per ranking

@@ -228,7 +228,7 @@ class Personalisation:
             new = list({e['id']: Rating.from_json(e) for e in entries if e['id'] not in held}.values())
         except OverflowError:  # an integer the schema takes but no float holds: refused, not a crash
             raise messages.BadMessage('non_finite', 'a rating holds a number too large for a float') from None
-        check_ratings(new, self.predictor.recommender.rating_scale, user_id)
+        check_ratings(new, self.predictor.rating_scale, user_id)
         for rating in new if self.authenticator is not None else ():
             refusal = self.authenticator.check_rating(user_id, rating)
             if refusal is not None:

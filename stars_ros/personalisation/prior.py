@@ -51,9 +51,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy import stats
 
-from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.serving import inference_of
 
 log = logging.getLogger(__name__)
 DEFAULT_NOISE = 1.0  # z-scale noise variance assumed when a checkpoint stores none
@@ -113,6 +112,7 @@ def student_t_nu(standardised: np.ndarray) -> float:
     ``standardised`` residuals (maximum likelihood; inf: the Gaussian)."""
     if len(standardised) < 20:  # too few to tell tails from chance
         return math.inf
+    from scipy import stats  # estimation only: serving imports this module, not scipy.stats
 
     def log_likelihood(nu):
         if math.isinf(nu):
@@ -208,7 +208,7 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
     ``rows`` of ``data`` (RatingData); the noise from ``noise_rows`` (held-out ratings of the
     trained people) when given. See the module docstring. ``h``: ``encode_all``'s, if
     already computed."""
-    inference = InferenceModel(fitted.require_model())
+    inference = inference_of(fitted.require_model())
     trained = user_rows(inference)
     mean, covariance, details = population(trained)
     rows = np.asarray(rows)

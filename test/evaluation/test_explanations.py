@@ -8,7 +8,8 @@ from offline_training import explain_faithfulness
 from stars_ros.data.scene_graph import featurise
 from stars_ros.evaluation.explanations import compare_gnnexplainer, faithfulness, held_out_scenes, robot_only
 from stars_ros.model.explain import removal_effects, score_parts
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.vocabulary import UNKNOWN
+from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.model.training import split_rows
 
@@ -49,8 +50,9 @@ def test_faithfulness_figures(predictor, scenes):
     assert result['sum_of_single_effects_median'] == pytest.approx(np.median(singles))
 
 
-def test_gnnexplainer_comparison_runs_and_reports(predictor, scenes):
-    result = compare_gnnexplainer(predictor, scenes[:2], ['a', 'a'], 0, epochs=5)
+def test_gnnexplainer_comparison_runs_and_reports(predictor, scenes, tiny_checkpoint):
+    result = compare_gnnexplainer(predictor, load_checkpoint(tiny_checkpoint)[0].require_model(), scenes[:2],
+                                  ['a', 'a'], 0, epochs=5)
     assert result['scenes'] == 2 and -1.0 <= result['spearman_with_removal_median'] <= 1.0
     assert 0.0 <= result['same_top_entity'] <= 1.0 and result['gnnexplainer_ms_per_scene_p50'] > 0
 

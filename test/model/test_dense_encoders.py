@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from stars_ros.model.encoders import ENCODERS, resolve_encoder
+from stars_ros.model.encoders import BACKBONES, encoder_class, resolve_encoder
 from stars_ros.data.scene_graph import NODE_FEATURES, RELATIONS, SceneGraph, featurise
 from stars_ros.data.scene_source import random_scene
 from stars_ros.data.scene_store import GraphStore, dense_graphs
 
-GRAPH_BACKBONES = sorted(name for name, cls in ENCODERS.items() if cls.input_kind == 'graph')
+GRAPH_BACKBONES = sorted(name for name in BACKBONES if encoder_class(name).input_kind == 'graph')
 OPTIONS = {'gat': [{'heads': 4}, {'heads': 1}], 'rgcn': [{}, {'num_bases': 3}]}
 
 

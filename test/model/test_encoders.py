@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.encoders import ENCODERS, Encoder, resolve_encoder
+from stars_ros.model.encoders import BACKBONES, ENCODERS, Encoder, encoder_class, resolve_encoder
 from stars_ros.data.scene_graph import NODE_FEATURES
 from stars_ros.data.scene_store import TabularStore
 from stars_ros.model.fitted import build_model
@@ -14,7 +14,10 @@ TABULAR_BACKBONES = ['mlp', 'resmlp', 'dcnv2', 'graceae', 'fttransformer']
 
 
 def test_registry_holds_every_published_backbone():
-    assert sorted(ENCODERS) == sorted(GRAPH_BACKBONES + TABULAR_BACKBONES)
+    assert sorted(BACKBONES) == sorted(GRAPH_BACKBONES + TABULAR_BACKBONES)
+    for name in BACKBONES:  # each module named defines what it is named for
+        assert encoder_class(name).registry_name == name
+    assert sorted(ENCODERS) == sorted(BACKBONES)
 
 
 @pytest.mark.parametrize('name', ['FT-Transformer', 'ft_transformer', 'GraphSAGE', 'DCN-v2'])

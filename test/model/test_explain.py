@@ -10,7 +10,7 @@ from stars_ros.data.ratings import load_dataset
 from stars_ros.data.scene_graph import NODE_TYPES, entity_nodes, featurise, without_node
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.explain import explain, removal_effects, score_parts
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.vocabulary import UNKNOWN
 from stars_ros.model.predictor import Predictor
 from stars_ros.model.training import StarsTrainer
 
@@ -37,7 +37,7 @@ def gcn(tiny_checkpoint):
 
 def test_gnn_parts_sum_to_the_unclipped_score(gcn, synthetic_scenes):
     h = gcn.encode(synthetic_scenes[:20])
-    user = gcn.recommender.user_vocabulary.keys[0]
+    user = gcn.served.user_vocabulary.keys[0]
     ids = [s['identifier'] for s in synthetic_scenes[:20]]
     trained = gcn.scene_rows(ids)
     assert np.abs(score_parts(gcn, user, h, trained, np.zeros(20, dtype=np.int64))[2]).max() > 0  # b_i counts
@@ -49,7 +49,7 @@ def test_gnn_parts_sum_to_the_unclipped_score(gcn, synthetic_scenes):
 def test_a_strangers_personal_part_is_the_prior_means(gcn, synthetic_scenes):
     h = gcn.encode(synthetic_scenes[:3])
     _check_parts_sum(gcn, 'nobody', h, np.full(3, UNKNOWN))
-    mean = np.asarray(gcn.recommender.user_prior['mean'])
+    mean = np.asarray(gcn.served.user_prior['mean'])
     assert np.abs(mean).sum() > 0
     inference = gcn.inference
     actions = np.zeros(3, dtype=np.int64)
@@ -96,7 +96,7 @@ def test_a_planted_human_is_ranked_first(gcn, monkeypatch):
                          for g in graphs]).astype(np.float32)
 
     monkeypatch.setattr(gcn.inference, '_encode', closeness)
-    user = gcn.recommender.user_vocabulary.keys[0]
+    user = gcn.served.user_vocabulary.keys[0]
     (found, effects), = removal_effects(gcn, user, [scene])
     for column in range(len(gcn.actions)):
         order = np.argsort(-np.abs(effects[:, column]))

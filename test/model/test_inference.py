@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from stars_ros.model.numpy_model import InferenceModel
-from stars_ros.model.model import UNKNOWN
+from stars_ros.model.serving import inference_of
+from stars_ros.model.vocabulary import UNKNOWN
+from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_source import read_scenes
@@ -16,7 +17,7 @@ H = np.array([[0.5, 1.0]], dtype=np.float32)
 
 
 def test_scores_by_hand():
-    inference = InferenceModel(small_model())
+    inference = inference_of(small_model())
     user_0 = (inference.user_rows[0], inference.user_offsets[0])
     # the case of test_model.test_prediction_by_hand: user 0, scene 1 -> (1.8, -6.2)
     assert inference.scores(H, user_0, np.array([1])).tolist() == [pytest.approx([1.8, -6.2])]
@@ -30,7 +31,7 @@ def test_rating_scale_and_batches_of_mixed_scenes():
     model = small_model()
     model.target_mean.copy_(torch.tensor([3.0, 1.0]))
     model.target_std.copy_(torch.tensor([2.0, 0.5]))
-    inference = InferenceModel(model)
+    inference = inference_of(model)
     h = np.array([[0.5, 1.0], [0.5, 1.0]], dtype=np.float32)
     user_0 = (inference.user_rows[0], inference.user_offsets[0])
     scores = inference.scores(h, user_0, np.array([1, UNKNOWN]))
@@ -41,7 +42,7 @@ def test_rating_scale_and_batches_of_mixed_scenes():
 def test_base_and_mf_variants_match_the_model():
     for variant in ('base', 'mf'):
         model = small_model(variant)
-        inference = InferenceModel(model)
+        inference = inference_of(model)
         features = np.random.default_rng(0).normal(size=(3, 3)).astype(np.float32)
         with torch.no_grad():
             h = model.encode(torch.from_numpy(features))
@@ -56,7 +57,7 @@ def test_linear_form_is_the_scoring_arithmetic_in_the_user(variant):
     """z = xᵀ(p_u, b_u) + c for one action per row, residual term included only where the
     variant has it: the fold-in's regression is the model's prediction."""
     model = small_model(variant)
-    inference = InferenceModel(model)
+    inference = inference_of(model)
     h = np.random.default_rng(1).normal(size=(4, 2))
     scenes, actions = np.array([1, UNKNOWN, 0, 1]), np.array([0, 1, 1, 0])
     x, c = inference.linear_form(h, scenes, actions)
@@ -71,7 +72,7 @@ def test_linear_form_is_the_scoring_arithmetic_in_the_user(variant):
 
 def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoint, synthetic_root):
     predictor = Predictor.load(tiny_checkpoint)
-    recommender = predictor.recommender
+    recommender = load_checkpoint(tiny_checkpoint)[0]  # the torch form
     scenes = read_scenes(synthetic_root / 'raw' / 'b.jsonl')[:60]
     keys = [s['identifier'] for s in scenes]  # training scenes: their q_i and b_i apply
     assert sum(k in recommender.scene_vocabulary for k in keys) > 10

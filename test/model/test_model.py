@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from stars_ros.model.encoders import resolve_encoder
-from stars_ros.model.model import UNKNOWN, StarsModel
+from stars_ros.model.model import StarsModel
+from stars_ros.model.vocabulary import UNKNOWN
 
 
 def small_model(variant='stars'):

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from stars_ros.errors import CheckpointError, SceneGraphError, UnknownActionError
+from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 
 
@@ -68,10 +69,10 @@ def test_missing_checkpoint_is_a_checkpoint_error(tmp_path):
         Predictor.load(tmp_path / 'none.pt')
 
 
-def test_predictor_matches_training_scale(predictor, synthetic):
+def test_predictor_matches_training_scale(predictor, synthetic, tiny_checkpoint):
     """Predictor on a raw scene == recommender on the featurised dataset row (same user)."""
     rows = np.flatnonzero(synthetic.users == 'a')[:3]
-    expected = predictor.recommender.predict_rows(synthetic, rows)
+    expected = load_checkpoint(tiny_checkpoint)[0].predict_rows(synthetic, rows)  # the torch form
     keys = [synthetic.scene_keys[s] for s in synthetic.scenes[rows]]
     raw = {}
     with open(synthetic.source + '/a.jsonl') as handle:

@@ -173,7 +173,7 @@ def _sums_to_the_score(entry, scale):
 def test_a_request_that_asks_gets_why_on_every_entry_and_the_others_do_not(tiny_checkpoint, scenes):
     node = Node()
     core = make_core(node, tiny_checkpoint, explain_entities=3)
-    user = core.predictor.recommender.user_vocabulary.keys[0]
+    user = core.predictor.served.user_vocabulary.keys[0]
     explained = {**scene_request('asks', scenes[0], user), 'explain': True}
     placements = {**scene_request('placements', scenes[1], user, placements=3), 'explain': True}
     for request in (explained, scene_request('plain', scenes[0], user), placements):
@@ -283,7 +283,7 @@ def test_a_model_is_seen_by_nobody_else_before_the_feedback_it_was_solved_from_i
 def test_a_score_off_the_rating_scale_is_refused_and_leaves_the_store_as_it_was(tiny_checkpoint, scenes, tmp_path):
     node = Node()
     core = make_core(node, tiny_checkpoint, record_folder=str(tmp_path))
-    low, high = core.predictor.recommender.rating_scale
+    low, high = core.predictor.rating_scale
     _scene(core, scenes[0], 'ann')
     core.work()
     assert core.accept_feedback(_feedback(scenes[0], 'ann', high + 79)) is False  # a raw 0-100 score

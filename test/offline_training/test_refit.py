@@ -173,7 +173,7 @@ def test_full_mode_fine_tunes_from_the_user_solution(tiny_checkpoint, scenes, tm
 
 def test_a_score_off_the_rating_scale_in_a_bag_is_refused_naming_the_scale(tiny_checkpoint, scenes, tmp_path,
                                                                            capsys):
-    low, high = Predictor.load(tiny_checkpoint).recommender.rating_scale
+    low, high = Predictor.load(tiny_checkpoint).rating_scale
     raw = json.dumps({'user_id': 'a', 'scene_id': 's3', 'action': 'navigate', 'score': high + 79})
     bag, _ = _write_session(tmp_path, scenes, extra=[('/stars/feedback', raw)])
     out = tmp_path / 'refit.pt'

@@ -11,7 +11,7 @@ from scipy import stats
 from conftest import TINY_CONFIG
 from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.serving import inference_of
 from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation import prior as prior_module
@@ -120,7 +120,7 @@ def test_the_held_out_mean_weight_is_least_squares_against_the_others_mean_by_ha
 def test_a_population_mean_that_points_against_held_out_people_is_not_used(synthetic):
     train, held = split_rows(synthetic, 0.2, 0)
     fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
-    inference = InferenceModel(fitted.require_model())
+    inference = inference_of(fitted.require_model())
     x, c, z = prior_module.rows_design(fitted, inference, synthetic, held, encode_all(fitted, synthetic))
     # every trained person moved alike along p's first coordinate, against what their held-out ratings say
     # (x does not depend on θ): a mean far beyond its own error, which James–Stein keeps
@@ -138,7 +138,7 @@ def test_the_noise_comes_from_held_out_ratings_when_given(synthetic):
     fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
     prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
     # by the model's own scoring (not the linear form the estimate uses): trained rows, unclipped
-    inference = InferenceModel(fitted.require_model())
+    inference = inference_of(fitted.require_model())
     users = fitted.user_vocabulary.rows(list(synthetic.users[held]))
     known, users = held[users >= 0], users[users >= 0]
     items = synthetic.item_keys(fitted.config.model.item_key)

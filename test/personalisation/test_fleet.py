@@ -176,7 +176,7 @@ def test_a_peer_score_off_the_rating_scale_is_refused_and_leaves_the_store_as_it
     node_b, robot_b = _robot('robot_b', tiny_checkpoint, tmp_path / 'b')
     _rate(node_a, robot_a, scenes[0], 1.0)
     _rate(node_a, robot_a, scenes[1], 0.5)
-    low, high = robot_b.predictor.recommender.rating_scale
+    low, high = robot_b.predictor.rating_scale
     payload = json.loads(published_models(node_a)[-1])
     payload['ratings'][1]['score'] = high + 79  # a raw 0-100 score: a peer that took it unchecked
     assert deliver([json.dumps(payload)], robot_b) == [False]

@@ -10,6 +10,7 @@ import torch
 from stars_ros import messages
 from stars_ros.personalisation.foldin import FoldIn, Rating, UserModel, solve_ridge
 from stars_ros.personalisation.histories import FeedbackHistories
+from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore
@@ -28,7 +29,7 @@ def ratings(synthetic_root):
     return [Rating(s, 'navigate', s['score'] / 100, s['identifier']) for s in scenes]
 
 
-def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings):
+def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings, tiny_checkpoint):
     """FoldIn.predict (the design) equals the served score and the torch model given the
     same (p_u, b_u) in place of a trained row."""
     foldin = FoldIn(predictor)
@@ -40,21 +41,22 @@ def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings):
     expected = predictor.score('someone', scenes, keys)[:, 0]
     assert np.allclose(foldin.predict(user, ratings[:10]), expected, atol=1e-5)
     batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
-    model = predictor.recommender.model
+    fitted = load_checkpoint(tiny_checkpoint)[0]  # the torch form
+    model = fitted.model
     with torch.no_grad():
         rows = (torch.tensor(user.p, dtype=torch.float32).expand(10, -1), torch.full((10, 1), user.b))
-        torch_scores = predictor.recommender.predict_scores_from_h([None] * 10, keys, model.encode(batch), rows)
+        torch_scores = fitted.predict_scores_from_h([None] * 10, keys, model.encode(batch), rows)
     assert np.allclose(foldin.predict(user, ratings[:10]), torch_scores[:, 0], atol=1e-5)
-    mean = np.asarray(predictor.recommender.user_prior['mean'], dtype=np.float64)
+    mean = np.asarray(predictor.served.user_prior['mean'], dtype=np.float64)
     prior_mean = UserModel(mean[:-1], float(mean[-1]), 0, 1.0)  # the prior's mean: the stranger's prediction
     stranger = predictor.score('stranger', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
     assert np.allclose(foldin.predict(prior_mean, ratings[:10]), stranger, atol=1e-5)
 
 
-def test_design_reproduces_the_model_for_a_trained_user(predictor, ratings):
+def test_design_reproduces_the_model_for_a_trained_user(predictor, ratings, tiny_checkpoint):
     """xᵀθ + c with θ the trained row of user 'a' is what InferenceModel.scores serves for
     'a', and what the torch model predicts, on scenes with and without a trained q_i."""
-    recommender = predictor.recommender
+    recommender = load_checkpoint(tiny_checkpoint)[0]  # the torch form
     scenes, keys = [r.scene for r in ratings], [r.scene_id for r in ratings]
     assert 0 < sum(k in recommender.scene_vocabulary for k in keys) < len(keys)
     foldin = FoldIn(predictor)
@@ -99,10 +101,10 @@ def test_regularisation_limits(predictor, ratings):
     assert empty.n_ratings == 0 and np.allclose(np.append(empty.p, empty.b), prior)
 
 
-def test_prior_is_the_trained_row_or_the_shrunk_population_mean(predictor):
+def test_prior_is_the_trained_row_or_the_shrunk_population_mean(predictor, tiny_checkpoint):
     foldin = FoldIn(predictor)
-    model = predictor.recommender.model
-    row = predictor.recommender.user_vocabulary.row('a')
+    model = load_checkpoint(tiny_checkpoint)[0].model
+    row = predictor.served.user_vocabulary.row('a')
     trained = np.append(model.user_embedding.weight[row].detach().numpy(), model.user_bias.weight[row, 0].item())
     assert np.allclose(foldin.prior('a'), trained, atol=1e-6)
     rows = np.concatenate([model.user_embedding.weight.detach().numpy(), model.user_bias.weight.detach().numpy()], axis=1)

@@ -62,7 +62,7 @@ def errors_by_k(crowd, people) -> dict:
 
 def test_the_default_fit_holds_out_ratings_for_the_noise_and_finds_the_tails(crowd):
     data, recommender, new, _ = crowd
-    prior = recommender.predictor.recommender.user_prior
+    prior = recommender.predictor.served.user_prior
     assert 'held-out ratings' in prior['details']['noise']
     assert float(prior['nu']) > 2
 

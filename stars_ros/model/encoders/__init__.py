@@ -2,17 +2,35 @@
 
 Any registered backbone serves both the ``base`` and the ``stars`` model variant: the
 variant is a switch in the model, never a second copy of an encoder.
+
+Backbones are found lazily: ``BACKBONES`` names the module that defines each, and it is
+imported (joining ``ENCODERS``) only when one of its backbones is built, so serving a GAT
+checkpoint never imports torch-geometric's training modules or the tabular ones.
 """
 from __future__ import annotations
 
+import importlib
 import re
 
 from stars_ros.model.encoders.base import Encoder, ENCODERS, register
-from stars_ros.model.encoders import graph, tabular  # noqa: F401  (modules register their backbones on import)
+
+BACKBONES = {name: 'stars_ros.model.encoders.graph' for name in ('gat', 'gcn', 'ggnn', 'gin', 'graphsage', 'rgcn')}
+BACKBONES.update({name: 'stars_ros.model.encoders.tabular'
+                  for name in ('dcnv2', 'fttransformer', 'graceae', 'mlp', 'resmlp')})
 
 
 def normalise_name(name: str) -> str:
     return re.sub(r'[^a-z0-9]', '', name.lower())
+
+
+def encoder_class(name: str) -> type:
+    """The Encoder class registered under ``name`` (matched as ``resolve_encoder`` matches),
+    its module imported now; ValueError for a name no module defines."""
+    key = normalise_name(str(name))
+    if key not in BACKBONES:
+        raise ValueError(f"Could not resolve '{name}' among choices {sorted(BACKBONES)}")
+    importlib.import_module(BACKBONES[key])
+    return ENCODERS[key]
 
 
 def resolve_encoder(query, *args, **kwargs) -> Encoder:
@@ -23,10 +41,7 @@ def resolve_encoder(query, *args, **kwargs) -> Encoder:
     """
     if isinstance(query, Encoder):
         return query
-    cls = ENCODERS.get(normalise_name(str(query)))
-    if cls is None:
-        raise ValueError(f"Could not resolve '{query}' among choices {sorted(ENCODERS)}")
-    return cls(*args, **kwargs)
+    return encoder_class(query)(*args, **kwargs)
 
 
-__all__ = ['Encoder', 'ENCODERS', 'register', 'resolve_encoder', 'normalise_name']
+__all__ = ['BACKBONES', 'Encoder', 'ENCODERS', 'encoder_class', 'register', 'resolve_encoder', 'normalise_name']

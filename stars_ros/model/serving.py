@@ -1,0 +1,134 @@
+"""A checkpoint in its serving form, ``ServedModel``: the one thing the node, the front door
+and the offline programs score with.
+
+It is built from a checkpoint's content alone (config, vocabularies, normalisation, rating
+scale, personalisation prior and weights), never from a torch model: graph backbones run
+their numpy form (``encoders.serving_forms``, GAT compiled), so serving a graph checkpoint
+imports neither torch-geometric nor training; a tabular backbone's one torch module is
+built from its registry entry, lazily. A model fitted in memory is served the same way,
+from the content its checkpoint would hold (``checkpoint.served_content``), so a saved and
+a fitted model serve identically.
+"""
+from __future__ import annotations
+
+from typing import Callable, Mapping
+
+import numpy as np
+import torch
+
+from stars_ros.errors import CheckpointError, ConfigError
+from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.encoders import normalise_name
+from stars_ros.model.encoders.serving_forms import GRAPH_BACKBONES, graph_serving_form
+from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.vocabulary import Vocabulary
+
+ENCODER = 'encoder.'  # the encoder's weights sit under this prefix of the model's state dict
+
+
+def _encoder_weights(state: Mapping[str, torch.Tensor]) -> dict:
+    return {name[len(ENCODER):]: value for name, value in state.items() if name.startswith(ENCODER)}
+
+
+def encoder_serving_form(config: ExperimentConfig, input_kind: str, feature_dim: int,
+                         state: Mapping[str, torch.Tensor]) -> Callable:
+    """The encoder ``config`` names with the weights of ``state`` (the model's state dict),
+    as a function of scene inputs returning h [count, dim] (float32): a graph backbone's
+    numpy form, or a tabular backbone's torch module over standardised features."""
+    name = normalise_name(config.encoder.name)
+    weights = _encoder_weights(state)
+    if input_kind == 'graph':
+        if name not in GRAPH_BACKBONES:
+            raise ConfigError(f"encoder '{config.encoder.name}' does not read scene graphs")
+        return graph_serving_form(name, {k: v.detach().to(torch.float32).numpy().copy() for k, v in weights.items()})
+    from stars_ros.model.encoders import resolve_encoder  # a tabular module: torch only
+
+    with torch.random.fork_rng(devices=[]):  # its initial weights, replaced at once, draw on no one's random state
+        encoder = resolve_encoder(name, feature_dim, config.model.dim, hidden=config.encoder.hidden,
+                                  layers=config.encoder.layers, dropout=config.encoder.dropout,
+                                  **config.encoder.options)
+    encoder.load_state_dict(weights)
+    encoder.eval()
+    mean, std = state['feature_mean'].clone(), state['feature_std'].clone()
+    return _numpy_form(lambda features: encoder((features - mean) / std))
+
+
+def _numpy_form(forward: Callable) -> Callable:
+    """A torch forward over a [count, features] tensor as a function of a numpy array."""
+    def encode(features: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return forward(torch.from_numpy(features)).numpy()
+    return encode
+
+
+def inference_of(model) -> InferenceModel:
+    """The serving arithmetic of a torch ``StarsModel`` held in memory, over a snapshot of
+    its weights (training's own uses: the prior's estimate, checks against the torch form)."""
+    encoder = model.encoder
+    encode = encoder.serving_form() if encoder.input_kind == 'graph' else _numpy_form(model.encode)
+    return InferenceModel(model.state_dict(), model.variant, encoder.out_dim, encode)
+
+
+def clip_to_scale(scores: np.ndarray, scale: tuple | None) -> np.ndarray:
+    """``scores`` limited to the rating ``scale`` (lowest, highest) when there is one."""
+    if scale is None:
+        return scores
+    return np.minimum(np.maximum(scores, scale[0]), scale[1])  # np.clip's, without its wrappers' cost per request
+
+
+class ServedModel:
+    """What serving needs of a fitted model, read from its checkpoint's content.
+
+    Args:
+        metadata (dict): ``config``, ``users``, ``scene_keys``, ``actions``, ``input_kind``,
+            ``feature_dim`` and ``rating_scale`` (a checkpoint's metadata holds them).
+        state (Mapping): the model's state dict (tensors).
+        user_prior (dict, optional): the personalisation prior (``UserPrior.to_dict``).
+
+    Raises ConfigError or KeyError for content this version cannot serve (``load`` says
+    which file).
+    """
+
+    def __init__(self, metadata: dict, state: Mapping[str, torch.Tensor], user_prior: dict | None = None):
+        self.config = ExperimentConfig.from_dict(metadata['config'])
+        self.user_vocabulary = Vocabulary(metadata['users'])
+        self.scene_vocabulary = Vocabulary(metadata['scene_keys'])
+        self.action_names = tuple(metadata['actions'])
+        self.input_kind, self.feature_dim = metadata['input_kind'], metadata['feature_dim']
+        scale = metadata.get('rating_scale')  # absent from checkpoints written before it was kept
+        self.rating_scale = tuple(scale) if scale is not None else None
+        self.user_prior = user_prior
+        self.variant = self.config.model.variant
+        self.personalised = self.variant != 'base'
+        self.feature_mean = (state['feature_mean'].detach().numpy().copy() if 'feature_mean' in state else None)
+        self.inference = InferenceModel(state, self.variant, self.config.model.dim,
+                                        encoder_serving_form(self.config, self.input_kind, self.feature_dim, state))
+
+    @classmethod
+    def load(cls, path) -> tuple:
+        """(ServedModel, metadata, digest) of the checkpoint at ``path``; CheckpointError for a
+        missing, truncated, corrupted or incompatible file."""
+        from stars_ros.model.checkpoint import read_checkpoint
+
+        content = read_checkpoint(path)
+        metadata = content['metadata']
+        prior = None
+        if 'user_prior' in content:  # absent from checkpoints written before it was kept
+            prior = {**content['user_prior'], 'details': metadata.get('user_prior', {})}
+        try:
+            served = cls(metadata, content['state_dict'], prior)
+        except (ConfigError, KeyError, RuntimeError, TypeError, ValueError) as error:
+            message = str(error) if isinstance(error, ConfigError) else f'{type(error).__name__}: {error}'
+            raise CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}') from error
+        return served, metadata, content['digest']
+
+    @property
+    def users(self) -> tuple:
+        return self.user_vocabulary.keys
+
+    @property
+    def scene_keys(self) -> tuple:
+        return self.scene_vocabulary.keys
+
+    def clip(self, scores: np.ndarray) -> np.ndarray:
+        return clip_to_scale(scores, self.rating_scale)
