@@ -13,14 +13,17 @@ import pickle
 import re
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+import numpy as np
 
 from stars_ros import __version__
-from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import CheckpointError, ConfigError, StarsError
 from stars_ros.files import atomic_write
-from stars_ros.model.fitted import FittedModel, build_model
+from stars_ros.model.tensor_file import read_tensor_file
+
+if TYPE_CHECKING:
+    from stars_ros.model.fitted import FittedModel
 
 FORMAT = 'stars_ros.checkpoint'  # a data format's name: it stays when modules move
 FORMAT_VERSION = 1
@@ -35,10 +38,13 @@ def _tensors(content: dict) -> dict:
 
 
 def _digest(metadata: dict, state: dict) -> str:
+    """Over the metadata and every tensor's bytes (torch tensors as saved, numpy arrays as read)."""
     sha = hashlib.sha256(json.dumps(metadata, sort_keys=True, default=str).encode())
     for name in sorted(state):
+        value = state[name]
         sha.update(name.encode())
-        sha.update(state[name].detach().cpu().contiguous().numpy().tobytes())
+        sha.update(np.ascontiguousarray(value if isinstance(value, np.ndarray) else value.detach().cpu().numpy())
+                   .tobytes())
     return sha.hexdigest()
 
 
@@ -70,6 +76,8 @@ def save_checkpoint(fitted: FittedModel, path, *, data: dict, metrics: dict | No
         metrics (dict, optional): held-out figures to keep with the weights.
         provenance (dict, optional): anything else worth keeping (command line, logs used).
     """
+    import torch
+
     served, state, prior = served_content(fitted)
     metadata = {
         'format': FORMAT,
@@ -103,14 +111,15 @@ def _torch_reason(error: Exception) -> str:
 
 
 def read_checkpoint(path) -> dict:
-    """The checkpoint's raw content (``metadata``, ``state_dict``, ``digest``), verified."""
+    """The checkpoint's raw content (``metadata``, ``state_dict``, ``digest``), verified;
+    tensors as numpy arrays (``tensor_file``: read without torch, running no pickled code)."""
     path = Path(path)
     try:
-        content = torch.load(path, map_location='cpu', weights_only=True)
+        content = read_tensor_file(path)
     except FileNotFoundError:
         raise CheckpointError(f'{path}: no such checkpoint file') from None
-    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError,
-            KeyError, AttributeError, IndexError) as error:
+    except (EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, KeyError, TypeError,
+            IndexError) as error:
         try:
             with open(path, 'rb') as handle:
                 head = handle.read(4)
@@ -137,9 +146,29 @@ def read_checkpoint(path) -> dict:
     return content
 
 
-def load_checkpoint(path, with_digest: bool = False):
-    """Rebuild the ``FittedModel`` stored in ``path``; returns (fitted model, metadata), plus
-    the digest when ``with_digest``. (``StarsTrainer.resume`` makes it trainable again.)"""
+def stored_prior(content: dict) -> dict | None:
+    """The personalisation prior a checkpoint's content keeps (``UserPrior.to_dict``'s form),
+    None in one written before it was kept."""
+    if 'user_prior' not in content:
+        return None
+    return {**content['user_prior'], 'details': content['metadata'].get('user_prior', {})}
+
+
+def incompatible(path, error: Exception) -> CheckpointError:
+    """The CheckpointError of content this version cannot rebuild or serve."""
+    message = str(error) if isinstance(error, StarsError) else f'{type(error).__name__}: {error}'
+    return CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}')
+
+
+def load_checkpoint(path):
+    """Rebuild the torch ``FittedModel`` stored in ``path`` (training's form: serving reads
+    ``serving.ServedModel.load``); returns (fitted model, metadata). (``StarsTrainer.resume``
+    makes it trainable again.)"""
+    import torch
+
+    from stars_ros.model.config import ExperimentConfig
+    from stars_ros.model.fitted import FittedModel, build_model
+
     content = read_checkpoint(path)
     metadata = content['metadata']
     try:
@@ -148,19 +177,15 @@ def load_checkpoint(path, with_digest: bool = False):
         fitted.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
         model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
                             len(metadata['scene_keys']), len(metadata['actions']))
-        model.load_state_dict(content['state_dict'])
+        model.load_state_dict({name: torch.from_numpy(value) for name, value in content['state_dict'].items()})
     except (ConfigError, KeyError, RuntimeError, TypeError) as error:
-        if isinstance(error, StarsError):
-            message = str(error)
-        else:
-            message = f'{type(error).__name__}: {error}'
-        raise CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}') from error
+        raise incompatible(path, error) from error
     model.eval()
     fitted.model = model
     scale = metadata.get('rating_scale')  # absent from checkpoints written before it was kept
     fitted.rating_scale = tuple(scale) if scale is not None else None
-    if 'user_prior' in content:  # absent from checkpoints written before it was kept
-        fitted.user_prior = {**content['user_prior'], 'details': metadata.get('user_prior', {})}
-    if with_digest:
-        return fitted, metadata, content['digest']
+    prior = stored_prior(content)
+    if prior is not None:  # tensors, as a fitted model's: saved again, they are tensors in the file
+        fitted.user_prior = {name: torch.from_numpy(value) if isinstance(value, np.ndarray) else value
+                             for name, value in prior.items()}
     return fitted, metadata

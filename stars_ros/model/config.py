@@ -157,7 +157,7 @@ class EncoderConfig(Section):
     @field_validator('name')
     @classmethod
     def _registered(cls, name: str) -> str:
-        from stars_ros.model.encoders import BACKBONES, normalise_name  # torch: imported only when needed
+        from stars_ros.model.backbones import BACKBONES, normalise_name
         if normalise_name(name) not in BACKBONES:
             raise ValueError(f'unknown encoder {name!r}; registered: {", ".join(sorted(BACKBONES))}')
         return name

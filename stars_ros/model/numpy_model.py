@@ -2,7 +2,7 @@
 
 A request scores one or a few scenes, where each tensor operation's fixed cost (torch's
 dispatch, nn.Module calls) is the whole cost, so serving and the fold-in do not go through
-torch: graph encoders run their serving form (``GraphEncoder.serving_form``: GAT compiled,
+torch: graph encoders run their serving form (``model.serving_forms``: GAT compiled,
 the others their dense numpy form) and the StARS scoring is two array products. Tabular
 encoders keep their torch forward: one row through a few layers has no graph bookkeeping
 to save. ``InferenceModel`` holds the one numpy copy of the weights: the Predictor scores
@@ -15,14 +15,13 @@ from __future__ import annotations
 from typing import Callable, Mapping
 
 import numpy as np
-import torch
 
 from stars_ros.model.config import ModelConfig
 from stars_ros.model.vocabulary import UNKNOWN
 
 
-def _array(tensor: torch.Tensor) -> np.ndarray:
-    return tensor.detach().to(torch.float32).numpy().copy()
+def _array(value: np.ndarray) -> np.ndarray:
+    return np.array(value, dtype=np.float32)
 
 
 class InferenceModel:
@@ -31,7 +30,7 @@ class InferenceModel:
     torch model: serving needs no module of training.
 
     Args:
-        state (Mapping): the model's state dict (tensors, names as ``StarsModel`` has them).
+        state (Mapping): the model's state dict as numpy arrays (names as ``StarsModel`` has them).
         variant (str): the model variant (``ModelConfig.variant``).
         dim (int): size of h_i, p_u, q_i and r_a.
         encode (callable): the encoder's serving form, scene inputs -> h [count, dim]
@@ -43,7 +42,7 @@ class InferenceModel:
     ``action_rows`` [actions, dim] (r_a) and ``bias`` (b).
     """
 
-    def __init__(self, state: Mapping[str, torch.Tensor], variant: str, dim: int, encode: Callable):
+    def __init__(self, state: Mapping[str, np.ndarray], variant: str, dim: int, encode: Callable):
         parts = ModelConfig(variant=variant).parts
         self.dim = dim
         self.uses_content = 'content' in parts

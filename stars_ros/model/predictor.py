@@ -23,7 +23,7 @@ from stars_ros.data.scene_graph import SceneGraph, featurise
 from stars_ros.errors import SceneGraphError, StarsError, UnknownActionError
 from stars_ros.model.explain import explain, removal_effects
 from stars_ros.model.numpy_model import InferenceModel
-from stars_ros.model.serving import ServedModel
+from stars_ros.model.serving import ServedModel, arrays
 from stars_ros.model.vocabulary import UNKNOWN
 
 
@@ -122,7 +122,8 @@ class Predictor:
         and its fingerprint ''."""
         from stars_ros.model.checkpoint import served_content
 
-        return cls(ServedModel(*served_content(fitted)), {}, '')
+        metadata, state, prior = served_content(fitted)
+        return cls(ServedModel(metadata, arrays(state), prior), {}, '')
 
     @property
     def inference(self) -> InferenceModel:

@@ -2,59 +2,59 @@
 and the offline programs score with.
 
 It is built from a checkpoint's content alone (config, vocabularies, normalisation, rating
-scale, personalisation prior and weights), never from a torch model: graph backbones run
-their numpy form (``encoders.serving_forms``, GAT compiled), so serving a graph checkpoint
-imports neither torch-geometric nor training; a tabular backbone's one torch module is
-built from its registry entry, lazily. A model fitted in memory is served the same way,
-from the content its checkpoint would hold (``checkpoint.served_content``), so a saved and
-a fitted model serve identically.
+scale, personalisation prior and weights as numpy arrays), never from a torch model: graph
+backbones run their numpy form (``model.serving_forms``, GAT compiled), so serving a
+graph checkpoint imports neither torch, torch-geometric nor training; a tabular backbone's
+one torch module is built from its registry entry, torch imported then. A model fitted in
+memory is served the same way, from the content its checkpoint would hold
+(``checkpoint.served_content``), so a saved and a fitted model serve identically.
 """
 from __future__ import annotations
 
 from typing import Callable, Mapping
 
 import numpy as np
-import torch
 
-from stars_ros.errors import CheckpointError, ConfigError
+from stars_ros.errors import ConfigError
+from stars_ros.model.checkpoint import incompatible, read_checkpoint, stored_prior
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.encoders import normalise_name
-from stars_ros.model.encoders.serving_forms import GRAPH_BACKBONES, graph_serving_form
+from stars_ros.model.backbones import normalise_name
+from stars_ros.model.serving_forms import GRAPH_BACKBONES, graph_serving_form
 from stars_ros.model.numpy_model import InferenceModel
 from stars_ros.model.vocabulary import Vocabulary
 
 ENCODER = 'encoder.'  # the encoder's weights sit under this prefix of the model's state dict
 
 
-def _encoder_weights(state: Mapping[str, torch.Tensor]) -> dict:
-    return {name[len(ENCODER):]: value for name, value in state.items() if name.startswith(ENCODER)}
-
-
 def encoder_serving_form(config: ExperimentConfig, input_kind: str, feature_dim: int,
-                         state: Mapping[str, torch.Tensor]) -> Callable:
-    """The encoder ``config`` names with the weights of ``state`` (the model's state dict),
-    as a function of scene inputs returning h [count, dim] (float32): a graph backbone's
-    numpy form, or a tabular backbone's torch module over standardised features."""
+                         state: Mapping[str, np.ndarray]) -> Callable:
+    """The encoder ``config`` names with the weights of ``state`` (the model's state dict as
+    arrays), as a function of scene inputs returning h [count, dim] (float32): a graph
+    backbone's numpy form, or a tabular backbone's torch module over standardised features."""
     name = normalise_name(config.encoder.name)
-    weights = _encoder_weights(state)
+    weights = {key[len(ENCODER):]: value for key, value in state.items() if key.startswith(ENCODER)}
     if input_kind == 'graph':
         if name not in GRAPH_BACKBONES:
             raise ConfigError(f"encoder '{config.encoder.name}' does not read scene graphs")
-        return graph_serving_form(name, {k: v.detach().to(torch.float32).numpy().copy() for k, v in weights.items()})
-    from stars_ros.model.encoders import resolve_encoder  # a tabular module: torch only
+        return graph_serving_form(name, {key: np.asarray(value, dtype=np.float32) for key, value in weights.items()})
+    import torch  # a tabular backbone is a torch module
+
+    from stars_ros.model.encoders import resolve_encoder
 
     with torch.random.fork_rng(devices=[]):  # its initial weights, replaced at once, draw on no one's random state
         encoder = resolve_encoder(name, feature_dim, config.model.dim, hidden=config.encoder.hidden,
                                   layers=config.encoder.layers, dropout=config.encoder.dropout,
                                   **config.encoder.options)
-    encoder.load_state_dict(weights)
+    encoder.load_state_dict({key: torch.from_numpy(np.array(value)) for key, value in weights.items()})
     encoder.eval()
-    mean, std = state['feature_mean'].clone(), state['feature_std'].clone()
+    mean, std = torch.from_numpy(np.array(state['feature_mean'])), torch.from_numpy(np.array(state['feature_std']))
     return _numpy_form(lambda features: encoder((features - mean) / std))
 
 
 def _numpy_form(forward: Callable) -> Callable:
     """A torch forward over a [count, features] tensor as a function of a numpy array."""
+    import torch
+
     def encode(features: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
             return forward(torch.from_numpy(features)).numpy()
@@ -66,7 +66,12 @@ def inference_of(model) -> InferenceModel:
     its weights (training's own uses: the prior's estimate, checks against the torch form)."""
     encoder = model.encoder
     encode = encoder.serving_form() if encoder.input_kind == 'graph' else _numpy_form(model.encode)
-    return InferenceModel(model.state_dict(), model.variant, encoder.out_dim, encode)
+    return InferenceModel(arrays(model.state_dict()), model.variant, encoder.out_dim, encode)
+
+
+def arrays(state: Mapping) -> dict:
+    """A torch state dict as numpy arrays (copies)."""
+    return {name: value.detach().cpu().numpy().copy() for name, value in state.items()}
 
 
 def clip_to_scale(scores: np.ndarray, scale: tuple | None) -> np.ndarray:
@@ -82,14 +87,14 @@ class ServedModel:
     Args:
         metadata (dict): ``config``, ``users``, ``scene_keys``, ``actions``, ``input_kind``,
             ``feature_dim`` and ``rating_scale`` (a checkpoint's metadata holds them).
-        state (Mapping): the model's state dict (tensors).
+        state (Mapping): the model's state dict (numpy arrays).
         user_prior (dict, optional): the personalisation prior (``UserPrior.to_dict``).
 
     Raises ConfigError or KeyError for content this version cannot serve (``load`` says
     which file).
     """
 
-    def __init__(self, metadata: dict, state: Mapping[str, torch.Tensor], user_prior: dict | None = None):
+    def __init__(self, metadata: dict, state: Mapping[str, np.ndarray], user_prior: dict | None = None):
         self.config = ExperimentConfig.from_dict(metadata['config'])
         self.user_vocabulary = Vocabulary(metadata['users'])
         self.scene_vocabulary = Vocabulary(metadata['scene_keys'])
@@ -100,7 +105,7 @@ class ServedModel:
         self.user_prior = user_prior
         self.variant = self.config.model.variant
         self.personalised = self.variant != 'base'
-        self.feature_mean = (state['feature_mean'].detach().numpy().copy() if 'feature_mean' in state else None)
+        self.feature_mean = np.array(state['feature_mean']) if 'feature_mean' in state else None
         self.inference = InferenceModel(state, self.variant, self.config.model.dim,
                                         encoder_serving_form(self.config, self.input_kind, self.feature_dim, state))
 
@@ -108,19 +113,12 @@ class ServedModel:
     def load(cls, path) -> tuple:
         """(ServedModel, metadata, digest) of the checkpoint at ``path``; CheckpointError for a
         missing, truncated, corrupted or incompatible file."""
-        from stars_ros.model.checkpoint import read_checkpoint
-
         content = read_checkpoint(path)
-        metadata = content['metadata']
-        prior = None
-        if 'user_prior' in content:  # absent from checkpoints written before it was kept
-            prior = {**content['user_prior'], 'details': metadata.get('user_prior', {})}
         try:
-            served = cls(metadata, content['state_dict'], prior)
+            served = cls(content['metadata'], content['state_dict'], stored_prior(content))
         except (ConfigError, KeyError, RuntimeError, TypeError, ValueError) as error:
-            message = str(error) if isinstance(error, ConfigError) else f'{type(error).__name__}: {error}'
-            raise CheckpointError(f'{path}: checkpoint is incompatible with this version: {message}') from error
-        return served, metadata, content['digest']
+            raise incompatible(path, error) from error
+        return served, content['metadata'], content['digest']
 
     @property
     def users(self) -> tuple:

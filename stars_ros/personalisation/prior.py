@@ -50,7 +50,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from stars_ros.model.serving import inference_of
 
@@ -77,6 +76,8 @@ class UserPrior:
 
     def to_dict(self) -> dict:
         """Tensors and plain values, as a weights-only checkpoint holds them."""
+        import torch  # a fitted model's: serving reads priors, never writes one
+
         values = {'mean': torch.from_numpy(self.mean.copy()), 'covariance': torch.from_numpy(self.covariance.copy()),
                   'noise': torch.from_numpy(self.noise.copy()), 'details': dict(self.details),
                   'nu': torch.tensor(float(self.nu), dtype=torch.float64)}
@@ -87,7 +88,7 @@ class UserPrior:
     @classmethod
     def from_dict(cls, values: dict) -> 'UserPrior':
         def array(name):
-            return np.asarray(values[name].numpy() if torch.is_tensor(values[name]) else values[name], dtype=np.float64)
+            return np.asarray(values[name], dtype=np.float64)  # a tensor (a fitted model's) or an array (a file's)
         users = array('user_covariance') if values.get('user_covariance') is not None else None
         nu = float(array('nu')) if values.get('nu') is not None else math.inf  # earlier checkpoints: Gaussian
         return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})), nu)
@@ -183,6 +184,8 @@ def user_rows(inference) -> np.ndarray:
 
 def encode_all(fitted, data) -> np.ndarray:
     """h_i of every scene of ``data`` [n_scenes, dim] (float64) under ``fitted``'s encoder."""
+    import torch  # training's form
+
     model = fitted.require_model()
     parts = []
     with torch.no_grad():

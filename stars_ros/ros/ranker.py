@@ -31,10 +31,10 @@ from __future__ import annotations
 
 import difflib
 import gc
+import os
 import sys
 import time
 
-import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.event_handler import PublisherEventCallbacks
@@ -102,7 +102,10 @@ class RankerParts:
                                       + '; `ros2 run stars_ros ranker --help` lists them')
 
     def _configure(self):
-        torch.set_num_threads(1)
+        # one torch thread (torch serves tabular models only, and is imported for them only)
+        os.environ['OMP_NUM_THREADS'] = '1'
+        if 'torch' in sys.modules:
+            sys.modules['torch'].set_num_threads(1)
         # numpy's OpenBLAS spreads products above ~0.26 M multiply-adds (a fold-in solve over
         # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
         # cores the executor, the DDS threads and the node's neighbours need

@@ -85,7 +85,7 @@ def test_serving_form_counts_parallel_edges_and_serves_a_lone_robot(name, option
 
 def test_the_gat_kernel_warm_up_compiles_what_every_request_uses():
     """A batch, a lone robot or float64 features must not compile a new signature on a request."""
-    from stars_ros.model.encoders.compiled_gat import _gat_encode
+    from stars_ros.model.compiled_gat import _gat_encode
     serving = _encoder('gat', {'heads': 4}).serving_form()  # compiles (or loads) at construction
     signatures = list(_gat_encode.signatures)
     rng = np.random.default_rng(8)

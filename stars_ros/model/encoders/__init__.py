@@ -3,24 +3,17 @@
 Any registered backbone serves both the ``base`` and the ``stars`` model variant: the
 variant is a switch in the model, never a second copy of an encoder.
 
-Backbones are found lazily: ``BACKBONES`` names the module that defines each, and it is
-imported (joining ``ENCODERS``) only when one of its backbones is built, so serving a GAT
-checkpoint never imports torch-geometric's training modules or the tabular ones.
+Backbones are found lazily: ``backbones.BACKBONES`` names the module that defines each,
+and it is imported (joining ``ENCODERS``) only when one of its backbones is built, so a
+process that builds a GAT never imports the tabular modules, and serving (``model.serving``)
+imports none of them.
 """
 from __future__ import annotations
 
 import importlib
-import re
 
+from stars_ros.model.backbones import BACKBONES, normalise_name
 from stars_ros.model.encoders.base import Encoder, ENCODERS, register
-
-BACKBONES = {name: 'stars_ros.model.encoders.graph' for name in ('gat', 'gcn', 'ggnn', 'gin', 'graphsage', 'rgcn')}
-BACKBONES.update({name: 'stars_ros.model.encoders.tabular'
-                  for name in ('dcnv2', 'fttransformer', 'graceae', 'mlp', 'resmlp')})
-
-
-def normalise_name(name: str) -> str:
-    return re.sub(r'[^a-z0-9]', '', name.lower())
 
 
 def encoder_class(name: str) -> type:

@@ -20,7 +20,7 @@ from torch_geometric import nn as gnn
 from stars_ros.data.scene_graph import RELATIONS, SceneGraph
 from stars_ros.data.scene_store import GraphBatch
 from stars_ros.model.encoders.base import Encoder, register
-from stars_ros.model.encoders.serving_forms import GAT_NEGATIVE_SLOPE, graph_serving_form
+from stars_ros.model.serving_forms import GAT_NEGATIVE_SLOPE, graph_serving_form
 
 
 def _weights(module: nn.Module) -> dict:

@@ -130,7 +130,7 @@ def graph_serving_form(name: str, weights: Mapping[str, np.ndarray]) -> Callable
     model = _Layer(weights, '')
     project, hidden_layer, output_layer = model.linear('project'), model.linear('readout.0'), model.linear('readout.2')
     if name == 'gat':
-        from stars_ros.model.encoders.compiled_gat import GATKernel  # numba: only for GAT
+        from stars_ros.model.compiled_gat import GATKernel  # numba: only for GAT
 
         heads, channels = layers[0]['att_src'].shape[1:]
         return GATKernel(project, [conv.linear('lin')[0] for conv in layers],
