@@ -27,11 +27,12 @@ from rclpy.time import Time
 from std_msgs.msg import Bool, Float32, String
 
 from stars_ros.hri.bridge import BridgeCore, BridgeSettings
-from stars_ros.hri.poses import Pose, TransformTable, quaternion_of_yaw, yaw_of_quaternion
+from stars_ros.hri.poses import Pose, TransformTable
 from stars_ros.hri.scene import DEFAULT_ROOM, SceneSettings
 from stars_ros.ros import usage
 from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
 from stars_ros.ros.spinning import run_node
+from stars_ros.rotations import quaternion_of_yaw, yaw_of_quaternion
 
 try:
     from hri_msgs.msg import EngagementLevel, Gaze, Group, IdsList

@@ -30,9 +30,9 @@ from std_msgs.msg import Bool, Float32, String
 from stars_ros.data import frames
 from stars_ros.data.scene_source import random_scene, read_scenes
 from stars_ros.hri.people import DISENGAGED, DISENGAGING, ENGAGED
-from stars_ros.hri.poses import quaternion_of_yaw
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
+from stars_ros.rotations import quaternion_of_yaw
 
 try:
     from hri_msgs.msg import EngagementLevel, Gaze, Group, IdsList
