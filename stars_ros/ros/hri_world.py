@@ -33,6 +33,7 @@ from stars_ros.data.scene_source import random_scene, read_scenes
 from stars_ros.hri.people import DISENGAGED, DISENGAGING, ENGAGED
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
+from stars_ros.ros.unknown_parameters import warn_unknown_overrides
 from stars_ros.rotations import quaternion_of_yaw
 
 try:
@@ -161,6 +162,7 @@ class ScriptedWorld(Node):
         super().__init__('hri_world', **kwargs)
         v = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
              for name, (default, text) in PARAMETERS.items()}
+        warn_unknown_overrides(self, 'hri_world', PARAMETERS)
         if not v['period'] > 0 or v['pose_source'] not in ('auto', 'tf', 'topic'):
             raise ValueError("need period > 0 and pose_source in auto, tf, topic")
         use_tf = v['pose_source'] == 'tf' or (v['pose_source'] == 'auto' and tf2_available())
