@@ -5,7 +5,8 @@
     ros2 launch stars_ros hri.launch.py world:=false   # a robot's own ROS4HRI stack instead (docs/hri.md)
 
 Poses travel as TF where tf2_ros exists (``pose_source:=tf``), else on hri/transforms
-(``pose_source:=topic``). Recording goes to the ranker's default folder unless
+(``pose_source:=topic``). A ``source`` that names no file is refused before anything starts.
+Recording goes to the ranker's default folder unless
 ``record_folder`` is set. ``--show-args`` lists the arguments.
 """
 from launch import LaunchDescription
@@ -13,6 +14,8 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+from stars_ros.ros.launch_arguments import existing_file
 
 
 def _tf2_available() -> bool:
@@ -24,6 +27,9 @@ def _tf2_available() -> bool:
 
 
 def _nodes(context):
+    source = LaunchConfiguration('source').perform(context)
+    if source:
+        existing_file('source', source)  # the world would die on it while the launch runs on
     pose_source = LaunchConfiguration('pose_source').perform(context) or ('tf' if _tf2_available() else 'topic')
     ranker = {'record_folder': LaunchConfiguration('record_folder')} if LaunchConfiguration(
         'record_folder').perform(context) else {}
@@ -48,7 +54,8 @@ def generate_launch_description():
         DeclareLaunchArgument('pose_source', default_value='', description='tf or topic; empty: tf where tf2_ros '
                               'is importable'),
         DeclareLaunchArgument('base_frame', default_value='base_link', description="the robot's frame"),
-        DeclareLaunchArgument('goal_frame', default_value='', description='frame of stars/goal; empty: base_frame'),
+        DeclareLaunchArgument('goal_frame', default_value='map', description='frame of stars/goal, one that does not '
+                              'move with the robot (map, odom)'),
         DeclareLaunchArgument('record_folder', default_value='', description="the ranker's record folder; empty: "
                               'its default'),
         OpaqueFunction(function=_nodes),

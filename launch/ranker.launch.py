@@ -9,7 +9,8 @@
 Every parameter of the node is an argument (``--show-args`` lists them with their meaning);
 left empty, the params file's value holds (the packaged one holds every default). A value
 that is not one of its parameter's type or range is refused before the node starts, as
-``ros2 run ... -p`` refuses it (``top_k:=abc``: "top_k:=abc is not an integer"). An empty
+``ros2 run ... -p`` refuses it (``top_k:=abc``: "top_k:=abc is not an integer"), and a
+``params_file`` or ``checkpoint`` that names no file is refused before the node starts. An empty
 launch argument is refused on the command line (``record_folder:=''``), so recording is
 turned off with ``record:=false``. A robot of a fleet runs in its ``namespace`` and remaps
 stars/user_model to ``fleet_topic``. ``managed:=true`` starts the managed (lifecycle) ranker,
@@ -24,7 +25,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
 
 from stars_ros.node.parameters import PARAMETERS
-from stars_ros.ros.launch_arguments import parameter_value
+from stars_ros.ros.launch_arguments import existing_file, parameter_value
 
 LOG_LEVELS = ['debug', 'info', 'warn', 'error', 'fatal']
 
@@ -39,6 +40,9 @@ def _ranker(context):
     if argument('record') == 'false':
         parameters['record_folder'] = ''  # a plain '' stays a string
     parameters['use_sim_time'] = argument('use_sim_time') == 'true'
+    for name in ('params_file', 'checkpoint'):
+        if argument(name):
+            existing_file(name, argument(name))  # the node would die on it while the launch runs on
     params_file = argument('params_file') or str(Path(get_package_share_directory('stars_ros')) / 'config'
                                                  / 'ranker.yaml')
     namespace, fleet_topic, managed = argument('namespace'), argument('fleet_topic'), argument('managed') == 'true'

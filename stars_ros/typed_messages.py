@@ -17,13 +17,9 @@ import math
 
 from stars_ros import messages
 from stars_ros.data import frames
+from stars_ros.rotations import quaternion_of_yaw, yaw_of_quaternion
 
 FRAME = 'frame'  # error kind: a typed scene in a frame the ranker does not take
-
-
-def _yaw(q) -> float:
-    """The yaw (radians, about z) of quaternion ``q`` (x, y, z, w; need not be unit length)."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
 def _finite(*values) -> bool:
@@ -45,7 +41,7 @@ def _entity(item, scene_id) -> frames.Entity:
     if not _finite(p.x, p.y, q.x, q.y, q.z, q.w):
         raise messages.BadMessage('non_finite', f'pose of entity {item.id} holds a non-finite number (NaN or '
                                   'infinity)', scene_id)
-    return frames.Entity(int(item.id), float(p.x), float(p.y), _yaw(q))
+    return frames.Entity(int(item.id), float(p.x), float(p.y), yaw_of_quaternion(q.x, q.y, q.z, q.w))
 
 
 def scene_graph(scene, robot_frame: str, scene_id: str | None = None) -> dict:
@@ -190,9 +186,9 @@ def question_message(payload: dict, msgs):
 
 
 def _pose(entity: frames.Entity, geometry):
-    half = entity.yaw / 2.0
+    x, y, z, w = quaternion_of_yaw(entity.yaw)
     return geometry.Pose(position=geometry.Point(x=entity.x, y=entity.y, z=0.0),
-                         orientation=geometry.Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)))
+                         orientation=geometry.Quaternion(x=x, y=y, z=z, w=w))
 
 
 def scene_message(scene: dict, frame_id: str, msgs, geometry):

@@ -243,10 +243,10 @@ def test_launch_arguments_are_node_parameters_and_record_false_turns_recording_o
 
 
 def test_launch_takes_a_params_file_log_level_sim_time_and_a_managed_ranker(monkeypatch):
-    declared, node = _run_launch_file(monkeypatch, params_file='/etc/stars/ranker.yaml', log_level='debug',
-                                      use_sim_time='true')
+    params_file = str(REPO / 'config' / 'ranker.yaml')  # a file that is there: a missing one is refused
+    declared, node = _run_launch_file(monkeypatch, params_file=params_file, log_level='debug', use_sim_time='true')
     assert declared['log_level']['choices'] == ['debug', 'info', 'warn', 'error', 'fatal']
-    assert node['parameters'] == ['/etc/stars/ranker.yaml', {'use_sim_time': True}]
+    assert node['parameters'] == [params_file, {'use_sim_time': True}]
     assert node['ros_arguments'] == ['--log-level', 'debug']
     _, node = _run_launch_file(monkeypatch, managed='true')
     assert (node['kind'], node['executable'], node['namespace']) == ('LifecycleNode', 'managed_ranker', '')

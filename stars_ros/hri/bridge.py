@@ -191,7 +191,12 @@ class BridgeCore:
             return None
         return math.hypot(pose.x, pose.y)
 
-    def tick(self) -> Outputs:
+    def sent_for(self, scene_id: str) -> Served | None:
+        """Whom the bridge served when it sent scene ``scene_id`` (None: not sent, or forgotten)."""
+        return self._sent.get(scene_id)
+
+    def tick(self, send_scene: bool = True) -> Outputs:
+        """What to publish now; ``send_scene`` False holds scenes back (the ranker is not up)."""
         now = self._now()
         self.served = self.people.served(self.distance)
         user_id = self.served.user_id or ''
@@ -202,7 +207,7 @@ class BridgeCore:
         due = self._last_sent_at is None or now - self._last_sent_at >= 1e9 / self.settings.rate
         changed = changed_user or built.signature != self._last_signature
         scene = None
-        if built.people and (due or changed):
+        if send_scene and built.people and (due or changed):
             scene = self._request(built, now)
         if scene is not None or (self.last_scene is not None and built.left_out != self.last_scene.left_out):
             for reason, ids in built.left_out.items():  # counted per scene sent (or change), not per tick

@@ -32,7 +32,8 @@ class Decision:
     """What to do about one ranking: ``choice`` (an action or a placement label), its
     ``score``, ``score_sd`` and the ranking's ``p_first_is_best`` (None when not given);
     ``abstain`` with ``reason``; ``goal`` (a Pose in the navigation frame) for a placement
-    the robot is to move to."""
+    the robot is to move to; ``scores``: (choice, score) of every entry of the ranking (for
+    the goal policy's hysteresis)."""
 
     scene_id: str
     user_id: str | None
@@ -44,6 +45,7 @@ class Decision:
     abstain: bool
     reason: str
     goal: Pose | None = None
+    scores: tuple = ()
 
     def to_json(self) -> dict:
         out = {'scene_id': self.scene_id, 'user_id': self.user_id, self.kind: self.choice, 'score': self.score,
@@ -64,7 +66,8 @@ def decide(ranking: dict, abstain_below: float, robot_in_goal_frame: Pose | None
     kind = 'candidate' if 'candidate' in first else 'action'
     p_best = ranking.get('p_first_is_best')
     common = dict(scene_id=ranking['scene_id'], user_id=ranking.get('user_id'), kind=kind, choice=first[kind],
-                  score=float(first['score']), score_sd=first.get('score_sd'), p_first_is_best=p_best)
+                  score=float(first['score']), score_sd=first.get('score_sd'), p_first_is_best=p_best,
+                  scores=tuple((entry[kind], float(entry['score'])) for entry in ranking['ranking']))
     if p_best is not None and p_best < abstain_below:
         return Decision(**common, abstain=True,
                         reason=f'p_first_is_best {p_best:.3f} < abstain_below {abstain_below}: not sure enough')

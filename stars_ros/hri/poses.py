@@ -30,16 +30,6 @@ class PoseSource(Protocol):
         """The latest pose of ``source_frame`` in ``target_frame``, None if unknown."""
 
 
-def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """The rotation about z (radians) of a unit quaternion (REP 103: the heading on the floor)."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def quaternion_of_yaw(yaw: float) -> tuple:
-    """(x, y, z, w) of a rotation by ``yaw`` about z."""
-    return 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)
-
-
 def compose(a: Pose, b: Pose) -> Pose:
     """Pose ``b`` (given in a's frame) in the frame ``a`` is given in; stamp the older one's."""
     c, s = math.cos(a.yaw), math.sin(a.yaw)

@@ -15,13 +15,13 @@ motion that carries its humans, objects and room corners onto the first candidat
 from __future__ import annotations
 
 import functools
-import math
 import struct
 from dataclasses import dataclass
 
 from stars_ros.data.frames import heading_yaw, robot_pose_in, to_rep103
 from stars_ros.data.scene_graph import entity_nodes
 from stars_ros.recording.bag import CDR_LITTLE_ENDIAN
+from stars_ros.rotations import quaternion_of_yaw
 
 KIND_COLOURS = {'robot': (0.2, 0.3, 0.9, 1.0), 'room': (0.6, 0.6, 0.6, 1.0), 'human': (1.0, 0.75, 0.1, 1.0),
                 'object': (0.55, 0.35, 0.2, 1.0), 'wall': (0.3, 0.3, 0.3, 1.0),
@@ -210,7 +210,7 @@ def _marker_cdr(out: _Cdr, marker: Marker | None, frame_id: str, sec: int, nanos
         points, colour = (), (0.0,) * 4
     else:
         codes = (marker.id, TYPES[marker.kind], ADD)
-        values = (*marker.position, 0.0, 0.0, math.sin(marker.yaw / 2), math.cos(marker.yaw / 2), *marker.scale)
+        values = (*marker.position, *quaternion_of_yaw(marker.yaw), *marker.scale)
         points, colour = marker.points, marker.color
     offset = len(buffer)
     pad4 = -offset % 4

@@ -4,7 +4,8 @@ People stand where the humans of a real SocNav1 scene stand (``source``: a SocNa
 file; empty: a generated scene), converted to REP 103 by ``data.frames``; they are tracked
 as p1, p2, ... (latched /humans/persons/tracked), recognised (anonymous false), and their
 poses go out as TF frames person_<id> in ``base_frame`` where tf2_ros exists, else on
-hri/transforms (the bridge's ``pose_source:=topic``). A script of ``period`` seconds loops:
+hri/transforms (the bridge's ``pose_source:=topic``); the robot stands at the origin of
+``map`` (a static map -> base_frame transform), so the bridge's goals have a frame. A script of ``period`` seconds loops:
 
     0 s   p1 engages; p2 and p3 form a group; p1 and p2 gaze at each other
     1/4   an anonymous passer-by ('passer') walks across, engaged; an anonymous 'face_new' engages
@@ -30,9 +31,10 @@ from std_msgs.msg import Bool, Float32, String
 from stars_ros.data import frames
 from stars_ros.data.scene_source import random_scene, read_scenes
 from stars_ros.hri.people import DISENGAGED, DISENGAGING, ENGAGED
-from stars_ros.hri.poses import quaternion_of_yaw
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
+from stars_ros.ros.unknown_parameters import warn_unknown_overrides
+from stars_ros.rotations import quaternion_of_yaw
 
 try:
     from hri_msgs.msg import EngagementLevel, Gaze, Group, IdsList
@@ -115,13 +117,18 @@ class World:
         msg.header.stamp = self.stamp()
         self.gazes.publish(msg)
 
-    def pose(self, person_id: str, x: float, y: float, yaw: float, age: float = 0.0, parent: str = '') -> None:
+    def pose(self, person_id: str, x: float, y: float, yaw: float, age: float = 0.0, parent: str = '',
+             static: bool = False) -> None:
         """person_<id>'s pose in ``parent`` (default base_frame), stamped ``age`` s ago."""
-        self.transform(parent or self.base_frame, f'person_{person_id}', x, y, yaw, age)
+        self.transform(parent or self.base_frame, f'person_{person_id}', x, y, yaw, age, static)
 
-    def transform(self, parent: str, child: str, x: float, y: float, yaw: float, age: float = 0.0) -> None:
+    def transform(self, parent: str, child: str, x: float, y: float, yaw: float, age: float = 0.0,
+                  static: bool = False) -> None:
+        """``child``'s pose in ``parent``; ``static``: stamped 0, as tf2 gives a static transform."""
         msg = TransformStamped()
-        msg.header.frame_id, msg.child_frame_id, msg.header.stamp = parent, child, self.stamp(age)
+        msg.header.frame_id, msg.child_frame_id = parent, child
+        if not static:
+            msg.header.stamp = self.stamp(age)
         msg.transform.translation.x, msg.transform.translation.y = float(x), float(y)
         r = msg.transform.rotation
         r.x, r.y, r.z, r.w = quaternion_of_yaw(yaw)
@@ -155,6 +162,7 @@ class ScriptedWorld(Node):
         super().__init__('hri_world', **kwargs)
         v = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
              for name, (default, text) in PARAMETERS.items()}
+        warn_unknown_overrides(self, 'hri_world', PARAMETERS)
         if not v['period'] > 0 or v['pose_source'] not in ('auto', 'tf', 'topic'):
             raise ValueError("need period > 0 and pose_source in auto, tf, topic")
         use_tf = v['pose_source'] == 'tf' or (v['pose_source'] == 'auto' and tf2_available())
@@ -188,6 +196,7 @@ class ScriptedWorld(Node):
         if passer:
             self.world.pose('passer', 3.0 - 6.0 * (t - 0.25) / 0.5, 2.0, -math.pi / 2)
             self.world.pose('face_new', *self.people['p1'])
+        self.world.transform('map', self.world.base_frame, 0.0, 0.0, 0.0, static=True)  # the robot stands still
         if {'p2', 'p3'} <= set(self.people):
             self.world.group('g1', ['p2', 'p3'])
         self.world.gaze('p1', 'p2')

@@ -8,6 +8,7 @@ type without a word. ROS-free, so it is tested without launch.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Mapping
 
 from stars_ros.errors import LaunchArgumentError
@@ -41,3 +42,11 @@ def parameter_value(name: str, text: str, parameters: Mapping[str, tuple]):
     if limits and not limits[0] <= value <= limits[1]:
         raise LaunchArgumentError(f'{name}:={text} is outside its range [{limits[0]}, {limits[1]}]')
     return value
+
+
+def existing_file(name: str, text: str) -> str:
+    """``text``, the path launch argument ``name`` names, refused when no file is there: a
+    node started on a missing file would fail while the launch runs on without it."""
+    if not Path(text).expanduser().is_file():
+        raise LaunchArgumentError(f'{name}:={text}: no such file')
+    return text

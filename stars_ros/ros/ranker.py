@@ -29,7 +29,6 @@ the core. ``ros2 run stars_ros managed_ranker`` is the same node managed (lifecy
 """
 from __future__ import annotations
 
-import difflib
 import gc
 import os
 import sys
@@ -42,7 +41,6 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.service import Service
 from rclpy.subscription import Subscription
@@ -59,6 +57,7 @@ from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 from stars_ros.ros.typed_interface import TypedInterface
+from stars_ros.ros.unknown_parameters import warn_unknown_overrides
 
 # s: how long a thread that holds the GIL keeps it while another waits (Python's default 5 ms);
 # the state store's writer thread then holds a ranking back for at most this long
@@ -95,11 +94,7 @@ class RankerParts:
         self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
                        for name, spec in PARAMETERS.items()}
         self.add_post_set_parameters_callback(self._on_parameters_set)
-        for name in unknown_overrides(self):
-            near = difflib.get_close_matches(name, list(PARAMETERS), n=1)
-            self.get_logger().warning(f"parameter '{name}' is not one of the ranker's: ignored"
-                                      + (f" (did you mean '{near[0]}'?)" if near else '')
-                                      + '; `ros2 run stars_ros ranker --help` lists them')
+        warn_unknown_overrides(self, 'ranker', PARAMETERS)
 
     def _configure(self):
         # one torch thread (torch serves tabular models only, and is imported for them only)
@@ -258,14 +253,6 @@ class RankerNode(RankerParts, Node):
         self._declare_parameters()
         self._configure()
         self._activate()
-
-
-def unknown_overrides(node) -> list:
-    """Names of the parameter overrides given to ``node`` (``-p``, params files) that it
-    has not declared: rclpy drops them without a word."""
-    with node.handle:
-        overrides = node.handle.get_parameters(Parameter)
-    return sorted(name for name in overrides if not node.has_parameter(name))
 
 
 def serve(node):

@@ -22,6 +22,7 @@ from std_msgs.msg import String
 from stars_ros.recording.bag import bag_topics, read_messages
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
+from stars_ros.ros.unknown_parameters import warn_unknown_overrides
 
 LOG_PERIOD = 5.0  # seconds between two lines saying what was played
 
@@ -48,6 +49,7 @@ class Replay(Node):
         super().__init__('replay', **kwargs)
         value = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
                  for name, (default, text) in PARAMETERS.items()}
+        warn_unknown_overrides(self, 'replay', PARAMETERS)
         self.bag, self.wanted = value['bag'], list(value['topics'])
         self.rate, self.wait = value['rate'], value['wait_for_subscribers']
         if not self.bag:

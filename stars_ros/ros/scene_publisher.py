@@ -24,6 +24,7 @@ from stars_ros.errors import DataError
 from stars_ros.data.scene_source import PLACEMENTS, random_scene, read_scenes, scene_request
 from stars_ros.ros import usage
 from stars_ros.ros.spinning import run_node
+from stars_ros.ros.unknown_parameters import warn_unknown_overrides
 
 LOG_PERIOD = 5.0  # seconds between two lines saying what was published
 
@@ -48,6 +49,7 @@ class ScenePublisher(Node):
         super().__init__('scene_publisher', **kwargs)
         value = {name: self.declare_parameter(name, default, ParameterDescriptor(description=text)).value
                  for name, (default, text) in PARAMETERS.items()}
+        warn_unknown_overrides(self, 'scene_publisher', PARAMETERS)
         self.source, self.user_id, rate = value['source'], value['user_id'], value['rate']
         self.count, self.placements, self.prefix = value['count'], value['placements'], value['scene_id_prefix']
         self.keep_identifiers = value['keep_identifiers']

@@ -253,7 +253,8 @@ def test_the_scripted_world_drives_the_bridge(hri_msgs, socnav1_root, tmp_path):
     processes = [start_node('stars_ros.ros.hri_world', domain, {'source': socnav1_root / 'raw' / 'a.jsonl',
                                                                   'period': 8.0, 'pose_source': 'topic'},
                             tmp_path / 'world.log'),
-                 start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'topic'}, tmp_path / 'bridge.log')]
+                 start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'topic', 'wait_for_ranker': False},
+                            tmp_path / 'bridge.log')]
     try:
         def served_and_seen():  # both people served, and a scene that holds at least three of the scene's people
             humans = [len(s['candidates'][0]['graph']['humans']) for s in client.snapshot(scenes)]
@@ -279,7 +280,7 @@ def test_the_real_tf_path(hri_msgs, tmp_path):
     client = RosClient(domain, listen=False)
     scenes = client.collect('/stars/scene', RELIABLE)
     world = World(client.node, 'base_link', use_tf=True)
-    bridge = start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'tf', 'max_age': 1.0},
+    bridge = start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'tf', 'max_age': 1.0, 'wait_for_ranker': False},
                         tmp_path / 'bridge.log')
     try:
         world.track(['alice'])
