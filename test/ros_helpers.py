@@ -128,6 +128,13 @@ class RosClient:
         with self._changed:
             return list(store)
 
+    def forget(self):
+        """Empty ``rankings``, ``errors`` and ``diagnostics``: a test on a node it shares with
+        other tests hears only what comes after (call once their answers are in)."""
+        with self._changed:
+            for store in (self.rankings, self.errors, self.diagnostics):
+                store.clear()
+
     def collect(self, topic: str, qos) -> list:
         """A list that gathers the JSON of every std_msgs/String on ``topic`` (``wait`` sees it grow)."""
         store = []

@@ -3,7 +3,14 @@ found with `--base-paths src src/stars_ros/interfaces`: colcon does not look ins
 in a scratch workspace gives the install tree `ros2 run` and `ros2 launch` expect: executables
 in lib/stars_ros, the ament index marker, package.xml, config, schemas, launch file and the
 packaged model in share/stars_ros, and both packages import from the install space once
-install/setup.bash is sourced (docs/interfaces.md)."""
+install/setup.bash is sourced (docs/interfaces.md).
+
+The workspace is kept under the venv, keyed by a hash of interfaces/: a later run copies the
+sources in again (modification times kept) and builds stars_ros afresh, while CMake finds
+stars_ros_msgs already built and unchanged. Marked slow all the same (the first build takes
+minutes)."""
+import fcntl
+import hashlib
 import importlib.metadata
 import os
 import shutil
@@ -19,11 +26,36 @@ SKIP = shutil.ignore_patterns('.git', '.venv', 'build', 'install', 'log', '__pyc
                               'runs', 'stars_records', '*.mcap', '.pytest_cache')
 
 
+pytestmark = pytest.mark.slow
+CACHE = Path(sys.prefix) / 'stars_ros_test_cache'  # the venv's: a fresh venv builds afresh
+
+
+def interfaces_key() -> str:
+    """A hash of every file under interfaces/: the cached stars_ros_msgs build is reused only
+    for the same interface sources."""
+    digest = hashlib.sha256()
+    for path in sorted((REPO / 'interfaces').rglob('*')):
+        if path.is_file() and '__pycache__' not in path.parts:
+            digest.update(str(path.relative_to(REPO)).encode() + b'\0' + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 @pytest.fixture(scope='module')
-def workspace(tmp_path_factory):
-    root = tmp_path_factory.mktemp('colcon_ws')
-    shutil.copytree(REPO, root / 'src' / 'stars_ros', ignore=SKIP)
-    return root
+def workspace():
+    """The cached workspace for this checkout's interfaces, held (a file lock) while the
+    module runs, with this checkout's sources and no stars_ros build or install of before:
+    what the tests read of stars_ros is built by this run."""
+    CACHE.mkdir(exist_ok=True)
+    with open(CACHE / 'colcon_ws.lock', 'w') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        root = CACHE / f'colcon_ws-{interfaces_key()}'
+        for stale in CACHE.glob('colcon_ws-*'):
+            if stale != root:
+                shutil.rmtree(stale)  # built for other interface sources
+        for earlier in (root / 'src', root / 'build' / 'stars_ros', root / 'install' / 'stars_ros', root / 'log'):
+            shutil.rmtree(earlier, ignore_errors=True)
+        shutil.copytree(REPO, root / 'src' / 'stars_ros', ignore=SKIP)  # copy2: modification times kept
+        yield root
 
 
 BASE_PATHS = ('--base-paths', 'src', 'src/stars_ros/interfaces')

@@ -1,5 +1,6 @@
 """What a new user meets first: every executable's --help, where recordings go by default,
 the node defaults file and the launch file agreeing with the node, the demo's own state."""
+import importlib
 import importlib.util
 import itertools
 import os
@@ -36,45 +37,86 @@ def test_every_node_console_script_has_a_parameter_table():
     assert {name: ENTRY_POINTS[name] for name in TOOLS} == TOOLS
 
 
-@pytest.mark.parametrize('executable', [*ENTRY_POINTS, 'demo'])
-def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_path):
-    """Run as the console script runs it (``main()``), in an empty folder, with ROS_HOME
-    pointing at a folder that does not exist: rclpy.init would create ROS_HOME/log for rcl's
-    log files, and a node would record under ROS_HOME; neither may appear."""
-    ros_home, cwd = tmp_path / 'ros_home', tmp_path / 'cwd'
-    cwd.mkdir()
-    env = dict(os.environ, ROS_HOME=str(ros_home), ROS_DOMAIN_ID='231', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    env.pop('ROS_LOG_DIR', None)
-    module = ENTRY_POINTS.get(executable, 'stars_ros.examples.demo')
-    shown = subprocess.run([sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())', '--help'],
-                           cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
-    assert shown.returncode == 0, shown.stderr
-    assert not ros_home.exists() and not list(cwd.iterdir())
-    assert '[INFO]' not in shown.stderr and '[INFO]' not in shown.stdout
-    if executable in TOOLS:
-        assert shown.stdout.startswith('usage: ')
-        return
-    if executable == 'demo':
-        for option in ('--checkpoint', '--scenes', '--placements', '--record-folder', 'a new temporary folder'):
-            assert option in ' '.join(shown.stdout.split())
-        return
-    assert f'usage: ros2 run stars_ros {executable}' in shown.stdout and '-p NAME:=VALUE' in shown.stdout
-    for name, (default, description, *_) in TABLES[module].items():
-        if name == 'record_folder':
-            default = str(ros_home / 'stars_ros' / 'records' / '{node}')  # the child's ROS_HOME
-        assert f'  {name} (default {usage.shown_value(default)})\n      {description}\n' in shown.stdout
+def _child_env(ros_home: Path) -> dict:
+    return dict(os.environ, ROS_HOME=str(ros_home), ROS_DOMAIN_ID='231', ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
 
 
 def _run_executable(module: str, argv: list, tmp_path: Path) -> subprocess.CompletedProcess:
-    """``main()`` run as its console script runs it, from an empty folder, ROS_HOME in tmp_path."""
+    """``main()`` run as its console script runs it, in a process of its own, from an empty
+    folder, ROS_HOME in tmp_path (a folder that does not exist) and ROS_LOG_DIR unset."""
     cwd = tmp_path / 'cwd'
     cwd.mkdir(exist_ok=True)
-    env = dict(os.environ, ROS_HOME=str(tmp_path / 'ros_home'), ROS_DOMAIN_ID='231',
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    env = _child_env(tmp_path / 'ros_home')
+    env.pop('ROS_LOG_DIR', None)
     return subprocess.run([sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())', *argv],
                           cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+def _call_main(module: str, argv: list, tmp_path: Path, monkeypatch, capfd) -> tuple:
+    """(exit status, stdout, stderr) of ``module``'s ``main`` called here as its console script
+    calls it (``argv`` as sys.argv; a tool's argparse main gets it without the program name),
+    from an empty folder, ROS_HOME in tmp_path and on an unused ROS domain; output read from
+    the file descriptors, rcl's own lines included."""
+    cwd = tmp_path / 'cwd'
+    cwd.mkdir(exist_ok=True)
+    monkeypatch.chdir(cwd)
+    for name, value in _child_env(tmp_path / 'ros_home').items():
+        monkeypatch.setenv(name, value)
+    monkeypatch.delenv('ROS_LOG_DIR', raising=False)
+    monkeypatch.setattr(sys, 'argv', argv)
+    main = importlib.import_module(module).main
+    capfd.readouterr()
+    try:
+        status = main(argv[1:] if module in TOOLS.values() or module == 'stars_ros.examples.demo' else argv)
+    except SystemExit as exit_:
+        status = exit_.code
+    out, err = capfd.readouterr()
+    return status or 0, out, err
+
+
+def _check_help(executable: str, module: str, status: int, out: str, err: str, ros_home: Path, cwd: Path,
+                child: bool = False):
+    """``child``: run in a process of its own, whose record_folder default follows the
+    ROS_HOME it was given (in-process, the table's default was read at import)."""
+    assert status == 0, err
+    assert not ros_home.exists() and not list(cwd.iterdir())
+    assert '[INFO]' not in err and '[INFO]' not in out
+    if executable in TOOLS:
+        assert out.startswith('usage: ')
+        return
+    if executable == 'demo':
+        for option in ('--checkpoint', '--scenes', '--placements', '--record-folder', 'a new temporary folder'):
+            assert option in ' '.join(out.split())
+        return
+    assert f'usage: ros2 run stars_ros {executable}' in out and '-p NAME:=VALUE' in out
+    for name, (default, description, *_) in TABLES[module].items():
+        if name == 'record_folder' and child:
+            default = str(ros_home / 'stars_ros' / 'records' / '{node}')  # the ROS_HOME it was given
+        assert f'  {name} (default {usage.shown_value(default)})\n      {description}\n' in out
+
+
+def test_the_ranker_answers_help_as_a_process_that_starts_nothing(tmp_path):
+    """The console script's whole path, in a process of its own: rclpy.init would create
+    ROS_HOME/log for rcl's log files, and a node would record under ROS_HOME; neither may
+    appear. The other executables are checked in-process (next test)."""
+    shown = _run_executable(ENTRY_POINTS['ranker'], ['--help'], tmp_path)
+    _check_help('ranker', ENTRY_POINTS['ranker'], shown.returncode, shown.stdout, shown.stderr, tmp_path / 'ros_home',
+                tmp_path / 'cwd', child=True)
+
+
+@pytest.mark.parametrize('executable', [*ENTRY_POINTS, 'demo'])
+def test_help_exits_0_prints_the_parameters_and_starts_nothing(executable, tmp_path, monkeypatch, capfd):
+    """``main`` with --help, called in-process with rclpy.init refused: it answers before
+    ROS starts, writes nothing to an empty folder and creates no ROS_HOME."""
+    import rclpy
+
+    def refused(*args, **kwargs):
+        raise AssertionError('rclpy.init was called to print the help')
+    monkeypatch.setattr(rclpy, 'init', refused)
+    module = ENTRY_POINTS.get(executable, 'stars_ros.examples.demo')
+    status, out, err = _call_main(module, [executable, '--help'], tmp_path, monkeypatch, capfd)
+    _check_help(executable, module, status, out, err, tmp_path / 'ros_home', tmp_path / 'cwd')
 
 
 BAD_ROS_ARGS = {  # what a user can get wrong after --ros-args, and the reason the one line gives
@@ -84,25 +126,56 @@ BAD_ROS_ARGS = {  # what a user can get wrong after --ros-args, and the reason t
     'override without a value': (['-p', 'rate'], "Couldn't parse parameter override rule: '-p rate'"),
     'a value of the wrong type': (['-p', '{numeric}:=[1, 2]'], "expecting type"),
 }
+# rcl refuses these in rclpy.init, before any node exists: checked in-process. A value of the
+# wrong type is refused while the node declares its parameters, then the node is destroyed and
+# ROS shut down (signal handlers and a shutdown watchdog included): checked in a process.
+REFUSED_BY_RCL = [case for case in BAD_ROS_ARGS if case != 'a value of the wrong type']
 
 
-@pytest.mark.parametrize('case', BAD_ROS_ARGS)
-@pytest.mark.parametrize('executable', ['ranker', 'scene_publisher', 'replay'])
-def test_ros_args_rcl_refuses_end_in_one_line_on_stderr_and_status_2(executable, case, tmp_path):
-    """What `ros2 run stars_ros EXECUTABLE --ros-args ...` prints when rcl cannot parse the
-    arguments or the node refuses a value: the reason on one line, no traceback, no node."""
+def _bad_argv(executable: str, case: str, tmp_path: Path) -> tuple:
     module = ENTRY_POINTS[executable]
     broken = tmp_path / 'broken.yaml'
     broken.write_text('/**:\n  ros__parameters:\n    top_k: [1, "two"\n')
     numeric = next(name for name, (default, *_) in TABLES[module].items()
                    if isinstance(default, (int, float)) and not isinstance(default, bool))
     argv, reason = BAD_ROS_ARGS[case]
-    argv = [arg.format(broken=broken, numeric=numeric) for arg in argv]
-    done = _run_executable(module, ['--ros-args', '-p', "record_folder:=''", *argv], tmp_path)
-    assert done.returncode == 2, done.stderr
-    assert done.stdout == '' and len(done.stderr.splitlines()) == 1, done.stderr
-    assert done.stderr.startswith(f'{executable}: error: ') and reason in done.stderr, done.stderr
-    assert ', at /' not in done.stderr  # rcl's source locations are left out
+    return ['--ros-args', '-p', "record_folder:=''", *[arg.format(broken=broken, numeric=numeric) for arg in argv]], \
+        reason
+
+
+def _check_refusal(executable: str, reason: str, status: int, out: str, err: str):
+    """The reason on one line, no traceback, no node, status 2."""
+    assert status == 2, err
+    assert out == '' and len(err.splitlines()) == 1, err
+    assert err.startswith(f'{executable}: error: ') and reason in err, err
+    assert ', at /' not in err  # rcl's source locations are left out
+
+
+@pytest.mark.parametrize('case', REFUSED_BY_RCL)
+def test_ranker_ros_args_rcl_refuses_end_in_one_line_on_stderr_and_status_2(case, tmp_path, monkeypatch, capfd):
+    """What `ros2 run stars_ros ranker --ros-args ...` prints when rcl cannot parse the
+    arguments: ``main`` called in-process (rclpy.init fails, nothing is left to shut down)."""
+    argv, reason = _bad_argv('ranker', case, tmp_path)
+    _check_refusal('ranker', reason, *_call_main(ENTRY_POINTS['ranker'], ['ranker', *argv], tmp_path, monkeypatch,
+                                                  capfd))
+
+
+@pytest.mark.parametrize('case', REFUSED_BY_RCL)
+@pytest.mark.parametrize('executable', ['scene_publisher', 'replay'])
+def test_other_executables_ros_args_rcl_refuses_end_in_one_line_and_status_2(executable, case, tmp_path, monkeypatch,
+                                                                            capfd):
+    argv, reason = _bad_argv(executable, case, tmp_path)
+    _check_refusal(executable, reason, *_call_main(ENTRY_POINTS[executable], [executable, *argv], tmp_path,
+                                                   monkeypatch, capfd))
+
+
+@pytest.mark.parametrize('executable', ['ranker', 'scene_publisher', 'replay'])
+def test_a_value_of_the_wrong_type_ends_the_process_in_one_line_and_status_2(executable, tmp_path):
+    """The node refuses the value while declaring its parameters: as a process, run as its
+    console script runs it, since the node's shutdown is part of what is checked."""
+    argv, reason = _bad_argv(executable, 'a value of the wrong type', tmp_path)
+    done = _run_executable(ENTRY_POINTS[executable], argv, tmp_path)
+    _check_refusal(executable, reason, done.returncode, done.stdout, done.stderr)
 
 
 def test_scene_publisher_names_the_source_file_it_did_not_find(tmp_path):

@@ -46,9 +46,9 @@ def _graph(client):
 
 
 def test_a_key_file_the_ranker_cannot_use_stops_it(tiny_checkpoint, tmp_path):
-    """First in the module: no other ranker is on its domain yet."""
+    """On a domain of its own: the module's ranker may be serving on domain 13 meanwhile."""
     (tmp_path / 'keys.txt').write_text('tablet:0123\n')
-    process = start_node('stars_ros.ros.ranker', domain_id(13), {
+    process = start_node('stars_ros.ros.ranker', domain_id(14), {
         'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records',
         'feedback_key_file': tmp_path / 'keys.txt'}, tmp_path / 'ranker.log')
     try:
@@ -60,18 +60,20 @@ def test_a_key_file_the_ranker_cannot_use_stops_it(tiny_checkpoint, tmp_path):
     assert 'line 1' in log and 'fewer than 16' in log and not (tmp_path / 'records').exists()
 
 
-@pytest.fixture()
-def ranker(tiny_checkpoint, synthetic_scenes, tmp_path):
-    """A signed-feedback ranker of its own for each test."""
-    key_file = tmp_path / 'keys.txt'
+@pytest.fixture(scope='module')
+def ranker(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
+    """The module's signed-feedback ranker: the policy test only reads its graph, and the
+    feedback test names a person and scene ids no other test does."""
+    folder = tmp_path_factory.mktemp('signed_ranker')
+    key_file = folder / 'keys.txt'
     key_file.write_text(f'tablet:{SECRET.hex()}\n')
     key_file.chmod(0o600)
     domain = domain_id(13)
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records', 'flush_interval': 0.2,
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
               'diagnostics_period': 0.3, 'fleet_sharing': True, 'feedback_key_file': key_file}
     probe = {'scene_id': 'probe', 'graph': synthetic_scenes[0]}
-    with running_ranker(domain, params, tmp_path / 'ranker.log', probe, START_TIMEOUT) as (process, client):
-        yield process, client, key_file, tmp_path
+    with running_ranker(domain, params, folder / 'ranker.log', probe, START_TIMEOUT) as (process, client):
+        yield process, client, key_file, folder
 
 
 def test_the_ranker_uses_exactly_what_its_sros2_policy_allows(ranker):

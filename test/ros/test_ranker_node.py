@@ -1,9 +1,11 @@
 """The ranker node, started for real and driven over loopback DDS.
 
-One shared node serves the ranking, error, fuzz, parameter, reload, publisher and replay
-tests; each of them starts from the same node state (``ranker``: no latched user id, whole
-rankings, the tiny checkpoint served), whatever the test before it changed or where it
-failed. The shutdown, hard-kill, unwritable-folder, flood and SocNav1 tests start their own.
+One node for the module serves the ranking, error, fuzz, parameter, reload, publisher and
+replay tests; each of them starts from the same node state (``ranker``: no latched user id,
+whole rankings, the tiny checkpoint served, every answer to an earlier test in and forgotten
+by the client, error totals read as differences), whatever the test before it changed or
+where it failed, and names people and scene ids of its own. The shutdown, hard-kill,
+unwritable-folder, flood and SocNav1 tests start their own: the process is their subject.
 """
 import json
 import random
@@ -118,14 +120,50 @@ def _on_disk(bag, topic) -> list:
             for found, text, _ in recording.salvage_messages(path)[0] if found == topic]
 
 
-@pytest.fixture()
-def ranker(tiny_checkpoint, scenes, tmp_path):
-    """A ranker of its own for each test, on the tiny checkpoint, and a client that has heard
-    nothing else: no test sees another's parameters, latched user, people or messages."""
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records', 'flush_interval': 0.2,
+@pytest.fixture(scope='module')
+def node(tiny_checkpoint, scenes, tmp_path_factory):
+    """The module's ranker on the tiny checkpoint (``ranker`` hands it to each test reset)."""
+    folder = tmp_path_factory.mktemp('module_ranker')
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
               'diagnostics_period': 0.3, 'log_throttle': 1.0}
-    with running_ranker(domain_id(0), params, tmp_path / 'ranker.log', _probe(scenes), START_TIMEOUT) as running:
+    with running_ranker(domain_id(0), params, folder / 'ranker.log', _probe(scenes), START_TIMEOUT) as running:
         yield running
+
+
+def _ranker_values(client) -> dict:
+    """The key-values of the ranker's latest /diagnostics status the client holds ({}: none yet)."""
+    statuses = [s for d in client.snapshot(client.diagnostics) for s in d.status if s.name.endswith(': ranker')]
+    return {v.key: v.value for v in statuses[-1].values} if statuses else {}
+
+
+@pytest.fixture()
+def ranker(node, scenes, predictor, tiny_checkpoint):
+    """The module's node in its starting state, whatever an earlier test left: no latched
+    user id, whole rankings, the tiny checkpoint served (reloaded if another one is), and a
+    client that holds nothing heard before the test: every earlier answer is in and
+    forgotten, and so are the /diagnostics periods that counted the earlier problems."""
+    process, client = node
+    assert process.poll() is None, "the module's ranker died in an earlier test"
+    client.user_pub.publish(String(data=''))  # empty: nobody
+    assert all(r.successful for r in client.set_parameters('/ranker', {'top_k': 0, 'checkpoint': str(tiny_checkpoint)}))
+    served = _served_latched_user(client, scenes, None)
+    assert served is not None, 'the latched user id was never cleared'
+    if served['fingerprint'] != predictor.fingerprint:
+        assert client.call('/ranker/reload').success
+    _settle(client, scenes)
+    client.forget()  # a period may still count _settle's refusal: two more periods, then forget them too
+    assert client.wait(lambda: len(client.diagnostics) >= 2, 20), 'no /diagnostics from the ranker'
+    client.forget()
+    return process, client
+
+
+@pytest.fixture()
+def error_totals_before(ranker) -> dict:
+    """The ranker's errors.* totals (/diagnostics) before the test sends anything: a test on
+    the module's node checks what its own requests added."""
+    _, client = ranker
+    assert client.wait(lambda: bool(_ranker_values(client)), 20), 'no /diagnostics from the ranker'
+    return {key: int(value) for key, value in _ranker_values(client).items() if key.startswith('errors.')}
 
 
 def test_ranking_equals_predictor_rank(ranker, scenes, predictor):
@@ -187,7 +225,7 @@ BAD_INPUTS = {
 }
 
 
-def test_bad_input_is_reported_on_both_topics_and_serving_goes_on(ranker, scenes):
+def test_bad_input_is_reported_on_both_topics_and_serving_goes_on(ranker, scenes, error_totals_before):
     process, client = ranker
     for text in BAD_INPUTS.values():
         client.scene(text)
@@ -211,9 +249,9 @@ def test_bad_input_is_reported_on_both_topics_and_serving_goes_on(ranker, scenes
     def reported(kind):
         return any(s.name.endswith(': ' + kind) and s.level == b'\x02' for d in client.diagnostics for s in d.status)
     assert client.wait(lambda: all(reported(k) for k in kinds), 10)
-    summary = [s for d in client.diagnostics for s in d.status if s.name.endswith(': ranker')][-1]
-    values = {v.key: v.value for v in summary.values}
-    assert int(values['errors.malformed_json']) >= 1 and values['fingerprint']
+    values = _ranker_values(client)
+    assert int(values['errors.malformed_json']) >= error_totals_before.get('errors.malformed_json', 0) + 1
+    assert values['fingerprint']
     assert process.poll() is None
 
 
@@ -223,17 +261,21 @@ def test_endpoints_that_can_never_match_are_reported_once_and_the_node_serves_on
     stars/question_request, by asking the graph each diagnostics period."""
     process, client = ranker
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    client.node.create_subscription(String, '/stars/ranking', lambda _: None, latched)  # stars/ranking is volatile
-    client.node.create_publisher(Int32, '/stars/question_request', 10)
+    wanting = client.node.create_subscription(String, '/stars/ranking', lambda _: None, latched)  # it is volatile
+    other_type = client.node.create_publisher(Int32, '/stars/question_request', 10)
     problems = lambda: [e for e in client.snapshot(client.errors) if e['kind'] == 'qos']  # noqa: E731
-    assert client.wait(lambda: len(problems()) >= 2, 20)
-    by_topic = {e['topic']: e for e in problems()}
-    assert 'transient local' in by_topic['/stars/ranking']['message'].lower()
-    assert 'std_msgs/msg/Int32' in by_topic['/stars/question_request']['message']
-    assert all(e['level'] == 'warning' for e in problems())
-    client.diagnostics.clear()
-    assert client.wait(lambda: len(client.snapshot(client.diagnostics)) >= 3, 20)  # three more periods
-    assert len(problems()) == 2  # each reported once
+    try:
+        assert client.wait(lambda: len(problems()) >= 2, 20)
+        by_topic = {e['topic']: e for e in problems()}
+        assert 'transient local' in by_topic['/stars/ranking']['message'].lower()
+        assert 'std_msgs/msg/Int32' in by_topic['/stars/question_request']['message']
+        assert all(e['level'] == 'warning' for e in problems())
+        client.diagnostics.clear()
+        assert client.wait(lambda: len(client.snapshot(client.diagnostics)) >= 3, 20)  # three more periods
+        assert len(problems()) == 2  # each reported once
+    finally:  # the module's later tests meet no endpoint that cannot match
+        client.node.destroy_subscription(wanting)
+        client.node.destroy_publisher(other_type)
     client.scene({'scene_id': 'after-qos', 'graph': scenes[0]})
     assert client.wait(lambda: client.ranking_for('after-qos') is not None, 20)
     assert process.poll() is None

@@ -31,13 +31,27 @@ def scores(entries) -> dict:
     return {entry.name: entry.score for entry in entries}
 
 
+@pytest.fixture(scope='module')
+def node(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
+    """The module's ranker; each test names people and scene ids of its own."""
+    folder = tmp_path_factory.mktemp('typed_ranker')
+    params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records'}
+    with running_ranker(domain_id(15), params, folder / 'ranker.log', scene_request('probe', synthetic_scenes[0])) \
+            as running:
+        yield running
+
+
 @pytest.fixture()
-def ranker(tiny_checkpoint, synthetic_scenes, tmp_path):
-    """A ranker of its own for each test (no test sees another's people or errors)."""
-    params = {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records'}
-    with running_ranker(domain_id(15), params, tmp_path / 'ranker.log', scene_request('probe', synthetic_scenes[0])) \
-            as (process, client):
-        yield process, client
+def ranker(node, request):
+    """The module's node, and a client that holds nothing heard before the test: a refusal
+    sent now comes after every earlier error on stars/errors, then all of it is forgotten."""
+    process, client = node
+    assert process.poll() is None, "the module's ranker died in an earlier test"
+    marker = f'before-{request.node.name}'
+    client.scene({'scene_id': marker, 'graph': {}})
+    assert client.wait(lambda: any(e['scene_id'] == marker for e in client.errors), 30), 'the refusal never came'
+    client.forget()
+    return process, client
 
 
 def test_a_typed_scene_is_ranked_for_a_known_and_an_unknown_person(ranker, tiny_checkpoint, synthetic_scenes):
@@ -95,6 +109,7 @@ def test_typed_feedback_moves_that_persons_next_ranking(ranker, synthetic_scenes
     def personalised():  # the fold-in runs once the feedback is taken in: ask until it is served
         return rank_actions(client, 'after', scene, user_id).ranking.personalised_from == 1
     assert wait_for(personalised, 60), 'typed feedback was not folded in'
+    client.node.destroy_publisher(feedback)  # taken in: the module's later tests meet no extra publisher
     after = rank_actions(client, 'after', scene, user_id).ranking
     assert scores(after.entries)[action] < scores(before.entries)[action]
 
