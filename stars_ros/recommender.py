@@ -51,19 +51,18 @@ Serving imports neither training, torch-geometric nor pandas: ``fit``, ``refit``
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from typing import TYPE_CHECKING, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from stars_ros.errors import NotFittedError, StarsError, UnknownActionError, UnknownSceneError
+from stars_ros.errors import NotFittedError, OutOfScaleError, StarsError, UnknownActionError, UnknownSceneError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.predictor import Predictor, RankQuery
 from stars_ros.personalisation.foldin import FoldIn
 from stars_ros.personalisation.uncertainty import Uncertainty
-from stars_ros.state import Rating
+from stars_ros.state import Rating, check_score
 
 if TYPE_CHECKING:
     from stars_ros.data.ratings import RatingData
@@ -472,9 +471,10 @@ class StarsRecommender:
                 score = float(score)
             except (TypeError, ValueError):
                 raise ValueError(f'rating {k}: expected (scene, action, score), got {triple!r}') from None
-            scale = self.rating_scale
-            if not math.isfinite(score) or (scale is not None and not scale[0] <= score <= scale[1]):
-                raise ValueError(f'rating {k}: score {score} is not on the rating scale {scale}')
+            try:
+                check_score(score, self.rating_scale, f'rating {k}: score')
+            except OutOfScaleError as error:  # the front door's contract: a bad rating is a ValueError
+                raise ValueError(str(error)) from None
             scene_input, _, item_key = self._scene(scene)
             folded.append(Rating(scene_input, str(action), score, item_key))
         if not folded:

@@ -18,8 +18,7 @@ from stars_ros.evaluation.kshot import Design, annotator_folds, known_split, rev
 from stars_ros.evaluation.plots import pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.training import StarsTrainer
-from stars_ros.personalisation.prior import estimate_prior
+from stars_ros.recommender import StarsRecommender
 
 LOGGER = logging.getLogger(__name__)
 CONFIGS = {'socnav1': 'config/socnav1_gat.yaml', 'crowd': 'config/implicit_crowd.yaml'}
@@ -44,9 +43,7 @@ def run_dataset(name: str, args, ns, ks) -> dict:
     for fold, held_out in enumerate(annotator_folds(data.users, args.folds, args.seed)):
         rows = np.flatnonzero(~np.isin(data.users, held_out))
         train, noise = known_split(data, rows, 0.1, args.seed)
-        fitted = StarsTrainer(config).fit(data, train)
-        fitted.user_prior = estimate_prior(fitted, data, train, noise_rows=noise).to_dict()
-        design = Design(fitted, data)
+        design = Design(StarsRecommender(config).fit(data, train, noise_rows=noise).fitted, data)
         people, _ = reveal_pools(data, held_out, args.pool, args.seed)
         people = {p: person for p, person in people.items() if len(person.rows(range(len(person.pool)))) >= max(ks)}
         covered += len(people)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stars_ros.data.splits import held_examples
 from stars_ros.errors import StarsError
 from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation.foldin import FoldIn, solve_ridge
@@ -103,9 +104,7 @@ def known_split(data, rows: np.ndarray, fraction: float, seed: int) -> tuple[np.
     """(training rows, held-out rows) of ``rows``: a seeded ``fraction`` of their examples held
     out, so that known people's calibration is measured on ratings the model did not fit."""
     examples = data.examples[rows]
-    ids = np.unique(examples)
-    held = np.random.default_rng([seed, 7]).permutation(ids)[:int(round(fraction * len(ids)))]
-    out = np.isin(examples, held)
+    out = held_examples(examples, int(round(fraction * len(np.unique(examples)))), np.random.default_rng([seed, 7]))
     return rows[~out], rows[out]
 
 

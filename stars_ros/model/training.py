@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from stars_ros.data.ratings import RatingData
+from stars_ros.data.splits import held_examples
 from stars_ros.errors import ConfigError, TrainingDivergedError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import FittedModel, build_model
@@ -301,8 +302,6 @@ def split_rows(data: RatingData, test_fraction: float, seed: int) -> tuple[np.nd
     """Seeded random split of ``data``'s rating rows into (train, test) index arrays, by
     example: one user's ratings of one scene (every action) land on the same side."""
     examples = data.examples
-    order = np.random.default_rng(seed).permutation(examples.max() + 1 if len(examples) else 0)
-    tested = np.zeros(len(order), dtype=bool)
-    tested[order[:int(round(len(order) * test_fraction))]] = True
-    test = tested[examples]
+    count = int(round(len(np.unique(examples)) * test_fraction))
+    test = held_examples(examples, count, np.random.default_rng(seed))
     return np.flatnonzero(~test), np.flatnonzero(test)

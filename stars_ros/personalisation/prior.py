@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from stars_ros.data.splits import held_examples
 from stars_ros.model.serving import inference_of
 
 log = logging.getLogger(__name__)
@@ -132,10 +133,8 @@ def held_out_split(data, rows: np.ndarray, share: float = NOISE_SHARE, seed: int
     held = np.zeros(len(rows), dtype=bool)
     for name in sorted(set(users.tolist())):
         mine = users == name
-        ids = np.unique(examples[mine])
-        count = min(int(round(share * len(ids))), len(ids) - 1)
-        if count > 0:
-            held[mine] = np.isin(examples[mine], rng.permutation(ids)[:count])
+        distinct = len(np.unique(examples[mine]))
+        held[mine] = held_examples(examples[mine], min(int(round(share * distinct)), distinct - 1), rng)
     return rows[~held], rows[held]
 
 

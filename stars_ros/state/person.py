@@ -113,11 +113,14 @@ def scale_text(scale: Sequence[float]) -> str:
 
 def check_score(score: float, scale: Sequence[float] | None, what: str = 'score') -> None:
     """OutOfScaleError naming ``scale`` (low, high) when ``score`` lies outside it; a
-    checkpoint written before it kept its scale (None) takes any finite score."""
+    checkpoint written before it kept its scale (None) takes any finite score. The one check
+    of a score: the node's feedback, peers' ratings and the front door's fold-in."""
+    if not math.isfinite(score):
+        raise OutOfScaleError(f'{what} {score:g} is not a finite number')
     if scale is None:
         return
     low, high = scale
-    if not (math.isfinite(score) and low <= score <= high):
+    if not low <= score <= high:
         raise OutOfScaleError(f'{what} {score:g} is outside the rating scale {scale_text(scale)} of the checkpoint '
                               'served: give scores on that scale')
 
