@@ -20,6 +20,7 @@ LIBRARIES = {
     'ament_index_python': ('ament_index_python', ROS), 'launch': ('launch', ROS), 'launch_ros': ('launch_ros', ROS),
     'geometry_msgs': ('geometry_msgs', ROS),  # hri_bridge's goals and transforms
     'hri_msgs': ('hri_msgs', ROS), 'tf2_ros': ('tf2_ros', ROS),  # ROS4HRI, only in hri_bridge and hri_world
+    'nav2_msgs': ('nav2_msgs', ROS), 'action_msgs': ('action_msgs', ROS),  # the bridge's NavigateToPose goals
     'numpy': ('python3-numpy', 'numpy'), 'yaml': ('python3-yaml', 'pyyaml'), 'pandas': ('python3-pandas', 'pandas'),
     'pydantic': ('python3-pydantic', 'pydantic'), 'scipy': ('python3-scipy', 'scipy'),
     'matplotlib': ('python3-matplotlib', 'matplotlib'), 'torch': (None, 'torch'),
@@ -35,7 +36,8 @@ TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python
                   'rosbags': (None, 'rosbags'),
                   'sros2': ('sros2', ROS),  # a ROS package (ros-jazzy-sros2); its tests skip without it
                   'lxml': ('python3-lxml', ROS),  # sros2's own dependency, with it from a ROS install
-                  'builtin_interfaces': ('builtin_interfaces', ROS)}
+                  'builtin_interfaces': ('builtin_interfaces', ROS),
+                  'rosgraph_msgs': ('rosgraph_msgs', ROS)}  # /clock, for nodes tested on simulated time
 OWN = {'stars_ros', 'offline_training', *(path.stem for path in (REPO / 'test').rglob('*.py'))}  # test helpers too
 
 

@@ -1,0 +1,207 @@
+"""The ranker's serving budgets, measured from outside: time to a first answer, and both
+request paths' latency against an echo floor, over several runs.
+
+    python benchmarks/serving_budget.py [--runs 5] [--count 400] [--blocks 8] \
+        [--data-root ../shared/datasets/socnav1] [--out results/serving_budget.json]
+
+Each run starts a fresh ranker process (packaged model, recording on) in a ROS domain of its
+own and an echo node in another:
+  * first answer: from just before the ranker's process starts to the first answer of its
+    typed service ~/rank_actions, called as soon as the service is discovered; the ranker's
+    own log line "serving ..." (the model loaded) splits it into the start (imports, model)
+    and the rest (node, discovery, the call);
+  * latency: ``--count`` requests per node on each path, one in flight at a time, in
+    ``--blocks`` blocks alternating between the ranker and the echo (this VM's speed drifts
+    within minutes): the JSON path (std_msgs/String on stars/scene → stars/ranking) and the
+    typed service (stars_ros_msgs/srv/RankActions), the same SocNav1 scenes on both.
+The echo floor is a plain rclpy node spun by ``rclpy.spin``, of the same message types: it
+republishes each JSON request on stars/ranking and answers ~/rank_actions with the request's
+scene id, so it carries none of the ranker's machinery. Ratios are ranker / echo of p50 and
+p99 in the same run; the summary gives every run and the median of the runs.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / 'benchmarks'))
+
+import rclpy  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+from stars_ros_msgs.srv import RankActions  # noqa: E402
+
+import node_latency  # noqa: E402  (the JSON path's client and requests)
+import service_latency  # noqa: E402  (the typed service's caller and requests)
+from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from stars_ros.data.scene_source import read_scenes  # noqa: E402
+
+LOADED = re.compile(r'\[(\d+\.\d+)\] \[ranker\]: serving ')
+
+
+def echo_main():
+    """The echo floor: both paths answered at once, spun by plain rclpy.spin."""
+    rclpy.init()
+    node = Node('ranker')
+    publisher = node.create_publisher(String, 'stars/ranking', node_latency.QOS)
+    node.create_subscription(String, 'stars/scene', publisher.publish, node_latency.QOS)
+
+    def answer(request, response):
+        response.success = True
+        response.ranking.scene_id = request.scene_id
+        return response
+    node.create_service(RankActions, '~/rank_actions', answer)
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+class Served:
+    """A node's process and a client of each path, in the node's own domain."""
+
+    def __init__(self, name: str, command: list, env: dict, log: Path):
+        self.name, self.log = name, log
+        self.started_wall, started = time.time(), time.perf_counter()
+        self.process = subprocess.Popen(command, env=env, stdout=log.open('w'), stderr=subprocess.STDOUT)
+        domain = int(env['ROS_DOMAIN_ID'])
+        self.caller = service_latency.Caller(domain, name)
+        while not self.caller.client.wait_for_service(timeout_sec=1.0):
+            self.check_running()
+        seconds, response = self.caller.call(service_latency.typed_requests(SCENES, f'{name}-first', 1)[0], 30.0)
+        if response is None or not response.success:
+            self.check_running()
+            raise RuntimeError(f'{name} did not answer its first call: {response}')
+        self.first_answer_s = time.perf_counter() - started
+        self.client = node_latency.Client(domain, name)
+        while not self.client.publisher.get_subscription_count():
+            self.check_running()
+            time.sleep(0.05)
+        for scene_id, text in node_latency.requests(SCENES, f'{name}-warmup', 100):
+            self.client.send(text)
+            if not self.client.wait_for(scene_id, 5.0):
+                self.check_running()
+        for request in service_latency.typed_requests(SCENES, f'{name}-warmup', 100):
+            self.caller.call(request)
+
+    def loaded_after_s(self) -> float | None:
+        """Seconds from the process's start to the ranker's "serving ..." log line."""
+        found = LOADED.search(self.log.read_text())
+        return None if found is None else float(found.group(1)) - self.started_wall
+
+    def check_running(self):
+        if self.process.poll() is not None:
+            raise RuntimeError(f'{self.name} exited with {self.process.returncode}: {self.log.read_text()[-2000:]}')
+
+    def stop(self):
+        self.client.close()
+        self.caller.close()
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+
+def typed_alternating(served: dict, count: int, blocks: int) -> dict:
+    """Round trips (ms) of ``count`` typed calls per node, in alternating blocks."""
+    times = {name: [] for name in served}
+    names = list(served)
+    for block in range(blocks):
+        for name in (names if block % 2 == 0 else names[::-1]):
+            for request in service_latency.typed_requests(SCENES, f'{name}-typed-{block}', max(1, count // blocks)):
+                seconds, response = served[name].caller.call(request)
+                if response is not None and response.success:
+                    times[name].append(seconds * 1e3)
+    return times
+
+
+def percentiles(values: list) -> dict:
+    return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)), 'count': len(values)}
+
+
+def one_run(run: int, count: int, blocks: int) -> dict:
+    domain = 150 + 2 * ((os.getpid() + run) % 25)  # the echo's; the ranker's is the next one
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    with tempfile.TemporaryDirectory() as records:
+        commands = {'echo': [sys.executable, str(Path(__file__).resolve()), '--echo'],
+                    'ranker': [sys.executable, '-m', 'stars_ros.ros.ranker', '--ros-args', '-p',
+                               f'record_folder:={records}', '-p', f'queue_depth:={node_latency.QUEUE_DEPTH}']}
+        served = {}
+        try:
+            for offset, (name, command) in enumerate(commands.items()):
+                served[name] = Served(name, command, dict(env, ROS_DOMAIN_ID=str(domain + offset)),
+                                      Path(records) / f'{name}.log')
+            json_ms, _ = node_latency.alternating(served, SCENES, 'json', count, blocks, 0.0)
+            typed_ms = typed_alternating(served, count, blocks)
+            result = {'first_answer_s': served['ranker'].first_answer_s,
+                      'model_loaded_after_s': served['ranker'].loaded_after_s(),
+                      'json': {name: percentiles(json_ms[name]) for name in served},
+                      'typed': {name: percentiles(typed_ms[name]) for name in served}}
+        finally:
+            for node in served.values():
+                node.stop()
+    for path in ('json', 'typed'):
+        result[path]['ratio'] = {q: result[path]['ranker'][q] / result[path]['echo'][q] for q in ('p50', 'p99')}
+    return result
+
+
+def main(argv=None) -> int:
+    global SCENES
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--runs', type=int, default=5)
+    parser.add_argument('--count', type=int, default=400, help='requests per node and path in a run')
+    parser.add_argument('--blocks', type=int, default=8)
+    parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
+    parser.add_argument('--out', default=str(REPO / 'results' / 'serving_budget.json'))
+    parser.add_argument('--echo', action='store_true', help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.echo:
+        echo_main()
+        return 0
+    SCENES = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
+    runs = []
+    for run in range(args.runs):
+        result = one_run(run, args.count, args.blocks)
+        runs.append(result)
+        print(f"run {run + 1}: first answer {result['first_answer_s']:.2f} s (model loaded after "
+              f"{result['model_loaded_after_s']:.2f} s); JSON p50 {result['json']['ranker']['p50']:.2f} / "
+              f"{result['json']['echo']['p50']:.2f} ms = {result['json']['ratio']['p50']:.2f}, p99 ratio "
+              f"{result['json']['ratio']['p99']:.2f}; typed p50 {result['typed']['ranker']['p50']:.2f} / "
+              f"{result['typed']['echo']['p50']:.2f} ms = {result['typed']['ratio']['p50']:.2f}, p99 ratio "
+              f"{result['typed']['ratio']['p99']:.2f}", flush=True)
+    median = {'first_answer_s': float(np.median([r['first_answer_s'] for r in runs])),
+              'model_loaded_after_s': float(np.median([r['model_loaded_after_s'] for r in runs])),
+              **{f'{path}_{q}_ratio': float(np.median([r[path]['ratio'][q] for r in runs]))
+                 for path in ('json', 'typed') for q in ('p50', 'p99')}}
+    print('median of runs: ' + ', '.join(f'{k} {v:.2f}' for k, v in median.items()))
+    results = {'command': 'python benchmarks/serving_budget.py ' + ' '.join(sys.argv[1:] if argv is None else argv),
+               'runs': runs, 'median_of_runs': median,
+               'settings': {'runs': args.runs, 'count': args.count, 'blocks': args.blocks,
+                            'checkpoint': 'packaged default', 'scenes': 'SocNav1 b.jsonl', 'machine': machine()}}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=2) + '\n')
+    print(f'wrote {args.out}')
+    return 0
+
+
+SCENES: list = []
+
+if __name__ == '__main__':
+    sys.exit(main())
