@@ -420,7 +420,7 @@ class StateStore:
                     raise ConfigError(f'{self.path} has schema version {version[0]}; this stars_ros reads '
                                       f'version {SCHEMA_VERSION}')
                 self._connection = connection
-                self._clear_free_pages()
+                self._clear_free_pages(fresh=version is None)
                 self._read_written()
                 self._import_earlier_files()
             except BaseException:
@@ -449,12 +449,15 @@ class StateStore:
             raise
         connection.execute('COMMIT')
 
-    def _clear_free_pages(self):
+    def _clear_free_pages(self, fresh: bool):
         """Once per store: VACUUM what earlier versions deleted without ``secure_delete``
-        (their free pages and cells may still hold it), then empty the write-ahead log."""
+        (their free pages and cells may still hold it), then empty the write-ahead log; a
+        store made now has nothing to clear."""
         if self._meta('secure_delete') is not None:
             return
-        self._on_progress(f'clearing the free pages of {self.path} once (deleted data is overwritten from now on)')
+        if fresh:
+            self._connection.execute("INSERT INTO meta VALUES ('secure_delete', ?)", (str(time.time()),))
+            return
         self._connection.execute('VACUUM')
         self._connection.execute("INSERT INTO meta VALUES ('secure_delete', ?)", (str(time.time()),))
         self._truncate_log()
@@ -722,7 +725,7 @@ class StateStore:
                     elif kind == 'forget':
                         self._forget(value, written)
                     elif kind == 'erase':
-                        erased.append((value[1], self._erase(value[0], written)))
+                        erased.append((value[1], self._erase(value[0], written), mentions(value[0])))
                     elif kind == 'fingerprint':
                         self._replace_foreign(written)
                         self._set_fingerprint(value)
@@ -730,8 +733,6 @@ class StateStore:
             self._fingerprint = None  # rolled back: written again by the next try
             self._fail(f'could not write the state store {self.path}: {error}')
             return False
-        if erased:
-            self._finish_erasures(erased)
         if written.pop('replaced', False):
             self._foreign = False
         self._written.update(written)
@@ -740,8 +741,11 @@ class StateStore:
         committed = [entry for _, feedback, _, _ in self._waiting for entry, _ in feedback]
         with self._count_lock:
             self._waiting_feedback -= len(committed)
-        for entry in committed:
-            self._run(functools.partial(self._on_feedback_committed, entry))
+        for entry in committed:  # an erased person's, committed with the erase, is gone from the journal too
+            if not any(named(entry['data'].encode('utf-8')) for _, _, named in erased):
+                self._run(functools.partial(self._on_feedback_committed, entry))
+        if erased:
+            self._finish_erasures(erased)
         with self._committed_lock:
             self._committed_sequence = self._waiting[-1][3]
             ready = [callback for sequence, callback in self._after_commit if sequence <= self._committed_sequence]
@@ -887,11 +891,11 @@ class StateStore:
         try:
             self._truncate_log()
         except sqlite3.Error as error:
-            for done, _ in erased:
+            for done, _, _ in erased:
                 done.set_exception(StoreError(f'{self.path}: erased, but the write-ahead log still holds old pages: '
                                               f'{error}; erasing again truncates it'))
             return
-        for done, removed in erased:
+        for done, removed, _ in erased:
             done.set_result(removed)
 
     def _release_scene(self, digest: str):

@@ -2,7 +2,6 @@
 id, neither the state store's files (database, write-ahead log, shared memory) nor any bag
 record by record with its chunks decompressed; everyone else is as they were; a refit from
 a bag copied before leaves them out; a kill at any moment of it is finished by a re-run."""
-import json
 import os
 import random
 import shutil
@@ -13,67 +12,16 @@ import time
 from pathlib import Path
 
 import pytest
-import zstandard
-from mcap.records import Chunk
-from mcap.stream_reader import StreamReader
 
 from stars_ros import StarsRecommender, messages, recording, state
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.personalisation.refit import forgotten_in, read_logs
 from stars_ros.recording import erasure
 from core_harness import Node, drain, make_core
+from forget_search import bag_records, holds, store_bytes
 
 FORGOTTEN = 'p2'
 OTHERS = ('p21', 'ann-7')  # p21: an id that holds the forgotten one, which must stay
-
-
-def id_forms(user_id: str) -> list:
-    """How the id lies in the files: plain, JSON-escaped, and as a CDR string."""
-    plain = user_id.encode()
-    return [plain, json.dumps(user_id)[1:-1].encode(), (len(plain) + 1).to_bytes(4, 'little') + plain + b'\0']
-
-
-def store_bytes(folder: Path) -> dict:
-    """{file name: bytes} of state.db and its -wal and -shm files, those that exist."""
-    return {name: (folder / name).read_bytes() for name in ('state.db', 'state.db-wal', 'state.db-shm')
-            if (folder / name).exists()}
-
-
-def bag_records(folder: Path) -> list:
-    """The bytes of every record of every MCAP file under ``folder``, each chunk's records
-    decompressed too (a zstd chunk hides its content from a raw byte search)."""
-    found = []
-    for path in sorted(folder.rglob('*.mcap')):
-        with open(path, 'rb') as handle:
-            for record in StreamReader(handle, emit_chunks=True).records:
-                if isinstance(record, Chunk):
-                    data = bytes(record.data)
-                    if record.compression == 'zstd':
-                        data = zstandard.ZstdDecompressor().decompress(data, max_output_size=record.uncompressed_size)
-                    found += _records_in(data)
-                else:
-                    found.append(repr(vars(record)).encode('utf-8', 'backslashreplace') +
-                                 bytes(getattr(record, 'data', b'') or b''))
-    return found
-
-
-def _records_in(data: bytes) -> list:
-    """The records of a chunk's content: opcode, uint64 length, body."""
-    records, at = [], 0
-    while at < len(data):
-        length = int.from_bytes(data[at + 1:at + 9], 'little')
-        records.append(data[at:at + 9 + length])
-        at += 9 + length
-    return records
-
-
-def holds(data: bytes, user_id: str) -> bool:
-    """``user_id`` in ``data`` in any of its forms, as a plain byte search (the ids of
-    others that hold it, ``p21``, taken out first)."""
-    for other in OTHERS:
-        for form in id_forms(other):
-            data = data.replace(form, b'')
-    return any(form in data for form in id_forms(user_id))
 
 
 def messages_of(folder: Path) -> list:
@@ -91,8 +39,8 @@ def populate(folder: Path, checkpoint, scenes, sessions: int = 2, ratings: int =
         node = Node()
         core = make_core(node, checkpoint, record_folder=str(folder), flush_interval=60.0)
         for n, scene in enumerate(scenes[:ratings]):
-            for user_id in (FORGOTTEN, *OTHERS):
-                scene_id = f'{user_id}-{session}-{n}'
+            for k, user_id in enumerate((FORGOTTEN, *OTHERS)):
+                scene_id = f'scene-{k}-{session}-{n}'  # not named after the person: a search finds the person only
                 core.accept_scene(messages.dumps(scene_request(scene_id, scene, user_id)), 0)
                 drain(core)
                 core.accept_feedback(messages.dumps({'user_id': user_id, 'scene_id': scene_id, 'action': 'navigate',
