@@ -3,9 +3,8 @@ store's files as bytes, every bag record by record with its zstd chunks decompre
 import json
 from pathlib import Path
 
-import zstandard
 from mcap.records import Chunk
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 
 def id_forms(user_id: str) -> list:
@@ -28,10 +27,8 @@ def bag_records(folder: Path) -> list:
         with open(path, 'rb') as handle:
             for record in StreamReader(handle, emit_chunks=True).records:
                 if isinstance(record, Chunk):
-                    data = bytes(record.data)
-                    if record.compression == 'zstd':
-                        data = zstandard.ZstdDecompressor().decompress(data, max_output_size=record.uncompressed_size)
-                    found += _records_in(data)
+                    stream, length = get_chunk_data_stream(record, validate_crc=True)
+                    found += _records_in(stream.read(length))
                 else:
                     found.append(repr(vars(record)).encode('utf-8', 'backslashreplace') +
                                  bytes(getattr(record, 'data', b'') or b''))

@@ -2,6 +2,7 @@
 id, neither the state store's files (database, write-ahead log, shared memory) nor any bag
 record by record with its chunks decompressed; everyone else is as they were; a refit from
 a bag copied before leaves them out; a kill at any moment of it is finished by a re-run."""
+import json
 import os
 import random
 import shutil
@@ -12,12 +13,14 @@ import time
 from pathlib import Path
 
 import pytest
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 
 from stars_ros import StarsRecommender, messages, recording, state
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.personalisation.refit import forgotten_in, read_logs
 from stars_ros.recording import erasure
-from core_harness import Node, drain, make_core
+from core_harness import Node, drain, make_core, published_models
 from forget_search import bag_records, holds, store_bytes
 
 FORGOTTEN = 'p2'
@@ -198,3 +201,35 @@ def test_a_kill_at_any_moment_of_a_forget_is_finished_by_a_rerun(folder, tmp_pat
         assert _stored(folder) == others_stored
         assert messages_of(folder) == others_messages
     assert interrupted >= 3  # kills did fall inside forgets
+
+
+def test_a_peers_model_of_a_forgotten_person_arriving_later_is_refused(tiny_checkpoint, scenes, tmp_path):
+    """Fleet sharing: robot A forgets p2; robot B, which still holds p2, sends its model of
+    them: A refuses it without naming them, and takes B's model of anyone else."""
+    peer_node, node = Node(), Node()
+    peer = make_core(peer_node, tiny_checkpoint, fleet_sharing=True)
+    core = make_core(node, tiny_checkpoint, record_folder=str(tmp_path / 'a'), fleet_sharing=True)
+    for k, user_id in enumerate((FORGOTTEN, 'ann-7')):
+        peer.accept_scene(messages.dumps(scene_request(f'scene-{k}', scenes[0], user_id)), 0)
+        drain(peer)
+        peer.accept_feedback(messages.dumps({'user_id': user_id, 'scene_id': f'scene-{k}', 'action': 'navigate',
+                                             'score': 0.5}))
+        drain(peer)
+    core.forget_person(FORGOTTEN)
+    for text in published_models(peer_node):
+        core.accept_user_model(text)
+    drain(core)
+    assert core.predictor.user_model(FORGOTTEN) is None and core.predictor.user_model('ann-7') is not None
+    [refusal] = [e for e in node.on('stars/errors') if e['kind'] == 'forgotten']
+    assert not holds(json.dumps(refusal).encode(), FORGOTTEN)
+    core.close()
+    peer.close()
+    assert FORGOTTEN not in _stored(tmp_path / 'a') and 'ann-7' in _stored(tmp_path / 'a')
+
+
+def test_rewritten_bags_keep_zstd_chunks_like_the_recorder_writes(folder):
+    erasure.forget(folder, FORGOTTEN)
+    for path in folder.rglob('*.mcap'):
+        with open(path, 'rb') as handle:
+            chunks = [r for r in StreamReader(handle, emit_chunks=True).records if isinstance(r, Chunk)]
+        assert chunks and {c.compression for c in chunks} == {'zstd'}
