@@ -4,6 +4,9 @@
         [--mode user|full] [--data-root ROOT] [--regularisation L] [--epochs N]
     python -m offline_training.refit --checkpoint IN.pt --state RECORD_FOLDER --out OUT.pt [...]
 
+People forgotten in the record folders the logs or the state lie in, and in the folders
+``--forgotten`` names (a bag copied out of its folder), are left out (docs/privacy.md).
+
 ``--state`` takes each person's ratings as the node's state store holds them now (the most
 recent ``fold_in_max_ratings`` it kept, with λ from each stored model), read through
 ``state.open_reader`` while the node runs or not; the logs hold every rating ever given.
@@ -33,11 +36,12 @@ import argparse
 import shlex
 import sys
 import time
+from pathlib import Path
 
 from stars_ros import StarsRecommender
 from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import StarsError, StoreError
-from stars_ros.personalisation.refit import LogRatings, read_logs, read_state
+from stars_ros.personalisation.refit import LogRatings, forgotten_in, read_logs, read_state, record_folders_of
 
 from .common import setup_logging
 
@@ -73,6 +77,9 @@ def parse_args(argv=None):
     parser.add_argument('--regularisation', type=float,
                         help="fold-in λ for every user (default: the node's, from stars/user_model, else 1.0)")
     parser.add_argument('--epochs', type=int, default=3, help='joint epochs of full mode (default: %(default)s)')
+    parser.add_argument('--forgotten', nargs='+', default=[], metavar='RECORD_FOLDER',
+                        help='record folders whose forgotten people are left out (always: the folders the logs '
+                             'or the state lie in)')
     parser.add_argument('--verbose', action='store_true')
     return parser.parse_args(argv)
 
@@ -92,7 +99,10 @@ def main(argv=None) -> int:
     if args.data_root and args.mode == 'user':
         print('note: --data-root is used by --mode full only; user mode keeps every other parameter fixed')
     try:
-        found = read_state(args.state, parent.predictor) if args.state else read_logs(args.logs, parent.predictor)
+        folders = [*map(Path, args.forgotten), *record_folders_of([args.state] if args.state else args.logs)]
+        forgotten = forgotten_in(dict.fromkeys(folders))
+        found = read_state(args.state, parent.predictor, forgotten) if args.state else \
+            read_logs(args.logs, parent.predictor, forgotten)
     except (FileNotFoundError, StoreError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2

@@ -39,6 +39,7 @@ from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos  # noqa: F40
 from stars_ros.node.fleet_intake import FleetIntake
 from stars_ros.node.diagnostics import WARNINGS, BusySpans, PeriodStats, Problems, period_report
 from stars_ros.node.records import NodeRecords
+from stars_ros.recording import erasure
 
 MAX_STRANGERS_REMEMBERED = 10000
 
@@ -91,6 +92,7 @@ class RankerCore:
             self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator,
             after_person_read=after_person_read)
         self.fleet = FleetIntake(params, self.topics['stars/user_model'], self.report)
+        self.finish_interrupted_forgets()  # before restore: a person half erased is not read back
         self.personalisation.restore()
 
     def _feedback_authenticator(self):
@@ -232,7 +234,7 @@ class RankerCore:
                         feedback.scene_id)
         journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text},
                                                    self.records.bag)
-        if not self.params['fold_in']:
+        if not self.params['fold_in'] and feedback.user_id not in self.personalisation.forgotten:
             self.personalisation.record_feedback(journal)
             return False
         started = self._clock()
@@ -446,3 +448,25 @@ class RankerCore:
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
         self.records.close(self.personalisation.flush)
+
+    def forget_person(self, user_id: str) -> dict:
+        """Erase ``user_id`` everywhere this node keeps them (docs/privacy.md): memory
+        (``Personalisation.forget_person``), then the state store and every bag of the
+        record folder (``recording.erasure.forget``), leaving a tombstone; {place: {what:
+        removed}}. ValueError for an empty id; OSError or StoreError when the disk refuses
+        (a re-run, or the next start, finishes it)."""
+        if not user_id:
+            raise ValueError('user_id is empty: an empty id names nobody')
+        removed = {'memory': self.personalisation.forget_person(user_id)}
+        if self.user_id == user_id:
+            self.user_id = None
+        self._strangers_reported.discard(user_id)
+        if self.records.folder is not None:
+            removed.update(erasure.forget(self.records.folder, user_id, self.store, self.recorder))
+        return removed
+
+    def finish_interrupted_forgets(self) -> None:
+        """Finish the forgets a kill interrupted (their intent records in the record folder)."""
+        if self.records.folder is not None and erasure.interrupted(self.records.folder):
+            finished = erasure.finish_interrupted(self.records.folder, self.store, self.recorder)
+            self.logger.info(f'finished {len(finished)} forget(s) a kill had interrupted')

@@ -42,6 +42,10 @@ class FleetIntake:
             self.report(error.kind, f'peer user model refused: {error}', topic)
             return False
         peer, user_id = payload.get('origin', 'a ranker without fleet sharing'), payload['user_id']
+        if user_id in personalisation.forgotten:  # the report does not name them: stars/errors is recorded
+            self.report('forgotten', f'a user model from {peer} of a person forgotten here: refused, nothing taken in',
+                        topic)
+            return False
         if payload['fingerprint'] != predictor.fingerprint:
             self._warn_once(peer, payload['fingerprint'], f"user models from {peer} were solved against checkpoint "
                             f"{payload['fingerprint'][:12]}, not the served {predictor.fingerprint[:12]}: "

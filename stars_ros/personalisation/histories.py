@@ -94,6 +94,13 @@ class FeedbackHistories(BoundedUsers):
         with self._lock:
             return self._dropped.get(user_id, 0)
 
+    def drop(self, user_id: str) -> int:
+        """Forget ``user_id``'s history (a person erased); returns how many ratings it held."""
+        with self._lock:
+            held = self._users.pop(user_id, None)
+            self._dropped.pop(user_id, None)
+            return len(held.load()) if isinstance(held, Deferred) else len(held or ())
+
     def discard(self, user_id: str, unusable: Sequence[Rating]) -> None:
         """Remove ratings that cannot be folded in (they count as dropped)."""
         with self._lock:

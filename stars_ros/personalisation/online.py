@@ -27,6 +27,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import os
 from typing import Callable
 
 from stars_ros.personalisation import fleet
@@ -35,7 +36,8 @@ from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.personalisation.uncertainty import Uncertainty
 from stars_ros.personalisation.foldin import FoldIn, rating_from_feedback
 from stars_ros.personalisation.histories import FeedbackHistories
-from stars_ros.state import PersonUpdate, PersonWriter, Rating, UserModel, check_ratings
+from stars_ros.state.forgotten import folder_secret
+from stars_ros.state import Forgotten, PersonUpdate, PersonWriter, Rating, UserModel, check_ratings, mentions
 
 SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
 PREPARE_ROWS = 8  # ratings' scenes encoded per call of solve_next: bounds how long one holds the executor
@@ -79,6 +81,14 @@ class SceneMemory:
     def get(self, scene_id: str) -> tuple:
         """(request, (predictor, h) or None); (None, None) for a scene not remembered."""
         return tuple(self._scenes.get(scene_id, (None, None)))
+
+    def forget(self, named: Callable[[bytes], bool]) -> int:
+        """Let go of the requests whose text ``named`` finds a person in; how many."""
+        gone = [scene_id for scene_id, (request, _) in self._scenes.items()
+                if named(messages.text_of(request).encode('utf-8'))]
+        for scene_id in gone:
+            del self._scenes[scene_id]
+        return len(gone)
 
 
 @dataclasses.dataclass
@@ -129,6 +139,7 @@ class Personalisation:
         self.solved_from = {}  # user -> the ratings their served model was solved from
         self.written = {}  # user -> sequence number of their latest write to the store
         self.unsaved = set()  # users whose served model the store does not hold yet
+        self.forgotten = Forgotten(None)  # the tombstones of people erased (the store's, once restored)
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.store = store
@@ -174,6 +185,8 @@ class Personalisation:
         it cannot be folded in (the node reports that as ``unknown_scene``). ``journal``
         (the feedback entry and its recording) is written with the user's new rating, in one
         write; refused, it is written alone."""
+        if feedback.user_id in self.forgotten:  # neither journaled nor folded in: nothing of theirs is kept
+            return 'feedback of a person who was forgotten here: not stored, not folded in'
         rating = self._rating(feedback, max_bytes)
         if isinstance(rating, str):
             self.record_feedback(journal)
@@ -220,6 +233,9 @@ class Personalisation:
         foldin = self.foldin
         if foldin is None:
             return False
+        if user_id in self.forgotten:
+            raise messages.BadMessage('forgotten', 'a model of a person who was forgotten here: refused, nothing '
+                                      'taken in')
         if self.authenticator is not None and not entries:
             raise messages.BadMessage('auth', 'it carries no ratings: with feedback_key_file set, a peer model is '
                                       'taken only with the signed ratings it was solved from')
@@ -392,6 +408,30 @@ class Personalisation:
         if self.store is not None:
             self.store.forget_person(user_id)
 
+    def forget_person(self, user_id: str) -> dict:
+        """Erase ``user_id`` from memory (history, peers' ratings, served model, what waits
+        to be solved, written or announced, peers' ratings being checked, the scene requests
+        that name them) and mark them forgotten, so their feedback and peers' models of them
+        are refused from now on; {what: entries removed}. The store's part is
+        ``recording.erasure.forget``'s, which the caller runs next."""
+        intake = [staged for staged in self.intake if staged.user_id == user_id]
+        removed = {'ratings': self.histories.drop(user_id), 'peer_ratings': len(self.peers.ratings(user_id)),
+                   'model': int(self.predictor.user_model(user_id) is not None),
+                   'scene_requests': self.scenes.forget(mentions(user_id)), 'peer_messages_in_intake': len(intake)}
+        self.peers.drop(user_id)
+        self.predictor.set_user_model(user_id, None)
+        for kept in (self.pending, self.to_announce, self.solved_from, self.written):
+            kept.pop(user_id, None)
+        self.unsaved.discard(user_id)
+        for staged in intake:
+            self.intake.remove(staged)
+        if self.forgotten.secret is None and self.store is not None:
+            self.forgotten = Forgotten(folder_secret(self.store.folder, create=True), self.forgotten.tags)
+        if self.forgotten.secret is None:  # nothing recorded: remembered in memory only, with a secret of this run
+            self.forgotten = Forgotten(os.urandom(32), self.forgotten.tags)
+        self.forgotten.add(user_id)
+        return removed
+
     def durable_after(self, user_id: str) -> int:
         """The store's write that ``user_id``'s served model waits for before anyone else may
         see it: the latest write of their ratings (0: nothing in flight)."""
@@ -412,6 +452,7 @@ class Personalisation:
         anyone else waits to be solved again."""
         if self.store is None:
             return
+        self.forgotten = self.store.forgotten()
         people, problem = self.store.load(self.predictor.fingerprint)
         if problem is not None:
             self._report('user_models', problem)

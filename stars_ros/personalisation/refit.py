@@ -8,6 +8,10 @@ remembered when the feedback came). The rating that gives is the node's
 gives each person's ratings as the node holds them now (the most recent
 ``fold_in_max_ratings``), with λ from each stored model.
 
+People forgotten in a record folder (docs/privacy.md) are left out by their tombstones
+(``forgotten``: the record folders' ``state.Forgotten``), so a refit from a bag copied
+before the forget does not bring them back.
+
 ``StarsRecommender.refit`` solves and writes the users; ``offline_training.refit`` is the
 command line around both.
 """
@@ -91,8 +95,29 @@ def log_files(paths) -> list:
     return files
 
 
-def read_logs(paths, predictor) -> LogRatings:
-    """Join feedback with scene requests in every log; see the module docstring."""
+def record_folders_of(paths) -> list:
+    """The record folders the bags or files ``paths`` lie in (those holding a state store)."""
+    folders = []
+    for path in map(Path, paths):
+        for folder in (path, path.parent, path.parent.parent):
+            if (folder / state.DATABASE).exists() and folder not in folders:
+                folders.append(folder)
+                break
+    return folders
+
+
+def forgotten_in(folders) -> list:
+    """The tombstones (``state.Forgotten``) of each record folder in ``folders``."""
+    return [state.forgotten_in(folder) for folder in folders]
+
+
+def _is_forgotten(user_id: str, forgotten) -> bool:
+    return any(user_id in tombstones for tombstones in forgotten)
+
+
+def read_logs(paths, predictor, forgotten=()) -> LogRatings:
+    """Join feedback with scene requests in every log, leaving out the people
+    ``forgotten`` (``forgotten_in``); see the module docstring."""
     found = LogRatings()
     for log, files in log_files(paths):
         if not files:
@@ -122,7 +147,7 @@ def read_logs(paths, predictor) -> LogRatings:
                     continue
                 scenes[request.scene_id] = request
             elif topic == 'stars/feedback':
-                join_feedback(text, scenes, predictor, found, log)
+                join_feedback(text, scenes, predictor, found, log, forgotten)
             elif topic == 'stars/user_model':
                 try:
                     payload = messages.load_json(text, 1 << 30)
@@ -130,13 +155,15 @@ def read_logs(paths, predictor) -> LogRatings:
                 except messages.BadMessage as error:
                     found.problem('unusable user_model message', f'{log}: {error}')
                     continue
-                found.regularisation[payload['user_id']] = float(payload['regularisation'])
+                if not _is_forgotten(payload['user_id'], forgotten):
+                    found.regularisation[payload['user_id']] = float(payload['regularisation'])
     return found
 
 
-def read_state(folder, predictor) -> LogRatings:
+def read_state(folder, predictor, forgotten=()) -> LogRatings:
     """Each person's own ratings in the state store of ``folder`` (oldest first), and the
-    λ of their stored model; peers' ratings are in the peers' logs and stores."""
+    λ of their stored model, but for the people ``forgotten``; peers' ratings are in the
+    peers' logs and stores."""
     found = LogRatings(read='state store')
     with state.open_reader(folder) as store:
         found.files.append(str(store.path))
@@ -144,6 +171,9 @@ def read_state(folder, predictor) -> LogRatings:
             found.problem('people of another checkpoint', f'{store.path} holds people solved against '
                           f'{store.fingerprint[:12]}: their ratings are used, their models are not')
         for person in store.people():
+            if _is_forgotten(person.user_id, forgotten):
+                found.problem('forgotten person', f'{store.path}: a person forgotten there (their id is not kept)')
+                continue
             for rating in person.ratings:
                 found.messages += 1
                 if rating.action not in predictor.actions:
@@ -169,11 +199,15 @@ def _on_scale(score: float, predictor, found: LogRatings, where: str) -> bool:
     return True
 
 
-def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log) -> None:
+def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log, forgotten=()) -> None:
     try:
         feedback = messages.parse_feedback(text, 1 << 30)
     except messages.BadMessage as error:
         found.problem('unusable feedback message', f'{log}: {error}')
+        return
+    if _is_forgotten(feedback.user_id, forgotten):
+        found.problem('forgotten person', f'{log}: feedback of a person forgotten in its record folder (their id is '
+                      'not kept)')
         return
     if feedback.action is not None and feedback.action not in predictor.actions:
         found.problem('unknown action', f"{log}: '{feedback.action}' (scene {feedback.scene_id})")

@@ -161,6 +161,26 @@ class Recorder:
         self._file = None
         self._open()
 
+    def rewrite_finished(self, rewrite: Callable[[Path], object]) -> list:
+        """Finish the file being written (the next message starts a new one), then call
+        ``rewrite(path)`` on each finished file of the bag, outside the lock, so recording
+        goes on meanwhile; a rewrite that returns new ``FileStats`` has them in
+        metadata.yaml. Returns those FileStats (a forget rewrites a person out)."""
+        with self._lock:
+            if self._file is not None and self._file.stats.count:
+                self._rotate()
+            finished = self._files[:-1] if self._file is not None else list(self._files)
+        rewritten = {}
+        for stats in finished:
+            new = rewrite(self.path / stats.path)
+            if new is not None:
+                rewritten[stats.path] = new
+        with self._lock:
+            self._files = [rewritten.get(f.path, f) for f in self._files]
+            snapshot = self._metadata_snapshot()
+        self._write_metadata(snapshot)
+        return list(rewritten.values())
+
     def flush(self):
         """Write out the chunk in progress, fsync it and rewrite metadata.yaml; retry a failed
         disk. Called every ``flush_interval`` by a background thread. The fsyncs run outside

@@ -50,7 +50,8 @@ from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 from visualization_msgs.msg import MarkerArray
 
-from stars_ros.errors import CheckpointError, ConfigError
+from stars_ros.errors import CheckpointError, ConfigError, StoreError
+from stars_ros_msgs.srv import ForgetPerson
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.markers import MarkerOutput
@@ -149,6 +150,7 @@ class RankerParts:
         self._more_work = self.create_guard_condition(self._work)
         self._serving = [*subscriptions.values(), self._more_work,
                          self.create_service(Trigger, '~/reload', self._on_reload),
+                         self.create_service(ForgetPerson, '~/forget_person', self._on_forget_person),
                          self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics),
                          *TypedInterface(self, self.core, self.params, self._more_work.trigger,
                                          self.qos_watch).entities]
@@ -229,6 +231,20 @@ class RankerParts:
         response.success, response.message = self.core.reload()
         if response.success:
             self._more_work.trigger()
+        return response
+
+    def _on_forget_person(self, request, response):
+        """~/forget_person: erase the person everywhere (``RankerCore.forget_person``),
+        answering with what was removed where; a failure is answered, the node serves on."""
+        try:
+            removed = self.core.forget_person(request.user_id)
+        except (ValueError, OSError, StoreError) as error:
+            response.success, response.message = False, f'not forgotten: {error}'
+            return response
+        places = [(f'{place}/{what}', count) for place, counts in removed.items() for what, count in counts.items()]
+        response.success = True
+        response.removed_places = [place for place, _ in places]
+        response.removed_counts = [int(count) for _, count in places]
         return response
 
     def _work(self):

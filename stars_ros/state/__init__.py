@@ -4,23 +4,30 @@ the SQLite store that keeps them across restarts (``store``: people, ratings, pe
 and the journal of accepted feedback; ``migration``: the files earlier versions kept them
 in). Personalisation writes a person only through ``PersonWriter``'s methods; nothing here
 imports personalisation, the recording or ROS."""
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Protocol, Sequence
 
 from stars_ros.state.person import (Deferred, Rating, UserModel, check_ratings, check_score, loaded,
                                     scene_digest)
+from stars_ros.state.forgotten import Forgotten, mentions
 from stars_ros.state.store import (DATABASE, Person, PersonUpdate, StateStore, StoreLockedError, StoreReader,
-                                   committed_feedback, open_reader, write_people)
+                                   committed_feedback, forgotten_in, open_reader, write_people)
 
 
 class PersonWriter(Protocol):
     """What personalisation may do to the store: the narrow interface ``StateStore`` gives it."""
 
     path: Path
+    folder: Path
 
     def write_person(self, update: PersonUpdate | None, feedback: Sequence[tuple[dict, str]] = ()) -> int: ...
 
     def forget_person(self, user_id: str) -> int: ...
+
+    def erase_person(self, user_id: str) -> Future: ...
+
+    def forgotten(self) -> Forgotten: ...
 
     def set_fingerprint(self, fingerprint: str) -> None: ...
 
@@ -31,6 +38,6 @@ class PersonWriter(Protocol):
     def encodings(self, scenes: Sequence, fingerprint: str) -> dict: ...
 
 
-__all__ = ['DATABASE', 'Deferred', 'Person', 'PersonUpdate', 'PersonWriter', 'Rating', 'StateStore',
+__all__ = ['DATABASE', 'Deferred', 'Forgotten', 'Person', 'PersonUpdate', 'PersonWriter', 'Rating', 'StateStore',
            'StoreLockedError', 'StoreReader', 'UserModel', 'check_ratings', 'check_score', 'committed_feedback',
-           'loaded', 'open_reader', 'scene_digest', 'write_people']
+           'forgotten_in', 'loaded', 'mentions', 'open_reader', 'scene_digest', 'write_people']

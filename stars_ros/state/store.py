@@ -23,6 +23,7 @@ holding it (the inspection command, ``refit``, recovery, tests), also while a no
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import fcntl
 import functools
@@ -43,6 +44,7 @@ import numpy as np
 
 from stars_ros.errors import ConfigError, StoreError, StoreLockedError
 from stars_ros.state import migration
+from stars_ros.state.forgotten import Forgotten, folder_secret, mentions
 from stars_ros.state.person import Deferred, Rating, UserModel, scene_digest
 
 DATABASE = 'state.db'
@@ -70,6 +72,7 @@ CREATE TABLE IF NOT EXISTS encodings (digest TEXT NOT NULL, fingerprint TEXT NOT
 CREATE TABLE IF NOT EXISTS feedback (
     seq INTEGER PRIMARY KEY, bag TEXT NOT NULL, topic TEXT NOT NULL, log_time INTEGER NOT NULL,
     data TEXT NOT NULL, committed REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS forgotten (tag TEXT PRIMARY KEY, forgotten REAL NOT NULL) WITHOUT ROWID;
 """
 _RATING_TABLES = ('ratings', 'peer_ratings')
 
@@ -294,6 +297,13 @@ class StoreReader:
                 self._connection.execute('SELECT feedback FROM ratings WHERE feedback IS NOT NULL')]
 
     @_reading
+    def forgotten_tags(self) -> set:
+        """The tombstones of the people forgotten here (``state.forgotten``)."""
+        if self._connection.execute("SELECT 1 FROM sqlite_master WHERE name = 'forgotten'").fetchone() is None:
+            return set()  # a store of a version that forgot nobody
+        return {tag for (tag,) in self._connection.execute('SELECT tag FROM forgotten')}
+
+    @_reading
     def feedback_count(self) -> int:
         return self._connection.execute('SELECT COUNT(*) FROM feedback').fetchone()[0]
 
@@ -312,6 +322,17 @@ def open_reader(path) -> StoreReader:
     """A read-only StoreReader of the store in folder ``path`` (or the database file
     ``path``); FileNotFoundError when there is none."""
     return StoreReader(Path(path).expanduser())
+
+
+def forgotten_in(folder) -> Forgotten:
+    """The tombstones of the record folder ``folder`` (none without a store or a secret);
+    StoreError when its store cannot be read."""
+    secret = folder_secret(folder)
+    path = Path(folder).expanduser() / DATABASE
+    if secret is None or not path.exists():
+        return Forgotten(secret)
+    with open_reader(path) as reader:
+        return Forgotten(secret, reader.forgotten_tags())
 
 
 def committed_feedback(folder, bag: str) -> list:
@@ -388,6 +409,7 @@ class StateStore:
             try:
                 connection.execute('PRAGMA journal_mode=WAL')
                 connection.execute('PRAGMA synchronous=FULL')
+                connection.execute('PRAGMA secure_delete=ON')  # what is deleted is overwritten with zeros
                 connection.executescript(_SCHEMA)
                 version = connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
                 if version is None:
@@ -398,6 +420,7 @@ class StateStore:
                     raise ConfigError(f'{self.path} has schema version {version[0]}; this stars_ros reads '
                                       f'version {SCHEMA_VERSION}')
                 self._connection = connection
+                self._clear_free_pages(fresh=version is None)
                 self._read_written()
                 self._import_earlier_files()
             except BaseException:
@@ -425,6 +448,29 @@ class StateStore:
             connection.execute('ROLLBACK')
             raise
         connection.execute('COMMIT')
+
+    def _clear_free_pages(self, fresh: bool):
+        """Once per store: VACUUM what earlier versions deleted without ``secure_delete``
+        (their free pages and cells may still hold it), then empty the write-ahead log; a
+        store made now has nothing to clear."""
+        if self._meta('secure_delete') is not None:
+            return
+        if fresh:
+            self._connection.execute("INSERT INTO meta VALUES ('secure_delete', ?)", (str(time.time()),))
+            return
+        self._connection.execute('VACUUM')
+        self._connection.execute("INSERT INTO meta VALUES ('secure_delete', ?)", (str(time.time()),))
+        self._truncate_log()
+
+    def _truncate_log(self):
+        """Checkpoint the write-ahead log into the database and truncate it to nothing, so
+        no page of it keeps what a commit deleted; retried while a reader holds it."""
+        for _ in range(200):
+            busy, _, _ = self._connection.execute('PRAGMA wal_checkpoint(TRUNCATE)').fetchone()
+            if not busy:
+                return
+            time.sleep(0.05)
+        raise sqlite3.OperationalError('the write-ahead log stays in use by a reader: not truncated')
 
     def _lock(self):
         if self._lock_handle is not None:
@@ -536,6 +582,26 @@ class StateStore:
             self._queue.put(('forget', (), user_id, self._sequence))
             return self._sequence
 
+    def erase_person(self, user_id: str) -> concurrent.futures.Future:
+        """Erase ``user_id`` for good: their row, model, ratings, peers' ratings of them and
+        every journal entry that names them, with ``secure_delete`` and the write-ahead log
+        truncated after the commit, so no page of the files keeps them; and store their
+        tombstone (``forgotten``). Idempotent. The Future gives {what: rows removed} once
+        done (its exception: why not)."""
+        done = concurrent.futures.Future()
+        with self._count_lock:
+            self._sequence += 1
+            self._queue.put(('erase', (), (user_id, done), self._sequence))
+        return done
+
+    def forgotten(self) -> Forgotten:
+        """The tombstones stored here (read now)."""
+        reader = StoreReader(self.path)
+        try:
+            return Forgotten(folder_secret(self.folder), reader.forgotten_tags())
+        finally:
+            reader.close()
+
     def when_committed(self, sequence: int, callback: Callable[[], None]) -> None:
         """``callback()`` once the write ``sequence`` (and every earlier one) is committed:
         now, on this thread, if it is; else on the writer's thread right after the commit.
@@ -645,7 +711,7 @@ class StateStore:
         """Write every waiting item in one transaction; True once committed."""
         if self._connection is None and not self._open():
             return False
-        written = {}
+        written, erased = {}, []
         try:
             with self._transaction():
                 for kind, feedback, value, _ in self._waiting:
@@ -658,6 +724,8 @@ class StateStore:
                         self._write_person(value, written)
                     elif kind == 'forget':
                         self._forget(value, written)
+                    elif kind == 'erase':
+                        erased.append((value[1], self._erase(value[0], written), mentions(value[0])))
                     elif kind == 'fingerprint':
                         self._replace_foreign(written)
                         self._set_fingerprint(value)
@@ -673,8 +741,11 @@ class StateStore:
         committed = [entry for _, feedback, _, _ in self._waiting for entry, _ in feedback]
         with self._count_lock:
             self._waiting_feedback -= len(committed)
-        for entry in committed:
-            self._run(functools.partial(self._on_feedback_committed, entry))
+        for entry in committed:  # an erased person's, committed with the erase, is gone from the journal too
+            if not any(named(entry['data'].encode('utf-8')) for _, _, named in erased):
+                self._run(functools.partial(self._on_feedback_committed, entry))
+        if erased:
+            self._finish_erasures(erased)
         with self._committed_lock:
             self._committed_sequence = self._waiting[-1][3]
             ready = [callback for sequence, callback in self._after_commit if sequence <= self._committed_sequence]
@@ -796,6 +867,36 @@ class StateStore:
         self._connection.execute('DELETE FROM people WHERE person = ?', (user_id,))
         self._connection.execute('DELETE FROM posteriors WHERE person = ?', (user_id,))
         self._rated.pop(user_id, None)
+
+    def _erase(self, user_id: str, written: dict) -> dict:
+        """``_forget`` and the journal entries that name ``user_id``, and their tombstone;
+        {what: rows removed}."""
+        connection = self._connection
+        removed = {table: connection.execute(f'SELECT COUNT(*) FROM {table} WHERE person = ?', (user_id,)).fetchone()[0]
+                   for table in ('people', 'posteriors', *_RATING_TABLES)}
+        self._forget(user_id, written)
+        named = mentions(user_id)
+        journal = [seq for seq, data in connection.execute('SELECT seq, data FROM feedback')
+                   if named(data.encode('utf-8'))]
+        connection.executemany('DELETE FROM feedback WHERE seq = ?', [(seq,) for seq in journal])
+        removed['journal'] = len(journal)
+        secret = folder_secret(self.folder, create=True)
+        connection.execute('INSERT OR IGNORE INTO forgotten VALUES (?, ?)',
+                           (Forgotten(secret).tag(user_id), time.time()))
+        return removed
+
+    def _finish_erasures(self, erased: list):
+        """Truncate the write-ahead log after the commit that erased people, then tell
+        who waits what was removed."""
+        try:
+            self._truncate_log()
+        except sqlite3.Error as error:
+            for done, _, _ in erased:
+                done.set_exception(StoreError(f'{self.path}: erased, but the write-ahead log still holds old pages: '
+                                              f'{error}; erasing again truncates it'))
+            return
+        for done, removed, _ in erased:
+            done.set_result(removed)
 
     def _release_scene(self, digest: str):
         self._connection.execute('UPDATE scenes SET refs = refs - 1 WHERE digest = ?', (digest,))

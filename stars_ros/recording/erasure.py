@@ -1,0 +1,189 @@
+"""Forgetting a person in a record folder: the state store and every bag, crash-safe.
+
+``forget(folder, user_id)`` runs these steps, each of which can run again without harm:
+
+1. an intent record, ``forgetting/<tombstone>.json``, written atomically: it holds the id
+   (a re-run needs it) only until the last step removes it;
+2. the state store erases the person and stores their tombstone (``StateStore.erase_person``:
+   secure_delete, the write-ahead log truncated);
+3. every finished MCAP file holding a message that names them (``state.mentions``) is
+   rewritten without those messages: everyone else's message bytes, topics and log times as
+   they were, zstd chunks, an index and a summary, into a temporary file that is fsync'd and
+   renamed over the old one; then the bag's metadata.yaml is rebuilt from its files;
+4. the intent record goes.
+
+A kill at any moment leaves each file before or after its step; ``finish_interrupted``
+(run by the node at start and by the command line) finishes every intent it finds. A node
+that records hands its ``Recorder`` in: the file it writes is finished first
+(``Recorder.rewrite_finished``), so no file is rewritten while it is written.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import yaml
+from mcap.reader import make_reader
+
+from stars_ros.files import atomic_write
+from stars_ros.recording.bag import (METADATA_FILE, STRING, FileStats, McapFile, MessageType, bag_files, is_finished,
+                                     metadata_text, topic_qos, write_metadata)
+from stars_ros.recording.recovery import abandoned_bags, recover, salvage
+from stars_ros.state import StateStore, mentions
+from stars_ros.state.forgotten import folder_secret, tombstone
+
+INTENTS = 'forgetting'
+
+
+def _fsync_folder(folder: Path) -> None:
+    descriptor = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def rewrite_without(path: Path, drop: Callable[[bytes], bool]) -> FileStats | None:
+    """Rewrite the finished MCAP file ``path`` without the messages whose data ``drop``
+    says (atomically); None, and the file untouched, when it holds none; else the new
+    file's statistics, with ``removed`` {topic: messages removed}."""
+    found = salvage(path)
+    if found.damage is not None:
+        raise OSError(f'{path} is damaged ({found.damage}): run `python -m stars_ros.recording recover '
+                      f'{path.parent}` first')
+    kept = [m for m in found.messages if not drop(bytes(m.data))]
+    if len(kept) == len(found.messages):
+        return None
+    topics, types, removed = {}, {}, {}
+    for channel in found.channels.values():
+        topics.setdefault(channel.topic, topic_qos(channel))
+        schema = found.schemas.get(channel.schema_id)
+        if schema is not None and schema.name != STRING:
+            types.setdefault(channel.topic, MessageType(schema.name, bytes(schema.data).decode(),
+                                                        channel.metadata.get('topic_type_hash', '')))
+    for message in found.messages:
+        if drop(bytes(message.data)):
+            topic = found.channels[message.channel_id].topic
+            removed[topic] = removed.get(topic, 0) + 1
+    written = []
+
+    def write(handle):
+        rewritten = McapFile(handle, path.name, topics, 1 << 20, found.custom, types)
+        for message in kept:
+            rewritten.write(found.channels[message.channel_id].topic, bytes(message.data), message.log_time)
+        rewritten.end()
+        written.append(rewritten.stats)
+    atomic_write(path, write)
+    written[0].removed = removed
+    return written[0]
+
+
+def file_stats(path: Path) -> FileStats:
+    """What metadata.yaml says of a finished MCAP file, from its summary."""
+    with open(path, 'rb') as handle:
+        summary = make_reader(handle).get_summary()
+    stats = FileStats(path.name)
+    if summary is None or summary.statistics is None:
+        return stats
+    statistics = summary.statistics
+    for channel_id, count in statistics.channel_message_counts.items():
+        topic = summary.channels[channel_id].topic
+        stats.topics[topic] = stats.topics.get(topic, 0) + count
+    stats.count = statistics.message_count
+    if stats.count:
+        stats.start, stats.end = statistics.message_start_time, statistics.message_end_time
+    return stats
+
+
+def rebuild_metadata(bag: Path) -> None:
+    """metadata.yaml of a finished bag from its files' summaries (the topics, their QoS
+    and types, and the custom data as the old one gave them)."""
+    info = yaml.safe_load((bag / METADATA_FILE).read_text())['rosbag2_bagfile_information']
+    topics, types = {}, {}
+    for entry in info['topics_with_message_count']:
+        meta = entry['topic_metadata']
+        topics[meta['name']] = (meta.get('offered_qos_profiles') or [None])[0]
+        types[meta['name']] = MessageType(meta['type'], '', meta.get('type_description_hash', ''))
+    write_metadata(bag, metadata_text([file_stats(path) for path in bag_files(bag)], topics,
+                                      info.get('custom_data') or {}, types=types))
+
+
+def _erase_from_bags(folder: Path, drop, recorder) -> dict:
+    """{bag name: messages removed} of every bag in ``folder``."""
+    removed = {}
+    if recorder is not None:
+        removed[recorder.name] = sum(sum(stats.removed.values()) for stats in recorder.rewrite_finished(
+            lambda path: rewrite_without(path, drop)))
+    for bag in sorted(p for p in folder.iterdir() if p.is_dir() and p.name != INTENTS):
+        if recorder is not None and bag == recorder.path:
+            continue
+        for left in bag.glob('*.tmp'):  # a rewrite a kill interrupted: the old file is still in place
+            left.unlink()
+        files = bag_files(bag)
+        if not files:
+            continue
+        count = 0
+        for path in files:
+            if not is_finished(path):
+                raise OSError(f'{path} is not finished: recover its bag first')
+            stats = rewrite_without(path, drop)
+            count += 0 if stats is None else sum(stats.removed.values())
+        if (bag / METADATA_FILE).exists():
+            rebuild_metadata(bag)  # also after a kill between a file's rename and this
+        removed[bag.name] = count
+    return removed
+
+
+def forget(folder, user_id: str, store: StateStore | None = None, recorder=None, timeout: float = 600) -> dict:
+    """Erase ``user_id`` from the record folder ``folder`` (the module docstring's steps);
+    ``store``: the store a running node holds (else one is opened, and refused while a node
+    holds it: StoreLockedError), ``recorder``: that node's Recorder. Returns
+    {'state_store': {table: rows removed}, 'bags': {bag: messages removed}}."""
+    if not user_id:
+        raise ValueError('user_id is empty: an empty id names nobody')
+    folder = Path(folder).expanduser()
+    tag = tombstone(folder_secret(folder, create=True), user_id)
+    intents = folder / INTENTS
+    intents.mkdir(exist_ok=True)
+    intent = intents / f'{tag}.json'
+    data = json.dumps({'user_id': user_id, 'started': time.time()}).encode()
+    atomic_write(intent, lambda handle: handle.write(data))
+    own_store = store is None
+    if own_store:
+        store = StateStore(folder, 'python -m offline_training.forget', on_error=lambda text: None)
+        if store.error is not None:
+            error = store.error
+            store.close()
+            raise OSError(error)
+    try:
+        erased = store.erase_person(user_id).result(timeout)
+    finally:
+        if own_store:
+            store.close()
+    if recorder is None:
+        for bag in abandoned_bags(folder):
+            recover(bag)
+    bags = _erase_from_bags(folder, mentions(user_id), recorder)
+    intent.unlink()
+    _fsync_folder(intents)
+    return {'state_store': erased, 'bags': bags}
+
+
+def interrupted(folder) -> list:
+    """The ids of forgets begun in ``folder`` and not finished (the intent records)."""
+    intents = Path(folder).expanduser() / INTENTS
+    found = []
+    for path in sorted(intents.glob('*.json')) if intents.is_dir() else ():
+        try:
+            found.append(json.loads(path.read_text())['user_id'])
+        except (OSError, ValueError, KeyError, TypeError):
+            path.unlink(missing_ok=True)  # a kill before its atomic write finished leaves no intent
+    return found
+
+
+def finish_interrupted(folder, store: StateStore | None = None, recorder=None) -> dict:
+    """Finish every forget a kill interrupted in ``folder``: {user_id: what was removed}."""
+    return {user_id: forget(folder, user_id, store, recorder) for user_id in interrupted(folder)}
