@@ -3,6 +3,7 @@ what is published, a logger that keeps its lines and a ROS clock that ticks; and
 made with the node's defaults. Used by the core's tests and by the fleet's and signing's."""
 import itertools
 import json
+import threading
 
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 
@@ -13,6 +14,7 @@ class Node:
     def __init__(self):
         self.published, self.lines = [], []
         self.clock = itertools.count(1_000_000_000, 1000)
+        self.woken = threading.Event()  # set by the state store's thread when work waits for the executor
 
     def publish(self, topic, text):
         self.published.append((topic, json.loads(text)))
@@ -47,13 +49,23 @@ def make_core(node, checkpoint, clock=None, **params):
     values = {name: spec[0] for name, spec in PARAMETERS.items()}
     values.update({'checkpoint': str(checkpoint), 'record_folder': '', **params})
     return RankerCore(values, {topic: '/' + topic for topic in TOPICS}, '/ranker', node.publish, node,
-                      lambda: next(node.clock), **({} if clock is None else {'clock': clock}))
+                      lambda: next(node.clock), wake=node.woken.set, **({} if clock is None else {'clock': clock}))
 
 
 def drain(core):
     """Let ``core`` work until nothing waits (what the node's guard condition does)."""
     while core.work():
         pass
+
+
+def woken_and_drained(node, core) -> bool:
+    """True once the state store's thread has woken the executor, whose work then ran:
+    what the node's guard condition does when a commit lets a model go out."""
+    if not node.woken.is_set():
+        return False
+    node.woken.clear()
+    drain(core)
+    return True
 
 
 def published_models(node):

@@ -9,7 +9,9 @@ takes and publishes the text it gives.
 
 One thread (the node's executor) calls ``RankerCore``; the state store's thread
 (``stars_ros.state``) commits feedback and people, and the recorder's flushes the bag,
-so the disk never holds up the rankings. ``work`` scores one batch of
+so the disk never holds up the rankings. What waits for a commit comes back to the executor:
+the store's thread only queues it and calls ``wake`` (a model whose ratings are committed
+goes out at the next ``work``). ``work`` scores one batch of
 queued requests with one model snapshot, else re-solves one user who gave feedback, so the
 ranking of others waits for at most one solve; ``reload`` runs between two batches, so every
 ranking is scored by exactly one checkpoint, the one whose fingerprint it carries.
@@ -64,13 +66,16 @@ class RankerCore:
             which ``received`` times, processing times and fold-in spans are read on.
         after_person_read (callable, optional): ``Personalisation``'s, called once a person
             restored from the store has their ratings read.
+        wake (callable, optional): called from the state store's thread when something waits
+            for the executor (call ``work``); None: the next ``work`` finds it.
     """
 
     def __init__(self, params: dict, topics: Mapping[str, str], node_name: str, publish: Callable[[str, str], None],
                  logger, now: Callable[[], int], markers_out=None, clock: Callable[[], int] = time.time_ns,
-                 after_person_read: Callable[[], None] | None = None):
+                 after_person_read: Callable[[], None] | None = None, wake: Callable[[], None] | None = None):
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
-        self._clock = clock
+        self._clock, self._wake = clock, wake or (lambda: None)
+        self.durable_models = collections.deque()  # stars/user_model payloads whose ratings are committed
         self.markers_out = markers_out
         self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
         self.predictor = Predictor.load(self.checkpoint_path)
@@ -322,6 +327,7 @@ class RankerCore:
         try:
             while self.replied:
                 self._after_reply(*self.replied.popleft())
+            self._send_durable_models()
             if self.queue:
                 self._serve([self.queue.popleft() for _ in range(min(len(self.queue), self.params['max_batch']))])
             elif self.questions:
@@ -346,7 +352,7 @@ class RankerCore:
                 self._publish_model(to_announce.popitem(last=False)[0])
         except Exception as error:  # noqa: BLE001 - the node must keep serving
             self.report('internal', f'{type(error).__name__}: {error}')
-        return bool(self.queue or self.questions or intake or pending or to_announce)
+        return bool(self.queue or self.questions or intake or pending or to_announce or self.durable_models)
 
     def _solve_next(self):
         solved = self.personalisation.solve_next(self.params['fold_in_min_ratings'],
@@ -362,14 +368,23 @@ class RankerCore:
         if message is None:
             return
         payload = messages.dumps(message)
-
-        def publish():  # logged when it goes out
-            self._publish('stars/user_model', payload)
-            self.record('stars/user_model', payload)
         if self.store is None:
-            publish()
-        else:
-            self.store.when_committed(self.personalisation.durable_after(user_id), publish)
+            self._send_model(payload)
+            return
+
+        def committed():  # on the store's thread, or on this one if it is committed already
+            self.durable_models.append(payload)
+            self._wake()
+        self.store.when_committed(self.personalisation.durable_after(user_id), committed)
+
+    def _send_durable_models(self):
+        while self.durable_models:
+            self._send_model(self.durable_models.popleft())
+
+    def _send_model(self, payload: str):
+        """Publish and record (logged when it goes out) a user model whose ratings are durable."""
+        self._publish('stars/user_model', payload)
+        self.record('stars/user_model', payload)
 
     def _serve(self, batch: list, publish: bool = True) -> list:
         """Score ``batch``; per request (its ranking payload, None) or (None, (kind, message)).
@@ -447,7 +462,7 @@ class RankerCore:
             self.record('stars/scene', messages.text_of(item.message), item.log_time)
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
-        self.records.close(self.personalisation.flush)
+        self.records.close(self.personalisation.flush, self._send_durable_models)
 
     def forget_person(self, user_id: str) -> dict:
         """Erase ``user_id`` everywhere this node keeps them (docs/privacy.md): memory
@@ -462,11 +477,13 @@ class RankerCore:
             self.user_id = None
         self._strangers_reported.discard(user_id)
         if self.records.folder is not None:
-            removed.update(erasure.forget(self.records.folder, user_id, self.store, self.recorder))
+            removed.update(erasure.forget(self.records.folder, user_id, self.personalisation.erase_stored,
+                                          self.recorder))
         return removed
 
     def finish_interrupted_forgets(self) -> None:
         """Finish the forgets a kill interrupted (their intent records in the record folder)."""
         if self.records.folder is not None and erasure.interrupted(self.records.folder):
-            finished = erasure.finish_interrupted(self.records.folder, self.store, self.recorder)
+            finished = erasure.finish_interrupted(self.records.folder, self.personalisation.erase_stored,
+                                                  self.recorder)
             self.logger.info(f'finished {len(finished)} forget(s) a kill had interrupted')

@@ -103,13 +103,15 @@ class NodeRecords:
         return failure, {'recording': 'off' if recorder is None else (failure or str(recorder.path)),
                          'feedback_not_on_disk': 0 if store is None else store.uncommitted_feedback}
 
-    def close(self, before_store_closes: Callable[[], None]):
+    def close(self, before_store_closes: Callable[[], None], before_recording_closes: Callable[[], None]):
         """``before_store_closes()`` (write what waits for the store), then close the store,
-        whose commits reach the bag before the bag closes, then the recording."""
+        whose commits reach the bag before the bag closes, then ``before_recording_closes()``
+        (send what waited for those commits), then close the recording."""
         if self.store is not None:
             before_store_closes()
             for entry in self.store.close():
                 self.logger.error(f'feedback that could not be stored: {entry}')
+        before_recording_closes()
         if self.recorder is not None:
             self.recorder.close()
             self.logger.info(f'recording closed: {self.recorder.path}')

@@ -412,8 +412,8 @@ class Personalisation:
         """Erase ``user_id`` from memory (history, peers' ratings, served model, what waits
         to be solved, written or announced, peers' ratings being checked, the scene requests
         that name them) and mark them forgotten, so their feedback and peers' models of them
-        are refused from now on; {what: entries removed}. The store's part is
-        ``recording.erasure.forget``'s, which the caller runs next."""
+        are refused from now on; {what: entries removed}. The store's and the bags' part is
+        ``recording.erasure.forget``'s, which the caller runs next with ``erase_stored``."""
         intake = [staged for staged in self.intake if staged.user_id == user_id]
         removed = {'ratings': self.histories.drop(user_id), 'peer_ratings': len(self.peers.ratings(user_id)),
                    'model': int(self.predictor.user_model(user_id) is not None),
@@ -431,6 +431,11 @@ class Personalisation:
             self.forgotten = Forgotten(os.urandom(32), self.forgotten.tags)
         self.forgotten.add(user_id)
         return removed
+
+    def erase_stored(self, user_id: str, timeout: float = 600) -> dict:
+        """Erase ``user_id`` from the state store, their tombstone kept (``StateStore.erase_person``):
+        {table: rows removed}, once committed; {} with nothing recorded."""
+        return {} if self.store is None else self.store.erase_person(user_id).result(timeout)
 
     def durable_after(self, user_id: str) -> int:
         """The store's write that ``user_id``'s served model waits for before anyone else may

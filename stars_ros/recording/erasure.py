@@ -5,7 +5,8 @@
 1. an intent record, ``forgetting/<tombstone>.json``, written atomically: it holds the id
    (a re-run needs it) only until the last step removes it;
 2. the state store erases the person and stores their tombstone (``StateStore.erase_person``:
-   secure_delete, the write-ahead log truncated);
+   secure_delete, the write-ahead log truncated): in a serving node through the owner of
+   people (``Personalisation.erase_stored``), with no node here, on a store opened for it;
 3. every finished MCAP file holding a message that names them (``state.mentions``) is
    rewritten without those messages: everyone else's message bytes, topics and log times as
    they were, zstd chunks, an index and a summary, into a temporary file that is fsync'd and
@@ -137,10 +138,12 @@ def _erase_from_bags(folder: Path, drop, recorder) -> dict:
     return removed
 
 
-def forget(folder, user_id: str, store: StateStore | None = None, recorder=None, timeout: float = 600) -> dict:
-    """Erase ``user_id`` from the record folder ``folder`` (the module docstring's steps);
-    ``store``: the store a running node holds (else one is opened, and refused while a node
-    holds it: StoreLockedError), ``recorder``: that node's Recorder. Returns
+def forget(folder, user_id: str, erase_stored: Callable[[str], dict] | None = None, recorder=None,
+           timeout: float = 600) -> dict:
+    """Erase ``user_id`` from the record folder ``folder`` (the module docstring's steps).
+    ``erase_stored``: a running node's owner of people, which erases them from the store it
+    holds ({table: rows removed}); None: no node runs, and the store is opened here (refused
+    while a node holds it: StoreLockedError). ``recorder``: that node's Recorder. Returns
     {'state_store': {table: rows removed}, 'bags': {bag: messages removed}}."""
     if not user_id:
         raise ValueError('user_id is empty: an empty id names nobody')
@@ -151,18 +154,7 @@ def forget(folder, user_id: str, store: StateStore | None = None, recorder=None,
     intent = intents / f'{tag}.json'
     data = json.dumps({'user_id': user_id, 'started': time.time()}).encode()
     atomic_write(intent, lambda handle: handle.write(data))
-    own_store = store is None
-    if own_store:
-        store = StateStore(folder, 'python -m offline_training.forget', on_error=lambda text: None)
-        if store.error is not None:
-            error = store.error
-            store.close()
-            raise OSError(error)
-    try:
-        erased = store.erase_person(user_id).result(timeout)
-    finally:
-        if own_store:
-            store.close()
+    erased = _erase_offline(folder, user_id, timeout) if erase_stored is None else erase_stored(user_id)
     if recorder is None:
         for bag in abandoned_bags(folder):
             recover(bag)
@@ -170,6 +162,18 @@ def forget(folder, user_id: str, store: StateStore | None = None, recorder=None,
     intent.unlink()
     _fsync_folder(intents)
     return {'state_store': erased, 'bags': bags}
+
+
+def _erase_offline(folder: Path, user_id: str, timeout: float) -> dict:
+    """The store's step with no node running: the only writer of a person besides the owner
+    a serving node holds (``Personalisation``), and only while no node holds the store."""
+    store = StateStore(folder, 'python -m offline_training.forget', on_error=lambda text: None)
+    try:
+        if store.error is not None:
+            raise OSError(store.error)
+        return store.erase_person(user_id).result(timeout)
+    finally:
+        store.close()
 
 
 def interrupted(folder) -> list:
@@ -184,6 +188,7 @@ def interrupted(folder) -> list:
     return found
 
 
-def finish_interrupted(folder, store: StateStore | None = None, recorder=None) -> dict:
-    """Finish every forget a kill interrupted in ``folder``: {user_id: what was removed}."""
-    return {user_id: forget(folder, user_id, store, recorder) for user_id in interrupted(folder)}
+def finish_interrupted(folder, erase_stored: Callable[[str], dict] | None = None, recorder=None) -> dict:
+    """Finish every forget a kill interrupted in ``folder`` (``forget``'s arguments):
+    {user_id: what was removed}."""
+    return {user_id: forget(folder, user_id, erase_stored, recorder) for user_id in interrupted(folder)}

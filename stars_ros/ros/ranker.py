@@ -89,7 +89,7 @@ class RankerParts:
     parameters; configure (load the checkpoint into the core, create the publishers); activate
     (create the subscriptions, services and timers that serve). Mixed into a ``Node``."""
 
-    core, _configured, _serving = None, (), ()  # before configure, after cleanup
+    core, _configured, _serving, _more_work = None, (), (), None  # before configure, after cleanup
 
     def _declare_parameters(self):
         self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
@@ -134,7 +134,7 @@ class RankerParts:
                                # a stored person's ratings, read at their first feedback, live as long as the
                                # model: out of the collector's generations too (a full collection walking
                                # them held the executor 20-33 ms)
-                               after_person_read=gc.freeze)
+                               after_person_read=gc.freeze, wake=self._wake_work)
 
     def _activate(self):
         callbacks = {'stars/scene': self._on_scene, 'stars/user_id': lambda msg: self.core.accept_user_id(msg.data),
@@ -160,6 +160,7 @@ class RankerParts:
         destroy = {Subscription: self.destroy_subscription, Service: self.destroy_service, Timer: self.destroy_timer,
                    GuardCondition: self.destroy_guard_condition}
         self.qos_watch.forget([entity for entity in self._serving if isinstance(entity, Subscription)])
+        self._more_work = None
         for entity in self._serving:
             destroy[type(entity)](entity)
         self._serving = ()
@@ -250,6 +251,15 @@ class RankerParts:
     def _work(self):
         if self.core.work():
             self._more_work.trigger()
+
+    def _wake_work(self):
+        """From the state store's thread: a committed model waits for the executor to send it."""
+        guard = self._more_work
+        if guard is not None:
+            try:
+                guard.trigger()
+            except InvalidHandle:  # deactivated meanwhile: it goes out at the next work
+                pass
 
     def close(self):
         """Close the state store and the recording (clean shutdown); nothing before configure.

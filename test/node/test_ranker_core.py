@@ -9,7 +9,7 @@ import pytest
 
 from stars_ros import messages
 from stars_ros import recording, state
-from core_harness import Node, SteppedClock, drain, make_core
+from core_harness import Node, SteppedClock, drain, make_core, woken_and_drained
 from waiting import wait_for
 from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
@@ -238,7 +238,7 @@ def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_onc
     assert {m['user_id'] for m in node.on('stars/user_model')} <= stored
     writer.execute('PRAGMA max_page_count = 1000000')  # room again
     assert wait_for(lambda: core.diagnostics()[2]['feedback_not_on_disk'] == 0, 30)
-    assert wait_for(lambda: {m['user_id'] for m in node.on('stars/user_model')} == {
+    assert wait_for(lambda: woken_and_drained(node, core) and {m['user_id'] for m in node.on('stars/user_model')} == {
         f'person-{k}' for k in range(len(sent))}, 30), 'the models were not published once stored'
     core.close()
     assert [text for topic, text, _ in recording.read_messages(core.recorder.path) if topic == '/stars/feedback'] == sent
@@ -271,8 +271,8 @@ def test_a_model_is_seen_by_nobody_else_before_the_feedback_it_was_solved_from_i
     with state.open_reader(tmp_path) as store:  # what a kill now would leave
         assert store.summary() == [] and store.feedback() == []
     assert node.on('stars/user_model') == []
-    blocker.execute('ROLLBACK')  # the commit goes through: now others see her model
-    assert wait_for(lambda: node.on('stars/user_model'), 30)
+    blocker.execute('ROLLBACK')  # the commit goes through: the store's thread wakes the executor, which sends it
+    assert wait_for(lambda: woken_and_drained(node, core) and node.on('stars/user_model'), 30)
     assert node.on('stars/user_model')[0]['user_id'] == 'ann'
     blocker.close()
     core.close()
