@@ -271,9 +271,14 @@ def parse_scene_request(message, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneReq
                         explain=payload.get('explain', False))
 
 
-def parse_feedback(text, max_bytes: int = DEFAULT_MAX_BYTES) -> Feedback:
-    """Validate a /stars/feedback message and return it as ``Feedback``."""
-    payload = load_json(text, max_bytes)
+def parse_feedback(message, max_bytes: int = DEFAULT_MAX_BYTES) -> Feedback:
+    """Validate a /stars/feedback message (its text, or the ``Twin`` of typed feedback) and
+    return it as ``Feedback``."""
+    if isinstance(message, Twin):
+        message.check_size(max_bytes)
+        payload = message.payload
+    else:
+        payload = load_json(message, max_bytes)
     check('feedback', payload)
     try:
         score = float(payload['score'])

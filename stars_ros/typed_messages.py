@@ -123,8 +123,13 @@ def feedback_fields(feedback) -> dict:
     return fields
 
 
-def feedback_text(feedback) -> str:
-    """The stars/feedback JSON twin of a typed ``Feedback`` (with ``auth`` when signed)."""
+_FEEDBACK = len(messages.dumps({'user_id': '', 'scene_id': '', 'score': 0, 'action': '', 'candidate': '',
+                                 'auth': {'key_id': '', 'stamp': 0, 'mac': ''}})) + _FLOAT + _INT
+
+
+def feedback_twin(feedback) -> messages.Twin:
+    """The stars/feedback JSON twin of a typed ``Feedback`` (with ``auth`` when signed),
+    checked as its text would be (``messages.parse_feedback``) without being written."""
     if not math.isfinite(feedback.score):
         raise messages.BadMessage('non_finite', f'feedback score {feedback.score} is not a finite number',
                                   feedback.scene_id or None)
@@ -132,7 +137,9 @@ def feedback_text(feedback) -> str:
     if feedback.auth_key_id:
         payload['auth'] = {'key_id': feedback.auth_key_id, 'stamp': int(feedback.auth_stamp),
                            'mac': feedback.auth_mac}
-    return messages.dumps(payload)
+    texts = (feedback.user_id, feedback.scene_id, feedback.action, feedback.candidate, feedback.auth_key_id,
+             feedback.auth_mac)
+    return messages.Twin(payload, _FEEDBACK + sum(_text_bound(text) for text in texts))
 
 
 def question_request_text(request, robot_frame: str) -> str:

@@ -56,7 +56,7 @@ def test_non_finite_poses_room_points_and_scores_are_refused(synthetic_scenes):
     with pytest.raises(messages.BadMessage, match='room point'):
         scene_graph(message, 'base_link')
     with pytest.raises(messages.BadMessage, match='not a finite number'):
-        typed_messages.feedback_text(typed.Feedback(user_id='u', scene_id='s', action='a', score=math.nan))
+        typed_messages.feedback_twin(typed.Feedback(user_id='u', scene_id='s', action='a', score=math.nan))
 
 
 def test_requests_become_the_json_twins_the_schemas_take(synthetic_scenes):
@@ -110,12 +110,15 @@ def test_signed_typed_feedback_verifies_as_its_json_twin():
     feedback = typed.Feedback(user_id='ann', scene_id='s1', action='approach', score=0.25, auth_key_id='robot',
                               auth_stamp=1_000_000_000)
     feedback.auth_mac = feedback_auth.mac(secret, typed_messages.feedback_fields(feedback), feedback.auth_stamp)
-    parsed = messages.parse_feedback(typed_messages.feedback_text(feedback))
+    twin = typed_messages.feedback_twin(feedback)
+    parsed = messages.parse_feedback(twin)  # taken as a value: its text is written for the log only
+    assert parsed == messages.parse_feedback(twin.text)
+    assert len(twin.text.encode()) <= twin.size_bound
     assert (parsed.user_id, parsed.action, parsed.candidate, parsed.score) == ('ann', 'approach', None, 0.25)
     authenticator = feedback_auth.FeedbackAuthenticator({'robot': secret}, lambda: 60.0)
     assert authenticator.check(parsed.signed, 1_000_000_000) is None
-    unsigned = json.loads(typed_messages.feedback_text(typed.Feedback(user_id='ann', scene_id='s1', candidate='c2',
-                                                                      score=1.0)))
+    unsigned = json.loads(typed_messages.feedback_twin(typed.Feedback(user_id='ann', scene_id='s1', candidate='c2',
+                                                                      score=1.0)).text)
     assert unsigned == {'user_id': 'ann', 'scene_id': 's1', 'candidate': 'c2', 'score': 1.0}
 
 

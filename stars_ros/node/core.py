@@ -30,10 +30,9 @@ from typing import Callable, Mapping
 from stars_ros import feedback_auth, messages
 from stars_ros.node import markers
 from stars_ros.errors import CheckpointError, StarsError
-from stars_ros.state import check_score
 from stars_ros.node.questions import NoQuestion, choose_question
 from stars_ros.personalisation.online import Personalisation
-from stars_ros.personalisation.foldin import check_outcome
+from stars_ros.personalisation.foldin import check_feedback_score
 from stars_ros.model.predictor import Predictor
 from stars_ros.resources import resolve_checkpoint
 from stars_ros.node.batching import Pending, rank_batch
@@ -205,13 +204,15 @@ class RankerCore:
             return
         self.record('stars/user_id', text)
 
-    def accept_feedback(self, text: str) -> bool:
-        """Fold in a stars/feedback message and queue it, with the rating it gives, for the
-        state store, which commits both in one transaction and only then counts the feedback
-        as stored (``feedback_not_on_disk`` until then); True when a user now waits to be
-        re-solved (call ``work``)."""
-        topic = self.topics['stars/feedback']
-        feedback = self._parse(messages.parse_feedback, text, topic)
+    def accept_feedback(self, message, topic: str | None = None) -> bool:
+        """Fold in a stars/feedback message (its text, or typed feedback's ``Twin``) and queue
+        it, with the rating it gives, for the state store, which commits both in one
+        transaction and only then counts the feedback as stored (``feedback_not_on_disk``
+        until then); True when a user now waits to be re-solved (call ``work``). ``topic``:
+        the topic it came in on, which a refusal names (default: stars/feedback); it is
+        journaled as stars/feedback's text."""
+        topic = topic or self.topics['stars/feedback']
+        feedback = self._parse(messages.parse_feedback, message, topic)
         if feedback is None:
             return False
         if self.authenticator is not None:  # before the store: refused feedback is recorded as an error only
@@ -224,9 +225,7 @@ class RankerCore:
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
             return False
         try:  # before the store: a score off the scale is neither stored nor folded in
-            check_score(feedback.score, self.predictor.rating_scale, 'feedback score')
-            if feedback.implicit:  # an outcome is the scale's top or bottom (docs/hri.md)
-                check_outcome(feedback.score, self.predictor.rating_scale)
+            check_feedback_score(feedback, self.predictor.rating_scale)
         except StarsError as error:
             self.report(messages.error_kind(error), f'feedback refused, not stored: {error}', topic, feedback.scene_id)
             return False
@@ -237,7 +236,8 @@ class RankerCore:
         elif not self.store.healthy:
             self.report('recording', 'feedback could not be stored yet; kept in memory and retried', topic,
                         feedback.scene_id)
-        journal = None if self.store is None else ({'topic': topic, 'log_time': log_time, 'data': text},
+        journal = None if self.store is None else ({'topic': self.topics['stars/feedback'], 'log_time': log_time,
+                                                    'data': messages.text_of(message)},
                                                    self.records.bag)
         if not self.params['fold_in'] and feedback.user_id not in self.personalisation.forgotten:
             self.personalisation.record_feedback(journal)

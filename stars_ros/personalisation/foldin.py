@@ -53,7 +53,7 @@ from scipy import linalg
 from stars_ros.errors import OutOfScaleError, StarsError, UnknownActionError
 from stars_ros.model.vocabulary import UNKNOWN
 from stars_ros.personalisation.prior import PRIOR_SCALES, UserPrior, prior_of
-from stars_ros.state.person import Rating, UserModel
+from stars_ros.state.person import Rating, UserModel, check_score
 
 DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
 DEFAULT_CACHE_SCENES = 4096
@@ -65,14 +65,9 @@ def rating_from_feedback(feedback, request, predictor) -> Rating | str:
     and the offline refit both use this, so they fold in the same ratings: an action's
     feedback rates the scene (with its q_i when it is a training scene); a candidate's
     feedback rates that candidate scene under the action that ranked the candidates. An
-    implicit outcome keeps its message (so it stays implicit wherever the rating goes) and
-    must score the scale's top or bottom."""
+    implicit outcome keeps its message (so it stays implicit wherever the rating goes). Its
+    score has passed ``check_feedback_score`` (the node's intake, the refit's reader)."""
     source = feedback.as_message() if feedback.implicit else None
-    if feedback.implicit:
-        try:
-            check_outcome(feedback.score, predictor.rating_scale)
-        except OutOfScaleError as error:
-            return f"feedback on scene '{feedback.scene_id}': {error}"
     if feedback.action is not None:
         if request.ranks_scenes:
             return (f"feedback names action '{feedback.action}' but scene '{feedback.scene_id}' "
@@ -86,6 +81,16 @@ def rating_from_feedback(feedback, request, predictor) -> Rating | str:
         return f"scene '{feedback.scene_id}': {error}"
     return Rating(request.graphs[request.labels.index(feedback.candidate)], action, feedback.score, None,
                   feedback=source)
+
+
+def check_feedback_score(feedback, scale) -> None:
+    """OutOfScaleError for feedback (a ``messages.Feedback`` or a stored ``Rating``: its
+    ``score`` and ``implicit``) whose score is off the rating ``scale``, or, for an implicit
+    outcome, neither its top nor its bottom: the one check of a feedback's score, before it
+    is stored (the node) or refit on (the logs, the store)."""
+    check_score(feedback.score, scale, 'feedback score')
+    if feedback.implicit:  # an outcome is the scale's top or bottom (docs/hri.md)
+        check_outcome(feedback.score, scale)
 
 
 def check_outcome(score: float, scale) -> None:

@@ -29,8 +29,8 @@ from stars_ros.data.ratings import RatingData
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore, TabularStore
 from stars_ros.errors import OutOfScaleError, StarsError
-from stars_ros.personalisation.foldin import rating_from_feedback
-from stars_ros.state import check_score, scene_digest
+from stars_ros.personalisation.foldin import check_feedback_score, rating_from_feedback
+from stars_ros.state import scene_digest
 
 USED_TOPICS = ('stars/scene', 'stars/feedback', 'stars/user_model')
 OTHER_STARS_TOPICS = ('stars/ranking', 'stars/errors', 'stars/user_id')
@@ -179,7 +179,7 @@ def read_state(folder, predictor, forgotten=()) -> LogRatings:
                 if rating.action not in predictor.actions:
                     found.problem('unknown action', f"{store.path}: '{rating.action}' ({person.user_id})")
                     continue
-                if not _on_scale(rating.score, predictor, found, f'{store.path} ({person.user_id})'):
+                if not _on_scale(rating, predictor, found, f'{store.path} ({person.user_id})'):
                     continue
                 found.ratings.setdefault(person.user_id, []).append(rating)
             found.dropped[person.user_id] = person.dropped
@@ -188,11 +188,11 @@ def read_state(folder, predictor, forgotten=()) -> LogRatings:
     return found
 
 
-def _on_scale(score: float, predictor, found: LogRatings, where: str) -> bool:
-    """False, and an ``out_of_scale`` problem naming the scale, for a score off the
-    checkpoint's rating scale: it is not refit on."""
+def _on_scale(feedback, predictor, found: LogRatings, where: str) -> bool:
+    """False, and an ``out_of_scale`` problem naming the scale, for feedback whose score the
+    checkpoint's rating scale does not take (``foldin.check_feedback_score``): it is not refit on."""
     try:
-        check_score(score, predictor.rating_scale)
+        check_feedback_score(feedback, predictor.rating_scale)
     except OutOfScaleError as error:
         found.problem('out_of_scale', f'{where}: {error}')
         return False
@@ -212,7 +212,7 @@ def join_feedback(text: str, scenes: dict, predictor, found: LogRatings, log, fo
     if feedback.action is not None and feedback.action not in predictor.actions:
         found.problem('unknown action', f"{log}: '{feedback.action}' (scene {feedback.scene_id})")
         return
-    if not _on_scale(feedback.score, predictor, found, f'{log} ({feedback.user_id}, scene {feedback.scene_id})'):
+    if not _on_scale(feedback, predictor, found, f'{log} ({feedback.user_id}, scene {feedback.scene_id})'):
         return
     request = scenes.get(feedback.scene_id)
     if request is None:

@@ -101,8 +101,9 @@ class TypedInterface:
             self.more_work()
 
     def _on_feedback(self, feedback):
-        text, _ = self._twin(typed_messages.feedback_text, feedback, self._feedback_topic)
-        if text is not None and self.core.accept_feedback(text):
+        """Typed feedback enters the core as a value (its JSON twin, written once, for the log)."""
+        twin, _ = self._twin(typed_messages.feedback_twin, feedback, self._feedback_topic)
+        if twin is not None and self.core.accept_feedback(twin, self._feedback_topic):
             self.more_work()
 
 

@@ -8,7 +8,8 @@ import pytest
 
 from stars_ros import messages
 from stars_ros.model.predictor import Predictor
-from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, rating_from_feedback
+from stars_ros.errors import OutOfScaleError
+from stars_ros.personalisation.foldin import FoldIn, Rating, check_feedback_score, gaussian_posterior, rating_from_feedback
 
 
 @pytest.fixture()
@@ -83,7 +84,9 @@ def test_implicit_feedback_parses_stays_implicit_and_must_be_an_outcome(predicto
     plain = messages.parse_feedback(json.dumps({'user_id': 'u', 'scene_id': 's1', 'action': 'navigate', 'score': 0.4}))
     assert not plain.implicit and not rating_from_feedback(plain, request, predictor).implicit
     middling = messages.parse_feedback(text.replace('0.0', '0.5'))
-    assert 'top 1 (stayed engaged) or bottom 0' in rating_from_feedback(middling, request, predictor)
+    with pytest.raises(OutOfScaleError, match=r'top 1 \(stayed engaged\) or bottom 0'):
+        check_feedback_score(middling, predictor.rating_scale)  # the node's intake and the refit's reader
+    check_feedback_score(plain, predictor.rating_scale)
     with pytest.raises(messages.BadMessage):
         messages.parse_feedback(text.replace('true', '"yes"'))
 
