@@ -47,7 +47,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'test'))
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros import messages  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating, solve_ridge  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
@@ -372,7 +373,7 @@ def main(argv=None) -> int:
               f"most {account.get('delayed_processing_ms_max')} ms from reception to publication (any ranking: "
               f"{account.get('processing_ms_max')} ms)")
     results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
-               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
+               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(), 'git': git_state(),
                'load_average': [round(v, 2) for v in os.getloadavg()]}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1) + '\n')

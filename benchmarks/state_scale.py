@@ -43,7 +43,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO), str(REPO / 'test')]
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine, program_argv  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
@@ -244,7 +245,7 @@ def main(argv=None) -> int:
     checkpoint = resolve_checkpoint(args.checkpoint)
     predictor = Predictor.load(checkpoint)
     model = FoldIn(predictor).fit([Rating(scenes[0], 'navigate', 0.5)], 'probe')
-    results = {'command': shlex.join(['python', 'benchmarks/state_scale.py', *(sys.argv[1:] if argv is None else argv)]),
+    results = {'command': shlex.join(program_argv('benchmarks/state_scale.py', argv)), 'git': git_state(),
                'sizes': {}, 'settings': {**{k: v for k, v in vars(args).items() if k not in ('out', 'data_root')},
                                          'checkpoint': checkpoint, 'scenes': f'{len(scenes)} SocNav1 scenes (a-h)',
                                          'machine': machine()}}
