@@ -31,14 +31,14 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / 'test')]
+sys.path.insert(0, str(REPO))
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
-from ros_helpers import RosClient, domain_id, start_node  # noqa: E402
+from stars_ros.ros.loopback import RosClient, domain_id, start_node  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402

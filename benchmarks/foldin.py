@@ -45,7 +45,6 @@ from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / 'test'))
 
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
@@ -96,7 +95,7 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
 
 def live(checkpoint: str, scenes: list, args) -> dict:
     from std_msgs.msg import String
-    from ros_helpers import RELIABLE, RosClient, start_node, stop
+    from stars_ros.ros.loopback import RELIABLE, RosClient, start_node, stop
 
     domain = 150 + os.getpid() % 50
     client = RosClient(domain, listen=False)  # its only subscription: the rankings it times
@@ -187,7 +186,7 @@ class Streamer:
     """The streaming user's process for a ``with`` block; ``counts`` once it has ended."""
 
     def __init__(self, domain: int, args, tag: str):
-        from ros_helpers import ros_env
+        from stars_ros.ros.loopback import ros_env
         self.command = [sys.executable, __file__, '--streamer', '--data-root', args.data_root,
                         '--stream-rate', str(args.stream_rate), '--phase', tag]
         self.env = ros_env(domain)
@@ -229,7 +228,7 @@ def streamer_main(args) -> int:
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String
 
-    from ros_helpers import RELIABLE
+    from stars_ros.ros.loopback import RELIABLE
     from stars_ros.ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
