@@ -16,7 +16,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # offline_training is the checkout's, not installed
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros.data.scene_graph import featurise, validate_scene  # noqa: E402
 
 
@@ -43,7 +44,7 @@ def main():
         'validate_only_per_s': rate(validate_scene, scenes),
         'featurise_without_validation_per_s': rate(lambda s: featurise(s, validate=False), scenes),
         'featurise_with_validation_per_s': rate(featurise, scenes),
-        'machine': machine(),
+        'machine': machine(), 'git': git_state(),
     }
     for key, value in figures.items():
         if key.endswith('_per_s'):

@@ -31,7 +31,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros import feedback_auth, messages  # noqa: E402
 from stars_ros.data.scene_source import read_scenes, scene_request  # noqa: E402
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore  # noqa: E402
@@ -139,7 +140,7 @@ def main(argv=None) -> int:
         'verification_adds_us_p50': accept['signed']['p50'] - accept['unsigned']['p50'],
         'check_us': _percentiles(check_us), 'check_rating_us': _percentiles(rating_us), 'bytes': sizes,
         'settings': {'count': args.count, 'blocks': args.blocks, 'checkpoint': args.checkpoint or 'packaged default',
-                     'scenes': 'SocNav1 b.jsonl, 200 distinct', 'machine': machine()}}
+                     'scenes': 'SocNav1 b.jsonl, 200 distinct', 'machine': machine(), 'git': git_state()}}
     print(f"accept_feedback p50 / p99: unsigned {accept['unsigned']['p50']:.1f} / {accept['unsigned']['p99']:.1f} us, "
           f"signed {accept['signed']['p50']:.1f} / {accept['signed']['p99']:.1f} us "
           f"(+{results['verification_adds_us_p50']:.1f} us p50)")

@@ -31,13 +31,14 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / 'test')]
+sys.path.insert(0, str(REPO))
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
-from ros_helpers import RosClient, domain_id, start_node  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
+from stars_ros.ros.loopback import RosClient, domain_id, start_node  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
@@ -183,7 +184,7 @@ def main(argv=None) -> int:
                 process.wait(timeout=30)
     results = {'reach': reach, 'load': load, 'settings': {
         **{k: v for k, v in vars(args).items() if k not in ('out', 'data_root')}, 'checkpoint': checkpoint,
-        'scenes': 'SocNav1 b.jsonl', 'machine': machine()}}
+        'scenes': 'SocNav1 b.jsonl', 'machine': machine(), 'git': git_state()}}
     Path(args.out).write_text(json.dumps(results, indent=2))
     for name, values in reach.items():
         print(f"{name}: p50 {values['p50']:.1f} ms, p90 {values['p90']:.1f} ms, max {values['max']:.1f} ms")

@@ -45,9 +45,9 @@ from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / 'test'))
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros import messages  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating, solve_ridge  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
@@ -95,7 +95,7 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
 
 def live(checkpoint: str, scenes: list, args) -> dict:
     from std_msgs.msg import String
-    from ros_helpers import RELIABLE, RosClient, start_node, stop
+    from stars_ros.ros.loopback import RELIABLE, RosClient, start_node, stop
 
     domain = 150 + os.getpid() % 50
     client = RosClient(domain, listen=False)  # its only subscription: the rankings it times
@@ -186,7 +186,7 @@ class Streamer:
     """The streaming user's process for a ``with`` block; ``counts`` once it has ended."""
 
     def __init__(self, domain: int, args, tag: str):
-        from ros_helpers import ros_env
+        from stars_ros.ros.loopback import ros_env
         self.command = [sys.executable, __file__, '--streamer', '--data-root', args.data_root,
                         '--stream-rate', str(args.stream_rate), '--phase', tag]
         self.env = ros_env(domain)
@@ -228,7 +228,7 @@ def streamer_main(args) -> int:
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String
 
-    from ros_helpers import RELIABLE
+    from stars_ros.ros.loopback import RELIABLE
     from stars_ros.ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]
@@ -372,7 +372,7 @@ def main(argv=None) -> int:
               f"most {account.get('delayed_processing_ms_max')} ms from reception to publication (any ranking: "
               f"{account.get('processing_ms_max')} ms)")
     results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
-               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
+               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(), 'git': git_state(),
                'load_average': [round(v, 2) for v in os.getloadavg()]}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1) + '\n')

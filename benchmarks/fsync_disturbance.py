@@ -36,7 +36,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'benchmarks'))
 
 import node_latency  # noqa: E402
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
                            'p99_9': float(np.percentile(v, 99.9)), 'max': float(np.max(v)), 'count': len(v)}
                for condition, v in latencies.items()}
     results['settings'] = {**{k: v for k, v in vars(args).items() if k not in ('write_into', 'mode')},
-                           'machine': machine()}
+                           'machine': machine(), 'git': git_state()}
     for condition in args.conditions:
         r = results[condition]
         print(f"echo, {condition:19s}: p50 {r['p50']:.2f} ms, p99 {r['p99']:.2f} ms, p99.9 {r['p99_9']:.2f} ms, "

@@ -35,12 +35,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / 'test'))
-
-
-from offline_training.common import machine  # noqa: E402
-from ros_helpers import RELIABLE, RosClient, domain_id, start_node, stop  # noqa: E402
+from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
 from stars_ros.hri.people import DISENGAGED, ENGAGED  # noqa: E402
+from stars_ros.ros.loopback import RELIABLE, RosClient, domain_id, start_node, stop  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -137,10 +134,10 @@ def main(argv=None) -> int:
             if process.poll() is None:
                 stop(process, signal.SIGINT)
         client.close()
-    result = {'command': 'python benchmarks/hri_latency.py ' + ' '.join(argv or sys.argv[1:]),
+    result = {**run_record(program_argv('benchmarks/hri_latency.py', argv)),
               'people_tracked': args.people, 'placements': 6, 'max_age_s': args.max_age,
               'humans_per_bridge_scene': {'min': min(humans), 'max': max(humans), 'median': float(np.median(humans))},
-              **{path: summary(values) for path, values in timings.items()}, 'machine': machine()}
+              **{path: summary(values) for path, values in timings.items()}}
     result['bridge_minus_ranker_p50_ms'] = result['bridge']['p50_ms'] - result['ranker alone']['p50_ms']
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + '\n')

@@ -54,7 +54,8 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.ros.spinning import spin_until_shutdown  # noqa: E402
 
@@ -354,7 +355,7 @@ def main(argv=None) -> int:
                            'paced_period': args.paced_period, 'burst': args.burst, 'rates': args.rates,
                            'explain': args.explain, 'record_markers': not args.no_markers,
                            'checkpoint': args.checkpoint or 'packaged default', 'scenes': 'SocNav1 b.jsonl',
-                           'machine': machine()}
+                           'machine': machine(), 'git': git_state()}
     for name in ('echo', 'ranker'):
         lat = results[name]['latency_ms']
         paced = results[name]['paced_latency_ms']

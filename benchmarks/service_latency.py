@@ -38,7 +38,8 @@ from rclpy.node import Node  # noqa: E402
 from stars_ros_msgs import msg as typed  # noqa: E402
 from stars_ros_msgs.srv import RankActions  # noqa: E402
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.ros.spinning import spin_until_shutdown  # noqa: E402
 from stars_ros.typed_messages import scene_message  # noqa: E402
@@ -192,7 +193,7 @@ def main(argv=None) -> int:
                         'p99': results['ranker']['round_trip_ms']['p99'] / results['echo']['round_trip_ms']['p99'],
                         'p50_per_block': [r / e for r, e in zip(medians['ranker'], medians['echo'])]}
     results['settings'] = {'count': args.count, 'blocks': args.blocks, 'checkpoint': 'packaged default',
-                           'scenes': 'SocNav1 b.jsonl', 'service': SERVICE, 'machine': machine()}
+                           'scenes': 'SocNav1 b.jsonl', 'service': SERVICE, 'machine': machine(), 'git': git_state()}
     for name in served:
         trip = results[name]['round_trip_ms']
         print(f"{name:6s} round trip p50 {trip['p50']:.2f} ms  p99 {trip['p99']:.2f} ms  max {trip['max']:.2f} ms  "

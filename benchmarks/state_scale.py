@@ -41,9 +41,10 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / 'test')]
+sys.path.insert(0, str(REPO))
 
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import git_state, machine, program_argv  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
@@ -169,7 +170,7 @@ def fold_in_work(diagnostics: list) -> dict:
 
 
 def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domain: int, args) -> dict:
-    from ros_helpers import RosClient, start_node
+    from stars_ros.ros.loopback import RosClient, start_node
     client = RosClient(domain)
     started = time.perf_counter()
     process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': folder,
@@ -244,7 +245,7 @@ def main(argv=None) -> int:
     checkpoint = resolve_checkpoint(args.checkpoint)
     predictor = Predictor.load(checkpoint)
     model = FoldIn(predictor).fit([Rating(scenes[0], 'navigate', 0.5)], 'probe')
-    results = {'command': shlex.join(['python', 'benchmarks/state_scale.py', *(sys.argv[1:] if argv is None else argv)]),
+    results = {'command': shlex.join(program_argv('benchmarks/state_scale.py', argv)), 'git': git_state(),
                'sizes': {}, 'settings': {**{k: v for k, v in vars(args).items() if k not in ('out', 'data_root')},
                                          'checkpoint': checkpoint, 'scenes': f'{len(scenes)} SocNav1 scenes (a-h)',
                                          'machine': machine()}}
@@ -272,7 +273,7 @@ def main(argv=None) -> int:
                   f"{figures['update']['bytes_written_per_update']['mean'] / 1024:.1f} KiB written; restart "
                   f"{figures['restart_in_process']['open_load_restore_s']:.2f} s", flush=True)
         if not args.no_node:
-            from ros_helpers import domain_id
+            from stars_ros.ros.loopback import domain_id
             domain = domain_id(16)
             runs = [('empty', 0)] + [(f'{p}x{r}', p) for p, r in node_sizes]
             for name, people in runs:

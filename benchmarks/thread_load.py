@@ -1,6 +1,6 @@
 """Seconds per training epoch with and without a competing CPU-bound process, per thread setting.
 
-    PYTHONPATH=. python benchmarks/thread_load.py [--config config/socnav1_gat.yaml] [--epochs 3] \
+    python benchmarks/thread_load.py [--config config/socnav1_gat.yaml] [--epochs 3] \
         [--out results/thread_load.json]
 
 Trains the config's model (as ``offline_training.train`` does, on its seeded split) in a
@@ -17,7 +17,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from offline_training.common import DEFAULT_SOCNAV1, machine
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # offline_training is the checkout's, not installed
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
 
 FIT = '''
 import sys, time
@@ -37,7 +40,7 @@ BUSY = 'while True:\n    pass\n'
 
 def seconds_per_epoch(args, threads: int, policy: str | None, busy: bool) -> float:
     env = {k: v for k, v in os.environ.items() if k != 'OMP_WAIT_POLICY'}
-    env['PYTHONPATH'] = str(Path(__file__).resolve().parents[1])
+    env['PYTHONPATH'] = str(REPO)
     if policy:
         env['OMP_WAIT_POLICY'] = policy
     competitor = subprocess.Popen([sys.executable, '-c', BUSY]) if busy else None
@@ -53,12 +56,11 @@ def seconds_per_epoch(args, threads: int, policy: str | None, busy: bool) -> flo
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    repo = Path(__file__).resolve().parents[1]
-    parser.add_argument('--config', default=str(repo / 'config' / 'socnav1_gat.yaml'))
+    parser.add_argument('--config', default=str(REPO / 'config' / 'socnav1_gat.yaml'))
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--epochs', type=int, default=3)
     parser.add_argument('--timeout', type=int, default=900, help='seconds one condition may take')
-    parser.add_argument('--out', default=str(repo / 'results' / 'thread_load.json'))
+    parser.add_argument('--out', default=str(REPO / 'results' / 'thread_load.json'))
     args = parser.parse_args()
     conditions = [(1, None), (2, None), (2, 'PASSIVE')]
     rows = []
@@ -70,8 +72,8 @@ def main() -> int:
         loaded = seconds_per_epoch(args, threads, policy, busy=True)
         rows.append({'threads': threads, 'omp_wait_policy': policy or 'default', 'alone': alone, 'busy': loaded})
         print(f"| {threads} | {policy or 'default'} | {alone:.2f} | {loaded:.2f} | {loaded / alone:.1f} |", flush=True)
-    Path(args.out).write_text(json.dumps({'command': 'PYTHONPATH=. python ' + ' '.join(sys.argv), 'config': args.config,
-                                          'epochs': args.epochs, 'machine': machine(),
+    Path(args.out).write_text(json.dumps({**run_record(program_argv('benchmarks/thread_load.py')),
+                                          'config': args.config, 'epochs': args.epochs,
                                           'load_average_start': os.getloadavg(), 'conditions': rows},
                                          indent=2) + '\n')
     return 0

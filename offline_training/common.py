@@ -3,8 +3,6 @@ SocNav1 default path. (Plots: ``stars_ros.evaluation.plots``.)"""
 import argparse
 import concurrent.futures as futures
 import logging
-import os
-import platform
 import sys
 import time
 from collections.abc import Iterable
@@ -22,13 +20,6 @@ DEFAULT_SOCNAV1 = socnav1_root()
 def setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format='%(asctime)s %(name)s %(levelname)s: %(message)s', stream=sys.stderr)
-
-
-def machine() -> dict:
-    """What the figures were measured on."""
-    return {'platform': platform.platform(), 'python': platform.python_version(),
-            'torch': str(torch.__version__), 'cpus': os.cpu_count(),
-            'processor': platform.processor() or platform.machine()}
 
 
 def cuda_info(device: str) -> dict:

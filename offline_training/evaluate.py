@@ -21,7 +21,6 @@ import argparse
 import json
 import logging
 import os
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -33,11 +32,11 @@ from stars_ros.errors import StarsError
 from stars_ros.evaluation import peers
 from stars_ros.evaluation.folds import PROTOCOLS
 from stars_ros.evaluation.protocol import ProtocolConfig, model_specs, run_protocol
-from stars_ros.evaluation.report import (SUMMARY_FILES, git_state, json_default, previous_entries, report_failures,
-                                         write_results)
+from stars_ros.evaluation.provenance import program_argv, run_record, write_run_files
+from stars_ros.evaluation.report import SUMMARY_FILES, json_default, previous_entries, report_failures, write_results
 from stars_ros.model.config import ExperimentConfig
 
-from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, cuda_info, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, cuda_info, setup_logging
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -104,8 +103,7 @@ def main(argv=None) -> int:
     name = f"{config.name}-{args.protocol}{'-quick' if args.quick else ''}"
     folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
-    command = shlex.join(['python', '-m', 'offline_training.evaluate', *(sys.argv[1:] if argv is None else argv)])
-    header = {'command': command, 'git': git_state(), 'machine': {**machine(), 'device': device},
+    header = {**run_record(program_argv('offline_training.evaluate', argv), device),
               'load_start': [round(v, 2) for v in os.getloadavg()],
               'data': f'{data.source} ({len(data)} ratings, {len(set(data.users.tolist()))} users, '
                       f'{len(data.scene_keys)} scenes, fingerprint {data.fingerprint[:12]})'}
@@ -121,13 +119,8 @@ def main(argv=None) -> int:
         return 2
     for stale in SUMMARY_FILES:
         (folder / stale).unlink(missing_ok=True)
-    (folder / 'command.txt').write_text(command + '\n')
     (folder / 'config.yaml').write_text(yaml.safe_dump(settings, sort_keys=False))
-
-    def write_machine():
-        (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git'],
-                                                         'load_average_start': header['load_start']}, indent=2))
-    write_machine()
+    write_run_files(folder, header, load_average_start=header['load_start'])
     where = ' as Ray tasks' if args.executor == 'ray' else ''
     print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
           f'{fits.jobs} job(s) × {threads} thread(s) on {device}{where}; writing {folder}', flush=True)
@@ -144,12 +137,12 @@ def main(argv=None) -> int:
             print(f'error: {error}', file=sys.stderr)
             return 1
     header['machine'].update(cuda_info(device))  # the GPU's name, now that the workers are done with it
-    write_machine()
+    write_run_files(folder, header, load_average_start=header['load_start'])
     if result.failed:
         report_failures(folder, result)
         return 1
 
-    write_results(folder, result, config, header, command, args.protocol, load_seconds)
+    write_results(folder, result, config, header, header['command'], args.protocol, load_seconds)
     print((folder / 'tables.md').read_text())
     return 0
 

@@ -7,7 +7,7 @@ never trained on, and how GNNExplainer (torch_geometric.explain) compares.
 Held-out scenes are those none of whose ratings is in the checkpoint's training rows: the
 split the checkpoint records (``data.split``: test fraction and seed of ``split_rows``) redrawn
 on the same data (its fingerprint must match). Each scene is explained for the annotator who
-rated it. Writes ``command.txt``, ``results.json`` and ``results.md`` (see
+rated it. Writes ``command.txt``, ``machine.json``, ``results.json`` and ``results.md`` (see
 ``stars_ros.evaluation.explanations`` for what each figure is).
 """
 from __future__ import annotations
@@ -26,12 +26,13 @@ from stars_ros.data.ratings import load_dataset
 from stars_ros.data.scene_source import read_scenes
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.explanations import compare_gnnexplainer, faithfulness, held_out_scenes
+from stars_ros.evaluation.provenance import program_argv, run_record, write_run_files
 from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.model.training import split_rows
 from stars_ros.resources import resolve_checkpoint
 
-from .common import DEFAULT_SOCNAV1, machine
+from .common import DEFAULT_SOCNAV1
 
 
 def parse_args(argv=None):
@@ -122,7 +123,7 @@ def main(argv=None) -> int:
     action = predictor.actions[0]
     column = predictor.action_columns([action])[0]
     print(f'{held} held-out scenes; explaining {len(scenes)}', flush=True)
-    results = {'command': ' '.join(['python -m offline_training.explain_faithfulness'] + (argv or sys.argv[1:])),
+    results = {**run_record(program_argv('offline_training.explain_faithfulness', argv)),
                'checkpoint': _shown(checkpoint), 'fingerprint': predictor.fingerprint, 'held_out_scenes': held,
                'action': action, 'seed': args.seed,
                'faithfulness': faithfulness(predictor, scenes, users, column)}
@@ -133,9 +134,8 @@ def main(argv=None) -> int:
                                                    args.epochs, args.seed)
     print(json.dumps(results['gnnexplainer']), flush=True)
     results['wall_seconds'] = time.perf_counter() - started
-    results['machine'] = machine()
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / 'command.txt').write_text(results['command'] + '\n')
+    write_run_files(args.out, results)
     (args.out / 'results.json').write_text(json.dumps(results, indent=2) + '\n')
     (args.out / 'results.md').write_text(_markdown(results))
     print(f'wrote {args.out}')

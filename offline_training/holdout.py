@@ -18,10 +18,11 @@ from pathlib import Path
 
 from stars_ros import StarsRecommender
 from stars_ros.data.ratings import load_dataset
+from stars_ros.evaluation.provenance import program_argv, run_record
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.training import split_rows
 
-from .common import DEFAULT_SOCNAV1, machine
+from .common import DEFAULT_SOCNAV1
 
 _data = {}
 
@@ -82,13 +83,12 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - started
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    command = 'python -m offline_training.holdout ' + ' '.join(argv if argv is not None else sys.argv[1:])
+    record = run_record(program_argv('offline_training.holdout', argv))
     (out / 'results.json').write_text(json.dumps(
-        {'command': command, 'machine': machine(), 'wall_seconds': wall, 'jobs': args.jobs, 'runs': rows},
-        indent=2) + '\n')
+        {**record, 'wall_seconds': wall, 'jobs': args.jobs, 'runs': rows}, indent=2) + '\n')
     table = markdown(rows)
     (out / 'results.md').write_text(
-        f'# Fixed 80/20 row split\n\nCommand: `{command}`\n\nWall time {wall / 60:.1f} min with {args.jobs} '
+        f'# Fixed 80/20 row split\n\nCommand: `{record["command"]}`\n\nWall time {wall / 60:.1f} min with {args.jobs} '
         f'worker processes (1 torch thread each; s/epoch measured with both workers busy).\n\n{table}')
     print(table)
     return 0

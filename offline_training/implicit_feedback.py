@@ -19,17 +19,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
-import sys
 import time
 from pathlib import Path
 
 import torch
 from threadpoolctl import threadpool_limits
 
+from stars_ros.evaluation.provenance import program_argv, run_record
 from stars_ros.evaluation.implicit_run import CONFIGS, rewrite, run_dataset, write_report
 
-from .common import DEFAULT_SOCNAV1, machine, setup_logging
+from .common import DEFAULT_SOCNAV1, setup_logging
 
 NS = (0, 1, 2, 4, 8, 16, 32, 64, 128)
 KS = (0, 1, 2, 4, 8, 16)
@@ -80,10 +79,10 @@ def main(argv=None) -> int:
         rewrite(args.out)
         return 0
     started = time.time()
-    results = {'command': 'python -m offline_training.implicit_feedback ' + shlex.join(argv or sys.argv[1:]),
+    results = {**run_record(program_argv('offline_training.implicit_feedback', argv)),
                'ns': list(ns), 'ks': list(ks), 'flips': args.flips, 'draws': args.draws, 'exact_up_to': args.exact_up_to,
                'pool': args.pool,
-               'folds': args.folds, 'seed': args.seed, 'machine': machine(),
+               'folds': args.folds, 'seed': args.seed,
                'datasets': {name: run_dataset(name, args, ns, ks) for name in args.datasets}}
     results['seconds'] = time.time() - started
     (args.out / 'results.json').write_text(json.dumps(results, indent=1) + '\n')

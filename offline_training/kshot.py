@@ -43,7 +43,6 @@ ray``); a fold any of whose fits fails is left out and named, and the run ends w
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -53,10 +52,11 @@ from threadpoolctl import threadpool_limits
 
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.kshot import STRATEGIES
+from stars_ros.evaluation.provenance import program_argv, run_record
 from stars_ros.evaluation.kshot_run import SELECTABLE, KShotSettings, retrained_ks, run, write_results
 from stars_ros.model.config import ExperimentConfig
 
-from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, machine, read_inputs, setup_logging
+from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, read_inputs, setup_logging
 
 QUICK = {'folds': 2, 'ks': [0, 1, 2, 5], 'epochs': [1, 2], 'max_train_rows': 1500,
          'experiment': {'encoder': {'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
@@ -153,14 +153,14 @@ def main(argv=None) -> int:
                              None if args.retrain_ks is None else tuple(args.retrain_ks), args.known_test,
                              args.ridge_lambda, args.max_train_rows, args.random_sets, parse_select(args.select))
     started = time.perf_counter()
-    header = {'command': shlex.join(['python', '-m', 'offline_training.kshot', *(sys.argv[1:] if argv is None else argv)]),
+    header = {**run_record(program_argv('offline_training.kshot', argv)),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
               'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,
               'random_sets': args.random_sets, 'select': args.select,
               'retrain_ks': retrained_ks(settings),
               'executor': fits.settings, 'quick': args.quick,
-              'max_train_rows': args.max_train_rows, 'machine': machine(),
+              'max_train_rows': args.max_train_rows,
               'epochs': [config.training.pretrain_epochs, config.training.joint_epochs]}
 
     def on_fold(records, timings, folds, failed, left_out, calibration):  # partial results survive a stop

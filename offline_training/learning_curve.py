@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -34,9 +33,10 @@ from stars_ros.evaluation.folds import make_folds
 from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.evaluation.plots import label_axis, mean_band, pyplot, save_png
-from stars_ros.evaluation.report import METRIC_NAMES, git_state, write_csv
+from stars_ros.evaluation.provenance import program_argv, run_record, write_run_files
+from stars_ros.evaluation.report import METRIC_NAMES, write_csv
 
-from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, machine, read_inputs, setup_logging
+from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, read_inputs, setup_logging
 
 REPO = Path(__file__).resolve().parents[1]
 CURVE_COLUMNS = ('setting', 'variant', 'fold', 'epoch', 'mse', 'rmse', 'pearson_r', 'ccc', 'n')
@@ -183,13 +183,11 @@ def main(argv=None) -> int:
         return 2
     folder = Path(args.out)
     folder.mkdir(parents=True, exist_ok=True)
-    command = shlex.join(['python', '-m', 'offline_training.learning_curve', *(sys.argv[1:] if argv is None else argv)])
-    header = {'command': command, 'git': git_state(), 'machine': machine()}
-    (folder / 'command.txt').write_text(command + '\n')
+    header = run_record(program_argv('offline_training.learning_curve', argv))
     (folder / 'config.yaml').write_text(yaml.safe_dump(
         {**config.to_dict(), 'protocol_resolved': config.protocol_config.to_dict(), 'data_fingerprint': data.fingerprint},
         sort_keys=False))
-    (folder / 'machine.json').write_text(json.dumps({**header['machine'], 'git': header['git']}, indent=2))
+    write_run_files(folder, header)
     print(f'{len(tasks)} fits of {config.joint_epochs} joint epochs; {fits.jobs} job(s) ({fits.settings["kind"]}); '
           f'writing {folder}', flush=True)
     started = time.perf_counter()

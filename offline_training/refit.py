@@ -33,7 +33,6 @@ was found (1) or the inputs cannot be read at all (2).
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -41,6 +40,7 @@ from pathlib import Path
 from stars_ros import StarsRecommender
 from stars_ros.data.ratings import load_dataset
 from stars_ros.errors import StarsError, StoreError
+from stars_ros.evaluation.provenance import program_argv, run_record
 from stars_ros.personalisation.refit import LogRatings, forgotten_in, read_logs, read_state, record_folders_of
 
 from .common import setup_logging
@@ -134,8 +134,7 @@ def main(argv=None) -> int:
              'regularisation': {u: m.regularisation for u, m in solved.items()},
              'problems': dict(found.problems), 'epochs': args.epochs if args.mode == 'full' else 0,
              'fine_tune_losses': losses, 'data_root': args.data_root if original is not None else None,
-             'command': shlex.join(['python', '-m', 'offline_training.refit',
-                                    *(sys.argv[1:] if argv is None else argv)]),
+             **run_record(program_argv('offline_training.refit', argv)),
              'seconds': round(time.perf_counter() - started, 2)}
     digest = recommender.save(args.out, provenance={'refit': refit})
     print(f'wrote {args.out} ({args.mode} mode, {len(solved)} user(s), digest {digest[:12]}) in '

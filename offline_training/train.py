@@ -18,11 +18,12 @@ import numpy as np
 
 from stars_ros import StarsRecommender
 from stars_ros.errors import StarsError
+from stars_ros.evaluation.provenance import program_argv, run_record
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.metrics import regression_report
 from stars_ros.model.training import split_rows
 
-from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, machine, read_inputs, setup_logging
+from .common import DEFAULT_SOCNAV1, Progress, cuda_info, format_metrics, read_inputs, setup_logging
 
 
 def parse_args(argv=None):
@@ -70,6 +71,7 @@ def main(argv=None) -> int:
     print(f'data: {data.source}: {len(data)} ratings, {len(set(data.users.tolist()))} users, '
           f'{len(data.scene_keys)} scenes, actions {list(data.action_names)}; train {len(train)}, test {len(test)}')
     label = f'{config.encoder.name}-{config.model.variant}'
+    record = run_record(program_argv('offline_training.train', argv), config.training.device)
     started = time.perf_counter()
     recommender = StarsRecommender(config)
     pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
@@ -96,9 +98,8 @@ def main(argv=None) -> int:
     digest = recommender.save(
         args.out, data={'n_test': len(test), 'split': 'all rows' if args.all_rows else config.split.model_dump()},
         metrics=metrics,
-        provenance={'command': ' '.join(['python -m offline_training.train'] + (argv or sys.argv[1:])),
-                    'train_seconds': round(seconds, 1),
-                    'machine': {**machine(), 'device': config.training.device, **cuda_info(config.training.device)}})
+        provenance={**record, 'train_seconds': round(seconds, 1),
+                    'machine': {**record['machine'], **cuda_info(config.training.device)}})
     print(f'wrote {args.out} (digest {digest[:12]})')
     return 0
 

@@ -10,7 +10,6 @@ import csv
 import json
 import math
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +23,6 @@ from stars_ros.evaluation.stats import format_mean_sd, mean_sd
 from stars_ros.evaluation.summaries import (ablation_tests, by_model, grid_edge, paired_tests, peer_tests,
                                            sparsity_summary, time_accounting)
 
-REPO = Path(__file__).resolve().parents[2]  # the checkout, for git_state
 METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
 RECORD_COLUMNS = ('protocol', 'model', 'backbone', 'variant', 'fold', 'fraction', 'stage', 'settings', 'T1', 'T2',
                   'n_train', 'n_test', 'mse', 'rmse', 'pearson_r', 'ccc', 'epochs', 'fit_seconds',
@@ -58,16 +56,6 @@ def previous_entries(folder: Path, settings: dict) -> list:
         except json.JSONDecodeError:  # the last line, cut short when the run was stopped
             break
     return entries
-
-
-def git_state() -> dict:
-    """Commit and whether the checkout had uncommitted changes (results must say)."""
-    def git(*command):
-        return subprocess.run(['git', *command], cwd=REPO, capture_output=True, text=True, timeout=30).stdout.strip()
-    try:
-        return {'commit': git('rev-parse', 'HEAD'), 'dirty': bool(git('status', '--porcelain', '--untracked-files=no'))}
-    except (OSError, subprocess.SubprocessError):
-        return {'commit': None, 'dirty': None}
 
 
 # -- tables -----------------------------------------------------------------------------
