@@ -44,7 +44,8 @@ from stars_ros_msgs.srv import RankActions  # noqa: E402
 
 import node_latency  # noqa: E402  (the JSON path's client and requests)
 import service_latency  # noqa: E402  (the typed service's caller and requests)
-from offline_training.common import DEFAULT_SOCNAV1, machine  # noqa: E402
+from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
+from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 LOADED = re.compile(r'\[(\d+\.\d+)\] \[ranker\]: serving ')
@@ -191,10 +192,9 @@ def main(argv=None) -> int:
               **{f'{path}_{q}_ratio': float(np.median([r[path]['ratio'][q] for r in runs]))
                  for path in ('json', 'typed') for q in ('p50', 'p99')}}
     print('median of runs: ' + ', '.join(f'{k} {v:.2f}' for k, v in median.items()))
-    results = {'command': 'python benchmarks/serving_budget.py ' + ' '.join(sys.argv[1:] if argv is None else argv),
-               'runs': runs, 'median_of_runs': median,
+    results = {**run_record(program_argv('benchmarks/serving_budget.py', argv)), 'runs': runs, 'median_of_runs': median,
                'settings': {'runs': args.runs, 'count': args.count, 'blocks': args.blocks,
-                            'checkpoint': 'packaged default', 'scenes': 'SocNav1 b.jsonl', 'machine': machine()}}
+                            'checkpoint': 'packaged default', 'scenes': 'SocNav1 b.jsonl'}}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2) + '\n')
     print(f'wrote {args.out}')

@@ -595,7 +595,10 @@ class StateStore:
         return done
 
     def forgotten(self) -> Forgotten:
-        """The tombstones stored here (read now)."""
+        """The tombstones stored here (read now); none while the store cannot be opened (a
+        folder that cannot be written: nothing is stored, and the store reports why)."""
+        if self.error is not None:
+            return Forgotten(None)
         reader = StoreReader(self.path)
         try:
             return Forgotten(folder_secret(self.folder), reader.forgotten_tags())
