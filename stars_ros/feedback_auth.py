@@ -108,7 +108,7 @@ class FeedbackAuthenticator:
 
     def __init__(self, keys: Mapping[str, bytes], max_age: Callable[[], float]):
         self.keys, self._max_age = dict(keys), max_age
-        self._taken = {}  # MAC -> stamp of each feedback taken within the window
+        self._taken = {}  # MAC -> (stamp, user id) of each feedback taken within the window
         self._by_stamp = []  # heap of (stamp, MAC), to let the oldest go
         self._forgotten_before = 0  # MACs of stamps before this (ns) are let go: such stamps are refused
 
@@ -133,7 +133,7 @@ class FeedbackAuthenticator:
                     'taken only when signed again')
         if code in self._taken:
             return f"a replay: a message with this MAC (key '{auth['key_id']}') was already taken"
-        self._taken[code] = stamp
+        self._taken[code] = (stamp, payload.get('user_id'))
         heapq.heappush(self._by_stamp, (stamp, code))
         return None
 
@@ -143,8 +143,28 @@ class FeedbackAuthenticator:
         for message in signed_messages:
             auth = message.get('auth') if isinstance(message, Mapping) else None
             if isinstance(auth, Mapping) and type(auth.get('stamp')) is int and isinstance(auth.get('mac'), str):
-                self._taken[auth['mac']] = auth['stamp']
+                self._taken[auth['mac']] = (auth['stamp'], message.get('user_id'))
                 heapq.heappush(self._by_stamp, (auth['stamp'], auth['mac']))
+
+    def forget_person(self, user_id: str) -> int:
+        """Let go of the MACs of ``user_id``'s feedback (a forget): the replay memory keeps
+        nothing of them. A replay of it is refused as theirs (the tombstone) instead; how
+        many went."""
+        gone = [code for code, (_, person) in self._taken.items() if person == user_id]
+        for code in gone:
+            del self._taken[code]  # its heap entry finds nothing when its time comes
+        return len(gone)
+
+    def verify(self, payload: Mapping | None) -> str | None:
+        """Why ``payload`` (a fleet forget, which stays valid without age) is refused, or
+        None: it carries a well-formed ``auth`` of a known key whose MAC matches."""
+        return self._verify(payload)[1]
+
+    def signing_key(self) -> tuple[str, bytes]:
+        """(key id, secret) this node signs with: the key file's first key (while keys
+        rotate, peers that have not got the new key yet still check it)."""
+        key_id = next(iter(self.keys))
+        return key_id, self.keys[key_id]
 
     def check_rating(self, user_id: str, rating) -> str | None:
         """Why a peer's rating of ``user_id`` (``foldin.Rating``) is refused, or None: it

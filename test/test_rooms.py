@@ -6,7 +6,7 @@ from pathlib import Path
 import stars_ros
 
 PACKAGE = Path(stars_ros.__file__).parent
-WRITES_OF_A_PERSON = {'write_person', 'forget_person', 'erase_person'}  # the store's methods that change a person
+WRITES_OF_A_PERSON = {'write_person', 'forget_person', 'erase_person', 'erase_older', 'keep_tombstone'}  # the store's methods that change a person
 
 
 def _modules():

@@ -38,11 +38,14 @@ from stars_ros.resources import resolve_checkpoint
 from stars_ros.node.batching import Pending, rank_batch
 from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos  # noqa: F401  (ros.ranker reads them here)
 from stars_ros.node.fleet_intake import FleetIntake
+from stars_ros.node import fleet_forget
+from stars_ros.node.consent import Consent
 from stars_ros.node.diagnostics import WARNINGS, BusySpans, PeriodStats, Problems, period_report
 from stars_ros.node.records import NodeRecords
 from stars_ros.recording import erasure
 
 MAX_STRANGERS_REMEMBERED = 10000
+RETENTION_TIMEOUT = 600  # s a retention pass waits for the state store's erase
 
 
 class RankerCore:
@@ -87,6 +90,7 @@ class RankerCore:
         self._fold_in_spans = BusySpans()  # when fold-in work was done (``clock``)
         self._period_stats = PeriodStats()  # for the next diagnostics
         self.authenticator = self._feedback_authenticator()  # first: a bad key file leaves no recording open
+        self.consent = Consent(params['store_policy'], params['consent_file'])  # as is a bad consent file
         self.records = None  # while it opens, a problem is published and logged, not recorded
         self.records = NodeRecords(params, self.topics, node_name,
                                    {'checkpoint': self.checkpoint_path, 'fingerprint': self.predictor.fingerprint},
@@ -96,8 +100,10 @@ class RankerCore:
             self.store, origin=node_name, sharing=params['fleet_sharing'], authenticator=self.authenticator,
             after_person_read=after_person_read)
         self.fleet = FleetIntake(params, self.topics['stars/user_model'], self.report)
+        self.records.consent, self.fleet.may_store = self.consent, self.consent.allows
         self.finish_interrupted_forgets()  # before restore: a person half erased is not read back
         self.personalisation.restore()
+        self.apply_retention()  # at start, before serving; then on the node's timer
 
     def _feedback_authenticator(self):
         """The checks of signed feedback (``feedback_auth``), None without a key file. A key
@@ -220,6 +226,10 @@ class RankerCore:
             if refusal is not None:
                 self.report('auth', f'feedback refused, not folded in: {refusal}', topic, feedback.scene_id)
                 return False
+        if not self.consent.allows(feedback.user_id):  # the report does not name them: stars/errors is recorded
+            self.report('consent', 'feedback of a person not on the consent list (store_policy consented): not '
+                        'stored, not folded in', topic, feedback.scene_id)
+            return False
         if feedback.action is not None and feedback.action not in self.predictor.actions:
             self.report('unknown_action', f"feedback for unknown action '{feedback.action}'; this model knows "
                         f'{list(self.predictor.actions)}', topic, feedback.scene_id)
@@ -464,12 +474,13 @@ class RankerCore:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
         self.records.close(self.personalisation.flush, self._send_durable_models)
 
-    def forget_person(self, user_id: str) -> dict:
+    def forget_person(self, user_id: str, tell_fleet: bool = True) -> dict:
         """Erase ``user_id`` everywhere this node keeps them (docs/privacy.md): memory
         (``Personalisation.forget_person``), then the state store and every bag of the
         record folder (``recording.erasure.forget``), leaving a tombstone; {place: {what:
-        removed}}. ValueError for an empty id; OSError or StoreError when the disk refuses
-        (a re-run, or the next start, finishes it)."""
+        removed}}. With fleet sharing and ``tell_fleet``, peers are told once it is done
+        (``fleet_forget``). ValueError for an empty id; OSError or StoreError when the disk
+        refuses (a re-run, or the next start, finishes it)."""
         if not user_id:
             raise ValueError('user_id is empty: an empty id names nobody')
         removed = {'memory': self.personalisation.forget_person(user_id)}
@@ -479,6 +490,8 @@ class RankerCore:
         if self.records.folder is not None:
             removed.update(erasure.forget(self.records.folder, user_id, self.personalisation.erase_stored,
                                           self.recorder))
+        if tell_fleet and self.params['fleet_sharing']:
+            self._tell_fleet_forgotten(user_id)
         return removed
 
     def finish_interrupted_forgets(self) -> None:
@@ -487,3 +500,72 @@ class RankerCore:
             finished = erasure.finish_interrupted(self.records.folder, self.personalisation.erase_stored,
                                                   self.recorder)
             self.logger.info(f'finished {len(finished)} forget(s) a kill had interrupted')
+
+    # -- fleet forget (docs/privacy.md) ----------------------------------------------------
+    def _tell_fleet_forgotten(self, user_id: str) -> None:
+        """Send peers the stars/forget_person message of ``user_id`` (no id in it), and record it."""
+        payload = messages.dumps(fleet_forget.forget_message(user_id, self.personalisation.origin, self.authenticator,
+                                                             self._now()))
+        self._publish('stars/forget_person', payload)
+        self.record('stars/forget_person', payload)
+
+    def accept_forget_message(self, text: str) -> int:
+        """A peer's stars/forget_person message (fleet sharing): everyone this node holds
+        whom it names is forgotten here through ``forget_person`` (not told again), and its
+        tag is kept as a tombstone, so their models and feedback are refused from now on;
+        how many were forgotten. A bad or unsigned one (with feedback keys) is reported
+        and changes nothing; this node's own is ignored."""
+        topic = self.topics['stars/forget_person']
+        try:
+            payload = fleet_forget.parse_forget_message(text, self.params['max_message_bytes'], self.authenticator)
+        except messages.BadMessage as error:
+            self.report(error.kind, f'{error}; nobody forgotten', topic)
+            return 0
+        if payload['origin'] == self.personalisation.origin:
+            return 0
+        known = self.personalisation.known_people() | ({self.user_id} - {None})
+        if self.store is not None:
+            known |= self.store.known_people()
+        named = fleet_forget.named_in(payload, known, self.authenticator)
+        self.personalisation.keep_fleet_tombstone(fleet_forget.tombstone_of(payload, self.authenticator))
+        for user_id in named:
+            try:
+                self.forget_person(user_id, tell_fleet=False)
+            except (OSError, StarsError) as error:  # the intent record stays: the next start finishes it
+                self.report('recording', f"a forget from {payload['origin']} could not finish: {error}", topic)
+        self.logger.info(f"forget from {payload['origin']}: {len(named)} person(s) held here forgotten, its "
+                         'tombstone kept')
+        return len(named)
+
+    # -- consent and retention (docs/privacy.md) --------------------------------------------
+    def accept_consent(self, text: str) -> None:
+        """A stars/consent message (store_policy consented): the list it gives replaces the
+        topic's last one; a bad one is reported and the list stays as it was."""
+        try:
+            count = self.consent.accept(text, self.params['max_message_bytes'])
+        except messages.BadMessage as error:
+            self.report(error.kind, f'{error}; the consent list stays as it was', self.topics['stars/consent'])
+            return
+        self.logger.info(f'consent list: {count} person(s) from stars/consent, {len(self.consent.from_file)} from '
+                         'consent_file')
+
+    def apply_retention(self) -> dict:
+        """Erase every rating older than ``retention_days`` (0: none) from memory
+        and the state store (``Personalisation.apply_retention``: ``StateStore.erase_older``,
+        its journal too) and the bags (``recording.erasure.erase_older``: every message
+        logged before then); {place: {what: removed}}. Run at start and by the node's timer;
+        a disk that refuses is reported, and the next pass erases what this one left."""
+        days = self.params['retention_days']
+        if days <= 0:
+            return {}
+        cutoff = self._now() - int(days * 86400e9)
+        removed = {}
+        try:
+            removed.update(self.personalisation.apply_retention(cutoff, RETENTION_TIMEOUT))
+            if self.records.folder is not None:
+                removed['bags'] = erasure.erase_older(self.records.folder, cutoff, self.recorder)
+        except (OSError, StarsError, TimeoutError) as error:
+            self.report('recording', f'retention pass not finished (the next one goes on): {error}')
+        if any(any(counts.values()) for counts in removed.values()):
+            self.logger.info(f'retention_days = {days:g}: erased {removed}')
+        return removed

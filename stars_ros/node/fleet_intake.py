@@ -28,6 +28,7 @@ class FleetIntake:
     def __init__(self, params: dict, topic: str, report: Callable):
         self.params, self.topic, self.report = params, topic, report
         self._peers_reported = set()  # (peer, fingerprint or λ) warned about once
+        self.may_store = lambda user_id: True  # store_policy: whose models may be taken in (node.consent)
 
     def accept(self, text: str, predictor, personalisation) -> bool:
         """Take in a peer's stars/user_model message for ``personalisation`` serving
@@ -45,6 +46,10 @@ class FleetIntake:
         if user_id in personalisation.forgotten:  # the report does not name them: stars/errors is recorded
             self.report('forgotten', f'a user model from {peer} of a person forgotten here: refused, nothing taken in',
                         topic)
+            return False
+        if not self.may_store(user_id):
+            self.report('consent', f'a user model from {peer} of a person not on the consent list (store_policy '
+                        'consented): refused, nothing taken in', topic)
             return False
         if payload['fingerprint'] != predictor.fingerprint:
             self._warn_once(peer, payload['fingerprint'], f"user models from {peer} were solved against checkpoint "

@@ -10,8 +10,9 @@ from stars_ros import messages, recording
 from stars_ros.resources import DEFAULT_CHECKPOINT
 
 TOPICS = ('stars/scene', 'stars/user_id', 'stars/feedback', 'stars/ranking', 'stars/errors', 'stars/user_model',
-          'stars/question_request', 'stars/question', 'stars/markers')
+          'stars/question_request', 'stars/question', 'stars/markers', 'stars/forget_person', 'stars/consent')
 _INT_MAX = 2 ** 31 - 1
+FORGETS_KEPT = 100  # stars/forget_person messages a peer that joins late still gets
 
 
 def topic_qos(params: Mapping) -> dict:
@@ -19,12 +20,14 @@ def topic_qos(params: Mapping) -> dict:
     adapter subscribes and publishes with and the recorder offers again (``ros2 bag play``).
     A robot that joins late gets the last user models; with fleet sharing the history also
     holds a re-send of every user until the newcomer has it; a viewer that joins late gets
-    the latest scene's markers."""
+    the latest scene's markers; a peer that joins late gets the last forgets; the consent
+    list is the latest one published."""
     depth = params['queue_depth']
     models = depth + (params['fold_in_max_users'] if params['fleet_sharing'] else 0)
     return {'stars/scene': (depth, False), 'stars/ranking': (depth, False), 'stars/feedback': (100, False),
             'stars/errors': (100, False), 'stars/user_id': (1, True), 'stars/user_model': (models, True),
-            'stars/question_request': (10, False), 'stars/question': (10, False), 'stars/markers': (1, True)}
+            'stars/question_request': (10, False), 'stars/question': (10, False), 'stars/markers': (1, True),
+            'stars/forget_person': (FORGETS_KEPT, True), 'stars/consent': (1, True)}
 
 
 PARAMETERS = {  # name: (default, description, read_only, range)
@@ -76,4 +79,12 @@ PARAMETERS = {  # name: (default, description, read_only, range)
                           'it; empty: feedback is not authenticated', True, None),
     'feedback_max_age': (60.0, 'seconds signed feedback stays valid: a stamp further in the past or the future, or '
                          'a MAC already taken within it, is refused (kind auth)', False, (0.001, 86400.0)),
+    'store_policy': ('all', "whom the node stores: 'all'; 'consented': only people on the consent list "
+                     '(consent_file and stars/consent) are stored, learned and shared, everyone else is ranked as a '
+                     'stranger and nothing of them is kept (docs/privacy.md)', True, None),
+    'consent_file': ('', "with store_policy 'consented': a file of the ids of people who agreed to be stored, one a "
+                     'line (# starts a comment), joined by those stars/consent lists; empty: none', True, None),
+    'retention_days': (0.0, 'ratings older than this many days are erased from the state store and the bags, at '
+                       'start and then hourly while the node serves; 0: kept until forgotten', False,
+                       (0.0, 36500.0)),
 }

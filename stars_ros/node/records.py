@@ -4,6 +4,7 @@ recording, the log of record (``stars_ros.recording``). Each has its own thread,
 disk never holds up the rankings; feedback reaches the bag once the store has committed it."""
 from __future__ import annotations
 
+import json
 from typing import Callable, Mapping
 
 from stars_ros import recording
@@ -36,6 +37,7 @@ class NodeRecords:
         folder = params['record_folder']
         self.folder = recording.node_folder(folder, node_name) if folder else None
         self.recorder = None
+        self.consent = None  # node.consent.Consent: whose id may reach the bag (None: everyone's)
         self.store = self._open_store(node_name)  # first: StoreLockedError when another node holds the folder
         self.recorder = self._start_recorder(node_name, custom, markers_type)
 
@@ -82,9 +84,37 @@ class NodeRecords:
             self.logger.info(text)
 
     def record(self, topic: str, text: str, log_time: int | None = None):
-        """Record ``text`` on ``topic`` (one of ``TOPICS``) at ``log_time`` (default: now)."""
+        """Record ``text`` on ``topic`` (one of ``TOPICS``) at ``log_time`` (default: now),
+        without the id of a person who may not be stored (``without_strangers``)."""
         if self.recorder is not None:
-            self.recorder.write(self.topics[topic], text, self._now() if log_time is None else log_time)
+            text = self.without_strangers(topic, text)
+            if text is not None:
+                self.recorder.write(self.topics[topic], text, self._now() if log_time is None else log_time)
+
+    def without_strangers(self, topic: str, text: str) -> str | None:
+        """``text`` as the bag may keep it under store_policy 'consented': a scene request,
+        ranking or question request of a person not on the consent list without its
+        ``user_id``; their stars/user_id, and the warning that names them as an unknown
+        user, not at all (None)."""
+        consent = self.consent
+        if consent is None or not consent.restricted:
+            return text
+        if topic == 'stars/user_id':
+            return text if not text.strip() or consent.allows(text.strip()) else None
+        if topic not in ('stars/scene', 'stars/ranking', 'stars/question_request', 'stars/errors'):
+            return text
+        try:
+            payload = json.loads(text)
+        except ValueError:
+            return text
+        if not isinstance(payload, dict):
+            return text
+        if topic == 'stars/errors':
+            return None if payload.get('kind') == 'unknown_user' else text
+        if isinstance(payload.get('user_id'), str) and not consent.allows(payload['user_id']):
+            del payload['user_id']
+            return json.dumps(payload, separators=(',', ':'))
+        return text
 
     def record_markers(self, data: bytes, stamp: int):
         """Record a stars/markers array (its CDR bytes), if ``record_markers`` says so."""

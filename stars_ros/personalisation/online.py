@@ -139,7 +139,8 @@ class Personalisation:
         self.solved_from = {}  # user -> the ratings their served model was solved from
         self.written = {}  # user -> sequence number of their latest write to the store
         self.unsaved = set()  # users whose served model the store does not hold yet
-        self.forgotten = Forgotten(None)  # the tombstones of people erased (the store's, once restored)
+        self.forgotten = self._with_fleet_keys(Forgotten(None))  # the tombstones of people erased (the store's,
+        # once restored)
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.store = store
@@ -417,7 +418,8 @@ class Personalisation:
         intake = [staged for staged in self.intake if staged.user_id == user_id]
         removed = {'ratings': self.histories.drop(user_id), 'peer_ratings': len(self.peers.ratings(user_id)),
                    'model': int(self.predictor.user_model(user_id) is not None),
-                   'scene_requests': self.scenes.forget(mentions(user_id)), 'peer_messages_in_intake': len(intake)}
+                   'scene_requests': self.scenes.forget(mentions(user_id)), 'peer_messages_in_intake': len(intake),
+                   'replay_memory': 0 if self.authenticator is None else self.authenticator.forget_person(user_id)}
         self.peers.drop(user_id)
         self.predictor.set_user_model(user_id, None)
         for kept in (self.pending, self.to_announce, self.solved_from, self.written):
@@ -426,9 +428,10 @@ class Personalisation:
         for staged in intake:
             self.intake.remove(staged)
         if self.forgotten.secret is None and self.store is not None:
-            self.forgotten = Forgotten(folder_secret(self.store.folder, create=True), self.forgotten.tags)
+            self.forgotten = self._with_fleet_keys(Forgotten(folder_secret(self.store.folder, create=True),
+                                                             self.forgotten.tags))
         if self.forgotten.secret is None:  # nothing recorded: remembered in memory only, with a secret of this run
-            self.forgotten = Forgotten(os.urandom(32), self.forgotten.tags)
+            self.forgotten = self._with_fleet_keys(Forgotten(os.urandom(32), self.forgotten.tags))
         self.forgotten.add(user_id)
         return removed
 
@@ -436,6 +439,58 @@ class Personalisation:
         """Erase ``user_id`` from the state store, their tombstone kept (``StateStore.erase_person``):
         {table: rows removed}, once committed; {} with nothing recorded."""
         return {} if self.store is None else self.store.erase_person(user_id).result(timeout)
+
+    def _with_fleet_keys(self, forgotten: Forgotten) -> Forgotten:
+        """``forgotten`` checking fleet tombstones with the feedback keys (``state.forgotten``)."""
+        forgotten.fleet_keys = {} if self.authenticator is None else dict(self.authenticator.keys)
+        return forgotten
+
+    def keep_fleet_tombstone(self, kept: str) -> None:
+        """A fleet peer forgot someone (``forgotten.fleet_tombstone``): refused here from now
+        on, and after a restart when the store keeps it."""
+        self.forgotten.tags.add(kept)
+        if self.store is not None:
+            self.store.keep_tombstone(kept)
+
+    def known_people(self) -> set:
+        """Every id this node holds something of in memory: histories, peers' ratings,
+        served models, what waits."""
+        return {*self.histories.users(), *self.peers.users(), *self.predictor.user_models, *self.pending,
+                *(staged.user_id for staged in self.intake)}
+
+    def apply_retention(self, cutoff: int, timeout: float) -> dict:
+        """Retention (``retention_days``): every rating, own or a peer's, stamped before
+        ``cutoff`` (ROS time, ns) leaves memory; a person left with some is re-solved and
+        written as they are now, one left with none goes back to the checkpoint. Every
+        person held is read (a Deferred one too). Then the store erases what is older still
+        (``StateStore.erase_older``, its journal too; waited for up to ``timeout`` s).
+        {'memory': {what: entries removed}, 'state_store': {table: rows removed}}."""
+        removed = {'ratings': 0, 'peer_ratings': 0, 'people': 0}
+        for user_id in {*self.histories.users(), *self.peers.users()}:
+            own = [r for r in self.histories.ratings(user_id) if r.stamp < cutoff]
+            shared = [r for r in self.peers.ratings(user_id) if r.stamp < cutoff]
+            if not own and not shared:
+                continue
+            removed['ratings'] += len(own)
+            removed['peer_ratings'] += len(shared)
+            self.histories.discard(user_id, own)
+            self.peers.discard(user_id, shared)
+            if self.histories.ratings(user_id) or self.peers.ratings(user_id):
+                self.solved_from.pop(user_id, None)
+                self.pending[user_id] = None
+                self._save(user_id)
+                continue
+            removed['people'] += 1
+            self.histories.drop(user_id)
+            self.peers.drop(user_id)
+            self.predictor.set_user_model(user_id, None)
+            for kept in (self.pending, self.to_announce, self.solved_from):
+                kept.pop(user_id, None)
+            self.unsaved.discard(user_id)
+            self._forget_stored(user_id)
+        if self.store is None:
+            return {'memory': removed}
+        return {'memory': removed, 'state_store': self.store.erase_older(cutoff).result(timeout)}
 
     def durable_after(self, user_id: str) -> int:
         """The store's write that ``user_id``'s served model waits for before anyone else may
@@ -457,7 +512,7 @@ class Personalisation:
         anyone else waits to be solved again."""
         if self.store is None:
             return
-        self.forgotten = self.store.forgotten()
+        self.forgotten = self._with_fleet_keys(self.store.forgotten())
         people, problem = self.store.load(self.predictor.fingerprint)
         if problem is not None:
             self._report('user_models', problem)

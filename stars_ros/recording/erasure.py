@@ -51,11 +51,17 @@ def rewrite_without(path: Path, drop: Callable[[bytes], bool]) -> FileStats | No
     """Rewrite the finished MCAP file ``path`` without the messages whose data ``drop``
     says (atomically); None, and the file untouched, when it holds none; else the new
     file's statistics, with ``removed`` {topic: messages removed}."""
+    return rewrite_dropping(path, lambda message: drop(bytes(message.data)))
+
+
+def rewrite_dropping(path: Path, drop: Callable[[object], bool]) -> FileStats | None:
+    """``rewrite_without`` with ``drop`` asked of each message record (its ``data``,
+    ``log_time``, ``channel_id``)."""
     found = salvage(path)
     if found.damage is not None:
         raise OSError(f'{path} is damaged ({found.damage}): run `python -m stars_ros.recording recover '
                       f'{path.parent}` first')
-    kept = [m for m in found.messages if not drop(bytes(m.data))]
+    kept = [m for m in found.messages if not drop(m)]
     if len(kept) == len(found.messages):
         return None
     topics, types, removed = {}, {}, {}
@@ -66,7 +72,7 @@ def rewrite_without(path: Path, drop: Callable[[bytes], bool]) -> FileStats | No
             types.setdefault(channel.topic, MessageType(schema.name, bytes(schema.data).decode(),
                                                         channel.metadata.get('topic_type_hash', '')))
     for message in found.messages:
-        if drop(bytes(message.data)):
+        if drop(message):
             topic = found.channels[message.channel_id].topic
             removed[topic] = removed.get(topic, 0) + 1
     written = []
@@ -192,3 +198,48 @@ def finish_interrupted(folder, erase_stored: Callable[[str], dict] | None = None
     """Finish every forget a kill interrupted in ``folder`` (``forget``'s arguments):
     {user_id: what was removed}."""
     return {user_id: forget(folder, user_id, erase_stored, recorder) for user_id in interrupted(folder)}
+
+
+def _older(cutoff: int):
+    def older(path: Path) -> FileStats | None:
+        stats = file_stats(path)
+        if not stats.count or stats.start >= cutoff:  # nothing old in it: not read
+            return None
+        return rewrite_dropping(path, lambda message: message.log_time < cutoff)
+    return older
+
+
+def erase_older(folder, cutoff: int, recorder=None) -> dict:
+    """Retention: every bag message of ``folder`` logged before ``cutoff`` (ROS time, ns)
+    goes, each file rewritten atomically as a forget rewrites it (a kill leaves each file
+    before or after; the next pass finishes); {bag: messages removed}. ``recorder``: a
+    serving node's, whose bag is rewritten through it (its file in progress finished first)."""
+    folder = Path(folder).expanduser()
+    older, removed = _older(cutoff), {}
+    for bag in sorted(p for p in folder.iterdir() if p.is_dir() and p.name != INTENTS):
+        if recorder is not None and bag == recorder.path:  # its file in progress is finished first (a new one
+            count = sum(sum(stats.removed.values()) for stats in recorder.rewrite_finished(older))  # each pass)
+            if count:
+                removed[bag.name] = count
+            continue
+        for left in bag.glob('*.tmp'):
+            left.unlink()
+        count, files = 0, bag_files(bag)
+        for path in files:
+            if is_finished(path):
+                stats = older(path)
+                count += 0 if stats is None else sum(stats.removed.values())
+        if (count or _bag_start(bag) < cutoff) and files and (bag / METADATA_FILE).exists():
+            rebuild_metadata(bag)  # also after a kill between a file's rename and this
+        if count:
+            removed[bag.name] = count
+    return removed
+
+
+def _bag_start(bag: Path) -> float:
+    """When the recording ``bag`` began, by its metadata.yaml (ns; infinite when it says nothing)."""
+    try:
+        info = yaml.safe_load((bag / METADATA_FILE).read_text())['rosbag2_bagfile_information']
+        return int(info['starting_time']['nanoseconds_since_epoch']) if info['message_count'] else float('inf')
+    except (OSError, KeyError, TypeError, ValueError):
+        return float('inf')

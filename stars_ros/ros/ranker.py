@@ -63,6 +63,7 @@ from stars_ros.ros.unknown_parameters import warn_unknown_overrides
 # s: how long a thread that holds the GIL keeps it while another waits (Python's default 5 ms);
 # the state store's writer thread then holds a ranking back for at most this long
 SWITCH_INTERVAL = 0.001
+RETENTION_CHECK_PERIOD = 3600.0  # s between two passes of retention_days (one runs at start too)
 LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR}
 
 
@@ -135,6 +136,7 @@ class RankerParts:
                                # model: out of the collector's generations too (a full collection walking
                                # them held the executor 20-33 ms)
                                after_person_read=gc.freeze, wake=self._wake_work)
+        self._configure_privacy()
 
     def _activate(self):
         callbacks = {'stars/scene': self._on_scene, 'stars/user_id': lambda msg: self.core.accept_user_id(msg.data),
@@ -154,6 +156,37 @@ class RankerParts:
                          self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics),
                          *TypedInterface(self, self.core, self.params, self._more_work.trigger,
                                          self.qos_watch).entities]
+        self._serving += self._activate_privacy()
+
+    def _configure_privacy(self):
+        """With fleet sharing, the publisher of stars/forget_person (docs/privacy.md)."""
+        if self.params['fleet_sharing']:
+            publisher = self.create_publisher(String, 'stars/forget_person', self.qos['stars/forget_person'],
+                                              event_callbacks=NO_PUBLISHER_EVENTS)
+            self.qos_watch.watch(publisher, publishes=True)
+            self.publishers_by_topic['stars/forget_person'] = publisher
+            self._configured.append(publisher)
+
+    def _activate_privacy(self) -> list:
+        """Peers' forgets (fleet sharing), the consent list (store_policy consented) and the
+        retention timer: the entities they add to serving."""
+        callbacks = {}
+        if self.params['fleet_sharing']:
+            callbacks['stars/forget_person'] = self._on_forget_message
+        if self.params['store_policy'] == 'consented':
+            callbacks['stars/consent'] = lambda msg: self.core.accept_consent(msg.data)
+        entities = []
+        for topic, callback in callbacks.items():
+            subscription = self.create_subscription(String, topic, callback, self.qos[topic],
+                                                    event_callbacks=NO_SUBSCRIPTION_EVENTS)
+            self.qos_watch.watch(subscription, publishes=False)
+            entities.append(subscription)
+        entities.append(self.create_timer(RETENTION_CHECK_PERIOD, self.core.apply_retention))
+        return entities
+
+    def _on_forget_message(self, msg: String):
+        if self.core.accept_forget_message(msg.data):
+            self._more_work.trigger()
 
     def _deactivate(self):
         """Stop serving: every subscription, service, timer and guard condition of ``_activate`` goes."""

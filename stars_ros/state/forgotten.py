@@ -6,7 +6,13 @@ an id it meets (a refit's bag, a peer's model, new feedback) was forgotten, and 
 the tombstones alone names nobody. The secret (``forget.key``, 32 random bytes, mode 0600)
 is the folder's own: whoever holds both the key and a guess of an id can test the guess,
 so the key stays with the folder and is never shared with peers (each peer keeps its own
-tombstones). ROS-free, standard library only.
+tombstones).
+
+A peer's forget (``fleet_tag``) names the person by a tag a fleet peer can compute too:
+HMAC-SHA256 under the fleet's feedback key (SHA-256 without keys) of a random salt and the
+id. A peer keeps it as a fleet tombstone (``fleet:KEY_ID:SALT:TAG`` beside the folder's
+tags), so a person it never met is refused too once a peer forgot them. ROS-free, standard
+library only.
 """
 from __future__ import annotations
 
@@ -21,6 +27,8 @@ from typing import Callable, Iterable
 SECRET_FILE = 'forget.key'
 SECRET_BYTES = 32
 _ID_CHARACTER = rb'[A-Za-z0-9_-]'
+FLEET_PREFIX = 'fleet:'
+_FLEET_DOMAIN = b'stars_ros/forget_person\0'  # a fleet tag is never a feedback MAC
 
 
 def folder_secret(folder, create: bool = False) -> bytes | None:
@@ -46,15 +54,40 @@ def tombstone(secret: bytes, user_id: str) -> str:
     return hmac.new(secret, user_id.encode('utf-8'), hashlib.sha256).hexdigest()
 
 
+def fleet_tag(key: bytes | None, salt: bytes, user_id: str) -> str:
+    """The tag a fleet forget names ``user_id`` by (hex): HMAC-SHA256(``key``, salt, id)
+    under a feedback key, SHA-256(salt, id) without one."""
+    data = _FLEET_DOMAIN + salt + user_id.encode('utf-8')
+    return (hmac.new(key, data, hashlib.sha256) if key is not None else hashlib.sha256(data)).hexdigest()
+
+
+def fleet_tombstone(key_id: str, salt: str, tag: str) -> str:
+    """How a fleet forget's tag is kept among a folder's tombstones ('' key id: unsigned)."""
+    return f'{FLEET_PREFIX}{key_id}:{salt}:{tag}'
+
+
 class Forgotten:
     """The tombstones of one record folder: ``user_id in forgotten`` says whether they were
-    forgotten there; ``add`` marks one more (the caller stores the tag it returns)."""
+    forgotten there, or by a fleet peer (``fleet_keys``: key id -> secret, to check the fleet
+    tombstones signed under them; one of a key no longer held is not checked); ``add`` marks
+    one more (the caller stores the tag it returns)."""
 
-    def __init__(self, secret: bytes | None, tags: Iterable[str] = ()):
-        self.secret, self.tags = secret, set(tags)
+    def __init__(self, secret: bytes | None, tags: Iterable[str] = (), fleet_keys: dict | None = None):
+        self.secret, self.tags, self.fleet_keys = secret, set(tags), dict(fleet_keys or {})
 
     def __contains__(self, user_id) -> bool:
-        return self.secret is not None and bool(self.tags) and tombstone(self.secret, str(user_id)) in self.tags
+        if not self.tags:
+            return False
+        if self.secret is not None and tombstone(self.secret, str(user_id)) in self.tags:
+            return True
+        return any(self._fleet_match(tag, str(user_id)) for tag in self.tags if tag.startswith(FLEET_PREFIX))
+
+    def _fleet_match(self, kept: str, user_id: str) -> bool:
+        key_id, salt, tag = kept[len(FLEET_PREFIX):].split(':')
+        key = self.fleet_keys.get(key_id) if key_id else None
+        if key_id and key is None:
+            return False
+        return hmac.compare_digest(fleet_tag(key, bytes.fromhex(salt), user_id), tag)
 
     def __len__(self) -> int:
         return len(self.tags)

@@ -304,6 +304,14 @@ class StoreReader:
         return {tag for (tag,) in self._connection.execute('SELECT tag FROM forgotten')}
 
     @_reading
+    def known_people(self) -> set:
+        """Every id this store holds something of: people, peers' ratings, the journal's
+        feedback (its ``user_id``, read by SQLite's JSON functions)."""
+        query = ('SELECT person FROM people UNION SELECT person FROM peer_ratings UNION '
+                 "SELECT json_extract(data, '$.user_id') FROM feedback WHERE json_valid(data)")
+        return {person for (person,) in self._connection.execute(query) if isinstance(person, str) and person}
+
+    @_reading
     def feedback_count(self) -> int:
         return self._connection.execute('SELECT COUNT(*) FROM feedback').fetchone()[0]
 
@@ -594,6 +602,34 @@ class StateStore:
             self._queue.put(('erase', (), (user_id, done), self._sequence))
         return done
 
+    def erase_older(self, cutoff: int) -> concurrent.futures.Future:
+        """Retention: erase every rating and peer rating stamped, and every journal entry
+        logged, before ``cutoff`` (ROS time, ns), as ``erase_person`` erases (secure_delete,
+        the write-ahead log truncated); a person left with no ratings goes. Queued after
+        every write before it. The Future gives {what: rows removed}."""
+        done = concurrent.futures.Future()
+        with self._count_lock:
+            self._sequence += 1
+            self._queue.put(('retention', (), (cutoff, done), self._sequence))
+        return done
+
+    def keep_tombstone(self, tag: str) -> int:
+        """Store one more tombstone (a fleet peer's forget, ``forgotten.fleet_tombstone``);
+        returns the write's sequence number."""
+        with self._count_lock:
+            self._sequence += 1
+            self._queue.put(('tombstone', (), tag, self._sequence))
+            return self._sequence
+
+    def known_people(self) -> set:
+        """Every id the store holds something of (read now): people, peers' ratings, and the
+        user ids of the journal's feedback."""
+        reader = StoreReader(self.path)
+        try:
+            return reader.known_people()
+        finally:
+            reader.close()
+
     def forgotten(self) -> Forgotten:
         """The tombstones stored here (read now); none while the store cannot be opened (a
         folder that cannot be written: nothing is stored, and the store reports why)."""
@@ -727,6 +763,10 @@ class StateStore:
                         self._write_person(value, written)
                     elif kind == 'forget':
                         self._forget(value, written)
+                    elif kind == 'retention':
+                        erased.append((value[1], self._erase_older(value[0], written), lambda data: False))
+                    elif kind == 'tombstone':
+                        self._connection.execute('INSERT OR IGNORE INTO forgotten VALUES (?, ?)', (value, time.time()))
                     elif kind == 'erase':
                         erased.append((value[1], self._erase(value[0], written), mentions(value[0])))
                     elif kind == 'fingerprint':
@@ -886,6 +926,30 @@ class StateStore:
         secret = folder_secret(self.folder, create=True)
         connection.execute('INSERT OR IGNORE INTO forgotten VALUES (?, ?)',
                            (Forgotten(secret).tag(user_id), time.time()))
+        return removed
+
+    def _erase_older(self, cutoff: int, written: dict) -> dict:
+        """``erase_older``'s rows, in the transaction under way; {what: rows removed}."""
+        connection, removed = self._connection, {}
+        for table in _RATING_TABLES:
+            rows = connection.execute(f'SELECT person, id FROM {table} WHERE stamp < ?', (cutoff,)).fetchall()
+            by_person = {}
+            for person, rating_id in rows:
+                by_person.setdefault(person, []).append(rating_id)
+            for person, ids in by_person.items():
+                held = self._held(written, table, person)
+                for rating_id in ids:
+                    self._release_scene(held.pop(rating_id))
+                    connection.execute(f'DELETE FROM {table} WHERE person = ? AND id = ?', (person, rating_id))
+                written[(table, person)] = held
+                connection.execute(f'UPDATE people SET {table} = ?, solved = 0 WHERE person = ?', (len(held), person))
+            removed[table] = len(rows)
+        gone = [person for (person,) in connection.execute(
+            'SELECT person FROM people WHERE ratings = 0 AND peer_ratings = 0')]
+        for person in gone:
+            self._forget(person, written)
+        removed['people'] = len(gone)
+        removed['journal'] = connection.execute('DELETE FROM feedback WHERE log_time < ?', (cutoff,)).rowcount
         return removed
 
     def _finish_erasures(self, erased: list):
