@@ -77,7 +77,7 @@ class RankerCore:
                  after_person_read: Callable[[], None] | None = None, wake: Callable[[], None] | None = None):
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
         self._clock, self._wake = clock, wake or (lambda: None)
-        self.durable_models = collections.deque()  # stars/user_model payloads whose ratings are committed
+        self.durable_models = collections.deque()  # (user, stars/user_model payload) whose ratings are committed
         self.markers_out = markers_out
         self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
         self.predictor = Predictor.load(self.checkpoint_path)
@@ -383,13 +383,13 @@ class RankerCore:
             return
 
         def committed():  # on the store's thread, or on this one if it is committed already
-            self.durable_models.append(payload)
+            self.durable_models.append((user_id, payload))
             self._wake()
         self.store.when_committed(self.personalisation.durable_after(user_id), committed)
 
     def _send_durable_models(self):
         while self.durable_models:
-            self._send_model(self.durable_models.popleft())
+            self._send_model(self.durable_models.popleft()[1])
 
     def _send_model(self, payload: str):
         """Publish and record (logged when it goes out) a user model whose ratings are durable."""
@@ -490,6 +490,11 @@ class RankerCore:
         if self.records.folder is not None:
             removed.update(erasure.forget(self.records.folder, user_id, self.personalisation.erase_stored,
                                           self.recorder))
+        # models committed before the erase (whose commit it waited for), not sent yet: never sent now
+        waiting = [entry for entry in list(self.durable_models) if entry[0] == user_id]
+        for entry in waiting:
+            self.durable_models.remove(entry)
+        removed['memory']['models_to_send'] = len(waiting)
         if tell_fleet and self.params['fleet_sharing']:
             self._tell_fleet_forgotten(user_id)
         return removed

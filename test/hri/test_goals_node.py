@@ -117,7 +117,7 @@ class Rig:
     def close(self):
         try:
             assert self.bridge.poll() is None, self.log.read_text()[-3000:]
-            assert stop(self.bridge, signal.SIGINT) == 0
+            assert stop(self.bridge, signal.SIGINT) == 0, self.log.read_text()[-3000:]
         finally:
             if self.bridge.poll() is None:
                 self.bridge.kill()

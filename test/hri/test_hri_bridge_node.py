@@ -61,6 +61,7 @@ class Loop:
         self.bridge = start_node('stars_ros.ros.hri_bridge', self.domain, {
             'pose_source': 'topic', 'goal_frame': 'map', 'rate': 4.0, 'max_age': 1.0, 'abstain_below': 0.0,
             'outcome_window': 1.0, 'diagnostics_period': 0.5}, tmp_path / 'bridge.log')
+        self.bridge_log = tmp_path / 'bridge.log'
         self.world.track(list(POSES))
         for person_id in ('alice', 'bob'):
             self.world.anonymous(person_id, False)
@@ -104,7 +105,7 @@ class Loop:
         try:
             if self.bridge is not None:
                 assert self.bridge.poll() is None, 'the bridge died during the tests'
-                assert stop(self.bridge, signal.SIGINT) == 0
+                assert stop(self.bridge, signal.SIGINT) == 0, self.bridge_log.read_text()[-3000:]
         finally:
             if self.bridge is not None and self.bridge.poll() is None:
                 self.bridge.kill()

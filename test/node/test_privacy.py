@@ -13,7 +13,7 @@ from stars_ros import feedback_auth, messages, recording, state
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.errors import ConfigError
 from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
-from core_harness import Node, deliver, drain, published_models
+from core_harness import Node, deliver, drain, published_models, woken_and_drained
 from forget_search import bag_records, holds, store_bytes
 from waiting import wait_for
 
@@ -52,7 +52,7 @@ def robot(checkpoint, folder, name, clock, **params):
     values.update({'checkpoint': str(checkpoint), 'record_folder': str(folder) if folder else '',
                    'flush_interval': 60.0, **params})
     core = RankerCore(values, {topic: f'/{name}/{topic}' for topic in TOPICS}, f'/{name}/ranker', node.publish, node,
-                      clock)
+                      clock, wake=node.woken.set)
     return node, core
 
 
@@ -69,11 +69,12 @@ def rate(core, scene, user, score, signed=False):
     return accepted
 
 
-def models_out(node, want: dict) -> list:
+def models_out(node, core, want: dict) -> list:
     """The stars/user_model texts ``node`` published, once they hold {user: n_ratings} (a
-    model goes out when the store has committed its ratings)."""
-    assert wait_for(lambda: want.items() <= {(m['user_id'], m['n_ratings'])
-                                            for m in node.on('stars/user_model')}, 30), 'models not published'
+    model goes out when the store has committed its ratings: the store's thread wakes the
+    executor, which sends it)."""
+    assert wait_for(lambda: (woken_and_drained(node, core) or True) and want.items() <= {
+        (m['user_id'], m['n_ratings']) for m in node.on('stars/user_model')}, 30), 'models not published'
     return published_models(node)
 
 
@@ -106,7 +107,7 @@ def test_a_forget_reaches_a_peer_without_the_id_and_a_later_model_is_refused(tin
     for n, scene in enumerate(scenes[:3]):
         assert rate(robot_a, scene, 'walker', 0.2 + 0.3 * n, signed=True)
         assert rate(robot_a, scene, 'runner', 0.9 - 0.3 * n, signed=True)
-    models = models_out(node_a, {'walker': 3, 'runner': 3})
+    models = models_out(node_a, robot_a, {'walker': 3, 'runner': 3})
     deliver(models, robot_b)
     assert robot_b.predictor.user_model('walker') is not None
     assert wait_for(lambda: any(holds(data, 'walker') for data in store_bytes(tmp_path / 'b').values()), 30)
@@ -149,7 +150,7 @@ def test_a_peer_that_never_met_the_person_keeps_the_tombstone(tiny_checkpoint, s
     node_a, robot_a = robot(tiny_checkpoint, tmp_path / 'a', 'robot_a', clock, fleet_sharing=True)
     node_c, robot_c = robot(tiny_checkpoint, tmp_path / 'c', 'robot_c', clock, fleet_sharing=True)
     assert rate(robot_a, scenes[0], 'walker', 0.9)
-    models = models_out(node_a, {'walker': 1})
+    models = models_out(node_a, robot_a, {'walker': 1})
     robot_a.forget_person('walker')
     [forget] = node_a.on('stars/forget_person')
     assert 'auth' not in forget and 'walker' not in json.dumps(forget)
@@ -188,7 +189,7 @@ def test_store_policy_consented_keeps_nobody_else(tiny_checkpoint, scenes, tmp_p
     drain(core)  # recorded now
     assert ranking['user_id'] == 'bob' and 'personalised_from' not in ranking  # served as a stranger
     core.accept_user_id('bob')
-    peer = dict(json.loads(models_out(node, {'ann': 1})[0]), user_id='carl', origin='/peer/ranker')
+    peer = dict(json.loads(models_out(node, core, {'ann': 1})[0]), user_id='carl', origin='/peer/ranker')
     assert not core.accept_user_model(json.dumps(peer))  # a peer's model of someone without consent
     assert len(errors(node, 'consent')) == 2
     core.accept_consent(json.dumps({'consented': ['bob']}))  # the consent flow adds bob
@@ -221,7 +222,7 @@ def test_retention_erases_old_ratings_everywhere(tiny_checkpoint, scenes, tmp_pa
     node, core = robot(tiny_checkpoint, folder, 'robot', clock)
     assert rate(core, scenes[0], 'old-only', 0.9)
     assert rate(core, scenes[0], 'both', 0.1)
-    models_out(node, {'old-only': 1, 'both': 1})  # their models are logged at T0 too
+    models_out(node, core, {'old-only': 1, 'both': 1})  # their models are logged at T0 too
     clock.now += 3 * DAY
     assert rate(core, scenes[1], 'both', 0.8)
     assert rate(core, scenes[2], 'recent', 0.4)

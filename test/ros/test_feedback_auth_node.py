@@ -62,15 +62,19 @@ def test_a_key_file_the_ranker_cannot_use_stops_it(tiny_checkpoint, tmp_path):
 
 @pytest.fixture(scope='module')
 def ranker(tiny_checkpoint, synthetic_scenes, tmp_path_factory):
-    """The module's signed-feedback ranker: the policy test only reads its graph, and the
-    feedback test names a person and scene ids no other test does."""
+    """The module's signed-feedback ranker, every option that adds a topic on (fleet sharing,
+    consent): the policy test only reads its graph, and the feedback test names a person
+    (on the consent list) and scene ids no other test does."""
     folder = tmp_path_factory.mktemp('signed_ranker')
     key_file = folder / 'keys.txt'
     key_file.write_text(f'tablet:{SECRET.hex()}\n')
     key_file.chmod(0o600)
+    consent_file = folder / 'consent.txt'
+    consent_file.write_text(f'{USER}\n')
     domain = domain_id(13)
     params = {'checkpoint': tiny_checkpoint, 'record_folder': folder / 'records', 'flush_interval': 0.2,
-              'diagnostics_period': 0.3, 'fleet_sharing': True, 'feedback_key_file': key_file}
+              'diagnostics_period': 0.3, 'fleet_sharing': True, 'feedback_key_file': key_file,
+              'store_policy': 'consented', 'consent_file': consent_file}
     probe = {'scene_id': 'probe', 'graph': synthetic_scenes[0]}
     with running_ranker(domain, params, folder / 'ranker.log', probe, START_TIMEOUT) as (process, client):
         yield process, client, key_file, folder
