@@ -185,22 +185,24 @@ class RankerCore:
             return
         self.queue.append(Pending(request, request.user_id or self.user_id, received, text, log_time))
 
-    def rank_now(self, message, received: int, log_time: int | None = None) -> tuple:
+    def rank_now(self, message, received: int, log_time: int | None = None, source: str | None = None) -> tuple:
         """Score one stars/scene request (its text, or a typed request's ``Twin``) at once, as
         the queue's next batch would (a service call, between two batches): (its stars/ranking
         payload, None), or (None, (kind, message)) once the refusal is on stars/errors.
-        ``log_time``: when the request was taken (ROS time, ns; default now). The ranking is
-        not published; the next ``work`` records it and sends its markers (call it once the
-        reply is out)."""
+        ``log_time``: when the request was taken (ROS time, ns; default now); ``source``: the
+        service or topic it came in on, which a refusal names (default: stars/scene). The
+        ranking is not published; the next ``work`` records it and sends its markers (call it
+        once the reply is out)."""
+        source = source or self.topics['stars/scene']
         try:
             request = messages.parse_scene_request(message, self.params['max_message_bytes'])
         except messages.BadMessage as error:
-            self.report(error.kind, str(error), self.topics['stars/scene'], error.scene_id)
+            self.report(error.kind, str(error), source, error.scene_id)
             return None, (error.kind, str(error))
         self.personalisation.scenes.received(request.scene_id, message)
         log_time = self._now() if log_time is None else log_time
         return self._serve([Pending(request, request.user_id or self.user_id, received, message, log_time)],
-                           publish=False)[0]
+                           publish=False, source=source)[0]
 
     def accept_user_id(self, text: str):
         try:
@@ -396,9 +398,11 @@ class RankerCore:
         self._publish('stars/user_model', payload)
         self.record('stars/user_model', payload)
 
-    def _serve(self, batch: list, publish: bool = True) -> list:
+    def _serve(self, batch: list, publish: bool = True, source: str | None = None) -> list:
         """Score ``batch``; per request (its ranking payload, None) or (None, (kind, message)).
-        ``publish``: the rankings go out on stars/ranking."""
+        ``publish``: the rankings go out on stars/ranking; ``source``: where the requests came
+        in, which a refusal names (default: stars/scene)."""
+        source = source or self.topics['stars/scene']
         outcomes = []
         predictor, top_k = self.predictor, self.params['top_k']
         started = self._clock()
@@ -408,7 +412,7 @@ class RankerCore:
             request = item.request
             if isinstance(result, Exception):
                 self.record('stars/scene', messages.text_of(item.message), item.log_time)
-                self.report(messages.error_kind(result), str(result), self.topics['stars/scene'], request.scene_id)
+                self.report(messages.error_kind(result), str(result), source, request.scene_id)
                 outcomes.append((None, (messages.error_kind(result), str(result))))
                 continue
             known, personalised = predictor.knows_user(item.user_id), predictor.personalised_from(item.user_id)

@@ -60,8 +60,8 @@ class TypedInterface:
 
         def answer():
             twin, refusal = self._twin(lambda r: convert(r, frame), request, self._names[name])
-            payload, refusal = (None, refusal) if twin is None else self.core.rank_now(twin, received,
-                                                                                        taken.nanoseconds)
+            payload, refusal = (None, refusal) if twin is None else self.core.rank_now(
+                twin, received, taken.nanoseconds, self._names[name])
             if payload is not None:
                 response.ranking = typed_messages.ranking_message(payload, typed)
                 response.ranking.header.stamp = taken.to_msg()

@@ -104,6 +104,9 @@ def test_typed_feedback_moves_that_persons_next_ranking(ranker, synthetic_scenes
     action = before.entries[0].name
     feedback = client.node.create_publisher(typed.Feedback, '/stars/typed/feedback', 10)
     assert wait_for(lambda: feedback.get_subscription_count() > 0, 30)
+    feedback.publish(typed.Feedback(user_id=user_id, scene_id='rated', action='fly_away', score=0.5))
+    assert client.wait(lambda: any(e['kind'] == 'unknown_action' and e['scene_id'] == 'rated'
+                                   and e['topic'] == '/stars/typed/feedback' for e in client.errors), 30)
     feedback.publish(typed.Feedback(user_id=user_id, scene_id='rated', action=action, score=0.0))
 
     def personalised():  # the fold-in runs once the feedback is taken in: ask until it is served
@@ -148,6 +151,7 @@ def test_a_malformed_typed_request_gets_its_error_and_the_node_answers_the_next(
     response = call(client, RankActions, '/ranker/rank_actions', request)
     assert not response.success and response.error_kind == kind and response.message
     assert client.wait(lambda: any(e['kind'] == kind and e['scene_id'] == scene_id for e in client.errors), 30)
+    assert {e['topic'] for e in client.errors if e['scene_id'] == scene_id} == {'/ranker/rank_actions'}  # its service
     if json_twin is not None:  # the same mistake on the JSON path gets the same kind
         seen = len(client.errors)
         client.scene(json_twin(f'json-{scene_id}', scene))
