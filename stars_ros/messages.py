@@ -15,7 +15,7 @@ import json
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Sequence
+from typing import Callable, Sequence
 from urllib.parse import urljoin
 
 from stars_ros.errors import BadMessage, OutOfScaleError, SceneGraphError, StarsError, UnknownActionError
@@ -162,6 +162,7 @@ class Twin:
 
     payload: dict
     size_bound: int
+    typed_field: Callable[[str], str] | None = None  # a twin's field -> the typed message's, which errors name
 
     @property
     def text(self) -> str:
@@ -196,11 +197,14 @@ def _scene_id(payload) -> str | None:
     return value if isinstance(value, str) and 0 < len(value) <= MAX_ID_CHARS else None
 
 
-def _explain(name: str, error) -> str:
+def _explain(name: str, error, typed_field: Callable[[str], str] | None = None) -> str:
     """fastjsonschema's complaint in a user's words: the field by its place in the message
-    (``graph.humans[0].xPos``, not ``data.graph.humans[0].xPos``), missing and unknown fields
-    by name, and the choices the schemas' ``oneOf``/``anyOf`` rules stand for."""
+    (``graph.humans[0].xPos``, not ``data.graph.humans[0].xPos``; a typed request's own field,
+    ``scene.humans[0].pose``, through ``typed_field``), missing and unknown fields by name, and
+    the choices the schemas' ``oneOf``/``anyOf`` rules stand for."""
     where = error.name.removeprefix('data').lstrip('.')
+    if where and typed_field is not None:
+        where = typed_field(where)
     subject = f"'{where}'" if where else _SUBJECTS[name]
     if error.rule == 'oneOf' and name == 'feedback' and not where:
         return ("feedback needs either 'action' (the action rated) or 'candidate' (the candidate scene rated), "
@@ -239,25 +243,28 @@ _SUBJECTS = {'feedback': 'feedback', 'scene_request': 'a scene request', 'scene_
              'ranking': 'a ranking', 'user_model': 'a user model', 'question_request': 'a question request'}
 
 
-def check(name: str, payload) -> None:
-    """Raise ``BadMessage('schema', ...)`` naming where ``payload`` breaks ``name``'s schema."""
+def check(name: str, payload, typed_field: Callable[[str], str] | None = None) -> None:
+    """Raise ``BadMessage('schema', ...)`` naming where ``payload`` breaks ``name``'s schema
+    (a typed message's twin: its own field, through ``typed_field``)."""
     import fastjsonschema
 
     try:
         validator(name)(payload)
     except fastjsonschema.JsonSchemaValueException as error:
-        raise BadMessage('schema', f'{name} message invalid: {_explain(name, error)}', _scene_id(payload)) from None
+        raise BadMessage('schema', f'{name} message invalid: {_explain(name, error, typed_field)}',
+                         _scene_id(payload)) from None
 
 
 def parse_scene_request(message, max_bytes: int = DEFAULT_MAX_BYTES) -> SceneRequest:
     """Validate a /stars/scene message (its text, or the ``Twin`` of a typed request) and
     return it as a ``SceneRequest``."""
+    typed_field = None
     if isinstance(message, Twin):
         message.check_size(max_bytes)
-        payload = message.payload
+        payload, typed_field = message.payload, message.typed_field
     else:
         payload = load_json(message, max_bytes)
-    check('scene_request', payload)
+    check('scene_request', payload, typed_field)
     candidates = payload.get('candidates')
     user_id = payload.get('user_id')
     if candidates is not None and isinstance(candidates[0], dict):

@@ -14,16 +14,13 @@ passes (``msgs``: a module or namespace holding ``stars_ros_msgs.msg``'s classes
 from __future__ import annotations
 
 import math
+import re
 
 from stars_ros import messages
 from stars_ros.data import frames
 from stars_ros.rotations import quaternion_of_yaw, yaw_of_quaternion
 
 FRAME = 'frame'  # error kind: a typed scene in a frame the ranker does not take
-
-
-def _finite(*values) -> bool:
-    return all(math.isfinite(v) for v in values)
 
 
 def _check_frame(scene, robot_frame: str, scene_id: str | None):
@@ -36,23 +33,34 @@ def _check_frame(scene, robot_frame: str, scene_id: str | None):
                                   f'{need}, or set the ranker parameter frame_id', scene_id)
 
 
-def _entity(item, scene_id) -> frames.Entity:
+def _check_finite(values: dict, where: str, scene_id) -> None:
+    """BadMessage ``non_finite`` naming the first of ``values`` ({field: number}, fields under
+    ``where``) that is NaN or infinite, by its typed field path."""
+    for name, value in values.items():
+        if not math.isfinite(value):
+            raise messages.BadMessage('non_finite', f'{where}.{name} is {value}: not a finite number', scene_id)
+
+
+def _entity(item, where: str, scene_id) -> frames.Entity:
     p, q = item.pose.position, item.pose.orientation
-    if not _finite(p.x, p.y, q.x, q.y, q.z, q.w):
-        raise messages.BadMessage('non_finite', f'pose of entity {item.id} holds a non-finite number (NaN or '
-                                  'infinity)', scene_id)
+    _check_finite({'pose.position.x': p.x, 'pose.position.y': p.y, 'pose.orientation.x': q.x,
+                   'pose.orientation.y': q.y, 'pose.orientation.z': q.z, 'pose.orientation.w': q.w}, where, scene_id)
     return frames.Entity(int(item.id), float(p.x), float(p.y), yaw_of_quaternion(q.x, q.y, q.z, q.w))
 
 
-def scene_graph(scene, robot_frame: str, scene_id: str | None = None) -> dict:
+def scene_graph(scene, robot_frame: str, scene_id: str | None = None, where: str = 'scene') -> dict:
     """The SocNav1 scene dict (``msg_schemas/scene_graph.schema.json``) of a typed
-    ``SceneGraph``, which must be in ``robot_frame``; BadMessage (``frame``, ``non_finite``)
-    otherwise. The schema checks the rest, as for a JSON scene."""
-    _check_frame(scene, robot_frame, scene_id)
-    if not all(_finite(p.x, p.y) for p in scene.room):
-        raise messages.BadMessage('non_finite', 'a room point holds a non-finite number (NaN or infinity)', scene_id)
-    rep103 = frames.Rep103Scene(humans=tuple(_entity(h, scene_id) for h in scene.humans),
-                                objects=tuple(_entity(o, scene_id) for o in scene.objects),
+    ``SceneGraph`` (the field ``where`` of its message), which must be in ``robot_frame``;
+    BadMessage (``frame``, ``non_finite``, naming the typed field) otherwise. The schema checks
+    the rest, as for a JSON scene: an empty scene is its to refuse (``schema``), whatever its frame."""
+    if scene.humans or scene.objects or scene.room or scene.interactions:
+        _check_frame(scene, robot_frame, scene_id)
+    for k, point in enumerate(scene.room):
+        _check_finite({'x': point.x, 'y': point.y}, f'{where}.room[{k}]', scene_id)
+    rep103 = frames.Rep103Scene(humans=tuple(_entity(h, f'{where}.humans[{k}]', scene_id)
+                                             for k, h in enumerate(scene.humans)),
+                                objects=tuple(_entity(o, f'{where}.objects[{k}]', scene_id)
+                                              for k, o in enumerate(scene.objects)),
                                 room=tuple((float(p.x), float(p.y)) for p in scene.room),
                                 interactions=tuple((int(i.a), int(i.b)) for i in scene.interactions))
     return frames.to_socnav(rep103)
@@ -81,14 +89,34 @@ def _graph_bound(scene) -> int:
             + _LINK * len(scene.interactions))
 
 
-def _scene_request(payload: dict, user_id: str, explain: bool, size_bound: int) -> messages.Twin:
+# A scene's fields in its JSON twin -> in the typed message (a schema error names the typed field)
+_SCENE_FIELDS = ((re.compile(r'\.links\b'), '.interactions'),
+                 (re.compile(r'\.(humans|objects)\[(\d+)\]\.(xPos|yPos|orientation)$'), r'.\1[\2].pose'),
+                 (re.compile(r'\.room\[(\d+)\]\[\d+\]$'), r'.room[\1]'))
+
+
+def _typed_field(path: str, request: str) -> str:
+    """The field of a typed ``request`` ('rank_actions' or 'rank_candidates') that the
+    twin's field ``path`` (``graph.humans[0].xPos``) comes from (``scene.humans[0].pose``)."""
+    if request == 'rank_actions':
+        path = re.sub(r'^graph\b', 'scene', re.sub(r'^candidates\b', 'actions', path))
+    else:
+        path = re.sub(r'^candidates\[(\d+)\]\.candidate$', r'candidates[\1].label',
+                      re.sub(r'^candidates\[(\d+)\]\.graph\b', r'candidates[\1].scene', path))
+    for pattern, typed_name in _SCENE_FIELDS:
+        path = pattern.sub(typed_name, path)
+    return path
+
+
+def _scene_request(payload: dict, user_id: str, explain: bool, size_bound: int, request: str) -> messages.Twin:
     """``payload`` with the optional fields a typed request leaves empty when unset, as the
-    twin of a request whose other parts take at most ``size_bound`` bytes."""
+    twin of a ``request`` whose other parts take at most ``size_bound`` bytes."""
     if user_id:
         payload['user_id'] = user_id
     if explain:
         payload['explain'] = True
-    return messages.Twin(payload, _REQUEST + _text_bound(payload['scene_id']) + _text_bound(user_id) + size_bound)
+    return messages.Twin(payload, _REQUEST + _text_bound(payload['scene_id']) + _text_bound(user_id) + size_bound,
+                         lambda path: _typed_field(path, request))
 
 
 def rank_actions_twin(request, robot_frame: str) -> messages.Twin:
@@ -98,7 +126,7 @@ def rank_actions_twin(request, robot_frame: str) -> messages.Twin:
     if request.actions:
         payload['candidates'] = list(request.actions)
     return _scene_request(payload, request.user_id, request.explain,
-                          _graph_bound(request.scene) + sum(_text_bound(a) for a in request.actions))
+                          _graph_bound(request.scene) + sum(_text_bound(a) for a in request.actions), 'rank_actions')
 
 
 def rank_candidates_twin(request, robot_frame: str) -> messages.Twin:
@@ -106,13 +134,14 @@ def rank_candidates_twin(request, robot_frame: str) -> messages.Twin:
     carries ``candidates: []``, which the schema refuses, as it would the JSON request."""
     payload = {'scene_id': request.scene_id,
                'candidates': [{'candidate': c.label, 'graph': scene_graph(c.scene, robot_frame,
-                                                                          request.scene_id or None)}
-                              for c in request.candidates]}
+                                                                          request.scene_id or None,
+                                                                          f'candidates[{k}].scene')}
+                              for k, c in enumerate(request.candidates)]}
     if request.action:
         payload['action'] = request.action
     return _scene_request(payload, request.user_id, request.explain,
                           _text_bound(request.action) + sum(_CANDIDATE + _text_bound(c.label) + _graph_bound(c.scene)
-                                                            for c in request.candidates))
+                                                            for c in request.candidates), 'rank_candidates')
 
 
 def feedback_fields(feedback) -> dict:
@@ -150,9 +179,9 @@ def question_request_text(request, robot_frame: str) -> str:
     payload = {'user_id': request.user_id}
     if request.scenes:
         payload['candidates'] = [
-            {'scene_id': scene_id, 'graph': scene_graph(scene, robot_frame, scene_id or None),
+            {'scene_id': scene_id, 'graph': scene_graph(scene, robot_frame, scene_id or None, f'scenes[{k}]'),
              **({'candidates': list(request.candidate_actions)} if request.candidate_actions else {})}
-            for scene, scene_id in zip(request.scenes, request.scene_ids)]
+            for k, (scene, scene_id) in enumerate(zip(request.scenes, request.scene_ids))]
     return messages.dumps(payload)
 
 

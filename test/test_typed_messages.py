@@ -44,6 +44,21 @@ def test_a_scene_in_another_frame_is_refused_naming_the_transform_needed(synthet
         scene_graph(message, 'base_link')
 
 
+def test_a_typed_requests_schema_errors_name_its_own_fields_and_an_empty_one_is_schema(synthetic_scenes):
+    scene = next(s for s in synthetic_scenes if s['humans'])
+    request = RankActions.Request(scene_id='s', scene=scene_message(scene, 'base_link', typed, geometry))
+    request.scene.room = request.scene.room[:2]
+    with pytest.raises(messages.BadMessage, match=r"'scene\.room' must contain at least 3 items") as refused:
+        messages.parse_scene_request(typed_messages.rank_actions_twin(request, 'base_link'))
+    assert refused.value.kind == 'schema'
+    with pytest.raises(messages.BadMessage, match=r"'graph\.room' must"):  # the JSON twin, as it was
+        messages.parse_scene_request(typed_messages.rank_actions_twin(request, 'base_link').text)
+    empty = RankActions.Request()  # frame_id empty too: an empty scene is the schema's, as its JSON twin
+    with pytest.raises(messages.BadMessage) as refused:
+        messages.parse_scene_request(typed_messages.rank_actions_twin(empty, 'base_link'))
+    assert refused.value.kind == 'schema'
+
+
 def test_non_finite_poses_room_points_and_scores_are_refused(synthetic_scenes):
     scene = next(s for s in synthetic_scenes if s['humans'])
     message = scene_message(scene, 'base_link', typed, geometry)
@@ -51,10 +66,11 @@ def test_non_finite_poses_room_points_and_scores_are_refused(synthetic_scenes):
     with pytest.raises(messages.BadMessage) as refused:
         scene_graph(message, 'base_link')
     assert refused.value.kind == 'non_finite'
+    assert str(refused.value).startswith('scene.humans[0].pose.orientation.z is inf')  # the typed field's path
     message = scene_message(scene, 'base_link', typed, geometry)
     message.room[1].y = math.nan
-    with pytest.raises(messages.BadMessage, match='room point'):
-        scene_graph(message, 'base_link')
+    with pytest.raises(messages.BadMessage, match=r'candidates\[2\]\.scene\.room\[1\]\.y is nan'):
+        scene_graph(message, 'base_link', where='candidates[2].scene')
     with pytest.raises(messages.BadMessage, match='not a finite number'):
         typed_messages.feedback_twin(typed.Feedback(user_id='u', scene_id='s', action='a', score=math.nan))
 
