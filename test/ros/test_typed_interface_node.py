@@ -150,6 +150,8 @@ def test_a_malformed_typed_request_gets_its_error_and_the_node_answers_the_next(
     spoil(request)
     response = call(client, RankActions, '/ranker/rank_actions', request)
     assert not response.success and response.error_kind == kind and response.message
+    typed_field = {'non_finite': 'scene.humans[0].pose.position.x', 'schema': "'scene.room'"}.get(kind)
+    assert typed_field is None or typed_field in response.message  # the typed field, not the JSON twin's
     assert client.wait(lambda: any(e['kind'] == kind and e['scene_id'] == scene_id for e in client.errors), 30)
     assert {e['topic'] for e in client.errors if e['scene_id'] == scene_id} == {'/ranker/rank_actions'}  # its service
     if json_twin is not None:  # the same mistake on the JSON path gets the same kind
