@@ -25,6 +25,7 @@ import argparse
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -46,6 +47,7 @@ import node_latency  # noqa: E402  (the JSON path's client and requests)
 import service_latency  # noqa: E402  (the typed service's caller and requests)
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
+from stars_ros.ros.loopback import stop  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 LOADED = re.compile(r'\[(\d+\.\d+)\] \[ranker\]: serving ')
@@ -111,12 +113,7 @@ class Served:
     def stop(self):
         self.client.close()
         self.caller.close()
-        self.process.terminate()
-        try:
-            self.process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
+        stop(self.process, signal.SIGTERM)  # killed, and TimeoutExpired raised, if not ended within 30 s
 
 
 def typed_alternating(served: dict, count: int, blocks: int) -> dict:

@@ -18,8 +18,7 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.encoders import resolve_encoder
 from stars_ros.model.metrics import regression_report
 from stars_ros.model.model import StarsModel
-from stars_ros.model.serving import clip_to_scale
-from stars_ros.model.vocabulary import UNKNOWN, Vocabulary
+from stars_ros.model.vocabulary import UNKNOWN, Rows, Vocabulary
 
 if TYPE_CHECKING:
     from stars_ros.data.ratings import RatingData
@@ -42,7 +41,7 @@ def build_model(config: ExperimentConfig, feature_dim: int, input_kind: str,
                       feature_dim=feature_dim if input_kind == 'tabular' else None)
 
 
-class FittedModel:
+class FittedModel(Rows):
     """A StARS model and the ids behind its rows: what a checkpoint stores and a
     ``Predictor`` serves.
 
@@ -59,14 +58,6 @@ class FittedModel:
         self.rating_scale: tuple | None = None
         self.user_prior: dict | None = None  # personalisation.prior.UserPrior.to_dict(), kept by checkpoints
 
-    @property
-    def users(self) -> tuple:
-        return self.user_vocabulary.keys
-
-    @property
-    def scene_keys(self) -> tuple:
-        return self.scene_vocabulary.keys
-
     def user_index(self, users: Sequence[str]) -> torch.Tensor:
         return torch.from_numpy(self.user_vocabulary.rows([str(u) for u in users]))
 
@@ -82,10 +73,6 @@ class FittedModel:
         if self.model is None:
             raise NotFittedError('this recommender is not fitted: call fit() or load a checkpoint first')
         return self.model
-
-    def clip(self, scores: np.ndarray) -> np.ndarray:
-        """``scores`` limited to the rating scale of the training data (when it has one)."""
-        return clip_to_scale(scores, self.rating_scale)
 
     @torch.no_grad()
     def set_user_row(self, user, p, b: float) -> None:

@@ -21,7 +21,7 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.backbones import normalise_name
 from stars_ros.model.serving_forms import GRAPH_BACKBONES, graph_serving_form
 from stars_ros.model.numpy_model import InferenceModel
-from stars_ros.model.vocabulary import Vocabulary
+from stars_ros.model.vocabulary import Rows, Vocabulary
 
 ENCODER = 'encoder.'  # the encoder's weights sit under this prefix of the model's state dict
 
@@ -74,14 +74,7 @@ def arrays(state: Mapping) -> dict:
     return {name: value.detach().cpu().numpy().copy() for name, value in state.items()}
 
 
-def clip_to_scale(scores: np.ndarray, scale: tuple | None) -> np.ndarray:
-    """``scores`` limited to the rating ``scale`` (lowest, highest) when there is one."""
-    if scale is None:
-        return scores
-    return np.minimum(np.maximum(scores, scale[0]), scale[1])  # np.clip's, without its wrappers' cost per request
-
-
-class ServedModel:
+class ServedModel(Rows):
     """What serving needs of a fitted model, read from its checkpoint's content.
 
     Args:
@@ -120,13 +113,3 @@ class ServedModel:
             raise incompatible(path, error) from error
         return served, content['metadata'], content['digest']
 
-    @property
-    def users(self) -> tuple:
-        return self.user_vocabulary.keys
-
-    @property
-    def scene_keys(self) -> tuple:
-        return self.scene_vocabulary.keys
-
-    def clip(self, scores: np.ndarray) -> np.ndarray:
-        return clip_to_scale(scores, self.rating_scale)

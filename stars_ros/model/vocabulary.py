@@ -37,3 +37,29 @@ class Vocabulary:
 
     def extended(self, keys: Sequence) -> 'Vocabulary':
         return Vocabulary(self.keys + tuple(k for k in dict.fromkeys(keys) if k not in self._rows))
+
+
+class Rows:
+    """The ids behind a model's rows and what it clips to, as a fitted model (training's
+    ``fitted.FittedModel``) and its serving form (``serving.ServedModel``) both hold them:
+    ``user_vocabulary``, ``scene_vocabulary`` and ``rating_scale`` (lowest, highest; None:
+    unbounded)."""
+
+    user_vocabulary: Vocabulary
+    scene_vocabulary: Vocabulary
+    rating_scale: tuple | None
+
+    @property
+    def users(self) -> tuple:
+        return self.user_vocabulary.keys
+
+    @property
+    def scene_keys(self) -> tuple:
+        return self.scene_vocabulary.keys
+
+    def clip(self, scores: np.ndarray) -> np.ndarray:
+        """``scores`` limited to the rating scale of the training data (when it has one)."""
+        if self.rating_scale is None:
+            return scores
+        return np.minimum(np.maximum(scores, self.rating_scale[0]), self.rating_scale[1])  # np.clip's, without
+        # its wrappers' cost per request

@@ -30,8 +30,8 @@ import yaml
 from mcap.reader import make_reader
 
 from stars_ros.files import atomic_write
-from stars_ros.recording.bag import (METADATA_FILE, STRING, FileStats, McapFile, MessageType, bag_files, is_finished,
-                                     metadata_text, topic_qos, write_metadata)
+from stars_ros.recording.bag import (METADATA_FILE, FileStats, McapFile, MessageType, bag_files, is_finished,
+                                     metadata_text, write_metadata)
 from stars_ros.recording.recovery import abandoned_bags, recover, salvage
 from stars_ros.state import StateStore, mentions
 from stars_ros.state.forgotten import folder_secret, tombstone
@@ -65,12 +65,7 @@ def rewrite_dropping(path: Path, drop: Callable[[object], bool]) -> FileStats | 
     if len(kept) == len(found.messages):
         return None
     topics, types, removed = {}, {}, {}
-    for channel in found.channels.values():
-        topics.setdefault(channel.topic, topic_qos(channel))
-        schema = found.schemas.get(channel.schema_id)
-        if schema is not None and schema.name != STRING:
-            types.setdefault(channel.topic, MessageType(schema.name, bytes(schema.data).decode(),
-                                                        channel.metadata.get('topic_type_hash', '')))
+    found.declare(topics, types)
     for message in found.messages:
         if drop(message):
             topic = found.channels[message.channel_id].topic

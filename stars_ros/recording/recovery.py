@@ -27,6 +27,16 @@ class Salvage(NamedTuple):
     custom: dict         # the file's 'stars_ros' metadata
     damage: str | None   # what stopped the reading ('EOFError: …'), None for an intact file
 
+    def declare(self, topics: dict, types: dict) -> None:
+        """Add this file's topics ({topic: QoS}) and typed topics' message types ({topic:
+        MessageType}) to ``topics`` and ``types``, what a rewrite of it declares again."""
+        for channel in self.channels.values():
+            topics.setdefault(channel.topic, topic_qos(channel))
+            schema = self.schemas.get(channel.schema_id)
+            if schema is not None and schema.name != STRING:
+                types.setdefault(channel.topic, MessageType(schema.name, bytes(schema.data).decode(),
+                                                            channel.metadata.get('topic_type_hash', '')))
+
 
 def salvage(path: Path) -> Salvage:
     """Every complete record of the MCAP file ``path``, however it ends."""
@@ -79,12 +89,7 @@ def recover(bag) -> dict:
     for path in bag_files(bag):
         found = salvage(path)
         custom = custom or found.custom
-        for channel in found.channels.values():
-            topics.setdefault(channel.topic, topic_qos(channel))
-            schema = found.schemas.get(channel.schema_id)
-            if schema is not None and schema.name != STRING:
-                types.setdefault(channel.topic, MessageType(schema.name, bytes(schema.data).decode(),
-                                                            channel.metadata.get('topic_type_hash', '')))
+        found.declare(topics, types)
         for message in found.messages:
             seen.add((found.channels[message.channel_id].topic, message.log_time, bytes(message.data)))
         if found.damage is not None or not is_finished(path):

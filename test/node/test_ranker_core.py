@@ -205,6 +205,7 @@ def test_the_explain_parameter_explains_every_request(tiny_checkpoint, scenes):
     core.close()
 
 
+@pytest.mark.slow
 def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_once_it_has_room(
         tiny_checkpoint, scenes, tmp_path, monkeypatch):
     """SQLite's own 'database or disk is full' (max_page_count stands in for the disk)."""

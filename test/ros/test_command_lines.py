@@ -49,6 +49,7 @@ def fill(message, values: dict):
     return message
 
 
+@pytest.mark.slow
 def test_the_documented_command_lines_work_against_a_ranker(tmp_path):
     service_call, feedback_pub, scene_pub = command_lines()
     assert service_call[:3] == ['ros2', 'service', 'call'] and feedback_pub[:3] == scene_pub[:3] == [

@@ -174,6 +174,7 @@ def test_the_typed_question_service_asks_about_a_given_scene(ranker, synthetic_s
     assert not refused.success and refused.error_kind == 'schema'
 
 
+@pytest.mark.slow
 @pytest.mark.socnav1
 def test_typed_and_json_paths_score_50_socnav1_scenes_alike(socnav1_root, tmp_path):
     """The packaged model on 50 real SocNav1 scenes, for an annotator and a stranger: the
