@@ -63,6 +63,9 @@ class InferenceModel:
         else:
             self._head = (_array(state['head.weight']).T.copy(), _array(state['head.bias']))
         self.target_mean.flags.writeable = self.target_std.flags.writeable = False
+        width = self.action_rows.shape[1] if self.personalised else self._head[0].shape[0]
+        if width != dim:  # weights of another model than the config describes
+            raise ValueError(f'the weights are {width} wide, the config says dim {dim}')
         self._encode = encode
 
     def encode(self, scene_input, count: int) -> np.ndarray:

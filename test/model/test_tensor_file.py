@@ -55,3 +55,15 @@ def test_a_config_naming_a_tabular_backbone_for_graph_scenes_is_refused():
     config = ExperimentConfig.from_dict({'encoder': {'name': 'mlp'}})
     with pytest.raises(ConfigError, match="encoder 'mlp' does not read scene graphs"):
         encoder_serving_form(config, 'graph', 7, {})
+
+
+def test_the_serving_form_of_incompatible_weights_is_a_checkpoint_error(tiny_checkpoint, tmp_path):
+    """Weights of another size than the config says: refused by the node's loader as by training's."""
+    from stars_ros.model.checkpoint import _digest, _tensors
+    from stars_ros.model.predictor import Predictor
+    content = torch.load(tiny_checkpoint, weights_only=True)
+    content['metadata']['config']['model']['dim'] = 32
+    content['digest'] = _digest(content['metadata'], _tensors(content))
+    torch.save(content, tmp_path / 'mismatch.pt')
+    with pytest.raises(CheckpointError, match='incompatible with this version'):
+        Predictor.load(tmp_path / 'mismatch.pt')
