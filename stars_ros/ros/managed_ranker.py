@@ -28,6 +28,14 @@ class ManagedRankerNode(RankerParts, LifecycleNode):
         LifecycleNode.__init__(self, 'ranker', **kwargs)
         self._declare_parameters()
 
+    def destroy_node(self):
+        """Destroy the node and its lifecycle state machine. rclpy's LifecycleNode leaves the
+        machine, which holds the node's handle, and so keeps the rcl node and its /rosout
+        publisher alive after ``destroy_node``: every line ``close`` then logs after a Ctrl-C
+        ended in "Failed to publish log message to rosout: publisher's context is invalid"."""
+        super().destroy_node()
+        self._state_machine.destroy_when_not_in_use()
+
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
             self._configure()

@@ -55,8 +55,9 @@ def _serves(client: RosClient) -> bool:
 def test_the_managed_ranker_serves_once_configured_and_activated(tiny_checkpoint, synthetic_scenes, tmp_path):
     domain = domain_id(2)
     client = RosClient(domain)
+    log = tmp_path / 'm.log'
     process = start_node('stars_ros.ros.managed_ranker', domain,
-                         {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records'}, tmp_path / 'm.log')
+                         {'checkpoint': tiny_checkpoint, 'record_folder': tmp_path / 'records'}, log)
     request = RankActions.Request(scene_id='managed', scene=scene_message(synthetic_scenes[1], 'base_link', typed,
                                                                           geometry))
     try:
@@ -70,6 +71,7 @@ def test_the_managed_ranker_serves_once_configured_and_activated(tiny_checkpoint
         assert _lifecycle(client, Transition.TRANSITION_ACTIVATE)
         assert call(client, RankActions, '/ranker/rank_actions', request).success
         assert stop(process, signal.SIGINT) == 0
+        assert 'rosout' not in log.read_text(), log.read_text()  # Ctrl-C logs nothing it cannot publish
     finally:
         if process.poll() is None:
             process.kill()
