@@ -42,10 +42,13 @@ from stars_ros.node import fleet_forget
 from stars_ros.node.consent import Consent
 from stars_ros.node.diagnostics import WARNINGS, BusySpans, PeriodStats, Problems, period_report
 from stars_ros.node.records import NodeRecords
+from stars_ros.node.erasing import Erase, Erasing
 from stars_ros.recording import erasure
+from stars_ros.state import mentions
 
 MAX_STRANGERS_REMEMBERED = 10000
 RETENTION_TIMEOUT = 600  # s a retention pass waits for the state store's erase
+ERASING_CLOSE_WAIT = 10.0  # s a clean shutdown waits for an erase that runs (its intent record covers the rest)
 
 
 class RankerCore:
@@ -78,6 +81,8 @@ class RankerCore:
         self.params, self.topics, self._publish, self.logger, self._now = params, dict(topics), publish, logger, now
         self._clock, self._wake = clock, wake or (lambda: None)
         self.durable_models = collections.deque()  # (user, stars/user_model payload) whose ratings are committed
+        self._erasing, self._erases_of = None, collections.Counter()  # node.erasing's thread; forgets running by id
+        self._models_held = collections.Counter()  # models of people being forgotten, by id: never sent
         self.markers_out = markers_out
         self.checkpoint_path = resolve_checkpoint(params['checkpoint'])
         self.predictor = Predictor.load(self.checkpoint_path)
@@ -337,6 +342,7 @@ class RankerCore:
         personalisation = self.personalisation
         pending, to_announce, intake = personalisation.pending, personalisation.to_announce, personalisation.intake
         try:
+            self._finish_erases()
             while self.replied:
                 self._after_reply(*self.replied.popleft())
             self._send_durable_models()
@@ -391,7 +397,11 @@ class RankerCore:
 
     def _send_durable_models(self):
         while self.durable_models:
-            self._send_model(self.durable_models.popleft()[1])
+            user_id, payload = self.durable_models.popleft()
+            if user_id in self._erases_of:  # being forgotten: held until the forget ends, then dropped
+                self._models_held[user_id] += 1
+            else:
+                self._send_model(payload)
 
     def _send_model(self, payload: str):
         """Publish and record (logged when it goes out) a user model whose ratings are durable."""
@@ -476,32 +486,91 @@ class RankerCore:
             self.record('stars/scene', messages.text_of(item.message), item.log_time)
         if self.queue:
             self.logger.warning(f'{len(self.queue)} queued requests were not scored before shutdown')
+        if self._erasing is not None and not self._erasing.close(ERASING_CLOSE_WAIT):
+            self.logger.warning(f'an erase still runs after {ERASING_CLOSE_WAIT:g} s: the next start finishes it')
         self.records.close(self.personalisation.flush, self._send_durable_models)
 
-    def forget_person(self, user_id: str, tell_fleet: bool = True) -> dict:
-        """Erase ``user_id`` everywhere this node keeps them (docs/privacy.md): memory
-        (``Personalisation.forget_person``), then the state store and every bag of the
-        record folder (``recording.erasure.forget``), leaving a tombstone; {place: {what:
-        removed}}. With fleet sharing and ``tell_fleet``, peers are told once it is done
-        (``fleet_forget``). ValueError for an empty id; OSError or StoreError when the disk
-        refuses (a re-run, or the next start, finishes it)."""
+    def begin_forget(self, user_id: str, tell_fleet: bool = True,
+                     then: Callable[[dict | None, BaseException | None], None] | None = None) -> Erase | None:
+        """Erase ``user_id`` everywhere this node keeps them (docs/privacy.md): now, the
+        intent record and memory (``Personalisation.forget_person``; from here their feedback
+        and peers' models of them are refused and no message naming them is recorded); then,
+        on the erasing thread while the node serves, the state store and every bag of the
+        record folder (``recording.erasure.forget``), leaving a tombstone. When that is done,
+        the next ``work`` drops their models waiting to go out, tells peers with fleet
+        sharing and ``tell_fleet`` (``fleet_forget``), and calls ``then(removed, error)``:
+        {place: {what: removed}}, or the OSError / StoreError / TimeoutError that stopped it
+        (a re-run, or the next start, finishes it). Returns the erase (None without a record
+        folder: all done now). ValueError for an empty id, OSError when the intent record
+        cannot be written: nothing is forgotten then."""
         if not user_id:
             raise ValueError('user_id is empty: an empty id names nobody')
+        folder = self.records.folder
+        if folder is not None:
+            erasure.record_intent(folder, user_id)
         removed = {'memory': self.personalisation.forget_person(user_id)}
         if self.user_id == user_id:
             self.user_id = None
         self._strangers_reported.discard(user_id)
-        if self.records.folder is not None:
-            removed.update(erasure.forget(self.records.folder, user_id, self.personalisation.erase_stored,
-                                          self.recorder))
+        then = then or self._report_failed_forget
+        if folder is None:
+            self._forget_finished(user_id, tell_fleet, removed, then, {}, None)
+            return None
+        self.records.unrecorded[user_id] = mentions(user_id)
+        self._erases_of[user_id] += 1
+        recorder, erase_stored = self.recorder, self.personalisation.erase_stored
+        return self._erase_in_background(
+            lambda: erasure.forget(folder, user_id, erase_stored, recorder),
+            lambda result, error: self._forget_finished(user_id, tell_fleet, removed, then, result, error))
+
+    def forget_person(self, user_id: str, tell_fleet: bool = True) -> dict:
+        """``begin_forget``, waited for: what it removed where (its errors raised)."""
+        outcome = {}
+        erase = self.begin_forget(user_id, tell_fleet, lambda removed, error: outcome.update(removed=removed,
+                                                                                             error=error))
+        if erase is not None:
+            erase.done.wait()
+            self._finish_erases()
+        if outcome['error'] is not None:
+            raise outcome['error']
+        return outcome['removed']
+
+    def _forget_finished(self, user_id: str, tell_fleet: bool, removed: dict, then: Callable, result, error):
+        """The executor's end of a forget (``begin_forget``)."""
+        self._erases_of[user_id] -= 1
+        if self._erases_of[user_id] <= 0:
+            del self._erases_of[user_id]
+            self.records.unrecorded.pop(user_id, None)
         # models committed before the erase (whose commit it waited for), not sent yet: never sent now
         waiting = [entry for entry in list(self.durable_models) if entry[0] == user_id]
         for entry in waiting:
             self.durable_models.remove(entry)
-        removed['memory']['models_to_send'] = len(waiting)
+        held = self._models_held.pop(user_id, 0)
+        if error is not None:
+            then(None, error)
+            return
+        removed['memory']['models_to_send'] = len(waiting) + held
+        removed.update(result)
         if tell_fleet and self.params['fleet_sharing']:
             self._tell_fleet_forgotten(user_id)
-        return removed
+        then(removed, None)
+
+    def _report_failed_forget(self, removed: dict | None, error: BaseException | None) -> None:
+        if error is not None:  # the intent record stays: the next start finishes it
+            self.report('recording', f'a forget could not finish (the next start finishes it): {error}',
+                        self.topics['stars/forget_person'])
+
+    def _erase_in_background(self, run: Callable[[], dict], then: Callable) -> Erase:
+        """``run()`` on the erasing thread (``node.erasing``), then ``then(result, error)`` at a ``work``."""
+        if self._erasing is None:
+            self._erasing = Erasing(self._wake)
+        return self._erasing.submit(Erase(run, then))
+
+    def _finish_erases(self) -> None:
+        """Run the executor's end of every erase the erasing thread has done."""
+        if self._erasing is not None:
+            for erase in self._erasing.finished():
+                erase.then(erase.result, erase.error)
 
     def finish_interrupted_forgets(self) -> None:
         """Finish the forgets a kill interrupted (their intent records in the record folder)."""
@@ -539,10 +608,10 @@ class RankerCore:
         self.personalisation.keep_fleet_tombstone(fleet_forget.tombstone_of(payload, self.authenticator))
         for user_id in named:
             try:
-                self.forget_person(user_id, tell_fleet=False)
-            except (OSError, StarsError) as error:  # the intent record stays: the next start finishes it
-                self.report('recording', f"a forget from {payload['origin']} could not finish: {error}", topic)
-        self.logger.info(f"forget from {payload['origin']}: {len(named)} person(s) held here forgotten, its "
+                self.begin_forget(user_id, tell_fleet=False)
+            except OSError as error:  # the intent record could not be written: nothing forgotten yet
+                self.report('recording', f"a forget from {payload['origin']} could not begin: {error}", topic)
+        self.logger.info(f"forget from {payload['origin']}: {len(named)} person(s) held here being forgotten, its "
                          'tombstone kept')
         return len(named)
 
@@ -558,12 +627,14 @@ class RankerCore:
         self.logger.info(f'consent list: {count} person(s) from stars/consent, {len(self.consent.from_file)} from '
                          'consent_file')
 
-    def apply_retention(self) -> dict:
+    def apply_retention(self, in_background: bool = False) -> dict:
         """Erase every rating older than ``retention_days`` (0: none) from memory
         and the state store (``Personalisation.apply_retention``: ``StateStore.erase_older``,
         its journal too) and the bags (``recording.erasure.erase_older``: every message
-        logged before then); {place: {what: removed}}. Run at start and by the node's timer;
-        a disk that refuses is reported, and the next pass erases what this one left."""
+        logged before then); {place: {what: removed}}. Run at start, and by the node's timer
+        with ``in_background``: the bags' part then runs on the erasing thread, after the
+        forgets before it (what it removed is logged then, not returned). A disk that refuses
+        is reported, and the next pass erases what this one left."""
         days = self.params['retention_days']
         if days <= 0:
             return {}
@@ -571,10 +642,25 @@ class RankerCore:
         removed = {}
         try:
             removed.update(self.personalisation.apply_retention(cutoff, RETENTION_TIMEOUT))
-            if self.records.folder is not None:
-                removed['bags'] = erasure.erase_older(self.records.folder, cutoff, self.recorder)
         except (OSError, StarsError, TimeoutError) as error:
+            self._retention_finished(days, removed, None, error)
+            return removed
+        folder, recorder = self.records.folder, self.recorder
+        if folder is None:
+            self._retention_finished(days, removed, {}, None)
+        elif in_background:
+            self._erase_in_background(lambda: {'bags': erasure.erase_older(folder, cutoff, recorder)},
+                                      lambda result, error: self._retention_finished(days, removed, result, error))
+        else:
+            try:
+                self._retention_finished(days, removed, {'bags': erasure.erase_older(folder, cutoff, recorder)}, None)
+            except OSError as error:
+                self._retention_finished(days, removed, None, error)
+        return removed
+
+    def _retention_finished(self, days: float, removed: dict, result: dict | None, error: BaseException | None):
+        removed.update(result or {})
+        if error is not None:
             self.report('recording', f'retention pass not finished (the next one goes on): {error}')
         if any(any(counts.values()) for counts in removed.values()):
             self.logger.info(f'retention_days = {days:g}: erased {removed}')
-        return removed

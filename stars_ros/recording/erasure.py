@@ -2,8 +2,9 @@
 
 ``forget(folder, user_id)`` runs these steps, each of which can run again without harm:
 
-1. an intent record, ``forgetting/<tombstone>.json``, written atomically: it holds the id
-   (a re-run needs it) only until the last step removes it;
+1. an intent record, ``forgetting/<tombstone>.json``, written atomically (``record_intent``;
+   a serving node writes it before it erases the person from memory): it holds the id (a
+   re-run needs it) only until the last step removes it;
 2. the state store erases the person and stores their tombstone (``StateStore.erase_person``:
    secure_delete, the write-ahead log truncated): in a serving node through the owner of
    people (``Personalisation.erase_stored``), with no node here, on a store opened for it;
@@ -139,6 +140,20 @@ def _erase_from_bags(folder: Path, drop, recorder) -> dict:
     return removed
 
 
+def record_intent(folder: Path, user_id: str) -> Path:
+    """Write (again) the intent record of forgetting ``user_id`` in ``folder``, durable once
+    this returns: a kill from then on leaves the forget for the next start to finish."""
+    if not user_id:
+        raise ValueError('user_id is empty: an empty id names nobody')
+    intents = folder / INTENTS
+    intents.mkdir(exist_ok=True)
+    intent = intents / f'{tombstone(folder_secret(folder, create=True), user_id)}.json'
+    if not intent.exists():
+        data = json.dumps({'user_id': user_id, 'started': time.time()}).encode()
+        atomic_write(intent, lambda handle: handle.write(data))
+    return intent
+
+
 def forget(folder, user_id: str, erase_stored: Callable[[str], dict] | None = None, recorder=None,
            timeout: float = 600) -> dict:
     """Erase ``user_id`` from the record folder ``folder`` (the module docstring's steps).
@@ -146,22 +161,15 @@ def forget(folder, user_id: str, erase_stored: Callable[[str], dict] | None = No
     holds ({table: rows removed}); None: no node runs, and the store is opened here (refused
     while a node holds it: StoreLockedError). ``recorder``: that node's Recorder. Returns
     {'state_store': {table: rows removed}, 'bags': {bag: messages removed}}."""
-    if not user_id:
-        raise ValueError('user_id is empty: an empty id names nobody')
     folder = Path(folder).expanduser()
-    tag = tombstone(folder_secret(folder, create=True), user_id)
-    intents = folder / INTENTS
-    intents.mkdir(exist_ok=True)
-    intent = intents / f'{tag}.json'
-    data = json.dumps({'user_id': user_id, 'started': time.time()}).encode()
-    atomic_write(intent, lambda handle: handle.write(data))
+    intent = record_intent(folder, user_id)
     erased = _erase_offline(folder, user_id, timeout) if erase_stored is None else erase_stored(user_id)
     if recorder is None:
         for bag in abandoned_bags(folder):
             recover(bag)
     bags = _erase_from_bags(folder, mentions(user_id), recorder)
     intent.unlink()
-    _fsync_folder(intents)
+    _fsync_folder(intent.parent)
     return {'state_store': erased, 'bags': bags}
 
 

@@ -36,6 +36,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -44,6 +45,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.service import Service
 from rclpy.subscription import Subscription
+from rclpy.task import Future
 from rclpy.timer import Timer
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -152,7 +154,8 @@ class RankerParts:
         self._more_work = self.create_guard_condition(self._work)
         self._serving = [*subscriptions.values(), self._more_work,
                          self.create_service(Trigger, '~/reload', self._on_reload),
-                         self.create_service(ForgetPerson, '~/forget_person', self._on_forget_person),
+                         self.create_service(ForgetPerson, '~/forget_person', self._on_forget_person,
+                                             callback_group=MutuallyExclusiveCallbackGroup()),
                          self.create_timer(self.params['diagnostics_period'], self._publish_diagnostics),
                          *TypedInterface(self, self.core, self.params, self._more_work.trigger,
                                          self.qos_watch).entities]
@@ -181,7 +184,7 @@ class RankerParts:
                                                     event_callbacks=NO_SUBSCRIPTION_EVENTS)
             self.qos_watch.watch(subscription, publishes=False)
             entities.append(subscription)
-        entities.append(self.create_timer(RETENTION_CHECK_PERIOD, self.core.apply_retention))
+        entities.append(self.create_timer(RETENTION_CHECK_PERIOD, lambda: self.core.apply_retention(in_background=True)))
         return entities
 
     def _on_forget_message(self, msg: String):
@@ -267,12 +270,18 @@ class RankerParts:
             self._more_work.trigger()
         return response
 
-    def _on_forget_person(self, request, response):
-        """~/forget_person: erase the person everywhere (``RankerCore.forget_person``),
-        answering with what was removed where; a failure is answered, the node serves on."""
+    async def _on_forget_person(self, request, response):
+        """~/forget_person: erase the person everywhere (``RankerCore.begin_forget``),
+        answering with what was removed where once the store and the bags are done; the
+        executor serves others meanwhile (this callback's own group waits, not the node's).
+        A failure is answered, the node serves on."""
+        forgotten = Future()
         try:
-            removed = self.core.forget_person(request.user_id)
+            self.core.begin_forget(request.user_id, then=lambda removed, error: forgotten.set_result((removed, error)))
         except (ValueError, OSError, StoreError) as error:
+            forgotten.set_result((None, error))
+        removed, error = await forgotten
+        if error is not None:
             response.success, response.message = False, f'not forgotten: {error}'
             return response
         places = [(f'{place}/{what}', count) for place, counts in removed.items() for what, count in counts.items()]

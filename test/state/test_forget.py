@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -122,6 +123,44 @@ def test_a_node_serving_the_folder_forgets_in_memory_and_on_disk(folder, tiny_ch
     core.close()
     assert not any(holds(record, FORGOTTEN) for record in bag_records(folder))
     assert FORGOTTEN not in _stored(folder)
+
+
+def test_rankings_are_served_while_the_disk_part_of_a_forget_runs(folder, tiny_checkpoint, scenes, monkeypatch):
+    """The store's and the bags' erase runs on the erasing thread: held there, the core ranks
+    others and the person themself (as a stranger), records nothing that names them, holds
+    their models back, and answers only once the erase is done."""
+    node = Node()
+    core = make_core(node, tiny_checkpoint, record_folder=str(folder), flush_interval=60.0)
+    release, running = threading.Event(), threading.Event()
+    forget = erasure.forget
+
+    def held_forget(*args):
+        running.set()
+        assert release.wait(60)
+        return forget(*args)
+    monkeypatch.setattr(erasure, 'forget', held_forget)
+    answers = []
+    erase = core.begin_forget(FORGOTTEN, then=lambda removed, error: answers.append((removed, error)))
+    assert running.wait(60) and FORGOTTEN in erasure.interrupted(folder)  # the intent record is written first
+    for index, user_id in enumerate([*OTHERS, FORGOTTEN]):
+        core.accept_scene(messages.dumps(scene_request(f'meanwhile-{index}', scenes[index], user_id)), 0)
+    drain(core)
+    rankings = {r['scene_id']: r for r in node.on('stars/ranking')}
+    assert {f'meanwhile-{i}' for i in range(3)} <= set(rankings) and not answers
+    release.set()
+    assert erase.done.wait(60)
+    drain(core)
+    (removed, error), = answers
+    assert error is None and removed['state_store']['people'] == 1 and removed['bags']
+    core.accept_scene(messages.dumps(scene_request('after', scenes[3], FORGOTTEN)), 0)  # back under the same id
+    drain(core)
+    core.close()
+    assert not erasure.interrupted(folder)
+    logged = [m for m in messages_of(folder) if (m[2] or '').startswith('{')]
+    meanwhile = [m for m in logged if 'meanwhile-' in m[2]]
+    assert not any(holds(m[2].encode(), FORGOTTEN) for m in meanwhile)
+    assert {json.loads(m[2]).get('user_id') for m in meanwhile if m[1] == '/stars/scene'} == set(OTHERS)
+    assert any('"after"' in m[2] and FORGOTTEN in m[2] for m in logged)  # recorded again once the forget ended
 
 
 def test_a_refit_from_a_bag_copied_before_the_forget_leaves_the_person_out(folder, tiny_checkpoint, tmp_path):
