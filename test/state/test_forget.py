@@ -189,26 +189,39 @@ def test_the_command_line_forgets_and_refuses_while_a_node_holds_the_store(folde
     assert not any(holds(record, FORGOTTEN) for record in bag_records(folder))
 
 
-_KILLED_FORGET = """
+_KILLED_AT = """
 import os
 import signal
 import sys
-from stars_ros.recording import erasure
-kill_at, seen = int(sys.argv[3]), 0
+kill_at, seen = int(sys.argv[1]), 0
 def count_file_operations(event, args):
     global seen
     if event in ('open', 'os.rename', 'os.remove', 'os.mkdir', 'os.truncate', 'sqlite3.connect'):
         seen += 1
         if seen == kill_at:
             os.kill(os.getpid(), signal.SIGKILL)
+"""
+_FORGET = """
+from stars_ros.recording import erasure
 sys.addaudithook(count_file_operations)
-erasure.forget(sys.argv[1], sys.argv[2])
+erasure.forget(sys.argv[2], sys.argv[3])
+print(seen, flush=True)
+"""
+_RETENTION = """
+from stars_ros.recording import erasure
+from stars_ros.state import StateStore
+sys.addaudithook(count_file_operations)
+store = StateStore(sys.argv[2], 'retention', on_error=lambda text: None)
+store.erase_older(int(sys.argv[3])).result(60)
+store.close()
+erasure.erase_older(sys.argv[2], int(sys.argv[3]))
 print(seen, flush=True)
 """
 
 
-def _run_forget(folder: Path, kill_at: int) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, '-c', _KILLED_FORGET, str(folder), FORGOTTEN, str(kill_at)],
+def _run_killed(program: str, kill_at: int, *args) -> subprocess.CompletedProcess:
+    """``program`` in a process SIGKILLed at its ``kill_at``-th file operation (0: never)."""
+    return subprocess.run([sys.executable, '-c', _KILLED_AT + program, str(kill_at), *map(str, args)],
                           env={**os.environ, 'PYTHONPATH': os.getcwd()}, capture_output=True, text=True)
 
 
@@ -220,13 +233,13 @@ def test_a_kill_at_any_moment_of_a_forget_is_finished_by_a_rerun(folder, tmp_pat
     others_messages = [m for m in messages_of(folder) if not holds((m[2] or '').encode(), FORGOTTEN)]
     pristine = tmp_path / 'pristine'
     shutil.copytree(folder, pristine)
-    whole = _run_forget(folder, kill_at=0)  # never killed: how many operations a whole one makes
+    whole = _run_killed(_FORGET, 0, folder, FORGOTTEN)  # never killed: how many operations a whole one makes
     assert whole.returncode == 0, whole.stderr
     left_an_intent = []
     for kill_at in range(1, int(whole.stdout) + 1):
         shutil.rmtree(folder)
         shutil.copytree(pristine, folder)
-        killed = _run_forget(folder, kill_at)
+        killed = _run_killed(_FORGET, kill_at, folder, FORGOTTEN)
         assert killed.returncode == -signal.SIGKILL, killed.stderr
         left_an_intent.append(bool(erasure.interrupted(folder)))
         erasure.finish_interrupted(folder)  # what the next start does
@@ -240,6 +253,37 @@ def test_a_kill_at_any_moment_of_a_forget_is_finished_by_a_rerun(folder, tmp_pat
         assert messages_of(folder) == others_messages
     began = left_an_intent.index(True)  # from the intent's rename on, every kill leaves it for the next start
     assert all(left_an_intent[began:-1]) and began < len(left_an_intent) // 2, left_an_intent
+
+
+def _retention_pass(folder: Path, cutoff: int) -> None:
+    """What a node's retention pass does on disk (``_RETENTION``'s steps), in this process."""
+    store = state.StateStore(folder, 'retention', on_error=lambda text: None)
+    store.erase_older(cutoff).result(60)
+    store.close()
+    erasure.erase_older(folder, cutoff)
+
+
+def test_a_kill_at_any_moment_of_a_retention_pass_is_finished_by_the_next(folder, tmp_path):
+    """SIGKILL at every file operation of a retention pass (the store's erase, then every
+    bag's) in turn: the next pass leaves the folder as one uninterrupted pass does."""
+    times = sorted(log_time for *_, log_time in messages_of(folder))
+    cutoff = times[len(times) // 2]
+    pristine, reference = tmp_path / 'pristine', tmp_path / 'reference'
+    shutil.copytree(folder, pristine)
+    shutil.copytree(folder, reference)
+    whole = _run_killed(_RETENTION, 0, reference, cutoff)
+    assert whole.returncode == 0, whole.stderr
+    expected_stored, expected_messages = _stored(reference), messages_of(reference)
+    assert 0 < len(expected_messages) < len(times) and all(m[3] >= cutoff for m in expected_messages)
+    assert expected_stored != _stored(pristine)  # some ratings were old enough
+    for kill_at in range(1, int(whole.stdout) + 1):
+        shutil.rmtree(folder)
+        shutil.copytree(pristine, folder)
+        killed = _run_killed(_RETENTION, kill_at, folder, cutoff)
+        assert killed.returncode == -signal.SIGKILL, killed.stderr
+        _retention_pass(folder, cutoff)  # the next one
+        assert _stored(folder) == expected_stored
+        assert messages_of(folder) == expected_messages
 
 
 def test_a_peers_model_of_a_forgotten_person_arriving_later_is_refused(tiny_checkpoint, scenes, tmp_path):
