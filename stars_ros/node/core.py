@@ -520,7 +520,7 @@ class RankerCore:
         self._erases_of[user_id] += 1
         recorder, erase_stored = self.recorder, self.personalisation.erase_stored
         return self._erase_in_background(
-            lambda: erasure.forget(folder, user_id, erase_stored, recorder),
+            lambda: erasure.forget(folder, user_id, erase_stored, recorder, in_child=True),
             lambda result, error: self._forget_finished(user_id, tell_fleet, removed, then, result, error))
 
     def forget_person(self, user_id: str, tell_fleet: bool = True) -> dict:

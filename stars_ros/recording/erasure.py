@@ -21,7 +21,9 @@ that records hands its ``Recorder`` in: the file it writes is finished first
 """
 from __future__ import annotations
 
+import concurrent.futures
 import json
+import multiprocessing
 import os
 import time
 from pathlib import Path
@@ -38,6 +40,7 @@ from stars_ros.state import StateStore, mentions
 from stars_ros.state.forgotten import folder_secret, tombstone
 
 INTENTS = 'forgetting'
+CHILD_NICENESS = 10  # a serving node's bag rewrites yield the CPU to its rankings
 
 
 def _fsync_folder(folder: Path) -> None:
@@ -114,12 +117,16 @@ def rebuild_metadata(bag: Path) -> None:
                                       info.get('custom_data') or {}, types=types))
 
 
-def _erase_from_bags(folder: Path, drop, recorder) -> dict:
-    """{bag name: messages removed} of every bag in ``folder``."""
+def rewrite_without_person(path: str, user_id: str) -> FileStats | None:
+    """``rewrite_without`` the messages naming ``user_id``, by arguments a child process takes."""
+    return rewrite_without(Path(path), mentions(user_id))
+
+
+def _erase_from_bags(folder: Path, rewrite: Callable[[Path], FileStats | None], recorder) -> dict:
+    """{bag name: messages removed} of every bag in ``folder``, each file through ``rewrite``."""
     removed = {}
     if recorder is not None:
-        removed[recorder.name] = sum(sum(stats.removed.values()) for stats in recorder.rewrite_finished(
-            lambda path: rewrite_without(path, drop)))
+        removed[recorder.name] = sum(sum(stats.removed.values()) for stats in recorder.rewrite_finished(rewrite))
     for bag in sorted(p for p in folder.iterdir() if p.is_dir() and p.name != INTENTS):
         if recorder is not None and bag == recorder.path:
             continue
@@ -132,7 +139,7 @@ def _erase_from_bags(folder: Path, drop, recorder) -> dict:
         for path in files:
             if not is_finished(path):
                 raise OSError(f'{path} is not finished: recover its bag first')
-            stats = rewrite_without(path, drop)
+            stats = rewrite(path)
             count += 0 if stats is None else sum(stats.removed.values())
         if (bag / METADATA_FILE).exists():
             rebuild_metadata(bag)  # also after a kill between a file's rename and this
@@ -155,11 +162,13 @@ def record_intent(folder: Path, user_id: str) -> Path:
 
 
 def forget(folder, user_id: str, erase_stored: Callable[[str], dict] | None = None, recorder=None,
-           timeout: float = 600) -> dict:
+           timeout: float = 600, in_child: bool = False) -> dict:
     """Erase ``user_id`` from the record folder ``folder`` (the module docstring's steps).
     ``erase_stored``: a running node's owner of people, which erases them from the store it
     holds ({table: rows removed}); None: no node runs, and the store is opened here (refused
-    while a node holds it: StoreLockedError). ``recorder``: that node's Recorder. Returns
+    while a node holds it: StoreLockedError). ``recorder``: that node's Recorder.
+    ``in_child``: the bag files are rewritten in a child process at a lower CPU priority, so a
+    serving node's rankings keep its interpreter and come first for the CPU. Returns
     {'state_store': {table: rows removed}, 'bags': {bag: messages removed}}."""
     folder = Path(folder).expanduser()
     intent = record_intent(folder, user_id)
@@ -167,7 +176,13 @@ def forget(folder, user_id: str, erase_stored: Callable[[str], dict] | None = No
     if recorder is None:
         for bag in abandoned_bags(folder):
             recover(bag)
-    bags = _erase_from_bags(folder, mentions(user_id), recorder)
+    if not in_child:
+        bags = _erase_from_bags(folder, lambda path: rewrite_without(path, mentions(user_id)), recorder)
+    else:
+        with concurrent.futures.ProcessPoolExecutor(1, multiprocessing.get_context('spawn'), os.nice,
+                                                    (CHILD_NICENESS,)) as child:
+            bags = _erase_from_bags(folder, lambda path: child.submit(rewrite_without_person, str(path),
+                                                                      user_id).result(), recorder)
     intent.unlink()
     _fsync_folder(intent.parent)
     return {'state_store': erased, 'bags': bags}

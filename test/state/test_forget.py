@@ -134,10 +134,10 @@ def test_rankings_are_served_while_the_disk_part_of_a_forget_runs(folder, tiny_c
     release, running = threading.Event(), threading.Event()
     forget = erasure.forget
 
-    def held_forget(*args):
+    def held_forget(*args, **kwargs):
         running.set()
         assert release.wait(60)
-        return forget(*args)
+        return forget(*args, **kwargs)
     monkeypatch.setattr(erasure, 'forget', held_forget)
     answers = []
     erase = core.begin_forget(FORGOTTEN, then=lambda removed, error: answers.append((removed, error)))
