@@ -142,7 +142,8 @@ class NodeRecords:
         recorder, store = self.recorder, self.store
         failure = (recorder and recorder.error) or (store and store.error)
         return failure, {'recording': 'off' if recorder is None else (failure or str(recorder.path)),
-                         'feedback_not_on_disk': 0 if store is None else store.uncommitted_feedback}
+                         'feedback_not_on_disk': 0 if store is None else store.uncommitted_feedback,
+                         'not_recorded_while_forgetting': self.left_out}
 
     def close(self, before_store_closes: Callable[[], None], before_recording_closes: Callable[[], None]):
         """``before_store_closes()`` (write what waits for the store), then close the store,
