@@ -73,6 +73,7 @@ class PageServer:
     async def _start(self):
         app = web.Application(middlewares=[self._guard], client_max_size=MAX_BODY)
         app.add_routes([web.get('/', self._index_page), web.get('/static/{name}', self._static),
+                        web.get('/favicon.ico', self._no_icon),
                         web.get('/events', self._events), web.get('/scene/{number:[0-9]{1,9}}.png', self._scene),
                         web.post('/answer', self._post), web.post('/skip', self._post),
                         web.post('/next', self._post)])
@@ -91,7 +92,7 @@ class PageServer:
     async def _guard(self, request: web.Request, handler):
         """The token first, then the handler; every refusal answered in JSON and reported."""
         try:
-            if not request.path.startswith('/static/'):  # the assets hold nothing of anybody's
+            if not request.path.startswith(('/static/', '/favicon.ico')):  # they hold nothing of anybody's
                 with self.lock:
                     self.page.check_token(request.headers.get('X-Page-Token', request.query.get('token')))
             response = await handler(request)
@@ -116,6 +117,10 @@ class PageServer:
 
     async def _index_page(self, request):
         return web.Response(text=self._index, content_type='text/html')
+
+    async def _no_icon(self, request):
+        """The browser asks for it on its own: none, and no refusal to report."""
+        return web.Response(status=204)
 
     async def _static(self, request):
         name = request.match_info['name']
