@@ -160,13 +160,17 @@ class FeedbackPage:
         """A tap on a rating: ``{"question": number, "score": value}``; the feedback to send."""
         question = self._current(body)
         score = body.get('score')
-        if isinstance(score, bool) or not isinstance(score, (int, float)) or not math.isfinite(score):
-            raise Refusal('schema', "score must be a finite number", 400)
+        if isinstance(score, bool) or not isinstance(score, (int, float)):
+            raise Refusal('schema', '"score" must be a number', 400)
         low, high = self.settings.rating_scale
-        if not low <= score <= high:
+        try:
+            score = float(score)  # an integer too large for a float is off every scale
+        except OverflowError:
+            score = math.inf
+        if not low <= score <= high:  # NaN too
             raise Refusal('out_of_scale', f'score {score:g} is outside the rating scale [{low:g}, {high:g}]', 422)
         fields = {'user_id': self.person_id if self.settings.via_bridge else self.user_id,
-                  'scene_id': question['scene_id'], 'score': float(score)}
+                  'scene_id': question['scene_id'], 'score': score}
         fields['candidate' if 'candidate' in question else 'action'] = question.get('candidate', question['action'])
         if self.settings.signing_key is not None and not self.anonymous:
             key_id, secret = self.settings.signing_key

@@ -174,7 +174,7 @@ class PageServer:
         body = await request.read()  # client_max_size refuses a longer one (413)
         try:
             payload = json.loads(body) if body else {}
-        except (ValueError, UnicodeDecodeError) as error:
+        except (ValueError, RecursionError) as error:  # UnicodeDecodeError is a ValueError
             raise web.HTTPBadRequest(reason=f'not JSON: {error}'[:200]) from None
         action = request.path.strip('/')
         with self.lock:
