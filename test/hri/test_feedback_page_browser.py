@@ -18,7 +18,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from hri_fixtures import hri_msgs  # noqa: F401 - the fixture
-from ros_helpers import LATCHED, RELIABLE, domain_id, running_ranker, stored_feedback
+from ros_helpers import RELIABLE, domain_id, running_ranker, stored_feedback
 from stars_ros.data.scene_source import scene_request
 from stars_ros.hri.people import ENGAGED
 
@@ -142,7 +142,7 @@ def test_the_question_appears_within_1_s_and_a_tap_moves_the_next_ranking(rig):
     page.close()
 
 
-def test_skip_sends_nothing_and_asks_again(rig):
+def test_skip_by_keyboard_sends_nothing_and_asks_again(rig):
     client, expect, taps = rig['client'], rig['expect'], rig['taps']
     page = _open(rig, 'direct')
     start = len(taps['questions'])
@@ -150,7 +150,13 @@ def test_skip_sends_nothing_and_asks_again(rig):
     _question_for(rig, 'sam', start)
     expect(page.locator('#question-title')).to_be_visible(timeout=10_000)
     asked = len([r for r in taps['requests'] if r['user_id'] == 'sam'])
-    page.get_by_role('button', name='Skip this question').click()
+    expect(page.locator('#question-title')).to_be_focused()  # read out first; Tab goes on to the ratings
+    page.keyboard.press('Tab')
+    expect(page.get_by_role('button', name='very bad, rating 0')).to_be_focused()
+    for _ in range(5):
+        page.keyboard.press('Tab')
+    expect(page.get_by_role('button', name='Skip this question')).to_be_focused()
+    page.keyboard.press('Enter')  # skipped by keyboard
     assert client.wait(lambda: len([r for r in taps['requests'] if r['user_id'] == 'sam']) > asked, 10), \
         'skip did not ask for the next question'
     _question_for(rig, 'sam', start + 1)

@@ -15,7 +15,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from ros_helpers import LATCHED, RELIABLE, RosClient, domain_id
+from ros_helpers import RELIABLE, RosClient, domain_id
 from waiting import wait_for
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')
