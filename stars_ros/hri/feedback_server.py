@@ -30,8 +30,8 @@ MAX_STREAMS = 16  # pages open at once (a robot has one screen; a few for tablet
 KEEPALIVE_S = 5.0
 SECURITY_HEADERS = {'Content-Security-Policy': "default-src 'self'; img-src 'self'; frame-ancestors 'none'",
                     'X-Content-Type-Options': 'nosniff', 'Cache-Control': 'no-store'}
-ERRORS = {400: 'bad_request', 403: 'token', 404: 'not_found', 405: 'method', 409: 'stale', 413: 'oversized',
-          415: 'content_type', 422: 'out_of_scale', 429: 'flood', 503: 'busy'}
+ERRORS = {400: 'bad_request', 404: 'not_found', 405: 'method', 413: 'oversized', 415: 'content_type',
+          503: 'busy'}  # the kinds of aiohttp's and this module's HTTP errors; FeedbackPage's Refusal names its own
 
 
 class PageServer:
@@ -155,12 +155,12 @@ class PageServer:
 
     async def _scene(self, request):
         number = int(request.match_info['number'])
+        with self.lock:
+            scene = self.page.scene_of(number)
+        if scene is None:  # a question no longer shown has no picture, drawn before or not
+            raise web.HTTPNotFound(reason=f'no picture of question {number}: not shown now, or its scene was '
+                                   'not seen on stars/scene')
         if self._picture[0] != number:
-            with self.lock:
-                scene = self.page.scene_of(number)
-            if scene is None:
-                raise web.HTTPNotFound(reason=f'no picture of question {number}: not shown now, or its scene was '
-                                       'not seen on stars/scene')
             self._picture = (number, await self._loop.run_in_executor(None, self._draw, *scene))
         return web.Response(body=self._picture[1], content_type='image/png')
 
