@@ -28,6 +28,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.py')),
         ('share/' + package_name + '/models', glob('models/*.pt') + glob('models/*.md')),
     ],
+    package_data={package_name: ['hri/page/*']},  # the feedback page's HTML, CSS and script
     install_requires=['setuptools', *requirements(HERE / 'requirements.txt')],
     zip_safe=True,
     maintainer='stars_ros maintainers',
@@ -44,6 +45,7 @@ setup(
             'recording = stars_ros.recording.__main__:main',
             'hri_bridge = stars_ros.ros.hri_bridge:main',
             'hri_world = stars_ros.ros.hri_world:main',
+            'feedback_page = stars_ros.ros.feedback_page:main',
         ],
     },
 )

@@ -20,6 +20,13 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "$want" > "$stamp"
 fi
 bash scripts/build_interfaces.sh interfaces/stars_ros_msgs  # a no-op while unchanged
+# The feedback page's browser test drives Debian's chromium through playwright (never
+# `playwright install`, which downloads a browser): installed here when running as root
+# without it; elsewhere the test skips, saying so.
+if [ ! -x /usr/bin/chromium ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null \
+    || echo "setup_venv.sh: chromium could not be installed; the browser test will skip" >&2
+fi
 # Register stars_ros in the venv's ament index, as colcon would in an install folder, so a
 # ROS 2 command line with AMENT_PREFIX_PATH=$PWD/.venv finds it (`ros2 run stars_ros ranker`,
 # `ros2 launch stars_ros hri.launch.py`): the package marker, share/stars_ros (package.xml,

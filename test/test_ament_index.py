@@ -13,7 +13,7 @@ pytestmark = pytest.mark.slow  # runs setup_venv.sh and starts the ranker for it
 REPO = Path(__file__).resolve().parents[1]
 VENV = REPO / '.venv'
 EXECUTABLES = ('ranker', 'managed_ranker', 'scene_publisher', 'replay', 'sign_feedback', 'recording', 'hri_bridge',
-               'hri_world')
+               'hri_world', 'feedback_page')
 
 FIND = """
 import json, os

@@ -16,7 +16,7 @@ import yaml
 from stars_ros import recording
 from stars_ros.node.core import PARAMETERS
 from stars_ros.examples import demo
-from stars_ros.ros import hri_bridge, hri_world, replay, scene_publisher, usage
+from stars_ros.ros import feedback_page, hri_bridge, hri_world, replay, scene_publisher, usage
 from stars_ros.errors import LaunchArgumentError
 from stars_ros.state.store import PersonUpdate, write_people
 
@@ -25,7 +25,7 @@ ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').r
 TABLES = {'stars_ros.ros.ranker': PARAMETERS, 'stars_ros.ros.managed_ranker': PARAMETERS,
           'stars_ros.ros.scene_publisher': scene_publisher.PARAMETERS,
           'stars_ros.ros.replay': replay.PARAMETERS, 'stars_ros.ros.hri_bridge': hri_bridge.PARAMETERS,
-          'stars_ros.ros.hri_world': hri_world.PARAMETERS}
+          'stars_ros.ros.hri_world': hri_world.PARAMETERS, 'stars_ros.ros.feedback_page': feedback_page.PARAMETERS}
 
 
 TOOLS = {'sign_feedback': 'stars_ros.sign_feedback', 'recording': 'stars_ros.recording.__main__'}  # not nodes

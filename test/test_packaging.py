@@ -24,6 +24,7 @@ LIBRARIES = {
     'numpy': ('python3-numpy', 'numpy'), 'yaml': ('python3-yaml', 'pyyaml'), 'pandas': ('python3-pandas', 'pandas'),
     'pydantic': ('python3-pydantic', 'pydantic'), 'scipy': ('python3-scipy', 'scipy'),
     'matplotlib': ('python3-matplotlib', 'matplotlib'), 'torch': (None, 'torch'),
+    'aiohttp': ('python3-aiohttp', 'aiohttp'),  # the feedback page's web server
     'torch_geometric': (None, 'torch-geometric'), 'numba': (None, 'numba'), 'fastjsonschema': (None, 'fastjsonschema'),
     'mcap': (None, 'mcap'), 'mcap_ros2': (None, 'mcap-ros2-support'), 'threadpoolctl': (None, 'threadpoolctl'),
     'ray': (None, 'ray'),  # optional: the Ray executor (requirements-ray.txt)
@@ -34,6 +35,7 @@ OPTIONAL_REQUIREMENTS = ('requirements-ray.txt', 'requirements-peers.txt')
 TEST_LIBRARIES = {'pytest': ('python3-pytest', 'pytest'), 'jsonschema': ('python3-jsonschema', 'jsonschema'),
                   'referencing': ('python3-jsonschema', 'jsonschema'),  # jsonschema's own dependency
                   'rosbags': (None, 'rosbags'),
+                  'playwright': (None, 'playwright'),  # the feedback page's browser test
                   'sros2': ('sros2', ROS),  # a ROS package (ros-jazzy-sros2); its tests skip without it
                   'lxml': ('python3-lxml', ROS),  # sros2's own dependency, with it from a ROS install
                   'builtin_interfaces': ('builtin_interfaces', ROS),

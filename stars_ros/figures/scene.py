@@ -64,8 +64,9 @@ def person_view(predictor, user: str, scene: dict, placements: int = 0, action: 
                       {e[0]: float(v) for e, v in zip(entities, effects[:, int(order[0])])})
 
 
-def _draw(axis, scene: dict, view: PersonView, colour, title: str):
-    """One panel: walls, room, interactions, objects, humans (with heading), robot, candidates."""
+def _draw(axis, scene: dict, view: PersonView, colour, title: str, listed: bool = True):
+    """One panel: walls, room, interactions, objects, humans (with heading), robot, candidates
+    (``listed``: with the ranking written in a corner)."""
     room = [tuple(p) for p in scene['room']]
     if len(room) > 1 and room[0] == room[-1]:
         room = room[:-1]
@@ -98,9 +99,10 @@ def _draw(axis, scene: dict, view: PersonView, colour, title: str):
             axis.scatter([y], [x], marker='*' if rank == 1 else 'D', s=260 if rank == 1 else 60,
                          color=(1 - shade, 0.2 + 0.6 * shade, 0.1), edgecolor='black', zorder=6)
             axis.annotate(str(rank), (y, x), textcoords='offset points', xytext=(6, 6), fontsize=8, zorder=7)
-    lines = [f'{rank}. {name} {score:.4f}' for rank, (name, score) in enumerate(view.ranking, 1)]
-    axis.text(0.02, 0.02, '\n'.join(lines), transform=axis.transAxes, fontsize=7, va='bottom', family='monospace',
-              bbox={'facecolor': 'white', 'alpha': 0.8, 'edgecolor': 'none'}, zorder=8)
+    if listed:
+        lines = [f'{rank}. {name} {score:.4f}' for rank, (name, score) in enumerate(view.ranking, 1)]
+        axis.text(0.02, 0.02, '\n'.join(lines), transform=axis.transAxes, fontsize=7, va='bottom',
+                  family='monospace', bbox={'facecolor': 'white', 'alpha': 0.8, 'edgecolor': 'none'}, zorder=8)
     axis.set_title(title, fontsize=10)
     axis.set_aspect('equal')
     axis.invert_xaxis()  # y (left) to the left, as seen from above
@@ -135,3 +137,20 @@ def plot_people(predictor, scene: dict, users: list, path: Path, placements: int
     figure.savefig(path, dpi=110)
     plt.close(figure)
     return path
+
+
+def question_png(scene: dict, placement: dict | None = None) -> bytes:
+    """``scene`` drawn as in ``plot_people`` without a model (the touchscreen page's picture of
+    a question): with ``placement`` (the candidate scene asked about) its robot pose is marked
+    by a star. PNG bytes."""
+    import io
+
+    plt = pyplot()
+    poses = {'asked': to_rep103(*robot_pose_in(scene, placement)[:2])} if placement is not None else {}
+    view = PersonView('', [('asked', 1.0)] if poses else [], poses, {})
+    figure, axis = plt.subplots(figsize=(4.8, 4.8), layout='constrained')
+    _draw(axis, scene, view, lambda effect: 'lightgrey', '', listed=False)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format='png', dpi=100)
+    plt.close(figure)
+    return buffer.getvalue()

@@ -4,7 +4,8 @@ Reads who is tracked (/humans/persons/tracked), each person's engagement_status,
 alias and location_confidence (/humans/persons/<id>/...), groups and gazes
 (/humans/interactions/...) and where people are (TF frames person_<id>, or with
 ``pose_source:=topic`` geometry_msgs/TransformStamped on hri/transforms); publishes the
-served person on stars/user_id, scenes on stars/scene (once the ranker is up: a node that
+served person on stars/user_id (and, for the feedback page, on stars/served_person with
+whether they are anonymous), scenes on stars/scene (once the ranker is up: a node that
 subscribes stars/scene and publishes stars/ranking; until then /diagnostics says it waits),
 implicit outcomes on stars/feedback, and for each ranking of its scenes a decision
 (stars/decision). A placement becomes a goal only when the decision changes
@@ -196,8 +197,9 @@ class HriBridge(Node):
         self.core = BridgeCore(settings, self.poses, lambda: self.get_clock().now().nanoseconds)
         self.wait_for_ranker, self.ranker_up = v['wait_for_ranker'], False
         self.out = {name: self._advertise(String, name, qos) for name, qos in (
-            ('stars/user_id', LATCHED), ('stars/scene', RELIABLE), ('stars/feedback', RELIABLE),
-            ('stars/decision', RELIABLE))}
+            ('stars/user_id', LATCHED), ('stars/served_person', LATCHED), ('stars/scene', RELIABLE),
+            ('stars/feedback', RELIABLE), ('stars/decision', RELIABLE))}
+        self._served_sent = None  # the Served last published on stars/served_person
         self.goal_out = self._advertise(PoseStamped, 'stars/goal', LATCHED)
         self.executed_out = self._advertise(String, 'stars/executed', RELIABLE)
         self.navigation = (NavigateToPoseGoals(self, v['navigate_to_pose'], self._on_navigated,
@@ -330,6 +332,10 @@ class HriBridge(Node):
         if out.user_id is not None:
             self.out['stars/user_id'].publish(String(data=out.user_id))
             self.get_logger().info(f'serving {self.core.served.describe()}')
+        if self.core.served != self._served_sent:  # for the feedback page: whom to ask, and whether it is kept
+            self._served_sent = served = self.core.served
+            self.out['stars/served_person'].publish(String(data=json.dumps(
+                {'person_id': served.person_id, 'anonymous': served.anonymous})))
         if out.scene is not None:
             self.out['stars/scene'].publish(String(data=json.dumps(out.scene)))
             self.counts['scenes_sent'] += 1
