@@ -24,7 +24,8 @@ bash scripts/build_interfaces.sh interfaces/stars_ros_msgs  # a no-op while unch
 # `playwright install`, which downloads a browser): installed here when running as root
 # without it; elsewhere the test skips, saying so.
 if [ ! -x /usr/bin/chromium ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null \
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 \
+    || { apt-get update -qq >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } \
     || echo "setup_venv.sh: chromium could not be installed; the browser test will skip" >&2
 fi
 # Register stars_ros in the venv's ament index, as colcon would in an install folder, so a
