@@ -100,10 +100,9 @@ class FeedbackPage:
     def on_served_person(self, text: str) -> list:
         """stars/served_person from the bridge: ``{"person_id": id or null, "anonymous"}``."""
         payload = json.loads(text)
-        person_id, anonymous = payload.get('person_id'), bool(payload.get('anonymous'))
-        if person_id is not None and not isinstance(person_id, str):
-            raise ValueError('person_id must be a string or null')
-        self.person_id, self.anonymous = person_id or None, anonymous and bool(person_id)
+        messages.check('served_person', payload)  # msg_schemas/served_person.schema.json
+        person_id, anonymous = payload['person_id'], payload['anonymous']
+        self.person_id, self.anonymous = person_id, anonymous and person_id is not None
         asker = None if self.person_id is None else ANONYMOUS_ASKER if self.anonymous else self.person_id
         return self._serve(asker)
 
