@@ -19,8 +19,8 @@ from then on; nothing from before the alias is sent.
 
 **Consent** (``store_policy``, ``consent_file`` and stars/consent, as the ranker's:
 ``node.consent``). Under 'consented' the feedback and implicit outcomes of a recognised person
-not on the consent list are not sent either: dropped and counted as kind ``consent``, whose
-report does not name them (an outcome waiting for someone taken off the list is dropped when
+not on the consent list are not sent either: dropped and counted as kind ``consent``; no
+report names them (an outcome waiting for someone taken off the list is dropped when
 the list changes). Their scenes still go out under their user id: the ranker ranks them as a
 stranger and keeps nothing of them.
 """
@@ -109,6 +109,13 @@ class BridgeCore:
     def report(self, kind: str, detail: str) -> None:
         self.problems.add(kind, detail, 0.0)
 
+    def _who(self, person_id) -> str:
+        """``person_id`` as a report of their feedback or outcome names them: not at all when
+        they are not on the consent list (store_policy consented)."""
+        if person_id is None or self.consent.allows(self.people.canonical(person_id)):
+            return f"'{person_id}'"
+        return 'a person not on the consent list'
+
     # -- ROS4HRI facts -------------------------------------------------------------------
     def on_tracked(self, ids) -> None:
         self.people.set_tracked(ids)
@@ -162,7 +169,8 @@ class BridgeCore:
                 return
             person_id = served.person_id
         if person_id is None or self.people.canonical(person_id) not in self.people.members():
-            self.report('untracked', f"stars/executed for '{person_id}', who is not tracked: no outcome to watch")
+            self.report('untracked', f'stars/executed for {self._who(person_id)}, who is not tracked: no outcome to '
+                        'watch')
             return
         dropped = self.outcomes.dropped_unconsented
         self.outcomes.executed(person_id, scene_id, kind, choice)
@@ -187,7 +195,8 @@ class BridgeCore:
             self.report('bad_feedback', f'person feedback refused: {type(error).__name__}: {error}')
             return None
         if payload['user_id'] not in self.people.members() or self.people.is_anonymous(payload['user_id']):
-            self.report('anonymous_dropped', f"feedback of '{person_id}' dropped: not a recognised tracked person")
+            self.report('anonymous_dropped', f'feedback of {self._who(person_id)} dropped: not a recognised tracked '
+                        'person')
             return None
         if not self.consent.allows(payload['user_id']):  # the report does not name them
             self.report('consent', 'feedback of a person not on the consent list (store_policy consented): '

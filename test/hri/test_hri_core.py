@@ -288,6 +288,12 @@ def test_consented_relays_only_people_on_the_list_and_never_names_the_others(tmp
     period, totals = core.problems.take_period()
     assert totals['consent'] == 2 and core.outcomes.dropped_unconsented == 1 and 'anonymous_dropped' not in totals
     assert "'b'" not in period['consent'][1] and 'b' not in period['consent'][1].split()
+    core.on_tracked(['a'])  # b leaves: a report of his rating or action still does not name him
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'b'})) is None
+    executed(core, 'b')
+    period, _ = core.problems.take_period()
+    assert {'anonymous_dropped', 'untracked'} <= set(period)
+    assert not any("'b'" in detail for _, detail in period.values()), period
 
 
 def test_a_later_consent_message_replaces_the_topics_list_and_drops_what_waits(tmp_path):
