@@ -7,7 +7,12 @@
 Poses travel as TF where tf2_ros exists (``pose_source:=tf``), else on hri/transforms
 (``pose_source:=topic``). A ``source`` that names no file is refused before anything starts.
 Recording goes to the ranker's default folder unless
-``record_folder`` is set. ``--show-args`` lists the arguments.
+``record_folder`` is set. ``store_policy:=consented`` (with ``consent_file`` and/or the latched
+stars/consent) goes to the ranker and the bridge alike: one consent list for the loop
+(docs/privacy.md); a ``consent_file`` that names no file is refused before anything starts.
+``--show-args`` lists the arguments.
+
+    ros2 launch stars_ros hri.launch.py world:=false store_policy:=consented consent_file:=/etc/stars/consent.txt
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
@@ -26,6 +31,19 @@ def _tf2_available() -> bool:
     return True
 
 
+def _privacy(context) -> dict:
+    """store_policy and consent_file for both the bridge and the ranker; nothing under 'all'
+    (their defaults, which read no file), and no empty consent_file (launch_ros reads it as
+    null and refuses it)."""
+    store_policy = LaunchConfiguration('store_policy').perform(context)
+    consent_file = LaunchConfiguration('consent_file').perform(context)
+    if store_policy == 'all':
+        return {}
+    if consent_file:
+        existing_file('consent_file', consent_file)  # both nodes would die on it while the launch runs on
+    return {'store_policy': store_policy, **({'consent_file': consent_file} if consent_file else {})}
+
+
 def _nodes(context):
     source = LaunchConfiguration('source').perform(context)
     if source:
@@ -33,6 +51,7 @@ def _nodes(context):
     pose_source = LaunchConfiguration('pose_source').perform(context) or ('tf' if _tf2_available() else 'topic')
     ranker = {'record_folder': LaunchConfiguration('record_folder')} if LaunchConfiguration(
         'record_folder').perform(context) else {}
+    privacy = _privacy(context)
     return [
         Node(package='stars_ros', executable='hri_world', name='hri_world', output='screen',
              parameters=[{'source': LaunchConfiguration('source'), 'pose_source': pose_source,
@@ -40,8 +59,9 @@ def _nodes(context):
              condition=IfCondition(LaunchConfiguration('world'))),
         Node(package='stars_ros', executable='hri_bridge', name='hri_bridge', output='screen',
              parameters=[{'pose_source': pose_source, 'base_frame': LaunchConfiguration('base_frame'),
-                          'goal_frame': LaunchConfiguration('goal_frame')}]),
-        Node(package='stars_ros', executable='ranker', name='ranker', output='screen', parameters=[ranker]),
+                          'goal_frame': LaunchConfiguration('goal_frame'), **privacy}]),
+        Node(package='stars_ros', executable='ranker', name='ranker', output='screen',
+             parameters=[{**ranker, **privacy}]),
     ]
 
 
@@ -58,5 +78,10 @@ def generate_launch_description():
                               'move with the robot (map, odom)'),
         DeclareLaunchArgument('record_folder', default_value='', description="the ranker's record folder; empty: "
                               'its default'),
+        DeclareLaunchArgument('store_policy', default_value='all', choices=['all', 'consented'],
+                              description="whom the ranker stores and the bridge relays feedback of: 'all'; "
+                              "'consented': the people on the consent list only (docs/privacy.md)"),
+        DeclareLaunchArgument('consent_file', default_value='', description="with store_policy 'consented': ids of "
+                              'people who agreed to be stored, one a line; empty: stars/consent only'),
         OpaqueFunction(function=_nodes),
     ])

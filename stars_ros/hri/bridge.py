@@ -16,6 +16,13 @@ credit an executed action to them) and actions waiting for their outcome (at mos
 people only: the bridge never sends an anonymous person's id, drops their feedback and their
 outcomes (counted: ``anonymous_dropped``), and an alias to a recognised id starts storing
 from then on; nothing from before the alias is sent.
+
+**Consent** (``store_policy``, ``consent_file`` and stars/consent, as the ranker's:
+``node.consent``). Under 'consented' the feedback and implicit outcomes of a recognised person
+not on the consent list are not sent either: dropped and counted as kind ``consent``; no
+report names them (an outcome waiting for someone taken off the list is dropped when
+the list changes). Their scenes still go out under their user id: the ranker ranks them as a
+stranger and keeps nothing of them.
 """
 from __future__ import annotations
 
@@ -32,6 +39,7 @@ from stars_ros.hri.people import People, Served
 from stars_ros.hri.poses import PoseSource
 from stars_ros.hri.scene import (BuiltScene, Interactions, SceneSettings, build_scene, person_frame,
                                  scene_request)
+from stars_ros.node.consent import Consent
 from stars_ros.node.diagnostics import Problems
 
 SENT_SCENES = 1000  # scenes whose served person is remembered for stars/executed
@@ -43,7 +51,8 @@ class BridgeSettings:
     scenes a second; ``goal_frame`` the navigation frame of placement goals ('' =
     ``base_frame``); ``abstain_below`` the abstain rule's threshold on p_first_is_best;
     ``outcome_window`` seconds an action's outcome is watched; ``rating_scale`` the model's
-    (lowest, highest) score; ``scene_prefix`` the scene ids' prefix."""
+    (lowest, highest) score; ``scene_prefix`` the scene ids' prefix; ``store_policy`` and
+    ``consent_file`` whose feedback may be sent (``node.consent``)."""
 
     scene: SceneSettings = SceneSettings()
     rate: float = 2.0
@@ -52,6 +61,8 @@ class BridgeSettings:
     outcome_window: float = 5.0
     rating_scale: tuple = (0.0, 1.0)
     scene_prefix: str = 'hri-'
+    store_policy: str = 'all'
+    consent_file: str = ''
 
     def __post_init__(self):
         if not self.rate > 0:
@@ -75,13 +86,16 @@ class Outputs:
 
 
 class BridgeCore:
-    """See the module docstring. ``poses`` is the pose seam, ``now`` the clock (ns)."""
+    """See the module docstring. ``poses`` is the pose seam, ``now`` the clock (ns). A bad
+    ``store_policy`` or a ``consent_file`` that cannot be read raises ConfigError."""
 
     def __init__(self, settings: BridgeSettings, poses: PoseSource, now: Callable[[], int]):
         self.settings, self.poses, self._now = settings, poses, now
+        self.consent = Consent(settings.store_policy, settings.consent_file)
         self.people = People(now)
         self.interactions = Interactions()
-        self.outcomes = ImplicitOutcomes(self.people, settings.outcome_window, settings.rating_scale, now)
+        self.outcomes = ImplicitOutcomes(self.people, settings.outcome_window, settings.rating_scale, now,
+                                         self.consent.allows)
         self.problems = Problems()
         self.served = Served()
         self.last_scene: BuiltScene | None = None
@@ -94,6 +108,13 @@ class BridgeCore:
 
     def report(self, kind: str, detail: str) -> None:
         self.problems.add(kind, detail, 0.0)
+
+    def _who(self, person_id) -> str:
+        """``person_id`` as a report of their feedback or outcome names them: not at all when
+        they are not on the consent list (store_policy consented)."""
+        if person_id is None or self.consent.allows(self.people.canonical(person_id)):
+            return f"'{person_id}'"
+        return 'a person not on the consent list'
 
     # -- ROS4HRI facts -------------------------------------------------------------------
     def on_tracked(self, ids) -> None:
@@ -148,9 +169,14 @@ class BridgeCore:
                 return
             person_id = served.person_id
         if person_id is None or self.people.canonical(person_id) not in self.people.members():
-            self.report('untracked', f"stars/executed for '{person_id}', who is not tracked: no outcome to watch")
+            self.report('untracked', f'stars/executed for {self._who(person_id)}, who is not tracked: no outcome to '
+                        'watch')
             return
+        dropped = self.outcomes.dropped_unconsented
         self.outcomes.executed(person_id, scene_id, kind, choice)
+        if self.outcomes.dropped_unconsented > dropped:
+            self.report('consent', 'stars/executed for a person not on the consent list (store_policy consented): '
+                        'no outcome watched, none sent')
 
     def on_person_feedback(self, text: str) -> dict | None:
         """Relay explicit feedback keyed by ROS4HRI person id (``{"person_id", "scene_id",
@@ -169,9 +195,30 @@ class BridgeCore:
             self.report('bad_feedback', f'person feedback refused: {type(error).__name__}: {error}')
             return None
         if payload['user_id'] not in self.people.members() or self.people.is_anonymous(payload['user_id']):
-            self.report('anonymous_dropped', f"feedback of '{person_id}' dropped: not a recognised tracked person")
+            self.report('anonymous_dropped', f'feedback of {self._who(person_id)} dropped: not a recognised tracked '
+                        'person')
+            return None
+        if not self.consent.allows(payload['user_id']):  # the report does not name them
+            self.report('consent', 'feedback of a person not on the consent list (store_policy consented): '
+                        'dropped, not relayed')
             return None
         return payload
+
+    def on_consent(self, text: str) -> int | None:
+        """A stars/consent message: the list it gives replaces the topic's last one, and the
+        outcomes waiting for people no longer on the list are dropped; how many it names. A
+        bad one is reported (None) and the list stays as it was."""
+        try:
+            count = self.consent.accept(text)
+        except messages.BadMessage as error:
+            self.report(error.kind, f'stars/consent refused: {error}; the consent list stays as it was')
+            return None
+        dropped = self.outcomes.dropped_unconsented
+        self.outcomes.drop_unconsented()
+        if self.outcomes.dropped_unconsented > dropped:
+            self.report('consent', f'{self.outcomes.dropped_unconsented - dropped} implicit outcomes waiting for '
+                        'people no longer on the consent list dropped, not sent')
+        return count
 
     def on_ranking(self, text: str, robot_in_goal_frame) -> Decision | None:
         """The decision about a stars/ranking of a scene this bridge sent (None for others)."""
@@ -214,11 +261,14 @@ class BridgeCore:
                 self.left_out_total[reason] += len(ids)
                 self.report(reason, f'left out of the scene ({reason}): {ids}')
         self.last_scene = built
-        dropped = self.outcomes.dropped_anonymous
+        dropped, refused = self.outcomes.dropped_anonymous, self.outcomes.dropped_unconsented
         feedback = tuple(self.outcomes.resolve())
         if self.outcomes.dropped_anonymous > dropped:
             self.report('anonymous_dropped', f'{self.outcomes.dropped_anonymous - dropped} implicit outcomes of '
                         'anonymous people dropped, not sent')
+        if self.outcomes.dropped_unconsented > refused:
+            self.report('consent', f'{self.outcomes.dropped_unconsented - refused} implicit outcomes of people not '
+                        'on the consent list (store_policy consented) dropped, not sent')
         return Outputs(user_id if changed_user else None, scene, feedback)
 
     def _request(self, built: BuiltScene, now: int) -> dict:

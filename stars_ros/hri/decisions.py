@@ -14,7 +14,9 @@ DISENGAGED, or no longer tracked) within the window is ``disengaged``, still eng
 end is ``stayed``. The outcome goes to the ranker as feedback marked ``"implicit": true``
 whose score is the rating scale's top (stayed) or bottom (disengaged), which the fold-in
 treats as a Bernoulli observation with its own, larger noise (``personalisation.foldin``). An
-anonymous person's outcome is dropped (counted), never sent: their id must not be stored.
+anonymous person's outcome is dropped (counted), never sent: their id must not be stored. So
+is, under store_policy 'consented' (``may_store``), the outcome of a recognised person not on
+the consent list when the robot acts or when the outcome is known.
 """
 from __future__ import annotations
 
@@ -101,25 +103,40 @@ class ImplicitOutcomes:
         window (float): seconds an outcome is watched for.
         scale (tuple): (lowest, highest) score of the model's rating scale.
         now (callable): the clock, ns.
+        may_store (callable): whether a user id may reach the ranker (``node.consent.Consent.allows``).
     """
 
-    def __init__(self, people: People, window: float, scale: tuple, now: Callable[[], int]):
+    def __init__(self, people: People, window: float, scale: tuple, now: Callable[[], int],
+                 may_store: Callable[[str], bool] = lambda user_id: True):
         if not window > 0:
             raise ValueError(f'the outcome window must be positive, got {window}')
         low, high = (float(v) for v in scale)
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise ValueError(f'the rating scale must be two finite numbers, lowest first, got {scale}')
         self.people, self.window_ns, self.scale, self._now = people, int(window * 1e9), (low, high), now
+        self.may_store = may_store
         self.waiting: list[Executed] = []
         self.dropped_anonymous = 0
+        self.dropped_unconsented = 0
 
     def executed(self, person_id: str, scene_id: str, kind: str, choice: str) -> None:
-        """The robot did ``choice`` (an action or a candidate) in ``scene_id`` for ``person_id``."""
+        """The robot did ``choice`` (an action or a candidate) in ``scene_id`` for ``person_id``;
+        for a recognised person who may not be stored nothing is watched (counted)."""
         if kind not in ('action', 'candidate'):
             raise ValueError(f"kind must be 'action' or 'candidate', got '{kind}'")
         person_id = self.people.canonical(person_id)
-        self.waiting.append(Executed(person_id, scene_id, kind, choice, self._now() + self.window_ns,
-                                     not self.people.is_anonymous(person_id)))
+        recognised = not self.people.is_anonymous(person_id)
+        if recognised and not self.may_store(person_id):
+            self.dropped_unconsented += 1
+            return
+        self.waiting.append(Executed(person_id, scene_id, kind, choice, self._now() + self.window_ns, recognised))
+
+    def drop_unconsented(self) -> None:
+        """Let go at once of the outcomes waiting for recognised people who may no longer be
+        stored (the consent list changed), counted: nothing of theirs is kept to be sent."""
+        kept = [item for item in self.waiting if not item.recognised or self.may_store(item.person_id)]
+        self.dropped_unconsented += len(self.waiting) - len(kept)
+        self.waiting = kept
 
     def resolve(self) -> list:
         """Feedback payloads (stars/feedback) of the outcomes known now; the others wait. A
@@ -141,6 +158,9 @@ class ImplicitOutcomes:
                 continue
             if not item.recognised:
                 self.dropped_anonymous += 1
+                continue
+            if not self.may_store(item.person_id):
+                self.dropped_unconsented += 1
                 continue
             out.append({'user_id': item.person_id, 'scene_id': item.scene_id, item.kind: item.choice,
                         'score': self.scale[1] if stayed else self.scale[0], 'implicit': True})

@@ -12,8 +12,10 @@ implicit outcomes on stars/feedback, and for each ranking of its scenes a decisi
 (``stars_ros.hri.goals``): stars/goal (geometry_msgs/PoseStamped in ``goal_frame``, a frame
 that does not move with the robot, stamped when decided) and, with ``navigate_to_pose`` set,
 Nav2's NavigateToPose action, cancelled on an abstain or when the person leaves, whose
-success is published on stars/executed. The logic is ``stars_ros.hri``; docs/hri.md has the
-rules, the parameters and how to point it at a robot.
+success is published on stars/executed. With ``store_policy:=consented`` it relays feedback
+and implicit outcomes of the people on the consent list only (``consent_file`` and the latched
+stars/consent, as the ranker reads them; docs/privacy.md). The logic is ``stars_ros.hri``;
+docs/hri.md has the rules, the parameters and how to point it at a robot.
 
     ros2 run stars_ros hri_bridge --ros-args -p base_frame:=base_link -p goal_frame:=map
 
@@ -33,6 +35,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from std_msgs.msg import Bool, Float32, String
 
+from stars_ros.errors import ConfigError
 from stars_ros.hri.bridge import BridgeCore, BridgeSettings
 from stars_ros.hri.goals import GoalPolicy, GoalSettings, GoalStep, robot_frame_goal_refusal
 from stars_ros.hri.poses import TIMELESS, Pose, TransformTable
@@ -86,6 +89,11 @@ PARAMETERS = {  # name: (default, description)
              'x1, y1, ...'),
     'objects': ('[]', 'objects in base_frame, JSON: [[x, y, yaw], ...] (metres, radians)'),
     'diagnostics_period': (1.0, 's between two /diagnostics messages (and scans for per-person topics)'),
+    'store_policy': ('all', "whose feedback and implicit outcomes are relayed to the ranker: 'all'; 'consented': "
+                     'only those of people on the consent list (consent_file and stars/consent), the others are '
+                     'dropped, counted as consent (docs/privacy.md); as the ranker\'s store_policy'),
+    'consent_file': ('', "with store_policy 'consented': a file of the ids of people who agreed to be stored, one a "
+                     'line (# starts a comment), joined by those stars/consent lists; empty: none'),
 }
 
 
@@ -180,7 +188,8 @@ class HriBridge(Node):
                               tuple(tuple(float(c) for c in o) for o in objects),
                               tuple((room[k], room[k + 1]) for k in range(0, len(room), 2)), v['placements'])
         settings = BridgeSettings(scene, v['rate'], v['goal_frame'], v['abstain_below'], v['outcome_window'],
-                                  (v['rating_min'], v['rating_max']))
+                                  (v['rating_min'], v['rating_max']), store_policy=v['store_policy'],
+                                  consent_file=v['consent_file'])
         self.qos_watch = QosWatch(self)  # endpoints keep no QoS event handlers: with 20 people, 170 of them
         if v['pose_source'] == 'tf':
             self.poses = TfPoses(self)
@@ -213,6 +222,8 @@ class HriBridge(Node):
         self._ranking_topic = self.resolve_topic_name('stars/ranking')
         self._subscribe(String, 'stars/executed', lambda m: self.core.on_executed(m.data), RELIABLE)
         self._subscribe(String, 'stars/person_feedback', self._on_person_feedback, RELIABLE)
+        if self.core.consent.restricted:  # latched, as the ranker subscribes it (node.parameters.topic_qos)
+            self._subscribe(String, 'stars/consent', self._on_consent, LATCHED)
         self.person_subscriptions: dict[str, list] = {}
         self.counts = {'scenes_sent': 0, 'decisions': 0, 'goals': 0, 'goals_cancelled': 0, 'outcomes_sent': 0,
                        'feedback_relayed': 0}
@@ -314,6 +325,12 @@ class HriBridge(Node):
             self.out['stars/feedback'].publish(String(data=json.dumps(payload)))
             self.counts['feedback_relayed'] += 1
 
+    def _on_consent(self, msg):
+        count = self.core.on_consent(msg.data)
+        if count is not None:
+            self.get_logger().info(f'consent list: {count} person(s) from stars/consent, '
+                                   f'{len(self.core.consent.from_file)} from consent_file')
+
     def _ranker_listens(self) -> bool:
         """Whether a node both subscribes stars/scene and publishes stars/ranking (the ranker
         is up and serving; a managed ranker subscribes only once active)."""
@@ -385,7 +402,7 @@ def main(args=None):
     if usage.print_help_if_asked('hri_bridge', __doc__, PARAMETERS, 'ros2 run stars_ros hri_bridge --ros-args '
                                  '-p base_frame:=base_link -p goal_frame:=map', args):
         return
-    run_node('hri_bridge', HriBridge, fatal=(ImportError, ValueError), args=args)
+    run_node('hri_bridge', HriBridge, fatal=(ImportError, ValueError, ConfigError), args=args)
 
 
 if __name__ == '__main__':

@@ -28,9 +28,10 @@ POSES = {'alice': (1.0, 0.5, math.pi), 'bob': (2.0, -1.0, 0.5), 'tmp': (1.5, 1.5
 
 
 class Loop:
-    """Ranker + bridge (subprocesses) and a client that plays the world and listens."""
+    """Ranker + bridge (subprocesses) and a client that plays the world and listens;
+    ``bridge_params`` are added to the bridge's own."""
 
-    def __init__(self, tmp_path, hri_msgs):
+    def __init__(self, tmp_path, hri_msgs, bridge_params=None):
         self.domain = domain_id(DOMAIN_OFFSET)
         self.record = tmp_path / 'record'
         self.ranker_log_path = tmp_path / 'ranker.log'
@@ -38,12 +39,12 @@ class Loop:
         self.ranker, self.client = self._ranker.__enter__()
         self.bridge = None
         try:
-            self._start(tmp_path)
+            self._start(tmp_path, bridge_params or {})
         except BaseException:  # a half-made loop leaves no ranker behind to answer later tests on its domain
             self.close()
             raise
 
-    def _start(self, tmp_path):
+    def _start(self, tmp_path, bridge_params):
         from stars_ros.ros.hri_world import World
         node = self.client.node
         self.world = World(node, 'base_link', use_tf=False)
@@ -60,7 +61,7 @@ class Loop:
         self.person_feedback = node.create_publisher(String, '/stars/person_feedback', RELIABLE)
         self.bridge = start_node('stars_ros.ros.hri_bridge', self.domain, {
             'pose_source': 'topic', 'goal_frame': 'map', 'rate': 4.0, 'max_age': 1.0, 'abstain_below': 0.0,
-            'outcome_window': 1.0, 'diagnostics_period': 0.5}, tmp_path / 'bridge.log')
+            'outcome_window': 1.0, 'diagnostics_period': 0.5, **bridge_params}, tmp_path / 'bridge.log')
         self.bridge_log = tmp_path / 'bridge.log'
         self.world.track(list(POSES))
         for person_id in ('alice', 'bob'):
@@ -89,6 +90,11 @@ class Loop:
                 if status.name.endswith('hri_bridge'):
                     return {kv.key: kv.value for kv in status.values}
         return {}
+
+    def details(self, kind: str) -> list:
+        """Every detail of ``kind`` the bridge's /diagnostics have given (``latest.<kind>``)."""
+        return [kv.value for array in self.client.snapshot(self.diagnostics) for status in array.status
+                if status.name.endswith('hri_bridge') for kv in status.values if kv.key == f'latest.{kind}']
 
     def ranker_status(self):
         """The ranker's latest /diagnostics status values, as a dict."""
@@ -181,6 +187,38 @@ def test_an_anonymous_persons_feedback_is_not_stored(loop):
     assert [f['user_id'] for f in stored_feedback(bag)] == ['alice'], stored_feedback(bag)
     assert not any(f['user_id'] == 'passer' for f in loop.feedback)
     assert loop.client.wait(lambda: int(loop.status().get('problems.anonymous_dropped', 0)) >= 1, 30), loop.status()
+
+
+def _ranked_bridge_scene(loop) -> str:
+    """The id of a scene of the bridge that the ranker has ranked (feedback names one)."""
+    ranked = len(loop.client.rankings)
+    assert loop.client.wait(lambda: any(r['scene_id'].startswith('hri-') for r in loop.client.rankings[ranked:]), 30)
+    return next(r['scene_id'] for r in loop.client.snapshot(loop.client.rankings)[ranked:]
+                if r['scene_id'].startswith('hri-'))
+
+
+def test_under_store_policy_consented_only_people_on_the_list_are_relayed(tmp_path, hri_msgs):
+    """bob is recognised but not on the consent list: his rating never reaches stars/feedback
+    while alice's (on consent_file) does, and the refusal does not name him; once the latched
+    stars/consent lists him, his next rating is relayed."""
+    consent_file = tmp_path / 'consent.txt'
+    consent_file.write_text('alice\n')
+    loop = Loop(tmp_path, hri_msgs, {'store_policy': 'consented', 'consent_file': str(consent_file)})
+    try:
+        message = {'scene_id': _ranked_bridge_scene(loop), 'candidate': 'stay', 'score': 0.9}
+        loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'bob'})))
+        loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'alice'})))
+        assert loop.client.wait(lambda: any(f['user_id'] == 'alice' for f in loop.feedback), 30), loop.status()
+        assert not any(f['user_id'] == 'bob' for f in loop.feedback)  # published before alice's, in order
+        assert loop.client.wait(lambda: loop.details('consent'), 30), loop.status()
+        assert not any('bob' in detail for detail in loop.details('consent')), loop.details('consent')
+        consent = loop.client.node.create_publisher(String, '/stars/consent', LATCHED)
+        consent.publish(String(data=json.dumps({'consented': ['bob']})))
+        assert loop.client.wait(lambda: '1 person(s) from stars/consent' in loop.bridge_log.read_text(), 30)
+        loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'bob', 'score': 0.2})))
+        assert loop.client.wait(lambda: any(f['user_id'] == 'bob' for f in loop.feedback), 30), loop.status()
+    finally:
+        loop.close()
 
 
 def test_the_best_placement_is_a_pose_stamped_goal_in_the_navigation_frame(loop):

@@ -5,6 +5,7 @@ import math
 import pytest
 
 from stars_ros.data import frames
+from stars_ros.errors import ConfigError
 from stars_ros.hri.bridge import BridgeCore, BridgeSettings
 from stars_ros.hri.decisions import decide
 from stars_ros.hri.people import DISENGAGED, ENGAGED, ENGAGING, People
@@ -254,3 +255,108 @@ def test_latched_facts_of_an_untracked_id_hold_once_it_is_tracked():
     people.set_tracked([])
     people.set_tracked(['later'])  # back again: still recognised, engagement starts afresh
     assert not people.is_anonymous('later') and people.level('later') == 0
+
+
+def consented_world(tmp_path, listed=('a',)):
+    """A bridge with store_policy consented, ``listed`` in its consent_file; a, b and c
+    recognised and engaged."""
+    clock, poses = Clock(), TransformTable()
+    consent_file = tmp_path / 'consent.txt'
+    consent_file.write_text('# agreed on the tablet\n' + ''.join(f'{pid}\n' for pid in listed))
+    core = BridgeCore(BridgeSettings(outcome_window=3.0, store_policy='consented', consent_file=str(consent_file)),
+                      poses, clock)
+    core.on_tracked(['a', 'b', 'c'])
+    for pid in 'abc':
+        person(core, pid)
+    return core, clock
+
+
+def executed(core, person_id, scene_id='s'):
+    core.on_executed(json.dumps({'scene_id': scene_id, 'candidate': 'stay', 'person_id': person_id}))
+
+
+def test_consented_relays_only_people_on_the_list_and_never_names_the_others(tmp_path):
+    core, clock = consented_world(tmp_path)  # the consent_file's 'a' only
+    message = {'scene_id': 's', 'action': 'navigate', 'score': 0.8}
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'a'})) == {**message, 'user_id': 'a'}
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'b'})) is None
+    executed(core, 'a')
+    executed(core, 'b')  # not watched: nothing of b is kept for the ranker
+    assert [item.person_id for item in core.outcomes.waiting] == ['a']
+    clock.advance(3.0)
+    assert [f['user_id'] for f in core.tick().feedback] == ['a']
+    period, totals = core.problems.take_period()
+    assert totals['consent'] == 2 and core.outcomes.dropped_unconsented == 1 and 'anonymous_dropped' not in totals
+    assert "'b'" not in period['consent'][1] and 'b' not in period['consent'][1].split()
+    core.on_tracked(['a'])  # b leaves: a report of his rating or action still does not name him
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'b'})) is None
+    executed(core, 'b')
+    period, _ = core.problems.take_period()
+    assert {'anonymous_dropped', 'untracked'} <= set(period)
+    assert not any("'b'" in detail for _, detail in period.values()), period
+
+
+def test_a_later_consent_message_replaces_the_topics_list_and_drops_what_waits(tmp_path):
+    core, clock = consented_world(tmp_path)
+    message = {'scene_id': 's', 'action': 'navigate', 'score': 0.8}
+    assert core.on_consent(json.dumps({'consented': ['b', 'c']})) == 2
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'b'})) == {**message, 'user_id': 'b'}
+    executed(core, 'b')
+    executed(core, 'c')
+    assert core.on_consent(json.dumps({'consented': ['c']})) == 1  # b taken off: b's waiting outcome goes now
+    assert [item.person_id for item in core.outcomes.waiting] == ['c']
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'b'})) is None
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'a'})) is not None  # the file's list holds
+    assert core.on_consent('{"consented": "c"}') is None  # refused: the list stays as it was
+    assert core.consent.allows('c') and 'schema' in core.problems.take_period()[1]
+    clock.advance(3.0)
+    assert [f['user_id'] for f in core.tick().feedback] == ['c']
+    assert core.outcomes.dropped_unconsented == 1
+
+
+def test_an_outcome_is_checked_again_when_known_so_an_alias_to_someone_not_listed_drops_it(tmp_path):
+    """An anonymous id is watched (an alias may make it a person on the list); once it turns
+    out to be someone not on the list, the outcome is dropped."""
+    core, clock = consented_world(tmp_path)
+    core.on_tracked(['a', 'b', 'c', 'tmp'])
+    person(core, 'tmp', anonymous=True)
+    executed(core, 'tmp')  # anonymous now: watched, as an alias may make it a person on the list
+    core.on_person('alias', 'tmp', 'b')
+    clock.advance(3.0)
+    assert core.tick().feedback == ()
+    assert core.outcomes.dropped_unconsented == 1 and core.outcomes.dropped_anonymous == 0
+
+
+def test_store_policy_all_relays_everyone_as_before(world, tmp_path):
+    core, poses, clock = world
+    assert not core.consent.restricted
+    core.on_tracked(['a', 'b'])
+    person(core, 'a')
+    person(core, 'b')
+    assert core.on_consent(json.dumps({'consented': ['a']})) == 1  # a list changes nothing under 'all'
+    message = {'scene_id': 's', 'action': 'navigate', 'score': 0.8}
+    assert core.on_person_feedback(json.dumps({**message, 'person_id': 'b'})) == {**message, 'user_id': 'b'}
+    executed(core, 'b')
+    clock.advance(3.0)
+    assert core.tick().feedback == ({'user_id': 'b', 'scene_id': 's', 'candidate': 'stay', 'score': 1.0,
+                                     'implicit': True},)
+    assert 'consent' not in core.problems.take_period()[1]
+    unread = BridgeCore(BridgeSettings(consent_file=str(tmp_path / 'absent')), poses, clock)  # not read under 'all'
+    assert unread.consent.allows('anyone')
+
+
+def test_scenes_of_a_person_not_on_the_list_still_go_out_under_their_id(tmp_path):
+    """The ranker ranks them as a stranger and keeps nothing of them (docs/privacy.md)."""
+    core, clock = consented_world(tmp_path, listed=())
+    core.on_tracked(['b'])
+    core.poses.put('base_link', 'person_b', Pose(1.0, 0.0, 0.0, clock()))
+    out = core.tick()
+    assert out.user_id == 'b' and out.scene['user_id'] == 'b'
+
+
+def test_a_bad_store_policy_or_consent_file_stops_the_bridge(tmp_path):
+    with pytest.raises(ConfigError, match="store_policy is 'some'"):
+        BridgeCore(BridgeSettings(store_policy='some'), TransformTable(), Clock())
+    with pytest.raises(ConfigError, match='consent_file .*absent'):
+        BridgeCore(BridgeSettings(store_policy='consented', consent_file=str(tmp_path / 'absent')), TransformTable(),
+                   Clock())

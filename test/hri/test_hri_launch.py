@@ -52,3 +52,15 @@ def test_the_loop_runs_world_bridge_and_ranker_with_the_pose_source_this_machine
     nodes = launched(monkeypatch, pose_source='tf', record_folder='/data/bags')
     assert nodes['hri_bridge']['parameters'][0]['pose_source'] == 'tf'
     assert nodes['ranker']['parameters'][0]['record_folder'].name == 'record_folder'
+
+
+def test_store_policy_goes_to_the_bridge_and_the_ranker_alike(monkeypatch, tmp_path):
+    consent_file = tmp_path / 'consent.txt'
+    consent_file.write_text('alice\n')
+    nodes = launched(monkeypatch, store_policy='consented', consent_file=str(consent_file))
+    privacy = {'store_policy': 'consented', 'consent_file': str(consent_file)}
+    assert privacy.items() <= nodes['hri_bridge']['parameters'][0].items()
+    assert nodes['ranker']['parameters'] == [privacy]
+    nodes = launched(monkeypatch, store_policy='consented')  # the latched stars/consent only
+    assert nodes['ranker']['parameters'] == [{'store_policy': 'consented'}]
+    assert 'store_policy' not in launched(monkeypatch)['hri_bridge']['parameters'][0]  # 'all': their defaults

@@ -15,6 +15,11 @@ def test_hri_launch_refuses_a_missing_source(monkeypatch, tmp_path):
     assert launched(monkeypatch, source=str(present))['hri_world']['parameters'][0]['source'].name == 'source'
 
 
+def test_hri_launch_refuses_a_missing_consent_file(monkeypatch, tmp_path):
+    with pytest.raises(LaunchArgumentError, match='consent_file:=.*no such file'):
+        launched(monkeypatch, store_policy='consented', consent_file=str(tmp_path / 'consent.txt'))
+
+
 def test_existing_file(tmp_path):
     (tmp_path / 'ranker.yaml').write_text('')
     assert existing_file('params_file', str(tmp_path / 'ranker.yaml')) == str(tmp_path / 'ranker.yaml')
