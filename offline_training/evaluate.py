@@ -2,7 +2,10 @@
 
     python -m offline_training.evaluate --config config/eval_socnav1.yaml \
         --protocol rows --jobs 2 --out OUT [--quick] [--backbones gcn,gat] [--device cuda] \
-        [--executor ray [--ray-address HOST:PORT] [--cpus-per-fit 1] [--gpus-per-fit 0.1]]
+        [--executor ray [--ray-address HOST:PORT] [--cpus-per-fit 1] [--gpus-per-fit 0.1]] [--allow-dirty]
+
+A run starts from a commit: with uncommitted changes to tracked files outside ``--out`` it is
+refused (``--allow-dirty`` runs anyway, ``--quick`` always may; the records say which).
 
 Writes into ``--out`` (required: a run never writes into the repository unasked): ``command.txt``,
 ``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each fit's
@@ -32,7 +35,7 @@ from stars_ros.errors import StarsError
 from stars_ros.evaluation import peers
 from stars_ros.evaluation.folds import PROTOCOLS
 from stars_ros.evaluation.protocol import ProtocolConfig, model_specs, run_protocol
-from stars_ros.evaluation.provenance import program_argv, run_record, write_run_files
+from stars_ros.evaluation.provenance import git_state, program_argv, run_record, write_run_files
 from stars_ros.evaluation.report import SUMMARY_FILES, json_default, previous_entries, report_failures, write_results
 from stars_ros.model.config import ExperimentConfig
 
@@ -60,6 +63,10 @@ def parse_args(argv=None):
     parser.add_argument('--resume', action='store_true',
                         help="reuse the fits in the folder's records.jsonl from an earlier run with the same "
                              'config.yaml (jobs, threads and the executor may differ) and run only the rest')
+    parser.add_argument('--allow-dirty', action='store_true',
+                        help='run although tracked files outside --out have uncommitted changes (the records say '
+                             'dirty; a run that results cite starts from a commit, so without this it is refused; '
+                             '--quick always may)')
     parser.add_argument('--verbose', action='store_true', help='log every fit')
     add_executor_options(parser)
     return parser.parse_args(argv)
@@ -92,6 +99,9 @@ def main(argv=None) -> int:
         device = ExperimentConfig.from_dict(config.experiment).training.device
         if args.threads < 1:
             raise StarsError('--threads must be positive')
+        if not (args.quick or args.allow_dirty) and git_state(ignoring=Path(args.out))['dirty']:
+            raise StarsError('tracked files have uncommitted changes: commit the config and the code this run '
+                             'uses first, so its records name what ran (or --allow-dirty)')
         started = time.perf_counter()
         data = load_dataset(args.data_root)
         load_seconds = time.perf_counter() - started

@@ -74,13 +74,15 @@ def _merge(base: dict, changes: dict) -> dict:
 
 #: Settings a protocol's ``search`` may vary, and the config section each belongs to.
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'average_last': 'training',
-              'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'dim': 'model'}
+              'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'user_dropout': 'training',
+              'dim': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
 #: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.
 PEER_FAMILIES = ('surprise_svd', 'myfm')
 #: StARS ablations: label suffix and the settings that differ from full StARS (they win over
-#: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off).
+#: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off,
+#: ``stars_no_user_dropout`` with every example trained with its person's row).
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
     'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
@@ -88,6 +90,7 @@ ABLATIONS = {
     'stars_no_residual': ('StARS without the h_i residual', {'variant': 'stars_no_residual'}),
     'stars_prefix': ('StARS, items keyed by prefix', {'item_key': 'prefix'}),
     'stars_point': ('StARS, trained point estimate (no posterior head)', {'posterior_sweeps': 0}),
+    'stars_no_user_dropout': ('StARS without user dropout', {'user_dropout': 0.0}),
 }
 
 

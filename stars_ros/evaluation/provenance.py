@@ -34,16 +34,21 @@ def _torch_version() -> str | None:
         return None
 
 
-def git_state() -> dict:
-    """Commit and whether the checkout had uncommitted changes (results must say); None for
-    both where the package does not run from a git checkout."""
+def git_state(ignoring: Path | None = None) -> dict:
+    """Commit and whether the checkout had uncommitted changes to tracked files (results must
+    say), not counting those under ``ignoring`` (a run's own results folder, whose records it
+    writes); None for both where the package does not run from a git checkout."""
     def git(*command):
         done = subprocess.run(['git', *command], cwd=REPO, capture_output=True, text=True, timeout=30)
         if done.returncode:
             raise subprocess.SubprocessError(done.stderr)
         return done.stdout.strip()
+    paths = ['--', '.']
+    if ignoring is not None and Path(ignoring).resolve().is_relative_to(REPO):
+        paths.append(f':(exclude){Path(ignoring).resolve().relative_to(REPO)}')
     try:
-        return {'commit': git('rev-parse', 'HEAD'), 'dirty': bool(git('status', '--porcelain', '--untracked-files=no'))}
+        return {'commit': git('rev-parse', 'HEAD'),
+                'dirty': bool(git('status', '--porcelain', '--untracked-files=no', *paths))}
     except (OSError, subprocess.SubprocessError):
         return {'commit': None, 'dirty': None}
 

@@ -196,7 +196,11 @@ class TrainConfig(Section):
     the trained weights, and the fitted rows are the means of the draws after the first
     ``posterior_burn_in`` sweeps (``model.posterior``): a Bayesian head with myFM's edge, one
     model served at the same cost; 0 keeps the trained point estimate. Not for ``base``, which
-    has no factorisation part. ``device`` is where ``fit`` trains
+    has no factorisation part. ``user_dropout`` > 0: in each joint epoch every training example
+    is scored as a stranger's (p_u = 0, b_u = 0, the row an unseen person is served) with that
+    probability, so the population part of the model (h_iᵀ r_a + b_i + b) is trained as a
+    prediction for someone it has never seen, not only as the mean of known people's terms;
+    0 trains every example with its person's row, 1 none (the person rows stay zero). ``device`` is where ``fit`` trains
     ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
     fold-in and serving never see a GPU tensor."""
 
@@ -210,6 +214,7 @@ class TrainConfig(Section):
     average_last: Annotated[Int, Field(ge=0)] = 0
     posterior_sweeps: Annotated[Int, Field(ge=0)] = 0
     posterior_burn_in: Annotated[Int, Field(ge=0)] = 50
+    user_dropout: Annotated[Float, Field(ge=0.0, le=1.0)] = 0.0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
     device: str = 'cpu'

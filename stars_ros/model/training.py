@@ -37,6 +37,7 @@ from stars_ros.errors import ConfigError, TrainingDivergedError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import FittedModel, build_model
 from stars_ros.model.posterior import posterior_head, training_observations
+from stars_ros.model.vocabulary import UNKNOWN
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +162,7 @@ class StarsTrainer(FittedModel):
             if model.personalised:
                 model.start_from_head(head)
         self._run_epochs('joint', cfg.joint_epochs, data, examples, model, self.trainable_parameters(), rng,
-                         cfg.embedding_l2, on_epoch, average_last=cfg.average_last)
+                         cfg.embedding_l2, on_epoch, average_last=cfg.average_last, user_dropout=cfg.user_dropout)
         model.cpu()
         model.eval()
         if cfg.posterior_sweeps:
@@ -196,7 +197,8 @@ class StarsTrainer(FittedModel):
             torch.set_num_threads(cfg.threads)
             rows = np.arange(len(data)) if rows is None else np.asarray(rows)
             losses = self._run_epochs('joint', epochs, data, self.training_set(data, rows), model,
-                                      self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2)
+                                      self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2,
+                                      user_dropout=cfg.user_dropout)
         model.eval()
         return losses
 
@@ -225,15 +227,16 @@ class StarsTrainer(FittedModel):
                            torch.from_numpy(scenes), targets, rated)
 
     def _run_epochs(self, stage, epochs, data, examples, score, parameters, rng, l2, on_epoch=None,
-                    average_last: int = 0) -> list:
+                    average_last: int = 0, user_dropout: float = 0.0) -> list:
         """``epochs`` epochs of ``stage``; with ``average_last``, ``parameters`` end as the mean of
-        their values after each of the last ``average_last`` epochs (``TrainConfig``)."""
+        their values after each of the last ``average_last`` epochs, and with ``user_dropout``
+        each example is scored as a stranger's with that probability (``TrainConfig``)."""
         cfg = self.config.training
         optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
         losses, averaged = [], 0
         sums = [torch.zeros_like(p, dtype=torch.float64) for p in parameters] if average_last else []
         for epoch in range(epochs):
-            loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2)
+            loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2, user_dropout)
             losses.append(loss)
             self.history[stage].append(loss)
             log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
@@ -263,9 +266,12 @@ class StarsTrainer(FittedModel):
             std = features.std(0, unbiased=False)
             model.feature_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)))
 
-    def _epoch(self, data, examples, score, parameters, optimiser, rng, l2: float) -> float:
+    def _epoch(self, data, examples, score, parameters, optimiser, rng, l2: float, user_dropout: float = 0.0) -> float:
         """One pass over the training examples; returns the mean squared error over the
-        rated targets (z-scale). ``examples.scenes`` stays on the CPU (it indexes the store)."""
+        rated targets (z-scale). ``examples.scenes`` stays on the CPU (it indexes the store).
+        With ``user_dropout`` an example's person becomes UNKNOWN (-1, the zero row) with that
+        probability, drawn afresh each epoch; 0 draws nothing, so the seeds' streams are as
+        without the setting."""
         cfg = self.config.training
         device = self.model.device
         self.model.train()
@@ -277,6 +283,9 @@ class StarsTrainer(FittedModel):
             h = self.model.encode(data.store.batch(distinct).to(device))[inverse.to(device)]
             pick = pick.to(device)
             users, items, rated = examples.users[pick], examples.items[pick], examples.rated[pick]
+            if user_dropout:
+                strangers = torch.from_numpy(rng.random(len(pick)) < user_dropout).to(device)
+                users = torch.where(strangers, torch.full_like(users, UNKNOWN), users)
             squared = (score(users, items, h) - examples.targets[pick]).pow(2)
             n_rated = int(rated.sum())
             loss = squared[rated].sum() / n_rated

@@ -325,6 +325,27 @@ def test_device_option_reaches_every_fit_and_the_results(synthetic_root, tmp_pat
     assert evaluate.main(['--quick', '--device', 'gpu', '--data-root', str(synthetic_root), '--out', str(out)]) == 2
 
 
+def test_a_run_from_uncommitted_changes_is_refused_unless_allowed(synthetic_root, tmp_path, monkeypatch, capsys):
+    """A run that results cite starts from a commit: a dirty tree (its own --out folder not
+    counted) refuses it before anything is written; --allow-dirty and --quick may run."""
+    from offline_training import evaluate
+    asked = []
+
+    def dirty(ignoring=None):
+        asked.append(ignoring)
+        return {'commit': 'abc', 'dirty': True}
+    monkeypatch.setattr(evaluate, 'git_state', dirty)
+    out = tmp_path / 'dirty'
+    assert evaluate.main(['--data-root', str(synthetic_root), '--out', str(out)]) == 2
+    assert 'uncommitted changes' in capsys.readouterr().err and not out.exists()
+    assert asked == [out]
+    missing = tmp_path / 'no data'  # past the check, the next refusal is the data's
+    for allowed in (['--allow-dirty'], ['--quick']):
+        assert evaluate.main([*allowed, '--data-root', str(missing), '--out', str(out)]) == 2
+        error = capsys.readouterr().err
+        assert 'uncommitted' not in error and 'no data' in error
+
+
 def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(synthetic_root, tmp_path, monkeypatch):
     """A run stopped after some fits (records.jsonl cut short), resumed: only the missing
     fits run, and the results equal an uninterrupted run's."""

@@ -36,3 +36,26 @@ def test_the_machine_names_torch_without_importing_it():
               "print(provenance.machine()['torch'], 'torch' in sys.modules)")
     shown = subprocess.run([sys.executable, '-c', script], check=True, capture_output=True, text=True).stdout.split()
     assert shown == [importlib.metadata.version('torch'), 'False']
+
+
+def test_a_runs_own_results_folder_does_not_make_the_tree_dirty(tmp_path, monkeypatch):
+    """``git_state(ignoring=out)``: records a resumed run wrote into its own folder are not
+    uncommitted work; a change anywhere else is."""
+    def git(*command):
+        subprocess.run(['git', '-c', 'user.name=t', '-c', 'user.email=t@t', *command], cwd=tmp_path,
+                       check=True, capture_output=True)
+    (tmp_path / 'results' / 'run').mkdir(parents=True)
+    (tmp_path / 'results' / 'run' / 'records.jsonl').write_text('{}\n')
+    (tmp_path / 'config.yaml').write_text('a: 1\n')
+    git('init', '-q')
+    git('add', '.')
+    git('commit', '-qm', 'start')
+    monkeypatch.setattr(provenance, 'REPO', tmp_path)
+    out = tmp_path / 'results' / 'run'
+    assert provenance.git_state(ignoring=out)['dirty'] is False
+    (out / 'records.jsonl').write_text('{}\n{}\n')
+    assert provenance.git_state()['dirty'] is True
+    assert provenance.git_state(ignoring=out)['dirty'] is False
+    assert provenance.git_state(ignoring=tmp_path.parent / 'elsewhere')['dirty'] is True
+    (tmp_path / 'config.yaml').write_text('a: 2\n')
+    assert provenance.git_state(ignoring=out)['dirty'] is True

@@ -8,7 +8,9 @@ import torch
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError, DataError, TrainingDivergedError
 from stars_ros.errors import NotFittedError
+from stars_ros.model.model import StarsModel
 from stars_ros.model.training import StarsTrainer, split_rows
+from stars_ros.model.vocabulary import UNKNOWN
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
          'training': {'pretrain_epochs': 2, 'joint_epochs': 4, 'lr': 3e-3, 'batch_size': 128, 'threads': 1}}
@@ -133,6 +135,46 @@ def test_weight_averaging_never_reads_a_test_row(synthetic, rows):
     first = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
     second = StarsTrainer(config).fit(turned, train[:800]).predict_rows(turned, test)
     assert np.array_equal(first, second)
+
+
+def test_user_dropout_scores_that_share_of_examples_as_strangers_each_epoch(synthetic, rows, monkeypatch):
+    """Joint training sees a person's row for about 1 − user_dropout of the examples, drawn
+    afresh each epoch; with 0 every example keeps its person."""
+    train, _ = rows
+    seen = []
+    forward = StarsModel.forward
+
+    def spy(self, users, scenes, h, user_rows=None):
+        if self.training:
+            seen.append(users.clone())
+        return forward(self, users, scenes, h, user_rows)
+    monkeypatch.setattr(StarsModel, 'forward', spy)
+    config = ExperimentConfig.from_dict(SMALL)
+    StarsTrainer(config).fit(synthetic, train[:800])
+    assert seen and all((users >= 0).all() for users in seen)
+    seen.clear()
+    StarsTrainer(config.replace(training={'user_dropout': 0.5})).fit(synthetic, train[:800])
+    strangers = torch.cat(seen) == UNKNOWN
+    examples = len(np.unique(synthetic.examples[train[:800]]))
+    assert len(strangers) == examples * 4  # 4 joint epochs
+    assert abs(float(strangers.float().mean()) - 0.5) < 0.05
+    by_epoch = strangers.view(4, examples)
+    assert not torch.equal(by_epoch[0], by_epoch[1])  # the draw is redone each epoch (order differs too)
+
+
+def test_user_dropout_of_one_trains_no_person_row(synthetic, rows):
+    """Every example a stranger's: p_u and b_u never leave zero (nor q_i, whose only path to
+    the prediction is p_u ⊙ (q_i + h_i)), so a known person is predicted exactly as a stranger
+    is, by h_iᵀ r_a + b_i + b."""
+    train, test = rows
+    trainer = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(training={'user_dropout': 1.0}))
+    trainer.fit(synthetic, train[:800])
+    model = trainer.model
+    for zero in (model.user_embedding, model.user_bias, model.scene_embedding):
+        assert zero.weight.abs().sum() == 0
+    assert model.scene_bias.weight.abs().sum() > 0
+    strangers = dataclasses.replace(synthetic, users=np.array(['never seen'] * len(synthetic), dtype=object))
+    np.testing.assert_array_equal(trainer.predict_rows(synthetic, test), trainer.predict_rows(strangers, test))
 
 
 def test_vocabularies_come_from_training_rows_only(synthetic, rows):
