@@ -75,6 +75,7 @@ def _merge(base: dict, changes: dict) -> dict:
 #: Settings a protocol's ``search`` may vary, and the config section each belongs to.
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'average_last': 'training',
               'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'user_dropout': 'training',
+              'distil_members': 'training',
               'dim': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
@@ -82,7 +83,8 @@ FAMILIES = ('base', 'stars', 'mf')
 PEER_FAMILIES = ('surprise_svd', 'myfm')
 #: StARS ablations: label suffix and the settings that differ from full StARS (they win over
 #: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off,
-#: ``stars_no_user_dropout`` with every example trained with its person's row).
+#: ``stars_no_user_dropout`` with every example trained with its person's row,
+#: ``stars_undistilled`` trained once on the ratings instead of distilled from a seed ensemble).
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
     'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
@@ -91,6 +93,7 @@ ABLATIONS = {
     'stars_prefix': ('StARS, items keyed by prefix', {'item_key': 'prefix'}),
     'stars_point': ('StARS, trained point estimate (no posterior head)', {'posterior_sweeps': 0}),
     'stars_no_user_dropout': ('StARS without user dropout', {'user_dropout': 0.0}),
+    'stars_undistilled': ('StARS trained once, not distilled', {'distil_members': 0}),
 }
 
 
@@ -393,6 +396,8 @@ class ProtocolRun:
                  'fold': fold_id, 'fraction': fraction, 'stage': stage, 'settings': settings,
                  'T1': pair[0], 'T2': pair[1], 'n_train': n_train, 'n_test': n_test,
                  **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
+        if 'teachers' in scores:
+            entry['teachers'] = scores['teachers']
         if 'error' in scores:
             entry['error'] = scores['error']
             log.warning('%s fold %s fraction %g: %s', spec.label, fold_id, fraction, scores['error'])

@@ -200,7 +200,12 @@ class TrainConfig(Section):
     is scored as a stranger's (p_u = 0, b_u = 0, the row an unseen person is served) with that
     probability, so the population part of the model (h_iᵀ r_a + b_i + b) is trained as a
     prediction for someone it has never seen, not only as the mean of known people's terms;
-    0 trains every example with its person's row, 1 none (the person rows stay zero). ``device`` is where ``fit`` trains
+    0 trains every example with its person's row, 1 none (the person rows stay zero).
+    ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
+    ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
+    (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
+    one network, served at one model's cost, distilled from a seed ensemble (Hinton et al.
+    2015); 0 trains on the ratings. ``device`` is where ``fit`` trains
     ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
     fold-in and serving never see a GPU tensor."""
 
@@ -215,6 +220,7 @@ class TrainConfig(Section):
     posterior_sweeps: Annotated[Int, Field(ge=0)] = 0
     posterior_burn_in: Annotated[Int, Field(ge=0)] = 50
     user_dropout: Annotated[Float, Field(ge=0.0, le=1.0)] = 0.0
+    distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
     device: str = 'cpu'
@@ -225,6 +231,13 @@ class TrainConfig(Section):
         if not re.fullmatch(r'cpu|cuda(:\d+)?', device):
             raise ValueError(f"must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
         return device
+
+    @field_validator('distil_members')
+    @classmethod
+    def _an_ensemble_to_distil(cls, members: int) -> int:
+        if members == 1:
+            raise ValueError('must be 0 (no distillation) or at least 2: one teacher is the model itself')
+        return members
 
     @model_validator(mode='after')
     def _burn_in_below_sweeps(self) -> 'TrainConfig':

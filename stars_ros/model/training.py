@@ -89,6 +89,7 @@ class StarsTrainer(FittedModel):
     def __init__(self, config: ExperimentConfig):
         super().__init__(config)
         self.history: dict = {'pretrain': [], 'joint': []}
+        self.teachers: list[StarsTrainer] = []  # what ``fit`` distilled the model from (not saved)
 
     @classmethod
     def resume(cls, fitted: FittedModel) -> 'StarsTrainer':
@@ -131,6 +132,8 @@ class StarsTrainer(FittedModel):
         device = torch.device(cfg.device)
         if device.type == 'cuda' and not torch.cuda.is_available():
             raise ConfigError(f"training.device is '{cfg.device}', but torch sees no CUDA GPU")
+        self.teachers = [StarsTrainer(self.config.replace(training={'distil_members': 0, 'seed': cfg.seed + k}))
+                         .fit(data, rows) for k in range(cfg.distil_members)]
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
         rng = np.random.default_rng(cfg.seed)
@@ -146,7 +149,11 @@ class StarsTrainer(FittedModel):
         self.model = model = build_model(self.config, data.store.feature_dim, data.kind,
                                          len(self.users), len(self.scene_keys), len(self.action_names))
         self._set_statistics(data, rows, train_scenes)
-        examples = self.training_set(data, rows).to(device)
+        examples = self.training_set(data, rows)
+        if self.teachers:
+            teaching = torch.stack([teacher.z_predictions(data, examples) for teacher in self.teachers]).mean(0)
+            examples = examples._replace(targets=torch.where(examples.rated, teaching, examples.targets))
+        examples = examples.to(device)
         model.to(device)
 
         # The pre-training head is made on the CPU under a fresh seed, so a seed gives the same
@@ -168,6 +175,28 @@ class StarsTrainer(FittedModel):
         if cfg.posterior_sweeps:
             self._apply_posterior_head(data, examples)
         return self
+
+    def z_predictions(self, data: RatingData, examples: 'TrainingSet') -> torch.Tensor:
+        """The fitted model's z-scores of every action for each of ``examples`` [n, actions]
+        (the scale training targets are on)."""
+        model = self.require_model()
+        model.eval()
+        scores = []
+        with torch.no_grad():
+            for start in range(0, len(examples.users), 1024):
+                part = slice(start, start + 1024)
+                distinct, inverse = torch.unique(examples.scenes[part], return_inverse=True)
+                h = model.encode(data.store.batch(distinct).to(model.device))[inverse.to(model.device)]
+                scores.append(model(examples.users[part].to(model.device), examples.items[part].to(model.device),
+                                    h).cpu())
+        return torch.cat(scores)
+
+    def teachers_predict_rows(self, data: RatingData, rows: np.ndarray) -> np.ndarray:
+        """The mean prediction of the seed ensemble the model was distilled from
+        (``distil_members``), to compare the one network with what it was taught by."""
+        if not self.teachers:
+            raise ValueError('the model was not distilled: training.distil_members is 0')
+        return np.mean([teacher.predict_rows(data, rows) for teacher in self.teachers], axis=0)
 
     def with_posterior_head(self, data: RatingData, rows: np.ndarray) -> 'StarsTrainer':
         """A copy, on the CPU, whose factorisation part is the posterior head (``posterior_sweeps``)

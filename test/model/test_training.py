@@ -177,6 +177,39 @@ def test_user_dropout_of_one_trains_no_person_row(synthetic, rows):
     np.testing.assert_array_equal(trainer.predict_rows(synthetic, test), trainer.predict_rows(strangers, test))
 
 
+def test_a_distilled_model_is_trained_on_its_seed_teachers_mean_prediction(synthetic, rows, monkeypatch):
+    """distil_members K: K teachers fitted as plain fits with seeds seed … seed + K − 1, then the
+    model trained (its own seed) on their mean z-prediction of each rated entry, by hand."""
+    train, test = rows
+    config = ExperimentConfig.from_dict(SMALL).replace(training={'seed': 3})
+    taught = []
+    run_epochs = StarsTrainer._run_epochs
+
+    def spy(self, stage, epochs, data, examples, *args, **kwargs):
+        taught.append((self, examples))
+        return run_epochs(self, stage, epochs, data, examples, *args, **kwargs)
+    monkeypatch.setattr(StarsTrainer, '_run_epochs', spy)
+    distilled = StarsTrainer(config.replace(training={'distil_members': 2})).fit(synthetic, train[:600])
+    monkeypatch.setattr(StarsTrainer, '_run_epochs', run_epochs)
+    plain = [StarsTrainer(config.replace(training={'seed': seed})).fit(synthetic, train[:600]) for seed in (3, 4)]
+    for teacher, alone in zip(distilled.teachers, plain):
+        assert np.array_equal(teacher.predict_rows(synthetic, test), alone.predict_rows(synthetic, test))
+    student = [examples for trainer, examples in taught if trainer is distilled]
+    assert len(student) == 2  # pre-training and joint training, both on the teachers' targets
+    examples = plain[0].training_set(synthetic, train[:600])
+    by_hand = (plain[0].z_predictions(synthetic, examples) + plain[1].z_predictions(synthetic, examples)) / 2
+    for seen in student:
+        assert torch.equal(seen.rated, examples.rated)
+        torch.testing.assert_close(seen.targets[seen.rated], by_hand[examples.rated])
+    np.testing.assert_allclose(distilled.teachers_predict_rows(synthetic, test),
+                               (plain[0].predict_rows(synthetic, test) + plain[1].predict_rows(synthetic, test)) / 2)
+    assert not np.array_equal(distilled.predict_rows(synthetic, test), plain[0].predict_rows(synthetic, test))
+    with pytest.raises(ValueError, match='not distilled'):
+        plain[0].teachers_predict_rows(synthetic, test)
+    with pytest.raises(ConfigError, match='distil_members: must be 0 .* or at least 2'):
+        config.replace(training={'distil_members': 1})
+
+
 def test_vocabularies_come_from_training_rows_only(synthetic, rows):
     train, _ = rows
     recommender = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(
