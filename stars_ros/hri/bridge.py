@@ -109,6 +109,13 @@ class BridgeCore:
     def report(self, kind: str, detail: str) -> None:
         self.problems.add(kind, detail, 0.0)
 
+    def served_kept(self) -> bool:
+        """Whether what the served person says is relayed, so the ranker may keep it: they are
+        recognised (not anonymous) and, under store_policy consented, on the consent list."""
+        served = self.served
+        return (served.person_id is not None and not served.anonymous
+                and self.consent.allows(self.people.canonical(served.person_id)))
+
     def _who(self, person_id) -> str:
         """``person_id`` as a report of their feedback or outcome names them: not at all when
         they are not on the consent list (store_policy consented)."""

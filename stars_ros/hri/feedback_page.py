@@ -9,8 +9,9 @@ a bad request raises ``Refusal``, whose kind and message go back to the page and
 stars/errors. The page sees ``view()``: never a key, never another person's question.
 
 Through the bridge (``via_bridge``) an answer goes out on stars/person_feedback keyed by the
-served person's ROS4HRI id, and the bridge drops an anonymous person's (docs/hri.md): the page
-says their answer will not be kept. Without it, an answer is feedback on stars/feedback for
+served person's ROS4HRI id, and the bridge drops an anonymous person's (docs/hri.md), and under
+store_policy consented that of a person not on the consent list: the page says their answer
+will not be kept, and why (stars/served_person's ``kept``). Without it, an answer is feedback on stars/feedback for
 the user id on stars/user_id. With a signing key, answers are signed here, server-side.
 """
 from __future__ import annotations
@@ -88,6 +89,7 @@ class FeedbackPage:
         self.settings, self._now = settings, now
         self.version = 0  # grows with every change the page should show
         self.person_id, self.anonymous = None, False  # via the bridge: whom it serves
+        self.kept = True  # via the bridge: whether the served person's answers are kept
         self.user_id = None  # whose questions are asked (None: nobody served)
         self.question, self.question_number, self.pending = None, 0, None
         self.phase = 'waiting'  # waiting (no question), question, thanks
@@ -98,11 +100,16 @@ class FeedbackPage:
 
     # -- the topics ---------------------------------------------------------------------
     def on_served_person(self, text: str) -> list:
-        """stars/served_person from the bridge: ``{"person_id": id or null, "anonymous"}``."""
+        """stars/served_person from the bridge: ``{"person_id": id or null, "anonymous", "kept"}``
+        (``kept`` false: the bridge will drop their answers, e.g. not on the consent list)."""
         payload = json.loads(text)
         messages.check('served_person', payload)  # msg_schemas/served_person.schema.json
         person_id, anonymous = payload['person_id'], payload['anonymous']
         self.person_id, self.anonymous = person_id, anonymous and person_id is not None
+        kept = payload.get('kept', not self.anonymous) and not self.anonymous
+        if kept != self.kept:
+            self.kept = kept
+            self.version += 1
         asker = None if self.person_id is None else ANONYMOUS_ASKER if self.anonymous else self.person_id
         return self._serve(asker)
 
@@ -235,8 +242,10 @@ class FeedbackPage:
         if self.question is not None:
             question = {'number': self.question['number'], 'words': in_words(self.question),
                         'has_picture': self.scene_of(self.question['number']) is not None}
+        not_kept = None if self.kept else 'anonymous' if self.anonymous else 'consent'
         return {'version': self.version, 'phase': self.phase, 'served': self.user_id is not None,
-                'anonymous': self.anonymous, 'question': question, 'pending': self.pending is not None,
+                'anonymous': self.anonymous, 'not_kept': not_kept, 'question': question,
+                'pending': self.pending is not None,
                 'outcome': self.outcome,
                 'scale': [round(low + (high - low) * k / (steps - 1), 6) for k in range(steps)]}
 

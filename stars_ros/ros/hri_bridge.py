@@ -208,7 +208,7 @@ class HriBridge(Node):
         self.out = {name: self._advertise(String, name, qos) for name, qos in (
             ('stars/user_id', LATCHED), ('stars/served_person', LATCHED), ('stars/scene', RELIABLE),
             ('stars/feedback', RELIABLE), ('stars/decision', RELIABLE))}
-        self._served_sent = None  # the Served last published on stars/served_person
+        self._served_sent = None  # the (Served, kept) last published on stars/served_person
         self.goal_out = self._advertise(PoseStamped, 'stars/goal', LATCHED)
         self.executed_out = self._advertise(String, 'stars/executed', RELIABLE)
         self.navigation = (NavigateToPoseGoals(self, v['navigate_to_pose'], self._on_navigated,
@@ -349,10 +349,11 @@ class HriBridge(Node):
         if out.user_id is not None:
             self.out['stars/user_id'].publish(String(data=out.user_id))
             self.get_logger().info(f'serving {self.core.served.describe()}')
-        if self.core.served != self._served_sent:  # for the feedback page: whom to ask, and whether it is kept
-            self._served_sent = served = self.core.served
+        served = (self.core.served, self.core.served_kept())
+        if served != self._served_sent:  # for the feedback page: whom to ask, and whether it is kept
+            self._served_sent = served
             self.out['stars/served_person'].publish(String(data=json.dumps(
-                {'person_id': served.person_id, 'anonymous': served.anonymous})))
+                {'person_id': served[0].person_id, 'anonymous': served[0].anonymous, 'kept': served[1]})))
         if out.scene is not None:
             self.out['stars/scene'].publish(String(data=json.dumps(out.scene)))
             self.counts['scenes_sent'] += 1

@@ -61,6 +61,24 @@ def test_through_the_bridge_an_anonymous_person_is_asked_under_no_id_and_told_it
     assert json.loads(payload) == {'person_id': 'p7', 'scene_id': 's1', 'score': 0.25, 'action': 'navigate'}
 
 
+def test_a_person_whose_answers_the_bridge_drops_is_told_why():
+    """stars/served_person's ``kept``: false for someone not on the consent list (a recognised
+    person, asked under their id); absent, as from an older bridge: kept unless anonymous."""
+    page = FeedbackPage(PageSettings(), Clock())
+    assert page.on_served_person('{"person_id": "bo", "anonymous": false, "kept": false}') == [
+        ('stars/question_request', json.dumps({'user_id': 'bo'}, separators=(',', ':')))]
+    assert page.view()['not_kept'] == 'consent' and not page.view()['anonymous']
+    version = page.version
+    assert page.on_served_person('{"person_id": "bo", "anonymous": false, "kept": true}') == []  # the same person
+    assert page.view()['not_kept'] is None and page.version > version  # the page shows the change
+    page.on_served_person('{"person_id": "p7", "anonymous": true, "kept": false}')
+    assert page.view()['not_kept'] == 'anonymous'
+    page.on_served_person('{"person_id": "ann", "anonymous": false}')
+    assert page.view()['not_kept'] is None
+    page.on_served_person('{"person_id": "p8", "anonymous": true}')
+    assert page.view()['not_kept'] == 'anonymous'
+
+
 def test_a_recognised_persons_answer_is_signed_here_and_verifies_once_the_bridge_relays_it():
     clock = Clock()
     page = FeedbackPage(PageSettings(signing_key=('tablet', SECRET)), clock)

@@ -52,6 +52,7 @@ class Loop:
         self.ages, self.levels = {}, {}
         node.create_timer(0.1, self._publish_state)
         self.user_ids = self.client.collect_messages('/stars/user_id', String, LATCHED)
+        self.served = self.client.collect('/stars/served_person', LATCHED)
         self.scenes = self.client.collect('/stars/scene', RELIABLE)
         self.feedback = self.client.collect('/stars/feedback', RELIABLE)
         self.decisions = self.client.collect('/stars/decision', RELIABLE)
@@ -199,13 +200,20 @@ def _ranked_bridge_scene(loop) -> str:
 
 def test_under_store_policy_consented_only_people_on_the_list_are_relayed(tmp_path, hri_msgs):
     """bob is recognised but not on the consent list: his rating never reaches stars/feedback
-    while alice's (on consent_file) does, and the refusal does not name him; once the latched
-    stars/consent lists him, his next rating is relayed."""
+    while alice's (on consent_file) does, and the refusal does not name him; stars/served_person
+    tells the feedback page his answers are not kept. Once the latched stars/consent lists him,
+    his next rating is relayed, and stars/served_person says so."""
     consent_file = tmp_path / 'consent.txt'
     consent_file.write_text('alice\n')
     loop = Loop(tmp_path, hri_msgs, {'store_policy': 'consented', 'consent_file': str(consent_file)})
     try:
         message = {'scene_id': _ranked_bridge_scene(loop), 'candidate': 'stay', 'score': 0.9}
+        loop.engage({'bob': ENGAGED})
+
+        def serves_bob(kept):
+            return loop.client.wait(lambda: {'person_id': 'bob', 'anonymous': False, 'kept': kept}
+                                    in loop.client.snapshot(loop.served), 30)
+        assert serves_bob(kept=False), loop.client.snapshot(loop.served)
         loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'bob'})))
         loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'alice'})))
         assert loop.client.wait(lambda: any(f['user_id'] == 'alice' for f in loop.feedback), 30), loop.status()
@@ -215,6 +223,7 @@ def test_under_store_policy_consented_only_people_on_the_list_are_relayed(tmp_pa
         consent = loop.client.node.create_publisher(String, '/stars/consent', LATCHED)
         consent.publish(String(data=json.dumps({'consented': ['bob']})))
         assert loop.client.wait(lambda: '1 person(s) from stars/consent' in loop.bridge_log.read_text(), 30)
+        assert serves_bob(kept=True), loop.client.snapshot(loop.served)
         loop.person_feedback.publish(String(data=json.dumps({**message, 'person_id': 'bob', 'score': 0.2})))
         assert loop.client.wait(lambda: any(f['user_id'] == 'bob' for f in loop.feedback), 30), loop.status()
     finally:

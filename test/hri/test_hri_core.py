@@ -8,7 +8,7 @@ from stars_ros.data import frames
 from stars_ros.errors import ConfigError
 from stars_ros.hri.bridge import BridgeCore, BridgeSettings
 from stars_ros.hri.decisions import decide
-from stars_ros.hri.people import DISENGAGED, ENGAGED, ENGAGING, People
+from stars_ros.hri.people import DISENGAGED, ENGAGED, ENGAGING, People, Served
 from stars_ros.hri.poses import Pose, TransformTable, compose
 from stars_ros.hri.scene import SceneSettings, placement_offset
 
@@ -294,6 +294,21 @@ def test_consented_relays_only_people_on_the_list_and_never_names_the_others(tmp
     period, _ = core.problems.take_period()
     assert {'anonymous_dropped', 'untracked'} <= set(period)
     assert not any("'b'" in detail for _, detail in period.values()), period
+
+
+def test_the_served_persons_answers_are_kept_only_when_recognised_and_on_the_list(tmp_path):
+    """What stars/served_person's ``kept`` says to the feedback page: the bridge would relay
+    what the served person says."""
+    core, _ = consented_world(tmp_path)  # the consent_file's 'a' only
+    for served, kept in ((Served(), False), (Served('a'), True), (Served('b'), False), (Served('a', True), False)):
+        core.served = served
+        assert core.served_kept() is kept, served
+    core.on_consent(json.dumps({'consented': ['b']}))
+    core.served = Served('b')
+    assert core.served_kept()
+    everyone = BridgeCore(BridgeSettings(), TransformTable(), Clock())
+    everyone.served = Served('b')
+    assert everyone.served_kept()
 
 
 def test_a_later_consent_message_replaces_the_topics_list_and_drops_what_waits(tmp_path):

@@ -5,6 +5,10 @@ const token = new URLSearchParams(location.search).get('token');
 const query = token ? '?token=' + encodeURIComponent(token) : '';
 const WORDS = {2: ['bad', 'good'], 3: ['bad', 'neutral', 'good'], 5: ['very bad', 'bad', 'neutral', 'good', 'very good']};
 const $ = (id) => document.getElementById(id);
+// why the served person's answers are not kept (the view's not_kept)
+const NOT_KEPT = {anonymous: 'The robot does not know who you are: your answer will not be kept.',
+                  consent: 'You have not agreed to be remembered: your answer will not be kept.'};
+const WHY_NOT_KEPT = {anonymous: 'the robot does not know who you are', consent: 'you have not agreed to be remembered'};
 let shown = {phase: null, number: null};
 let current = null;
 
@@ -40,7 +44,8 @@ function show(view) {
   $('asking').hidden = view.phase !== 'question';
   $('thanks').hidden = view.phase !== 'thanks';
   $('waiting-title').textContent = view.served ? 'Thinking of a question for you…' : 'The robot has no question for you right now.';
-  $('anonymous-note').hidden = !view.anonymous;
+  $('anonymous-note').hidden = !view.not_kept;
+  $('anonymous-note').textContent = NOT_KEPT[view.not_kept] || '';
   current = view.question;
   if (view.phase === 'question' && current) {
     $('question-words').textContent = current.words;
@@ -52,7 +57,7 @@ function show(view) {
     }
     ratingButtons(view.scale);
   }
-  $('kept-note').textContent = view.anonymous ? 'Your answer will not be kept: the robot does not know who you are.' : 'The robot will remember your answer.';
+  $('kept-note').textContent = view.not_kept ? 'Your answer will not be kept: ' + WHY_NOT_KEPT[view.not_kept] + '.' : 'The robot will remember your answer.';
   const outcome = view.outcome;
   $('outcome').textContent = outcome ? 'The robot will now ' + outcome.words + '. It expects you to rate that ' + outcome.score.toFixed(2) + (outcome.score_sd != null ? ' ± ' + outcome.score_sd.toFixed(2) : '') + ' on the scale ' + view.scale[0] + ' to ' + view.scale[view.scale.length - 1] + '.' : 'The robot is working out what to do now…';
   $('next').textContent = view.pending ? 'Next question' : 'Ask me another question';
