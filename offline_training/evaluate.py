@@ -10,7 +10,8 @@ refused (``--allow-dirty`` runs anyway, ``--quick`` always may; the records say 
 Writes into ``--out`` (required: a run never writes into the repository unasked): ``command.txt``,
 ``config.yaml`` (the resolved protocol), ``machine.json``, ``records.jsonl`` (each fit's
 result as it arrives, selection fits too, so a long run that stops keeps what it finished
-and ``--resume`` goes on from there), ``folds.csv`` (per model,
+and ``--resume`` goes on from there; each says under ``fitted_by`` the commit, dirty flag and
+device of the process that made it, so a resumed run's records name both), ``folds.csv`` (per model,
 fold and training fraction), ``selection.csv`` (inner validation of every (T1, T2)),
 ``tests.csv``, ``results.json`` (everything), ``tables.md`` (the paper's tables, the
 paired tests, the sparsity table and where the time went) and ``sparsity_<metric>.png``.
@@ -142,7 +143,8 @@ def main(argv=None) -> int:
             stream.flush()
         try:
             result = run_protocol(data, config, args.protocol, jobs=fits.jobs, threads=threads, on_record=keep,
-                                  resume=previous, executor=fits.executor)
+                                  resume=previous, executor=fits.executor,
+                                  fitted_by={**header['git'], 'device': device})
         except (StarsError, ValueError) as error:
             print(f'error: {error}', file=sys.stderr)
             return 1

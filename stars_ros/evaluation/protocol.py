@@ -328,7 +328,7 @@ class ProtocolRun:
 
     def __init__(self, data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
                  threads: int = 1, on_record: Callable[[dict], None] | None = None, resume: Sequence[dict] = (),
-                 executor: futures.Executor | None = None):
+                 executor: futures.Executor | None = None, fitted_by: dict | None = None):
         if protocol not in PROTOCOLS:
             raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
         if jobs < 1 or threads < 1:
@@ -337,6 +337,7 @@ class ProtocolRun:
         self.data, self.config, self.protocol = data, config, protocol
         self.jobs, self.threads, self.on_record = jobs, threads, on_record
         self.executor = executor
+        self.fitted_by = fitted_by  # who ran this process's fits (commit, dirty, device), kept per record
         self.result = EvaluationResult(protocol, config, jobs=jobs, threads=threads)
         self.specs = model_specs(config)
         self.followers = {}  # label -> the specs that take its choice
@@ -398,12 +399,19 @@ class ProtocolRun:
                  **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
         if 'teachers' in scores:
             entry['teachers'] = scores['teachers']
+        self._stamp(entry, scores)
         if 'error' in scores:
             entry['error'] = scores['error']
             log.warning('%s fold %s fraction %g: %s', spec.label, fold_id, fraction, scores['error'])
         self.result.records.append(entry)
         if self.on_record:
             self.on_record(entry)
+
+    def _stamp(self, entry: dict, scores: dict) -> None:
+        """``fitted_by``: the run whose process made the fit, so a resumed run's records say
+        which fits an earlier process made (None: an earlier record that did not say)."""
+        if 'fitted_by' in scores or self.fitted_by is not None:
+            entry['fitted_by'] = scores.get('fitted_by', self.fitted_by)
 
     def _score_population_means(self):
         """The constant baseline, computed here: it takes no time."""
@@ -447,6 +455,7 @@ class ProtocolRun:
                                                       for c in scores['curve']],
                  'n_train': len(fit.train), 'n_test': len(fit.test), 'fit_seconds': scores['fit_seconds'],
                  'predict_seconds': scores['predict_seconds'], 'epochs': scores['epochs']}
+        self._stamp(entry, scores)
         self.result.inner.append(entry)
         if self.on_record:
             self.on_record(entry)
@@ -513,6 +522,7 @@ def _resumed_fits(resume: Sequence[dict]) -> dict:
     for entry in resume:
         if entry.get('variant') == 'population_mean':
             continue
+        entry = {'fitted_by': None, **entry}  # not this process's fit
         if entry['stage'] == 'inner' and 'curve' not in entry:  # written before curves: one point, at T2
             entry = {**entry, 'curve': [{'epoch': entry['T2'], 'z_rmse': entry['z_rmse']}]}
         earlier[_fit_key(entry['model'], entry['fold'], entry['stage'], entry.get('fraction', 1.0),
@@ -523,12 +533,14 @@ def _resumed_fits(resume: Sequence[dict]) -> dict:
 
 def run_protocol(data: RatingData, config: ProtocolConfig, protocol: str = 'rows', jobs: int = 1,
                  threads: int = 1, on_record: Callable[[dict], None] | None = None,
-                 resume: Sequence[dict] = (), executor: futures.Executor | None = None) -> EvaluationResult:
+                 resume: Sequence[dict] = (), executor: futures.Executor | None = None,
+                 fitted_by: dict | None = None) -> EvaluationResult:
     """Run the whole protocol on ``data``; ``on_record`` sees each entry as it arrives: the
     records, and the selection fits with ``stage`` 'inner'. ``resume`` takes such entries of
     an earlier run of the same config: their fits are not run again. Fits are seeded, so on
     the CPU a resumed run gives the results of an uninterrupted one. ``executor`` runs the
     fits, at most ``jobs`` at a time (default: ``fit_executor(data, jobs, threads)``); the
-    run shuts it down. Failed fits and the selections they stopped are in ``failed`` and
-    ``unchosen`` of the result."""
-    return ProtocolRun(data, config, protocol, jobs, threads, on_record, resume, executor).run()
+    run shuts it down. ``fitted_by`` (e.g. the commit, dirty flag and device) goes into each
+    entry of a fit this call makes; a resumed entry keeps its own. Failed fits and the
+    selections they stopped are in ``failed`` and ``unchosen`` of the result."""
+    return ProtocolRun(data, config, protocol, jobs, threads, on_record, resume, executor, fitted_by).run()

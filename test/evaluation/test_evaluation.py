@@ -385,6 +385,12 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(synthetic_root,
     monkeypatch.setattr(executors, 'run_fit', fake_fit)
     args = ['--quick', '--backbones', 'gat', '--data-root', str(synthetic_root)]
     whole, part = tmp_path / 'whole', tmp_path / 'part'
+    run_record = evaluate.run_record
+
+    def made_at(commit, dirty):
+        monkeypatch.setattr(evaluate, 'run_record', lambda argv, device=None: {
+            **run_record(argv, device), 'git': {'commit': commit, 'dirty': dirty}})
+    made_at('first', False)
     assert evaluate.main([*args, '--out', str(whole)]) == 0
     all_fits = list(ran)
     lines = (whole / 'records.jsonl').read_text().splitlines()
@@ -395,15 +401,25 @@ def test_resume_runs_only_the_fits_an_earlier_run_did_not_finish(synthetic_root,
     kept = lines[:len(lines) // 2]
     (part / 'records.jsonl').write_text('\n'.join(kept) + '\n{"model": "cut sho')
     ran.clear()
+    made_at('second', True)
     assert evaluate.main([*args, '--out', str(part), '--resume', '--jobs', '1']) == 0
     reused = sum(1 for line in kept if json.loads(line).get('variant') != 'population_mean')  # recomputed
     assert 0 < reused and len(ran) == len(all_fits) - reused and set(ran) <= set(all_fits)
 
     def results(folder):  # the population mean's fit time is measured; NaN (its r) != NaN
         values = json.loads((folder / 'results.json').read_text())
-        return json.dumps([[{k: v for k, v in entry.items() if k != 'fit_seconds'} for entry in values[name]]
-                           for name in ('records', 'inner', 'selection', 'tests')])
+        return json.dumps([[{k: v for k, v in entry.items() if k not in ('fit_seconds', 'fitted_by')}
+                            for entry in values[name]] for name in ('records', 'inner', 'selection', 'tests')])
     assert results(part) == results(whole)
+    first = {'commit': 'first', 'dirty': False, 'device': 'cpu'}
+    second = {'commit': 'second', 'dirty': True, 'device': 'cpu'}
+    whole_lines = [json.loads(line) for line in (whole / 'records.jsonl').read_text().splitlines()]
+    assert {json.dumps(entry['fitted_by']) for entry in whole_lines} == {json.dumps(first)}
+    stamps = {}
+    for line in (part / 'records.jsonl').read_text().splitlines():  # each fit says which process made it
+        entry = json.loads(line)
+        stamps.setdefault(entry['variant'] == 'population_mean' or json.dumps(entry['fitted_by']), 0)
+    assert set(stamps) == {True, json.dumps(first), json.dumps(second)}
     assert f'{reused} fits came from the earlier run' in (part / 'tables.md').read_text()
     assert evaluate.main([*args, '--out', str(part), '--resume', '--device', 'cuda']) == 2  # other settings
 
