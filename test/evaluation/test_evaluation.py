@@ -66,6 +66,19 @@ def test_grouped_folds_keep_groups_together_and_balance_sizes():
         grouped_folds(rows, groups, 6, seed=0)
 
 
+def test_grouped_folds_of_groups_of_distinct_sizes_are_the_same_under_every_seed():
+    """The seed only orders groups of equal size (SocNav1's annotators all differ in size, so
+    its cold-user folds do not change with the fold seed); equal sizes do move."""
+    distinct = np.repeat(np.array(list('abcdefg')), [40, 35, 30, 20, 12, 7, 3])
+    rows = np.arange(len(distinct))
+    first = [fold.test.tolist() for fold in grouped_folds(rows, distinct, 3, seed=0)]
+    assert all([fold.test.tolist() for fold in grouped_folds(rows, distinct, 3, seed=seed)] == first
+               for seed in range(1, 50))
+    equal = np.repeat(np.array(list('abcdef')), 10)
+    assert len({str([f.test.tolist() for f in grouped_folds(rows[:60], equal, 3, seed=seed)])
+                for seed in range(20)}) > 1
+
+
 @pytest.mark.parametrize('protocol, key', [('cold-scene', 'scenes'), ('cold-user', 'users')])
 def test_cold_folds_never_share_a_group(synthetic, protocol, key):
     groups = getattr(synthetic, key)
