@@ -83,7 +83,7 @@ def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown
         get_logger(name).fatal(str(error))
         raise SystemExit(1) from None
     finally:
-        _shut_down(name, node, close)
+        _Ending(name, node, close).run()
 
 
 class _Closing:
@@ -99,34 +99,61 @@ class _Closing:
                 self._close(self._node)
 
 
-def _shut_down(name: str, node, close: Callable | None) -> None:
-    """Destroy ``node``, ``close(node)``, shut ROS down; a signal meanwhile is ignored (a
-    second Ctrl-C would otherwise raise KeyboardInterrupt inside ``destroy_node``). When the
-    middleware has not finished within DESTROY_WAIT_S (it has hung in Fast DDS's
-    ``set_listener`` at shutdown), a watchdog closes the node (the state store commits what
-    waits) and ends the process with status 0 once that is done or CLOSE_WAIT_S have passed."""
-    _ignore_signals()
-    closing, finished = _Closing(node, close), threading.Event()
+class _Ending:
+    """Destroy the node, ``close(node)``, shut ROS down; a signal meanwhile is ignored (a second
+    Ctrl-C would otherwise raise KeyboardInterrupt inside ``destroy_node``). A SIGINT whose
+    Python handler runs before the ending has ignored signals (at the first Python-level check,
+    which can be the ending's own first line; seen in CI), or after rclpy's shutdown put that
+    handler back, raises KeyboardInterrupt: that signal is the ending already under way, so
+    ``run`` goes on from the step it reached, each step done once. When the middleware has not
+    finished within DESTROY_WAIT_S (it has hung in Fast DDS's ``set_listener`` at shutdown), a
+    watchdog closes the node (the state store commits what waits) and ends the process with
+    status 0 once that is done or CLOSE_WAIT_S have passed."""
 
-    def watchdog():
-        if finished.wait(DESTROY_WAIT_S):
+    def __init__(self, name: str, node, close: Callable | None):
+        self.name, self.node = name, node
+        self.closing, self.finished = _Closing(node, close), threading.Event()
+        self.done: set = set()
+
+    def run(self) -> None:
+        while True:
+            try:
+                self._steps()
+                return
+            except KeyboardInterrupt:
+                continue
+
+    def _steps(self) -> None:
+        _ignore_signals()
+        if 'watchdog' not in self.done:
+            threading.Thread(target=self._watchdog, name='stars-shutdown-watchdog', daemon=True).start()
+            self.done.add('watchdog')
+        try:
+            if self.node is not None and 'destroyed' not in self.done:
+                self.done.add('destroyed')
+                self.node.destroy_node()
+            self.closing()
+            if 'shutdown' not in self.done:
+                self.done.add('shutdown')
+                rclpy.try_shutdown()
+            _ignore_signals()  # rclpy's shutdown puts back the handlers it found: Python's raises KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise  # ``run`` goes on, the watchdog still watching
+        except BaseException:
+            self.finished.set()
+            raise
+        self.finished.set()
+
+    def _watchdog(self):
+        if self.finished.wait(DESTROY_WAIT_S):
             return
-        closer = threading.Thread(target=closing, name='stars-close', daemon=True)
+        closer = threading.Thread(target=self.closing, name='stars-close', daemon=True)
         closer.start()
         closer.join(CLOSE_WAIT_S)
-        print(f'{name}: the middleware did not shut down within {DESTROY_WAIT_S:g} s; '
+        print(f'{self.name}: the middleware did not shut down within {DESTROY_WAIT_S:g} s; '
               + ('closed, ' if not closer.is_alive() else f'close did not finish within {CLOSE_WAIT_S:g} s, ')
               + 'exiting', file=sys.stderr, flush=True)
         os._exit(0)
-    threading.Thread(target=watchdog, name='stars-shutdown-watchdog', daemon=True).start()
-    try:
-        if node is not None:
-            node.destroy_node()
-        closing()
-        rclpy.try_shutdown()
-        _ignore_signals()  # rclpy's shutdown puts back the handlers it found: Python's raises KeyboardInterrupt
-    finally:
-        finished.set()
 
 
 def _ignore_signals():

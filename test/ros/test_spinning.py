@@ -89,3 +89,25 @@ def test_a_middleware_that_hangs_in_destroy_node_still_closes_and_exits(monkeypa
     assert exited == [0] and node.calls == ['closed']  # closed once, by the watchdog
     assert 'test: the middleware did not shut down within 0.01 s; closed, exiting' in capsys.readouterr().err
     assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # a second Ctrl-C meanwhile raises nothing
+
+
+@pytest.mark.parametrize('interrupted_call', [1, 2])
+def test_a_signal_whose_handler_runs_late_does_not_end_the_ending(monkeypatch, interrupted_call):
+    """A SIGINT's KeyboardInterrupt raised as the ending begins (the first ``_ignore_signals``,
+    before it ignored anything) or after rclpy's shutdown put Python's handler back (the
+    second): the node is still destroyed, closed and ROS shut down, each once."""
+    calls = []
+    monkeypatch.setattr(rclpy, 'init', lambda args=None: None)
+    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: calls.append('shutdown'))
+    ignore, seen = spinning._ignore_signals, []
+
+    def late_signal():
+        seen.append(1)
+        if len(seen) == interrupted_call:
+            raise KeyboardInterrupt
+        ignore()
+    monkeypatch.setattr(spinning, '_ignore_signals', late_signal)
+    node = _Node()
+    spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
+    assert calls == ['shutdown'] and node.calls == ['destroyed', 'closed']
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
