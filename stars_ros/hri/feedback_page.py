@@ -11,8 +11,9 @@ stars/errors. The page sees ``view()``: never a key, never another person's ques
 Through the bridge (``via_bridge``) an answer goes out on stars/person_feedback keyed by the
 served person's ROS4HRI id, and the bridge drops an anonymous person's (docs/hri.md), and under
 store_policy consented that of a person not on the consent list: the page says their answer
-will not be kept, and why (stars/served_person's ``kept``). Without it, an answer is feedback on stars/feedback for
-the user id on stars/user_id. With a signing key, answers are signed here, server-side.
+will not be kept, and why (stars/served_person's ``kept``). Without it, an answer is feedback
+on stars/feedback for the user id on stars/user_id. With a signing key, answers are signed
+here, server-side.
 """
 from __future__ import annotations
 

@@ -199,7 +199,7 @@ class TrainConfig(Section):
     has no factorisation part. ``user_dropout`` > 0: in each joint epoch every training example
     is scored as a stranger's (p_u = 0, b_u = 0, the row an unseen person is served) with that
     probability, so the population part of the model (h_iᵀ r_a + b_i + b) is trained as a
-    prediction for someone it has never seen, not only as the mean of known people's terms;
+    prediction for someone it has never seen, not only as what every person's row adds to;
     0 trains every example with its person's row, 1 none (the person rows stay zero).
     ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
     ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
