@@ -7,6 +7,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from typing import Callable
 
 import rclpy
@@ -20,6 +21,7 @@ from stars_ros.errors import CommandLineError
 USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
 DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
 CLOSE_WAIT_S = 12.0  # longest wait for ``close`` then (the state store joins its writer for up to 10 s)
+SIGNAL_SHUTDOWN_WAIT_S = 1.0  # how long an error out of rclpy.spin may take to turn out to be a signal's shutdown
 
 
 def _rcl_message(error: Exception) -> str:
@@ -47,16 +49,29 @@ def init(args=None) -> None:
 
 
 def spin_until_shutdown(node) -> None:
-    """Spin ``node``; SIGINT, SIGTERM and a ROS shutdown return normally. A signal can shut
-    the context down between rclpy's check of it and the wait set rclpy then builds, which
-    raises RCLError (seen once in CI): with the context no longer ok, that is a shutdown too."""
+    """Spin ``node``; SIGINT, SIGTERM and a ROS shutdown return normally. A signal can land
+    inside rclpy's C++ code: between its check of the context and the wait set it then builds
+    (RCLError, seen once in CI), or while it converts a message it takes (RuntimeError "Unable
+    to convert call argument", seen in a clean-clone run). An error of either kind is a
+    shutdown too when the context stops being ok within SIGNAL_SHUTDOWN_WAIT_S (rclpy shuts it
+    down on its own thread); otherwise it is raised."""
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except _rclpy.RCLError:
-        if rclpy.ok():
+    except (_rclpy.RCLError, RuntimeError):
+        if not _shutting_down():
             raise
+
+
+def _shutting_down() -> bool:
+    """Whether ROS's context is, or within SIGNAL_SHUTDOWN_WAIT_S becomes, shut down."""
+    deadline = time.monotonic() + SIGNAL_SHUTDOWN_WAIT_S
+    while rclpy.ok():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown, fatal: tuple = (),

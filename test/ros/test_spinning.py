@@ -17,18 +17,32 @@ def _spin_raising(error):
     return spin
 
 
-def test_a_wait_set_error_after_shutdown_is_a_clean_end(monkeypatch):
-    monkeypatch.setattr(rclpy, 'spin', _spin_raising(_rclpy.RCLError('the given context is not valid')))
-    monkeypatch.setattr(rclpy, 'ok', lambda: False)
+SIGNAL_IN_CPP = [_rclpy.RCLError('the given context is not valid'),
+                 RuntimeError("Unable to convert call argument '0' to Python object")]
+
+
+@pytest.mark.parametrize('error', SIGNAL_IN_CPP)
+def test_an_error_of_rclpy_as_a_signal_shuts_ros_down_is_a_clean_end(monkeypatch, error):
+    """Shut down already, or by rclpy's thread a moment later (the third check)."""
+    monkeypatch.setattr(rclpy, 'spin', _spin_raising(error))
+    checks = []
+
+    def ok():
+        checks.append(1)
+        return len(checks) < 3
+    monkeypatch.setattr(rclpy, 'ok', ok)
     spinning.spin_until_shutdown(node=None)
+    assert len(checks) == 3
     monkeypatch.setattr(rclpy, 'spin', _spin_raising(KeyboardInterrupt()))
     spinning.spin_until_shutdown(node=None)
 
 
-def test_a_wait_set_error_while_ros_runs_is_raised(monkeypatch):
-    monkeypatch.setattr(rclpy, 'spin', _spin_raising(_rclpy.RCLError('something else')))
+@pytest.mark.parametrize('error', SIGNAL_IN_CPP)
+def test_an_error_of_rclpy_while_ros_runs_is_raised(monkeypatch, error):
+    monkeypatch.setattr(rclpy, 'spin', _spin_raising(error))
     monkeypatch.setattr(rclpy, 'ok', lambda: True)
-    with pytest.raises(_rclpy.RCLError):
+    monkeypatch.setattr(spinning, 'SIGNAL_SHUTDOWN_WAIT_S', 0.05)
+    with pytest.raises(type(error)):
         spinning.spin_until_shutdown(node=None)
 
 
