@@ -90,7 +90,8 @@ def main(argv=None) -> int:
             started = time.perf_counter()
             request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
             rankings = [member.rank('person', request.graphs[0], uncertainty=True) for member in members[:k]]
-            np.mean([[entry.score for entry in sorted(ranking, key=lambda e: e.name)] for ranking in rankings], axis=0)
+            np.mean([[entry.score for entry in sorted(ranking, key=lambda e: e.name)] for ranking in rankings],
+                    axis=0)  # the ensemble's scores: part of what a ranking costs
             ranking_ms[k].append((time.perf_counter() - started) * 1e3)
             h = [member.predictor.encode([request.graphs[0]]) for member in members[:k]]  # as its ranking made it
             started = time.perf_counter()

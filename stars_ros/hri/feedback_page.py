@@ -107,7 +107,7 @@ class FeedbackPage:
         messages.check('served_person', payload)  # msg_schemas/served_person.schema.json
         person_id, anonymous = payload['person_id'], payload['anonymous']
         self.person_id, self.anonymous = person_id, anonymous and person_id is not None
-        kept = payload.get('kept', not self.anonymous) and not self.anonymous
+        kept = not self.anonymous and payload.get('kept', True)
         if kept != self.kept:
             self.kept = kept
             self.version += 1
