@@ -36,7 +36,7 @@ from stars_ros.errors import StarsError
 from stars_ros.evaluation import peers
 from stars_ros.evaluation.folds import PROTOCOLS
 from stars_ros.evaluation.protocol import ProtocolConfig, model_specs, run_protocol
-from stars_ros.evaluation.provenance import git_state, program_argv, run_record, write_run_files
+from stars_ros.evaluation.provenance import program_argv, refuse_uncommitted, run_record, write_run_files
 from stars_ros.evaluation.report import SUMMARY_FILES, json_default, previous_entries, report_failures, write_results
 from stars_ros.model.config import ExperimentConfig
 
@@ -100,9 +100,7 @@ def main(argv=None) -> int:
         device = ExperimentConfig.from_dict(config.experiment).training.device
         if args.threads < 1:
             raise StarsError('--threads must be positive')
-        if not (args.quick or args.allow_dirty) and git_state(ignoring=Path(args.out))['dirty']:
-            raise StarsError('tracked files have uncommitted changes: commit the config and the code this run '
-                             'uses first, so its records name what ran (or --allow-dirty)')
+        refuse_uncommitted(Path(args.out), args.quick or args.allow_dirty)
         started = time.perf_counter()
         data = load_dataset(args.data_root)
         load_seconds = time.perf_counter() - started

@@ -2,7 +2,11 @@
 choosing the questions) vs full retraining, with the calibration of the predictive intervals.
 
     python -m offline_training.kshot --config config/socnav1_gat.yaml \
-        --data-root ../shared/datasets/socnav1 --out results/kshot-socnav1-bayes [--quick]
+        --data-root ../shared/datasets/socnav1 --out results/kshot-socnav1-bayes [--quick] [--allow-dirty]
+
+A run starts from a commit: with uncommitted changes to tracked files outside ``--out`` it is
+refused (``--allow-dirty`` runs anyway, ``--quick`` always may); results.json records the
+commit, whether the tree was dirty and the device every fit ran on.
 
 Leave-people-out folds (people shuffled with each of ``--seeds`` and dealt into ``--folds``
 groups). Per fold a model is trained on the other people's examples, less a seeded
@@ -52,7 +56,7 @@ from threadpoolctl import threadpool_limits
 
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.kshot import STRATEGIES
-from stars_ros.evaluation.provenance import program_argv, run_record
+from stars_ros.evaluation.provenance import program_argv, refuse_uncommitted, run_record
 from stars_ros.evaluation.kshot_run import SELECTABLE, KShotSettings, retrained_ks, run, write_results
 from stars_ros.model.config import ExperimentConfig
 
@@ -95,6 +99,9 @@ def parse_args(argv=None):
     parser.add_argument('--device', help="train on this device ('cpu', 'cuda'; default: the config's)")
     parser.add_argument('--quick', action='store_true',
                         help='pipeline check: 2 folds, k in {0,2,5}, tiny model and epochs, 1,500 training rows')
+    parser.add_argument('--allow-dirty', action='store_true',
+                        help='run although tracked files outside --out have uncommitted changes (results.json says '
+                             'dirty; without this such a run is refused; --quick always may)')
     parser.add_argument('--verbose', action='store_true')
     add_executor_options(parser)
     return parser.parse_args(argv)
@@ -115,6 +122,7 @@ def configure(args) -> ExperimentConfig:
         raise StarsError(f'ks must lie in 0..{args.pool}, folds must be at least 2, --known-test in [0, 1) and '
                          '--random-sets at least 1')
     parse_select(args.select)  # refused here, before the data loads
+    refuse_uncommitted(Path(args.out), args.quick or args.allow_dirty)
     return config.replace(training=training)
 
 
@@ -153,7 +161,7 @@ def main(argv=None) -> int:
                              None if args.retrain_ks is None else tuple(args.retrain_ks), args.known_test,
                              args.ridge_lambda, args.max_train_rows, args.random_sets, parse_select(args.select))
     started = time.perf_counter()
-    header = {**run_record(program_argv('offline_training.kshot', argv)),
+    header = {**run_record(program_argv('offline_training.kshot', argv), config.training.device),
               'config': config.to_dict(), 'data': {'source': data.source, 'fingerprint': data.fingerprint},
               'pool': args.pool, 'ks': sorted(args.ks), 'seeds': args.seeds, 'jobs': fits.jobs,
               'strategies': args.strategies, 'known_test': args.known_test, 'ridge_lambda': args.ridge_lambda,

@@ -393,7 +393,9 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
                    if RANKING in metrics else '')
     covered = {k: sorted({(r['seed'], name) for r in result['records'] if r['k'] == k for name in r['covered']})
                for k in ks}
-    lines = ['# k-shot personalisation of new people', '', f"`{header['command']}`", '',
+    ran = (f"Commit: {header['git']['commit']}{' (uncommitted changes)' if header['git']['dirty'] else ''}; "
+           f"every fit on {header['machine'].get('device', 'cpu')}, {header['machine']['cpus']} CPUs.")
+    lines = ['# k-shot personalisation of new people', '', f"`{header['command']}`", '', ran, '',
              f"{len({(r['seed'], r['fold']) for r in result['records']})} folds of held-out people ({partitions}); "
              f"pools of up to {header['pool']} examples per person; {len(result['left_out'])} people left out for "
              f"having a single example; epochs T1={header['epochs'][0]}, T2={header['epochs'][1]}. "

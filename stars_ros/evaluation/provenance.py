@@ -15,6 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from stars_ros.errors import StarsError
+
 REPO = Path(__file__).resolve().parents[2]  # the checkout this package runs from
 
 
@@ -51,6 +53,15 @@ def git_state(ignoring: Path | None = None) -> dict:
                 'dirty': bool(git('status', '--porcelain', '--untracked-files=no', *paths))}
     except (OSError, subprocess.SubprocessError):
         return {'commit': None, 'dirty': None}
+
+
+def refuse_uncommitted(out: Path, allowed: bool) -> None:
+    """Refuse a run from a checkout with uncommitted changes outside its results folder ``out``
+    unless ``allowed`` (``--allow-dirty``, ``--quick``): a run that results cite starts from a
+    commit, so its records name what ran."""
+    if not allowed and git_state(ignoring=Path(out))['dirty']:
+        raise StarsError('tracked files have uncommitted changes: commit the config and the code this run '
+                         'uses first, so its records name what ran (or --allow-dirty)')
 
 
 def program_argv(program: str, argv: list[str] | None = None) -> list[str]:

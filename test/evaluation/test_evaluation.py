@@ -359,23 +359,28 @@ def test_a_distilled_fit_also_scores_the_ensemble_it_was_taught_by(synthetic):
     assert 'teachers' not in plain
 
 
-def test_a_run_from_uncommitted_changes_is_refused_unless_allowed(synthetic_root, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize('program', ['evaluate', 'kshot'])
+def test_a_run_from_uncommitted_changes_is_refused_unless_allowed(program, synthetic_root, tmp_path, monkeypatch,
+                                                                  capsys):
     """A run that results cite starts from a commit: a dirty tree (its own --out folder not
     counted) refuses it before anything is written; --allow-dirty and --quick may run."""
-    from offline_training import evaluate
+    import importlib
+    from stars_ros.evaluation import provenance
+    command = importlib.import_module(f'offline_training.{program}')
+    config = ['--config', 'config/socnav1_gat.yaml'] if program == 'kshot' else []
     asked = []
 
     def dirty(ignoring=None):
         asked.append(ignoring)
         return {'commit': 'abc', 'dirty': True}
-    monkeypatch.setattr(evaluate, 'git_state', dirty)
+    monkeypatch.setattr(provenance, 'git_state', dirty)
     out = tmp_path / 'dirty'
-    assert evaluate.main(['--data-root', str(synthetic_root), '--out', str(out)]) == 2
+    assert command.main([*config, '--data-root', str(synthetic_root), '--out', str(out)]) == 2
     assert 'have uncommitted changes' in capsys.readouterr().err and not out.exists()
     assert asked == [out]
     missing = tmp_path / 'no data'  # past the check, the next refusal is the data's
     for allowed in (['--allow-dirty'], ['--quick']):
-        assert evaluate.main([*allowed, '--data-root', str(missing), '--out', str(out)]) == 2
+        assert command.main([*config, *allowed, '--data-root', str(missing), '--out', str(out)]) == 2
         error = capsys.readouterr().err
         assert 'have uncommitted changes' not in error and 'no such data folder' in error
 

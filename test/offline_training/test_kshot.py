@@ -133,6 +133,7 @@ def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(syntheti
     assert {'results.json', 'results.md', 'kshot.png'} <= {p.name for p in out.iterdir()}
     results = json.loads((out / 'results.json').read_text())
     assert results['complete'] and results['ks'] == [0, 1, 2, 5] and len(results['folds']['0']) == 2
+    assert set(results['git']) == {'commit', 'dirty'} and results['machine']['device'] == 'cpu'
     for fold in (0, 1):
         records = [r for r in results['records'] if r['fold'] == fold]
         zero = records[0]
