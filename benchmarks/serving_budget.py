@@ -18,6 +18,13 @@ The echo floor is a plain rclpy node spun by ``rclpy.spin``, of the same message
 republishes each JSON request on stars/ranking and answers ~/rank_actions with the request's
 scene id, so it carries none of the ranker's machinery. Ratios are ranker / echo of p50 and
 p99 in the same run; the summary gives every run and the median of the runs.
+
+*Own work*, after the runs, in this process: the ranker's core (``RankerCore``, packaged model,
+recording on) serving the same JSON requests with no middleware, p50 of each step of one
+request (parsing and validating; featurising, encoding and scoring with ``score_sd``; the
+reply written; the request and reply recorded) and of the whole. Whatever the node around it
+does, its JSON p50 cannot be below the echo's plus this work, so ``bound`` = 1 + own work /
+echo p50 is the lowest ratio the run allowed.
 """
 from __future__ import annotations
 
@@ -160,6 +167,57 @@ def one_run(run: int, count: int, blocks: int) -> dict:
     return result
 
 
+def own_work(count: int) -> dict:
+    """p50 (ms) of each step of the ranker's core serving one JSON request in this process,
+    and of ``accept_scene`` + ``work`` together (``whole``), as the node's scene callback runs them."""
+    from threadpoolctl import threadpool_limits
+
+    from stars_ros import messages
+    from stars_ros.node.batching import Pending, rank_batch
+    from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+
+    class Quiet:
+        def info(self, line):
+            pass
+        warning = error = info
+
+    threadpool_limits(1, user_api='blas')  # as the node does
+    steps = {name: [] for name in ('parse_validate', 'score', 'reply', 'record', 'whole')}
+    with tempfile.TemporaryDirectory() as records:
+        params = {name: spec[0] for name, spec in PARAMETERS.items()}
+        params['record_folder'] = records
+        core = RankerCore(params, {topic: '/' + topic for topic in TOPICS}, '/ranker', lambda topic, text: None,
+                          Quiet(), time.time_ns)
+        try:
+            for k, (_, text) in enumerate(node_latency.requests(SCENES, 'own', count + 100)):
+                warm = k >= 100
+                started = time.perf_counter()
+                core.accept_scene(text, time.time_ns())
+                while core.work():
+                    pass
+                whole = time.perf_counter()
+                request = messages.parse_scene_request(text, params['max_message_bytes'])
+                parsed = time.perf_counter()
+                scored = rank_batch(core.predictor, [Pending(request, request.user_id, 0)], params['top_k'],
+                                    core.personalisation.uncertainty, (params['explain'], params['explain_entities']))[0]
+                ranked = time.perf_counter()
+                reply = messages.dumps(messages.ranking_payload(
+                    request, request.user_id, False, scored.ranked, core.predictor.fingerprint, 0.0, scored.action,
+                    0, scored.p_first_is_best))
+                replied = time.perf_counter()
+                core.record('stars/scene', text)
+                core.record('stars/ranking', reply)
+                recorded = time.perf_counter()
+                if warm:
+                    for name, (begin, end) in {'whole': (started, whole), 'parse_validate': (whole, parsed),
+                                               'score': (parsed, ranked), 'reply': (ranked, replied),
+                                               'record': (replied, recorded)}.items():
+                        steps[name].append((end - begin) * 1e3)
+        finally:
+            core.close()
+    return {f'{name}_ms_p50': float(np.median(values)) for name, values in steps.items()}
+
+
 def main(argv=None) -> int:
     global SCENES
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
@@ -189,7 +247,14 @@ def main(argv=None) -> int:
               **{f'{path}_{q}_ratio': float(np.median([r[path]['ratio'][q] for r in runs]))
                  for path in ('json', 'typed') for q in ('p50', 'p99')}}
     print('median of runs: ' + ', '.join(f'{k} {v:.2f}' for k, v in median.items()))
+    work = own_work(args.count)
+    for result in runs:
+        result['json']['bound'] = 1 + work['whole_ms_p50'] / result['json']['echo']['p50']
+    print('own work in process (p50 ms): ' + ', '.join(f'{k} {v:.3f}' for k, v in work.items())
+          + '; lowest JSON p50 ratio each run allowed: '
+          + ', '.join(f"{r['json']['bound']:.2f}" for r in runs), flush=True)
     results = {**run_record(program_argv('benchmarks/serving_budget.py', argv)), 'runs': runs, 'median_of_runs': median,
+               'own_work': work,
                'settings': {'runs': args.runs, 'count': args.count, 'blocks': args.blocks,
                             'checkpoint': 'packaged default', 'scenes': 'SocNav1 b.jsonl'}}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
