@@ -10,7 +10,8 @@ from typing import NamedTuple
 
 import torch
 
-from stars_ros.data.ratings import RatingData, load_dataset, socnav1_root
+from stars_ros.data.ratings import RatingData, load_dataset
+from stars_ros.data.scene_source import socnav1_root
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.executors import fit_executor
 

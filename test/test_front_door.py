@@ -12,7 +12,7 @@ import torch
 
 from stars_ros import Prediction, StarsRecommender, load_dataset
 from stars_ros.data import crowd_data, synthetic_socnav
-from stars_ros.data.ratings import socnav1_root
+from stars_ros.data.scene_source import socnav1_root
 from stars_ros.errors import DataError, StarsError, UnknownActionError, UnknownSceneError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import NotFittedError

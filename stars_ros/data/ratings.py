@@ -43,6 +43,7 @@ import pandas as pd
 from stars_ros.errors import DataError, SceneGraphError
 from stars_ros.files import atomic_write
 from stars_ros.data.scene_graph import FEATURISER_VERSION, featurise
+from stars_ros.data.scene_source import socnav1_root
 from stars_ros.data.scene_store import GraphStore, TabularStore
 
 log = logging.getLogger(__name__)
@@ -96,14 +97,6 @@ class RatingData:
     @property
     def kind(self) -> str:
         return self.store.kind
-
-
-def socnav1_root() -> Path:
-    """Where SocNav1 is read from by default: ``STARS_SOCNAV1_ROOT``, else
-    ``../shared/datasets/socnav1`` beside the repository. The one place that says so (the
-    offline programs, the demo and the tests take their default from here)."""
-    default = Path(__file__).resolve().parents[3] / 'shared' / 'datasets' / 'socnav1'
-    return Path(os.environ.get('STARS_SOCNAV1_ROOT') or default)
 
 
 DATASETS = {'socnav1': socnav1_root}  # names load_dataset knows -> their root

@@ -8,11 +8,20 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
 from stars_ros.errors import DataError
+
+
+def socnav1_root() -> Path:
+    """Where SocNav1 is read from by default: ``STARS_SOCNAV1_ROOT``, else
+    ``../shared/datasets/socnav1`` beside the repository. The one place that says so (the
+    offline programs, the demo and the tests take their default from here)."""
+    default = Path(__file__).resolve().parents[3] / 'shared' / 'datasets' / 'socnav1'
+    return Path(os.environ.get('STARS_SOCNAV1_ROOT') or default)
 
 
 def read_scenes(path) -> list:

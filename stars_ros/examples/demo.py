@@ -41,8 +41,7 @@ from stars_ros.figures.scene import plot_people
 from stars_ros.model.predictor import Predictor
 from stars_ros.recording.bag import read_messages
 from stars_ros.resources import resolve_checkpoint
-from stars_ros.data.ratings import socnav1_root
-from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes
+from stars_ros.data.scene_source import PLACEMENTS, placement_candidates, read_scenes, socnav1_root
 from stars_ros.typed_messages import scene_message
 from stars_ros import state
 
@@ -170,9 +169,8 @@ def run(args) -> int:
         env['ROS_DOMAIN_ID'] = str(args.domain_id)
 
     import rclpy
-    from rclpy.duration import Duration
     from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
 
     work = Path(tempfile.mkdtemp(prefix='stars_demo_'))
@@ -191,6 +189,10 @@ def run(args) -> int:
     replies = {}
     node.create_subscription(String, '/stars/ranking', lambda m: replies.setdefault(
         json.loads(m.data)['scene_id'], json.loads(m.data)), reliable)
+    stored = {}  # user -> ratings of their latest stars/user_model: sent once the store has committed them
+    node.create_subscription(String, '/stars/user_model', lambda m: stored.__setitem__(
+        json.loads(m.data)['user_id'], json.loads(m.data)['n_ratings']),
+        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     feedback = node.create_publisher(String, '/stars/feedback', reliable)
     deadline = time.monotonic() + args.timeout
     try:
@@ -233,13 +235,16 @@ def run(args) -> int:
                 feedback.publish(String(data=json.dumps({'user_id': user, 'scene_id': f'{user}/{n}',
                                                          'candidate': 'stay', 'score': rating})))
                 sent += 1
-        feedback.wait_for_all_acked(Duration(seconds=5))
-        time.sleep(1.0)  # let the ranker store the last feedback before it is stopped
-    finally:
-        for process in publishers:
-            process.wait(timeout=30)
+        while min(stored.get(user_a, 0), stored.get(user_b, 0)) < len(chosen):  # every rating stored
+            rclpy.spin_once(node, timeout_sec=0.1)
+            if ranker.poll() is not None or time.monotonic() > deadline:
+                raise StarsError(f'timed out: the ranker stored {stored} of {len(chosen)} ratings per person')
+    finally:  # the ranker first: each publisher waits for DDS to acknowledge its last scene, which
+        # Fast DDS does at its periodic heartbeat (3 s) unless the subscriber has gone
         ranker.send_signal(signal.SIGINT)
         ranker.wait(timeout=30)
+        for process in publishers:
+            process.wait(timeout=30)
         node.destroy_node()
         rclpy.try_shutdown()
 
