@@ -26,8 +26,9 @@ for package in "$@"; do
   name=$(basename "$package")
   package_stamp=$VENV/.stars_ros-interface-$name
   digest=$(cd "$package" && find . -type f ! -name '*.pyc' | LC_ALL=C sort | xargs sha256sum | sha256sum | cut -d' ' -f1)
-  if [ "$(cat "$package_stamp" 2>/dev/null)" = "$digest" ] && "$PY" -c "import $name.msg" 2>/dev/null; then
-    continue
+  kinds=$(for kind in msg srv action; do if [ -d "$package/$kind" ]; then printf '%s.%s,' "$name" "$kind"; fi; done)
+  if [ "$(cat "$package_stamp" 2>/dev/null)" = "$digest" ] && "$PY" -c "import ${kinds%,}" 2>/dev/null; then
+    continue  # built from these files, and each of its msg, srv and action modules imports
   fi
   build=$(mktemp -d)
   trap 'rm -rf "$build"' EXIT
