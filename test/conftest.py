@@ -1,16 +1,21 @@
 """Shared fixtures: generated SocNav1-format data, a tiny checkpoint trained on it, and the
-real SocNav1 files for the tests marked ``socnav1`` (skipped, saying why, without them)."""
+real SocNav1 files for the tests marked ``socnav1`` (skipped, saying why, without them). Every
+ROS participant of the suite, in-process or started by a test, reads test/fastdds_profile.xml
+(unless FASTRTPS_DEFAULT_PROFILES_FILE is set): a 100 ms heartbeat instead of Fast DDS's 3 s."""
+import os
 from pathlib import Path
 
 import pytest
 
 from stars_ros import StarsRecommender
 from stars_ros.data import synthetic_socnav
-from stars_ros.data.ratings import load_dataset, socnav1_root as default_socnav1_root
+from stars_ros.data.ratings import load_dataset
+from stars_ros.data.scene_source import socnav1_root as default_socnav1_root
 from stars_ros.data.scene_source import read_scenes
 from stars_ros.model.training import split_rows
 
 REPO = Path(__file__).resolve().parents[1]
+os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(REPO / 'test' / 'fastdds_profile.xml'))
 TINY_CONFIG = {
     'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1},
     'model': {'variant': 'stars', 'dim': 16},
@@ -20,6 +25,21 @@ TINY_CONFIG = {
 
 def socnav1_path() -> Path:
     return default_socnav1_root()
+
+
+#: Where the files that start processes or train models live, heaviest first: collected first,
+#: so xdist's workers (``--dist loadfile``, files handed out in collection order) take them
+#: on early and end together on the many small in-process files.
+HEAVY_FIRST = ('test_colcon_build.py', 'ros/', 'hri/', 'evaluation/', 'offline_training/', 'state/', 'node/')
+
+
+def _weight_rank(item) -> int:
+    path = Path(str(item.fspath)).relative_to(REPO / 'test').as_posix()
+    return next((rank for rank, prefix in enumerate(HEAVY_FIRST) if path.startswith(prefix)), len(HEAVY_FIRST))
+
+
+def pytest_collection_modifyitems(items):
+    items.sort(key=_weight_rank)  # stable: each file's tests keep their order
 
 
 def pytest_runtest_setup(item):

@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 ROS_PACKAGES = ('rclpy', 'std_msgs', 'std_srvs', 'diagnostic_msgs', 'rcl_interfaces', 'geometry_msgs', 'lifecycle_msgs',
                 'stars_ros_msgs', 'hri_msgs', 'tf2_ros')
@@ -45,6 +47,7 @@ print(json.dumps({'found': found, 'core': core, 'failed': failed, 'adapter': ada
 '''
 
 
+@pytest.mark.slow
 def test_every_core_module_imports_without_ros():
     result = subprocess.run([sys.executable, '-c', CHILD, ','.join(ROS_PACKAGES)], cwd=REPO, capture_output=True,
                             text=True, timeout=300)

@@ -87,6 +87,7 @@ def tiny_task(name: str, train: np.ndarray, joint_epochs: int = 1) -> FitTask:
     return FitTask(name, '0:0', 'final', experiment.to_dict(), train, np.arange(300, 450))
 
 
+@pytest.mark.slow  # the module's local Ray instance takes about 10 s to start
 def test_ray_runs_the_grid_to_the_process_pools_records(synthetic_root, tmp_path, ray_address, pool_run):
     """Every fit a Ray task, as many in flight as the instance's 2 CPUs hold: the same fits
     and scores as two worker processes."""
@@ -99,6 +100,7 @@ def test_ray_runs_the_grid_to_the_process_pools_records(synthetic_root, tmp_path
     assert '| GCN StARS |' in (out / 'tables.md').read_text()
 
 
+@pytest.mark.slow  # the module's local Ray instance takes about 10 s to start
 def test_a_fit_that_raises_on_a_ray_worker_is_named_and_the_others_finish(synthetic, ray_address, caplog):
     """A fit with no rows to train on raises in its worker: it comes back as a failure with
     that error, logged by name with the worker's traceback, and the fits beside it finish."""
@@ -112,6 +114,7 @@ def test_a_fit_that_raises_on_a_ray_worker_is_named_and_the_others_finish(synthe
     assert 'raised in a Ray worker' in caplog.text  # the worker's traceback
 
 
+@pytest.mark.slow  # the module's local Ray instance takes about 10 s to start
 def test_a_ray_task_whose_worker_dies_runs_again(ray_address, tmp_path):
     """A task that kills its worker on its first run: retried, it finishes; without retries
     it is a failure that names the dead worker."""

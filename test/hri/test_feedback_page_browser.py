@@ -19,6 +19,7 @@ from std_msgs.msg import String
 
 from hri_fixtures import hri_msgs  # noqa: F401 - the fixture
 from ros_helpers import RELIABLE, domain_id, running_ranker, stored_feedback
+from waiting import wait_for
 from stars_ros.data.scene_source import scene_request
 from stars_ros.hri.people import ENGAGED
 
@@ -131,13 +132,15 @@ def test_the_question_appears_within_1_s_and_a_tap_moves_the_next_ranking(rig):
     assert sent.get('action', sent.get('candidate')) == question.get('candidate', question['action'])
     expect(page.locator('#thanks-title')).to_be_focused()
 
-    def personalised(attempt):  # the solve runs once no scene waits: ask again until it is served
-        scene_id = f'pat-after-{attempt}'
+    asked = []
+
+    def personalised():  # the solve runs once no scene waits: ask again until it is served
+        asked.append(scene_id := f'pat-after-{len(asked)}')
         client.scene(scene_request(scene_id, scene, 'pat'))
-        return client.wait(lambda: (client.ranking_for(scene_id) or {}).get('personalised_from') == 1, 2)
-    attempt = next((k for k in range(15) if personalised(k)), None)
-    assert attempt is not None, 'the answer was not folded in'
-    assert client.ranking_for(f'pat-after-{attempt}')['ranking'][0]['score'] != before
+        assert client.wait(lambda: client.ranking_for(scene_id), 30), 'no ranking came back'
+        return client.ranking_for(scene_id).get('personalised_from') == 1
+    assert wait_for(personalised, 30), 'the answer was not folded in'
+    assert client.ranking_for(asked[-1])['ranking'][0]['score'] != before
     expect(page.locator('#outcome')).to_contain_text('The robot will now')
     page.close()
 

@@ -3,6 +3,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from stars_ros.model.checkpoint import read_checkpoint
@@ -11,6 +12,7 @@ from stars_ros.model.predictor import Predictor
 REPO = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow
 def test_train_writes_checkpoint_with_held_out_metrics(tmp_path, synthetic_root, synthetic):
     config = yaml.safe_load((REPO / 'config' / 'socnav1_gcn.yaml').read_text())
     config['encoder'].update(hidden=16, layers=1)

@@ -67,6 +67,7 @@ def test_the_default_fit_holds_out_ratings_for_the_noise_and_finds_the_tails(cro
     assert float(prior['nu']) > 2
 
 
+@pytest.mark.slow
 def test_new_people_are_never_worse_after_one_to_three_examples(crowd):
     errors = errors_by_k(crowd, crowd[2])
     for k in (1, 2, 3):

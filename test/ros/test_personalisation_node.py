@@ -59,6 +59,7 @@ def _ranker_values(diagnostics) -> dict:
     return next(({v.key: v.value for v in s.values} for s in diagnostics.status if s.name.endswith(': ranker')), {})
 
 
+@pytest.mark.slow
 def test_feedback_personalises_refits_reloads_and_survives_a_restart(tiny_checkpoint, scenes, tmp_path):
     domain = domain_id(7)
     records = tmp_path / 'records'

@@ -8,6 +8,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from ros_helpers import domain_id, running_ranker
+from waiting import wait_for
 from stars_ros import messages
 from stars_ros.data.scene_source import scene_request
 
@@ -42,11 +43,14 @@ def test_rankings_carry_score_sd_and_questions_are_answered(ranker, synthetic_sc
 
     client.feedback({'user_id': 'newcomer', 'scene_id': answer['scene_id'], 'action': answer['action'], 'score': 0.2})
 
-    def personalised(attempt):  # the solve runs once no scene waits: ask again until it is served
-        scene_id = f'after-{attempt}'
+    asked = []
+
+    def personalised():  # the solve runs once no scene waits: ask again until it is served
+        asked.append(scene_id := f'after-{len(asked)}')
         client.scene(scene_request(scene_id, synthetic_scenes[5], 'newcomer'))
-        return client.wait(lambda: (client.ranking_for(scene_id) or {}).get('personalised_from') == 1, 2)
-    assert any(personalised(attempt) for attempt in range(15)), 'the answer was not folded in'
+        assert client.wait(lambda: client.ranking_for(scene_id), 30), 'no ranking came back'
+        return client.ranking_for(scene_id).get('personalised_from') == 1
+    assert wait_for(personalised, 30), 'the answer was not folded in'
 
     asker.publish(String(data='{"candidates": "none"}'))
     assert client.wait(lambda: any(e['topic'] == '/stars/question_request' for e in client.errors), 30)

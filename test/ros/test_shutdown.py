@@ -72,8 +72,10 @@ def test_a_hung_middleware_still_ends_the_ranker_with_its_feedback_stored(tiny_c
         client.feedback(feedback)
 
         def folded_in():  # accepted: her own ranking uses it (committed or not yet)
-            client.scene({'scene_id': f'check-{len(client.rankings)}', 'user_id': 'ann', 'graph': scenes[1]})
-            return client.wait(lambda: client.rankings[-1].get('personalised_from', 0) == 1, 5)
+            scene_id = f'check-{len(client.rankings)}'
+            client.scene({'scene_id': scene_id, 'user_id': 'ann', 'graph': scenes[1]})
+            assert client.wait(lambda: client.ranking_for(scene_id), 30), 'no ranking came back'
+            return client.ranking_for(scene_id).get('personalised_from', 0) == 1
         assert wait_for(folded_in, 60), 'the feedback was never folded in'
         bound = spinning.DESTROY_WAIT_S + spinning.CLOSE_WAIT_S
         assert _shut_down_by(process, [signal.SIGINT, signal.SIGINT], 4 * bound) == 0

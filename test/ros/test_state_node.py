@@ -98,6 +98,7 @@ def test_sigkill_during_feedback_keeps_every_stored_message_once(tiny_checkpoint
     assert sorted(in_bags) == sorted(stored)  # the log of record: every stored message, once
 
 
+@pytest.mark.slow
 def test_a_second_ranker_on_a_held_folder_is_refused_naming_the_holder(tiny_checkpoint, scenes, tmp_path):
     domain = domain_id(17)
     client = RosClient(domain)

@@ -226,6 +226,7 @@ def _run_killed(program: str, kill_at: int, *args) -> subprocess.CompletedProces
                           env={**os.environ, 'PYTHONPATH': os.getcwd()}, capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_a_kill_at_any_moment_of_a_forget_is_finished_by_a_rerun(folder, tmp_path):
     """SIGKILL at every file operation of a forget in turn (opens, renames, removals,
     database connections, counted by an audit hook, so where a kill falls does not depend
@@ -264,6 +265,7 @@ def _retention_pass(folder: Path, cutoff: int) -> None:
     erasure.erase_older(folder, cutoff)
 
 
+@pytest.mark.slow
 def test_a_kill_at_any_moment_of_a_retention_pass_is_finished_by_the_next(folder, tmp_path):
     """SIGKILL at every file operation of a retention pass (the store's erase, then every
     bag's) in turn: the next pass leaves the folder as one uninterrupted pass does."""
