@@ -1,7 +1,8 @@
 """Shared fixtures: generated SocNav1-format data, a tiny checkpoint trained on it, and the
 real SocNav1 files for the tests marked ``socnav1`` (skipped, saying why, without them). Every
 ROS participant of the suite, in-process or started by a test, reads test/fastdds_profile.xml
-(unless FASTRTPS_DEFAULT_PROFILES_FILE is set): a 100 ms heartbeat instead of Fast DDS's 3 s."""
+(unless FASTRTPS_DEFAULT_PROFILES_FILE is set): a 100 ms writer heartbeat and a 2 s participant
+lease instead of Fast DDS's 3 s and 20 s (docs/testing.md, "The suite's DDS settings")."""
 import os
 from pathlib import Path
 
