@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import re
 import signal
@@ -176,18 +177,16 @@ def own_work(count: int) -> dict:
     from stars_ros.node.batching import Pending, rank_batch
     from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
 
-    class Quiet:
-        def info(self, line):
-            pass
-        warning = error = info
-
+    quiet = logging.getLogger('serving_budget.own_work')  # the core's log lines go nowhere
+    quiet.addHandler(logging.NullHandler())
+    quiet.propagate = False
     threadpool_limits(1, user_api='blas')  # as the node does
     steps = {name: [] for name in ('parse_validate', 'score', 'reply', 'record', 'whole')}
     with tempfile.TemporaryDirectory() as records:
         params = {name: spec[0] for name, spec in PARAMETERS.items()}
         params['record_folder'] = records
         core = RankerCore(params, {topic: '/' + topic for topic in TOPICS}, '/ranker', lambda topic, text: None,
-                          Quiet(), time.time_ns)
+                          quiet, time.time_ns)
         try:
             for k, (_, text) in enumerate(node_latency.requests(SCENES, 'own', count + 100)):
                 warm = k >= 100

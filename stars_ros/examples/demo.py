@@ -190,9 +190,13 @@ def run(args) -> int:
     node.create_subscription(String, '/stars/ranking', lambda m: replies.setdefault(
         json.loads(m.data)['scene_id'], json.loads(m.data)), reliable)
     stored = {}  # user -> ratings of their latest stars/user_model: sent once the store has committed them
-    node.create_subscription(String, '/stars/user_model', lambda m: stored.__setitem__(
-        json.loads(m.data)['user_id'], json.loads(m.data)['n_ratings']),
-        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+
+    def keep_model(msg):
+        model = json.loads(msg.data)
+        stored[model['user_id']] = model['n_ratings']
+    node.create_subscription(String, '/stars/user_model', keep_model,
+                             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
     feedback = node.create_publisher(String, '/stars/feedback', reliable)
     deadline = time.monotonic() + args.timeout
     try:

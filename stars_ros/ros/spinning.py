@@ -7,7 +7,6 @@ import re
 import signal
 import sys
 import threading
-import time
 from typing import Callable
 
 import rclpy
@@ -17,6 +16,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import LoggingSeverity, get_logger, get_logger_level, set_logger_level
 
 from stars_ros.errors import CommandLineError
+from stars_ros.waiting import wait_for
 
 USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
 DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
@@ -66,12 +66,7 @@ def spin_until_shutdown(node) -> None:
 
 def _shutting_down() -> bool:
     """Whether ROS's context is, or within SIGNAL_SHUTDOWN_WAIT_S becomes, shut down."""
-    deadline = time.monotonic() + SIGNAL_SHUTDOWN_WAIT_S
-    while rclpy.ok():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
+    return wait_for(lambda: not rclpy.ok(), SIGNAL_SHUTDOWN_WAIT_S, interval=0.01)
 
 
 def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown, fatal: tuple = (),
