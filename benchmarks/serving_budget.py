@@ -175,7 +175,8 @@ def own_work(count: int) -> dict:
 
     from stars_ros import messages
     from stars_ros.node.batching import Pending, rank_batch
-    from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+    from stars_ros.node.core import RankerCore
+    from stars_ros.node.parameters import PARAMETERS, TOPICS
 
     quiet = logging.getLogger('serving_budget.own_work')  # the core's log lines go nowhere
     quiet.addHandler(logging.NullHandler())

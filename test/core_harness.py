@@ -5,7 +5,8 @@ import itertools
 import json
 import threading
 
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.node.core import RankerCore
+from stars_ros.node.parameters import PARAMETERS, TOPICS
 
 
 class Node:

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from stars_ros import recording
-from stars_ros.node.core import PARAMETERS
+from stars_ros.node.parameters import PARAMETERS
 from stars_ros.examples import demo
 from stars_ros.ros import feedback_page, hri_bridge, hri_world, replay, scene_publisher, usage
 from stars_ros.errors import LaunchArgumentError

@@ -20,7 +20,8 @@ from stars_ros import feedback_auth, messages, recording
 from stars_ros.data.scene_source import scene_request
 from stars_ros.errors import ConfigError, OutOfScaleError
 from stars_ros.model.predictor import Predictor
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.node.core import RankerCore
+from stars_ros.node.parameters import PARAMETERS, TOPICS
 from core_harness import Node, deliver, drain, published_models
 
 USER = 'visitor'

@@ -36,7 +36,6 @@ from stars_ros.personalisation.foldin import check_feedback_score
 from stars_ros.model.predictor import Predictor
 from stars_ros.resources import resolve_checkpoint
 from stars_ros.node.batching import Pending, rank_batch
-from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos  # noqa: F401  (ros.ranker reads them here)
 from stars_ros.node.fleet_intake import FleetIntake
 from stars_ros.node import fleet_forget
 from stars_ros.node.consent import Consent

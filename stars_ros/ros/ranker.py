@@ -54,7 +54,7 @@ from visualization_msgs.msg import MarkerArray
 
 from stars_ros.errors import CheckpointError, ConfigError, StoreError
 from stars_ros_msgs.srv import ForgetPerson
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore, topic_qos
+from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
@@ -130,6 +130,10 @@ class RankerParts:
             self.qos_watch.watch(publisher, publishes=True)
         type_hash = next((str(i.topic_type_hash) for i in self.get_publishers_info_by_topic(markers_pub.topic_name)), '')
         self._configured = [*self.publishers_by_topic.values(), self.diagnostics_pub, markers_pub]
+        # imported here, not at the top: the node's DDS participant is up, and discoverable by
+        # peers that start with it, during the half second this import and the checkpoint take
+        from stars_ros.node.core import RankerCore
+
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
                                self.get_fully_qualified_name(), self._publish, self.get_logger(),
                                lambda: self.get_clock().now().nanoseconds,

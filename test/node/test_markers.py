@@ -14,7 +14,8 @@ from stars_ros.data.scene_graph import entity_nodes
 from stars_ros.data.scene_source import placement_candidates, scene_request
 from stars_ros.model.explain import Why
 from stars_ros.model.predictor import Ranked
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.node.core import RankerCore
+from stars_ros.node.parameters import PARAMETERS, TOPICS
 from stars_ros.data.frames import heading_yaw, to_rep103
 from stars_ros.node.markers import encode_marker_array, ranking_markers, scene_markers
 

@@ -12,7 +12,8 @@ import pytest
 from stars_ros import feedback_auth, messages, recording, state
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.errors import ConfigError
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.node.core import RankerCore
+from stars_ros.node.parameters import PARAMETERS, TOPICS
 from core_harness import Node, deliver, drain, published_models, woken_and_drained
 from forget_search import bag_records, holds, store_bytes
 from waiting import wait_for

@@ -11,7 +11,7 @@ from stars_ros import messages
 from stars_ros import recording, state
 from core_harness import Node, SteppedClock, drain, make_core, woken_and_drained
 from waiting import wait_for
-from stars_ros.node.core import PARAMETERS, TOPICS, topic_qos
+from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos
 from stars_ros.data.scene_source import read_scenes, scene_request
 
 

@@ -12,7 +12,8 @@ import pytest
 from stars_ros import messages
 from stars_ros.personalisation.fleet import PeerRatings, solve_set
 from stars_ros.personalisation.foldin import Rating
-from stars_ros.node.core import PARAMETERS, TOPICS, RankerCore
+from stars_ros.node.core import RankerCore
+from stars_ros.node.parameters import PARAMETERS, TOPICS
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros import state
 from core_harness import Node, deliver, drain, published_models
