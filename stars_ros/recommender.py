@@ -163,6 +163,16 @@ def _data(data) -> 'RatingData':
     return data if isinstance(data, RatingData) else load_dataset(data)
 
 
+def _with_prior(fitted, data, rows, noise_rows):
+    """``fitted`` given the fold-in's prior of its weights on ``rows`` (noise from
+    ``noise_rows``) if it is personalised; returns it."""
+    from stars_ros.personalisation.prior import estimate_prior
+
+    if fitted.require_model().personalised:
+        fitted.user_prior = estimate_prior(fitted, data, rows, noise_rows=noise_rows).to_dict()
+    return fitted
+
+
 class StarsRecommender:
     """Fit a StARS model, predict and rank for a user, fold a user in, save and load.
 
@@ -177,6 +187,7 @@ class StarsRecommender:
         self._fold_in: FoldIn | None = None
         self._uncertainty: Uncertainty | None = None
         self._trainer = None  # the StarsTrainer of the latest fit (None for a loaded model)
+        self._fitting = None  # (data, training rows, noise rows) of the latest fit
         self._fitted: FittedModel | None = None  # the torch model; a loaded one's is read when first needed
         self._path = None  # the checkpoint a loaded model came from
         self._catalogue: SceneCatalogue | None = None
@@ -234,6 +245,19 @@ class StarsRecommender:
             self._fitted = load_checkpoint(self._path)[0]
         return self._fitted
 
+    def fitted_now(self) -> FittedModel:
+        """Inside ``fit``'s ``on_epoch``: the model ``fit`` would return were training to end
+        now (a copy with the posterior head of the current weights, if the settings have one,
+        and their prior), so that a learning curve scores what its settings describe."""
+        from stars_ros.model.training import StarsTrainer
+
+        if self._trainer is None:
+            raise NotFittedError('fitted_now is for on_epoch, while fit runs')
+        data, rows, noise_rows = self._fitting
+        now = (self._trainer.with_posterior_head(data, rows) if self.config.training.posterior_sweeps
+               else self._trainer.copy_into(StarsTrainer(self.config)))
+        return _with_prior(now, data, rows, noise_rows)
+
     @property
     def history(self) -> dict:
         """Training losses per epoch of the latest ``fit``, by stage ('pretrain', 'joint'),
@@ -263,7 +287,7 @@ class StarsRecommender:
         each epoch (``StarsTrainer.fit``; ``history`` holds the losses). Earlier fold-ins are
         dropped. Leaves torch's threads, default dtype and random state as it found them."""
         from stars_ros.model.training import StarsTrainer, torch_state_kept  # training (and pandas): only to fit
-        from stars_ros.personalisation.prior import estimate_prior, held_out_split
+        from stars_ros.personalisation.prior import held_out_split
 
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
@@ -271,11 +295,11 @@ class StarsRecommender:
         if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
             rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
         self._trainer = trainer = StarsTrainer(self.config)
+        self._fitting = (data, rows, noise_rows)
         with torch_state_kept():
             trainer.fit(data, rows, on_epoch=on_epoch)
             seconds = time.perf_counter() - started
-            if trainer.require_model().personalised:
-                trainer.user_prior = estimate_prior(trainer, data, rows, noise_rows=noise_rows).to_dict()
+            _with_prior(trainer, data, rows, noise_rows)
         self._serve(trainer, Predictor.from_model(trainer), data)
         self._checkpoint = {
             'data': {'fingerprint': data.fingerprint, 'source': data.source, 'n_ratings': len(data),

@@ -294,6 +294,26 @@ def test_test_scores_held_out_rows_as_the_fitted_model_does(tabular, tmp_path):
         loaded.test()
 
 
+def test_test_scores_a_stranger_as_predict_serves_them(tabular, tmp_path):
+    """Evaluation scores with ``test``: a person the model was not trained on gets the prior's
+    mean there too, the row the node serves a stranger, not the zero row."""
+    stranger = tabular.users[0]
+    fitted = StarsRecommender(TABULAR).fit(tabular, np.flatnonzero(tabular.users != stranger))
+    # a prior mean away from zero (this small fit's is zero), else the two rows would agree anyway
+    fitted.fitted.user_prior['mean'] = torch.linspace(-0.5, 0.5, TABULAR['model']['dim'] + 1, dtype=torch.float64)
+    fitted.save(tmp_path / 'model.pt')
+    recommender = StarsRecommender.load(tmp_path / 'model.pt', data=tabular)
+    theirs = np.flatnonzero(tabular.users == stranger)
+    served = [recommender.predict(stranger, tabular.scene_keys[tabular.scenes[row]],
+                                  tabular.action_names[tabular.actions[row]]) for row in theirs]
+    assert recommender.fitted.predict_rows(tabular, theirs) == pytest.approx(served, abs=1e-5)
+    zero_row = recommender.fitted.predict_scores_from_h(
+        [stranger] * len(theirs), [tabular.scene_keys[s] for s in tabular.scenes[theirs]],
+        recommender.fitted.model.encode(tabular.store.batch(torch.from_numpy(tabular.scenes[theirs]))),
+        user_rows=(torch.zeros(len(theirs), recommender.config.model.dim), torch.zeros(len(theirs), 1)))
+    assert not np.allclose(zero_row[np.arange(len(theirs)), tabular.actions[theirs]], served, atol=1e-5)
+
+
 def test_refit_makes_folded_in_users_trained_ones(fitted, tabular):
     from stars_ros.personalisation.foldin import Rating
     scenes = [(tabular.scene_keys[k], list(tabular.store.scene(k))) for k in range(4)]

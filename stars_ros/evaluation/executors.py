@@ -105,16 +105,18 @@ def worker_data() -> RatingData:
 
 
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
-    """Fit ``task``'s model and return its test metrics, z-RMSE and seconds (and, with
-    ``curve_at``, the same at those joint epochs under ``curve``)."""
-    from stars_ros.model.training import StarsTrainer
+    """Fit ``task``'s model as ``train`` fits it (``StarsRecommender.fit``: a personalised
+    model holds a share of each person's examples out for its prior) and return its test
+    metrics, z-RMSE and seconds (and, with ``curve_at``, the same at those joint epochs under
+    ``curve``). Strangers are scored as the node serves them: the prior's mean."""
+    from stars_ros.recommender import StarsRecommender
     data = worker_data() if data is None else data
     if task.peer:
         from stars_ros.evaluation.peers import run_peer
         return run_peer(task.peer, task.peer_settings, task.experiment, data, task.train, task.test, task.curve_at)
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()
-    recommender = StarsTrainer(config)
+    front = StarsRecommender(config)
     y, actions = data.scores[task.test], data.actions[task.test]
     curve = []
 
@@ -126,13 +128,11 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
                                           model.target_std.cpu().numpy())}
 
     def score_curve(stage, epoch):
-        if stage == 'joint' and epoch in task.curve_at:  # with a posterior head: the model fit would return now
-            scored = recommender
-            if config.training.posterior_sweeps:
-                scored = recommender.with_posterior_head(data, task.train)
-            curve.append({'epoch': epoch, **scores(scored)})
+        if stage == 'joint' and epoch in task.curve_at:
+            curve.append({'epoch': epoch, **scores(front.fitted_now())})
     try:
-        recommender.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
+        front.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
+        recommender = front.fitted
     except TrainingDivergedError as error:  # one diverged fit must not end a long run
         return {**{m: math.nan for m in METRICS}, 'n': len(task.test), 'z_rmse': math.inf,
                 'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,

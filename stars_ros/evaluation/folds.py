@@ -15,6 +15,7 @@ import numpy as np
 from stars_ros.data.ratings import RatingData
 
 PROTOCOLS = ('rows', 'cold-scene', 'cold-user')
+DEALS = ('largest_first', 'shuffled')  # how grouped_folds orders the groups it deals
 
 
 class Fold(NamedTuple):
@@ -24,20 +25,24 @@ class Fold(NamedTuple):
     test: np.ndarray
 
 
-def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed) -> list[Fold]:
+def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed, deal: str = 'largest_first') -> list[Fold]:
     """k folds of ``rows`` such that the rows of one group (``groups[row]``) share a fold.
 
-    Groups are shuffled, then dealt largest first to the fold with the fewest rows so far,
-    which balances the fold sizes when a few groups are large (annotators). The shuffle only
-    orders groups of equal size: where every group's size differs (SocNav1's 12 annotators),
-    the folds are the same under every seed.
+    Groups are shuffled, then each is dealt to the fold with the fewest rows so far. With
+    ``deal`` 'largest_first' they are dealt largest first, which balances the fold sizes when
+    a few groups are large (annotators); the shuffle then only orders groups of equal size,
+    so where every group's size differs (SocNav1's 12 annotators) the folds are the same
+    under every seed. With 'shuffled' they are dealt in the shuffled order: new folds for
+    each seed, sizes less even.
     """
     rows = np.asarray(rows)
     labels, inverse, counts = np.unique(np.asarray(groups)[rows], return_inverse=True, return_counts=True)
     if not 2 <= k <= len(labels):
         raise ValueError(f'cannot deal {len(labels)} groups into {k} folds')
     shuffled = np.random.default_rng(seed).permutation(len(labels))
-    order = shuffled[np.argsort(-counts[shuffled], kind='stable')]
+    if deal not in DEALS:
+        raise ValueError(f'deal must be one of {DEALS}, got {deal!r}')
+    order = shuffled[np.argsort(-counts[shuffled], kind='stable')] if deal == 'largest_first' else shuffled
     fold_of_group = np.empty(len(labels), dtype=np.int64)
     sizes = np.zeros(k, dtype=np.int64)
     for group in order:
@@ -59,11 +64,12 @@ def fold_groups(data: RatingData, protocol: str) -> np.ndarray:
     raise ValueError(f"Could not resolve protocol '{protocol}' among choices {list(PROTOCOLS)}")
 
 
-def make_folds(data: RatingData, protocol: str, k: int, seed, rows: np.ndarray | None = None) -> list[Fold]:
+def make_folds(data: RatingData, protocol: str, k: int, seed, rows: np.ndarray | None = None,
+               deal: str = 'largest_first') -> list[Fold]:
     """Folds of ``rows`` (all rows by default) for ``protocol``: examples, scenes or users
-    never straddle a fold."""
+    never straddle a fold; ``deal`` as ``grouped_folds``."""
     rows = np.arange(len(data)) if rows is None else np.asarray(rows)
-    return grouped_folds(rows, fold_groups(data, protocol), k, seed)
+    return grouped_folds(rows, fold_groups(data, protocol), k, seed, deal)
 
 
 def sweep_samples(pool: np.ndarray, fractions: Sequence[float], seed, groups: np.ndarray | None = None) -> dict:

@@ -46,7 +46,7 @@ from stars_ros.data.ratings import RatingData
 from stars_ros.errors import ConfigError
 from stars_ros.evaluation import peers
 from stars_ros.evaluation.executors import METRICS, FitFailure, FitTask, fit_executor, run_fits
-from stars_ros.evaluation.folds import PROTOCOLS, make_folds, sweep_samples
+from stars_ros.evaluation.folds import DEALS, PROTOCOLS, make_folds, sweep_samples
 from stars_ros.model.config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section,
                                     TrainConfig, read_yaml, validate_under, validated)
 from stars_ros.model.metrics import regression_report
@@ -75,7 +75,7 @@ def _merge(base: dict, changes: dict) -> dict:
 #: Settings a protocol's ``search`` may vary, and the config section each belongs to.
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'average_last': 'training',
               'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'user_dropout': 'training',
-              'distil_members': 'training',
+              'distil_members': 'training', 'pooled_stranger': 'training',
               'dim': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
@@ -84,7 +84,8 @@ PEER_FAMILIES = ('surprise_svd', 'myfm')
 #: StARS ablations: label suffix and the settings that differ from full StARS (they win over
 #: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off,
 #: ``stars_no_user_dropout`` with every example trained with its person's row,
-#: ``stars_undistilled`` trained once on the ratings instead of distilled from a seed ensemble).
+#: ``stars_undistilled`` trained once on the ratings instead of distilled from a seed ensemble,
+#: ``stars_mean_stranger`` with strangers served the others' mean, never the pooled row).
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
     'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
@@ -94,6 +95,7 @@ ABLATIONS = {
     'stars_point': ('StARS, trained point estimate (no posterior head)', {'posterior_sweeps': 0}),
     'stars_no_user_dropout': ('StARS without user dropout', {'user_dropout': 0.0}),
     'stars_undistilled': ('StARS trained once, not distilled', {'distil_members': 0}),
+    'stars_mean_stranger': ("StARS, strangers served the others' mean", {'pooled_stranger': False}),
 }
 
 
@@ -105,6 +107,9 @@ class ProtocolConfig(Section):
         folds (int): outer folds k (the t-test has k·len(seeds) − 1 degrees of freedom).
         inner_folds (int): folds of the selection inside each outer-train pool.
         seeds (tuple of int): fold-assignment seeds; more than one repeats the whole CV.
+        deal (str): how outer and inner folds deal their groups (``folds.grouped_folds``):
+            'largest_first' (sizes balanced; SocNav1's cold-user folds then do not change
+            with the seed) or 'shuffled' (new folds for each seed).
         grid (tuple of (T1, T2)): candidate epoch pairs (T2 >= 1).
         search (dict): family (``base``, ``stars``, ``mf``) -> {setting: [values]}, a product
             of candidate values of SEARCHABLE settings; a family without one uses ``experiment``'s.
@@ -127,6 +132,7 @@ class ProtocolConfig(Section):
     folds: Annotated[Int, Field(ge=2)] = 5
     inner_folds: Annotated[Int, Field(ge=2)] = 2
     seeds: Annotated[tuple[Annotated[Int, Field(ge=0)], ...], Field(min_length=1)] = (0,)
+    deal: Literal[DEALS] = 'largest_first'
     grid: Annotated[tuple[tuple[Int, Int], ...], Field(min_length=1)] = ((10, 100), (50, 100), (100, 100))
     search: dict[Literal[FAMILIES + PEER_FAMILIES], dict[str, Annotated[list, Field(min_length=1)]]] = \
         Field(default_factory=dict)
@@ -385,9 +391,10 @@ class ProtocolRun:
         config, data = self.config, self.data
         outer = {}
         for seed in config.seeds:
-            for f, fold in enumerate(make_folds(data, self.protocol, config.folds, seed)):
+            for f, fold in enumerate(make_folds(data, self.protocol, config.folds, seed, deal=config.deal)):
                 fold_id = f'{seed}:{f}'
-                outer[fold_id] = (fold, make_folds(data, self.protocol, config.inner_folds, [seed, f, 1], fold.train),
+                outer[fold_id] = (fold, make_folds(data, self.protocol, config.inner_folds, [seed, f, 1], fold.train,
+                                                   config.deal),
                                   sweep_samples(fold.train, self.fractions, [seed, f, 2], data.examples))
                 self.result.folds.append({'fold': fold_id, 'n_train': len(fold.train), 'n_test': len(fold.test)})
         return outer

@@ -201,6 +201,11 @@ class TrainConfig(Section):
     probability, so the population part of the model (h_iᵀ r_a + b_i + b) is trained as a
     prediction for someone it has never seen, not only as what every person's row adds to;
     0 trains every example with its person's row, 1 none (the person rows stay zero).
+    ``pooled_stranger``: the prior's mean, the row a stranger is served and a new person is
+    folded in from, may be the pooled row (the one θ that best predicts every trained person's
+    training ratings) where each trained person's held-out ratings say it predicts a person
+    it was not fitted on better than the others' mean does (``personalisation.prior``); False
+    keeps the others' mean.
     ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
     ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
     (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
@@ -220,6 +225,7 @@ class TrainConfig(Section):
     posterior_sweeps: Annotated[Int, Field(ge=0)] = 0
     posterior_burn_in: Annotated[Int, Field(ge=0)] = 50
     user_dropout: Annotated[Float, Field(ge=0.0, le=1.0)] = 0.0
+    pooled_stranger: bool = True
     distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1

@@ -129,8 +129,22 @@ class FittedModel(Rows):
         Scores are clipped to the training data's rating scale."""
         model = self.require_model()
         users, scenes = self.user_index(users).to(model.device), self.scene_index(scene_keys).to(model.device)
+        if user_rows is None:
+            user_rows = self._rows_with_strangers(users)
         z = model(users, scenes, h, user_rows)
         return self.clip(model.to_rating_scale(z).cpu().numpy().astype(np.float64))
+
+    def _rows_with_strangers(self, users: torch.Tensor) -> tuple | None:
+        """(p, b_u) of ``users`` with each stranger (UNKNOWN) given the prior's mean, as
+        ``Predictor`` serves them; None (the table, strangers at zero) without a prior or strangers."""
+        model = self.model
+        if self.user_prior is None or not model.personalised or bool((users >= 0).all()):
+            return None
+        mean = torch.as_tensor(self.user_prior['mean'], dtype=torch.float32, device=model.device)
+        stranger = (users < 0).unsqueeze(-1)
+        known = users.clamp(min=0)
+        return (torch.where(stranger, mean[:-1], model.user_embedding(known)),
+                torch.where(stranger, mean[-1:], model.user_bias(known)))
 
     def evaluate(self, data: RatingData, rows: np.ndarray) -> dict:
         """Macro-averaged MSE, RMSE, Pearson r and CCC on ``rows``, on the rating scale."""

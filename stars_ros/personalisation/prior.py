@@ -21,7 +21,12 @@ estimates what that needs from the trained people and their training ratings:
   James–Stein factor kept 0.82 of a mean that made every held-out person of one fold worse
   (k = 0 MSE 0.0275 against 0.0249 at θ = 0); the held-out weight there is 0. Without
   held-out ratings (``prior_of``'s fallback) the positive-part James–Stein factor shrinks the
-  mean as far as its own Σ₀/U error warrants.
+  mean as far as its own Σ₀/U error warrants. With held-out ratings (and the fit's
+  ``pooled_stranger``) the *pooled row* is the other candidate: the posterior mean, from
+  N(0, Σ₀), of one θ fitted to every trained person's training ratings at once, the
+  population served as one person (``pooled_rows``). It replaces the others' mean when, each
+  person's held-out ratings predicted from a pooled row fitted without them, its squared
+  z-error is the lower: chosen by person, as a stranger is met.
 - **Noise σ²_a**: per action, the mean squared z-residual of held-out ratings of the trained
   people (``noise_rows``: examples the fit did not see, scored from their trained rows),
   else of the training ratings. Training residuals understate the noise a new person's
@@ -176,6 +181,24 @@ def held_out_mean_weight(trained: np.ndarray, people: np.ndarray, x: np.ndarray,
     return float(np.clip(a @ r / energy, 0.0, 1.0))
 
 
+def pooled_rows(x: np.ndarray, r: np.ndarray, weights: np.ndarray, people: np.ndarray, users: int,
+                precision: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(θ_pop [dim+1], θ_pop without each person [users, dim+1]): the posterior mean, from
+    N(0, Σ₀) (``precision`` Σ₀⁻¹), of one θ that gave every rating x [n, dim+1], r = z − c [n]
+    of ``people`` [n] (rows of the trained people), each weighted by ``weights`` (1/σ²_a): the
+    population as one person, and the same without each person's ratings."""
+    size = x.shape[1]
+    gram, moment = np.zeros((users, size, size)), np.zeros((users, size))
+    for person in range(users):
+        mine = people == person
+        weighted = x[mine] * weights[mine, None]
+        gram[person], moment[person] = weighted.T @ x[mine], weighted.T @ r[mine]
+    total_gram, total_moment = gram.sum(0) + precision, moment.sum(0)
+    without = np.stack([np.linalg.solve(total_gram - gram[person], total_moment - moment[person])
+                        for person in range(users)])
+    return np.linalg.solve(total_gram, total_moment), without
+
+
 def user_rows(inference) -> np.ndarray:
     """θ = (p_u, b_u) [users, dim+1] (float64) of a model's trained people."""
     return np.concatenate([inference.user_rows, inference.user_offsets[:, None]], axis=1).astype(np.float64)
@@ -238,6 +261,9 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
             noise[a] = float(np.mean(residual[residual_actions == a] ** 2))
     nu = student_t_nu(residual / np.sqrt(noise[residual_actions]))
     precision = np.linalg.inv(covariance)
+    if held_out and weight is not None and fitted.config.training.pooled_stranger:
+        mean, details = _pooled_if_better(mean, details, trained, x, z - c, 1.0 / noise[actions], users,
+                                          precision, (known, noise_x, noise_z - noise_c, weight))
     user_covariance = np.empty((len(trained), len(mean), len(mean)))
     for row in range(len(trained)):
         mine = users == row
@@ -246,6 +272,23 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
     details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows)),
                'nu': f'maximum likelihood on {source}', 'prior_scales': list(PRIOR_SCALES)}
     return UserPrior(mean, covariance, noise, user_covariance, details, nu)
+
+
+def _pooled_if_better(mean: np.ndarray, details: dict, trained: np.ndarray, x: np.ndarray, r: np.ndarray,
+                      weights: np.ndarray, people: np.ndarray, precision: np.ndarray, held_out: tuple) -> tuple:
+    """(mean, details): the pooled row (``pooled_rows``) in place of the others' mean when,
+    each trained person's held-out ratings ``held_out`` (people, x, r, the mean's weight)
+    predicted from a row fitted without that person, its squared z-error is the lower."""
+    known, held_x, held_r, weight = held_out
+    pooled, pooled_without = pooled_rows(x, r, weights, people, len(trained), precision)
+    others = (trained.sum(0) - trained[known]) / (len(trained) - 1)
+    errors = {'pooled': float(np.sum((held_r - np.einsum('nd,nd->n', held_x, pooled_without[known])) ** 2)),
+              'others_mean': float(np.sum((held_r - weight * np.einsum('nd,nd->n', held_x, others)) ** 2))}
+    details = {**details, 'held_out_squared_z_error': {k: round(v, 4) for k, v in errors.items()}}
+    if errors['pooled'] < errors['others_mean']:
+        return pooled, {**details, 'mean': "pooled: one θ fitted to every trained person's ratings "
+                                           "(held-out ratings of each person predicted better than by the others' mean)"}
+    return mean, details
 
 
 def prior_of(recommender, inference) -> UserPrior:

@@ -20,6 +20,7 @@ from stars_ros.evaluation.executors import FitTask, run_fit
 from stars_ros.evaluation.folds import grouped_folds, make_folds, sweep_samples
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
 from stars_ros.model.training import StarsTrainer
+from stars_ros.personalisation.prior import held_out_split
 from stars_ros.evaluation.summaries import paired_tests, time_accounting
 
 REPO = Path(__file__).resolve().parents[2]
@@ -77,6 +78,19 @@ def test_grouped_folds_of_groups_of_distinct_sizes_are_the_same_under_every_seed
     equal = np.repeat(np.array(list('abcdef')), 10)
     assert len({str([f.test.tolist() for f in grouped_folds(rows[:60], equal, 3, seed=seed)])
                 for seed in range(20)}) > 1
+
+
+def test_shuffled_grouped_folds_move_with_the_seed_and_keep_groups_whole():
+    distinct = np.repeat(np.array(list('abcdefg')), [40, 35, 30, 20, 12, 7, 3])
+    rows = np.arange(len(distinct))
+    dealt = {str([fold.test.tolist() for fold in grouped_folds(rows, distinct, 3, seed, deal='shuffled')])
+             for seed in range(20)}
+    assert len(dealt) > 5
+    for fold in grouped_folds(rows, distinct, 3, 7, deal='shuffled'):
+        assert not set(distinct[fold.test]) & set(distinct[fold.train])
+        assert sorted(np.concatenate([fold.train, fold.test]).tolist()) == rows.tolist()
+    with pytest.raises(ValueError, match='deal must be one of'):
+        grouped_folds(rows, distinct, 3, 0, deal='alphabetical')
 
 
 @pytest.mark.parametrize('protocol, key', [('cold-scene', 'scenes'), ('cold-user', 'users')])
@@ -348,7 +362,8 @@ def test_a_distilled_fit_also_scores_the_ensemble_it_was_taught_by(synthetic):
         'training': {'pretrain_epochs': 1, 'joint_epochs': 2, 'lr': 3e-3, 'threads': 1, 'distil_members': 2}})
     train, test = fold.train[:500], fold.test[:200]
     scored = run_fit(FitTask('m', '0:0', 'final', experiment.to_dict(), train, test), synthetic)
-    teachers = [StarsTrainer(experiment.replace(training={'distil_members': 0, 'seed': seed})).fit(synthetic, train)
+    trained, _ = held_out_split(synthetic, train, seed=experiment.split.seed)  # as fit holds out the prior's rows
+    teachers = [StarsTrainer(experiment.replace(training={'distil_members': 0, 'seed': seed})).fit(synthetic, trained)
                 for seed in (0, 1)]
     ensemble = np.mean([teacher.predict_rows(synthetic, test) for teacher in teachers], axis=0)
     by_hand = np.mean((ensemble - synthetic.scores[test]) ** 2)  # one action: the macro mean is the mean

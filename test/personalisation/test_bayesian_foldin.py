@@ -17,7 +17,7 @@ from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation import prior as prior_module
 from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, scale_mixture_posterior, solve_ridge
 from stars_ros.personalisation.prior import (UserPrior, encode_all, estimate_prior, held_out_mean_weight, ledoit_wolf,
-                                             population)
+                                             pooled_rows, population)
 from stars_ros.personalisation.uncertainty import Uncertainty, log_psi, student_t_quantile
 
 
@@ -115,6 +115,38 @@ def test_the_held_out_mean_weight_is_least_squares_against_the_others_mean_by_ha
     assert held_out_mean_weight(trained, people, x, -r) == 0.0  # a mean that points away from people: not used
     assert held_out_mean_weight(trained, people, x, 10 * r) == 1.0  # never beyond the mean itself
     assert held_out_mean_weight(trained[:1], people[:1], x[:1], r[:1]) is None  # one person: no one else to ask
+
+
+def test_the_pooled_row_is_the_posterior_of_everyone_as_one_person_and_of_the_others_without_each():
+    rng = np.random.default_rng(4)
+    x, r, weights = rng.normal(size=(30, 3)), rng.normal(size=30), rng.uniform(0.5, 2.0, size=30)
+    people, precision = np.repeat([0, 1, 2], 10), np.diag([1.0, 2.0, 3.0])
+
+    def by_hand(keep):  # least squares of the weighted rows stacked on the prior's square root
+        design = np.vstack([x[keep] * np.sqrt(weights[keep])[:, None], np.linalg.cholesky(precision).T])
+        return np.linalg.lstsq(design, np.concatenate([r[keep] * np.sqrt(weights[keep]), np.zeros(3)]), rcond=None)[0]
+    pooled, without = pooled_rows(x, r, weights, people, 3, precision)
+    assert pooled == pytest.approx(by_hand(np.ones(30, dtype=bool)))
+    for person in range(3):
+        assert without[person] == pytest.approx(by_hand(people != person))
+
+
+def test_the_stranger_row_is_the_candidate_that_predicts_held_out_people_better(synthetic):
+    """Each trained person's held-out ratings, predicted from rows fitted without them, choose
+    between the pooled row and the others' mean; ``pooled_stranger`` False keeps the mean."""
+    train, held = split_rows(synthetic, 0.2, 0)
+    config = ExperimentConfig.from_dict(TINY_CONFIG)
+    fitted = StarsTrainer(config).fit(synthetic, train)
+    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    errors = prior.details['held_out_squared_z_error']
+    assert prior.details['mean'].startswith('pooled') == (errors['pooled'] < errors['others_mean'])
+    fitted.config = config.replace(training={'pooled_stranger': False})
+    kept = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert 'held_out_squared_z_error' not in kept.details and not kept.details['mean'].startswith('pooled')
+    if prior.details['mean'].startswith('pooled'):
+        assert not np.allclose(prior.mean, kept.mean)
+    else:
+        assert prior.mean == pytest.approx(kept.mean)
 
 
 def test_a_population_mean_that_points_against_held_out_people_is_not_used(synthetic):
