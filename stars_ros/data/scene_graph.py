@@ -129,7 +129,7 @@ def featurise(scene: dict, validate: bool = True) -> SceneGraph:
             pairs.add((min(source, target), max(source, target)))
     pairs = sorted(pairs)
 
-    n_h, n_o, n_w, n_i = len(humans), len(objects), len(room), len(pairs)
+    n_h, n_o, n_w = len(humans), len(objects), len(room)
     area = 0.5 * abs(sum(x0 * y1 - y0 * x1 for (x0, y0), (x1, y1) in zip(room, room[1:] + room[:1])))
     geometry = [[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0],  # the robot: origin, facing +y
                 _geometry_row(sum(x for x, _ in room) / n_w, sum(y for _, y in room) / n_w, 0.0, math.sqrt(area))]
