@@ -10,6 +10,8 @@ own and an echo node in another:
     typed service ~/rank_actions, called as soon as the service is discovered; the ranker's
     own log line "serving ..." (the model loaded) splits it into the start (imports, model)
     and the rest (node, discovery, the call);
+  * the end: seconds from SIGTERM until each node's process ended (None: still running after
+    30 s, then killed);
   * latency: ``--count`` requests per node on each path, one in flight at a time, in
     ``--blocks`` blocks alternating between the ranker and the echo (this VM's speed drifts
     within minutes): the JSON path (std_msgs/String on stars/scene → stars/ranking) and the
@@ -47,6 +49,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / 'benchmarks'))
 
 import rclpy  # noqa: E402
+from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 from stars_ros_msgs.srv import RankActions  # noqa: E402
@@ -75,7 +78,7 @@ def echo_main():
     node.create_service(RankActions, '~/rank_actions', answer)
     try:
         rclpy.spin(node)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ExternalShutdownException):  # SIGINT, SIGTERM: the normal end
         pass
     finally:
         node.destroy_node()
@@ -118,10 +121,17 @@ class Served:
         if self.process.poll() is not None:
             raise RuntimeError(f'{self.name} exited with {self.process.returncode}: {self.log.read_text()[-2000:]}')
 
-    def stop(self):
+    def stop(self) -> float | None:
+        """SIGTERM the node; seconds until its process ended, None if it had not within 30 s
+        (it is then killed: one hung end must not lose the run's figures)."""
         self.client.close()
         self.caller.close()
-        stop(self.process, signal.SIGTERM)  # killed, and TimeoutExpired raised, if not ended within 30 s
+        started = time.perf_counter()
+        try:
+            stop(self.process, signal.SIGTERM)
+        except subprocess.TimeoutExpired:
+            return None
+        return time.perf_counter() - started
 
 
 def typed_alternating(served: dict, count: int, blocks: int) -> dict:
@@ -161,8 +171,8 @@ def one_run(run: int, count: int, blocks: int) -> dict:
                       'json': {name: percentiles(json_ms[name]) for name in served},
                       'typed': {name: percentiles(typed_ms[name]) for name in served}}
         finally:
-            for node in served.values():
-                node.stop()
+            ended = {name: node.stop() for name, node in served.items()}
+    result['ended_after_sigterm_s'] = ended  # None: still running 30 s after SIGTERM, killed
     for path in ('json', 'typed'):
         result[path]['ratio'] = {q: result[path]['ranker'][q] / result[path]['echo'][q] for q in ('p50', 'p99')}
     return result
