@@ -94,3 +94,15 @@ def test_serving_imports_neither_torch_nor_pyg_pandas_or_training():
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout) == []
+
+
+def test_the_ranker_module_leaves_the_core_to_after_its_node_exists():
+    """``ros2 run stars_ros ranker`` creates its node, and so its DDS participant, before the half
+    second the core's import and the checkpoint take: peers starting with it find it during
+    their initial announcements (docs/performance.md, what bounds the first answer)."""
+    code = ("import sys, json; import stars_ros.ros.ranker; "
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('stars_ros.node.core', "
+            "'stars_ros.personalisation', 'stars_ros.model.predictor', 'numba')))))")
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == []
