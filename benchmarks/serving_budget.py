@@ -26,7 +26,9 @@ recording on) serving the same JSON requests with no middleware, p50 of each ste
 request (parsing and validating; featurising, encoding and scoring with ``score_sd``; the
 reply written; the request and reply recorded) and of the whole. Whatever the node around it
 does, its JSON p50 cannot be below the echo's plus this work, so ``bound`` = 1 + own work /
-echo p50 is the lowest ratio the run allowed.
+echo p50 is the lowest ratio the run allowed. The same for the typed service: the request's
+JSON twin made, ranked at once (``RankerCore.rank_now``) and the typed response built; the
+recording and markers, which the node does after the reply, are outside it.
 """
 from __future__ import annotations
 
@@ -183,7 +185,8 @@ def own_work(count: int) -> dict:
     and of ``accept_scene`` + ``work`` together (``whole``), as the node's scene callback runs them."""
     from threadpoolctl import threadpool_limits
 
-    from stars_ros import messages
+    from stars_ros import messages, typed_messages
+    from stars_ros_msgs import msg as typed
     from stars_ros.node.batching import Pending, rank_batch
     from stars_ros.node.core import RankerCore
     from stars_ros.node.parameters import PARAMETERS, TOPICS
@@ -192,7 +195,8 @@ def own_work(count: int) -> dict:
     quiet.addHandler(logging.NullHandler())
     quiet.propagate = False
     threadpool_limits(1, user_api='blas')  # as the node does
-    steps = {name: [] for name in ('parse_validate', 'score', 'reply', 'record', 'whole')}
+    steps = {name: [] for name in ('parse_validate', 'score', 'reply', 'record', 'whole',
+                                   'typed_convert', 'typed_rank', 'typed_reply', 'typed_whole')}
     with tempfile.TemporaryDirectory() as records:
         params = {name: spec[0] for name, spec in PARAMETERS.items()}
         params['record_folder'] = records
@@ -222,6 +226,21 @@ def own_work(count: int) -> dict:
                     for name, (begin, end) in {'whole': (started, whole), 'parse_validate': (whole, parsed),
                                                'score': (parsed, ranked), 'reply': (ranked, replied),
                                                'record': (replied, recorded)}.items():
+                        steps[name].append((end - begin) * 1e3)
+            for k, request in enumerate(service_latency.typed_requests(SCENES, 'own-typed', count + 100)):
+                started = time.perf_counter()
+                twin = typed_messages.rank_actions_twin(request, params['frame_id'])
+                converted = time.perf_counter()
+                payload, _ = core.rank_now(twin, time.time_ns(), time.time_ns(), '/ranker/rank_actions')
+                ranked = time.perf_counter()
+                RankActions.Response(success=True, ranking=typed_messages.ranking_message(payload, typed))
+                replied = time.perf_counter()
+                while core.work():  # the recording and markers, after the reply as the node does
+                    pass
+                if k >= 100:
+                    for name, (begin, end) in {'typed_whole': (started, replied), 'typed_convert': (started, converted),
+                                               'typed_rank': (converted, ranked),
+                                               'typed_reply': (ranked, replied)}.items():
                         steps[name].append((end - begin) * 1e3)
         finally:
             core.close()
@@ -260,9 +279,10 @@ def main(argv=None) -> int:
     work = own_work(args.count)
     for result in runs:
         result['json']['bound'] = 1 + work['whole_ms_p50'] / result['json']['echo']['p50']
+        result['typed']['bound'] = 1 + work['typed_whole_ms_p50'] / result['typed']['echo']['p50']
     print('own work in process (p50 ms): ' + ', '.join(f'{k} {v:.3f}' for k, v in work.items())
-          + '; lowest JSON p50 ratio each run allowed: '
-          + ', '.join(f"{r['json']['bound']:.2f}" for r in runs), flush=True)
+          + '; lowest p50 ratio each run allowed, JSON: ' + ', '.join(f"{r['json']['bound']:.2f}" for r in runs)
+          + '; typed: ' + ', '.join(f"{r['typed']['bound']:.2f}" for r in runs), flush=True)
     results = {**run_record(program_argv('benchmarks/serving_budget.py', argv)), 'runs': runs, 'median_of_runs': median,
                'own_work': work,
                'settings': {'runs': args.runs, 'count': args.count, 'blocks': args.blocks,
