@@ -24,6 +24,7 @@ from stars_ros.model.metrics import regression_report
 METRICS = ('mse', 'pearson_r', 'ccc')
 RANKING = 'regret'  # first-choice regret, where an example rates several actions
 NAMES = {'mse': 'MSE', 'pearson_r': 'Pearson r', 'ccc': 'CCC', RANKING: 'first-choice regret'}
+BASE_ENCODER = 'base encoder'  # the plain encoder fitted on a fold's training rows: a stranger's alternative
 
 
 @dataclass(frozen=True)
@@ -132,11 +133,14 @@ def _stacked(designs: list, empty: tuple) -> tuple:
     return tuple(np.concatenate(parts) for parts in zip(*designs))
 
 
-def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> tuple[list, dict]:
-    """(records, calibration parts) of one fold whose fits are ``outcomes`` {k: fit}. A
-    strategy's metrics at k are the mean over its answer sets: one per person for a question
-    strategy, ``random_sets`` for random answers (set ``number`` of every covered person is one
-    draw of the fold's metrics)."""
+def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
+               base_encoder: dict | None = None) -> tuple[list, dict]:
+    """(records, calibration parts) of one fold whose fits are ``outcomes`` {k: fit}, and
+    ``base_encoder`` the fit of the plain encoder (``base`` variant) on the fold's training rows,
+    scored beside them at every k as what a stranger could be served instead. A strategy's
+    metrics at k are the mean over its answer sets: one per person for a question strategy,
+    ``random_sets`` for random answers (set ``number`` of every covered person is one draw of
+    the fold's metrics)."""
     seed, fold_id, held, _, people, _, known, _ = fold
     examples = data.examples
     orders = {(name, strategy): design.reveal_order(person, strategy, max(settings.ks))
@@ -153,6 +157,9 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict) -> t
             continue
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
+        if base_encoder is not None:
+            entry[BASE_ENCODER] = report(
+                data, rows, base_encoder['predictions'][np.searchsorted(fold_test(fold), rows)], examples)
         ridge_predictions, nu = np.zeros(len(data)), design.foldin.user_prior.nu
         for strategy, method in zip(settings.strategies, methods):
             sets = ({name: random_sets(people[name], name, k, settings.random_sets, seed) for name in covered}
@@ -234,6 +241,11 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
             experiment = with_settings(config.to_dict(), selection[fold[:2]]['chosen'])
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
                                                          k == 0, fold[7])
+        for fold in folds:  # the plain encoder beside them, trained on what the fold's model is
+            experiment = with_settings(config.to_dict(), selection[fold[:2]]['chosen'])
+            submitted[fold[:2] + (BASE_ENCODER,)] = executor.submit(
+                fit_rows, {**experiment, 'model': {**experiment['model'], 'variant': 'base'}}, fit_rows_of(fold, 0),
+                fold_test(fold), False)
 
     records, timings, folds, failed, left_out = [], [], {}, [], {}
     pooled = {'new': {}, 'known': []}
@@ -247,8 +259,11 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
                 submit([fold])
             outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')
                         for k in retrained_ks(settings)}
+            base_encoder = fit_outcome(submitted.pop((seed, fold_id, BASE_ENCODER)),
+                                       f'seed {seed} fold {fold_id} {BASE_ENCODER}')
             lost = [{'seed': seed, 'fold': fold_id, 'k': k, 'error': outcome.error}
-                    for k, outcome in outcomes.items() if isinstance(outcome, FitFailure)]
+                    for k, outcome in [*outcomes.items(), (BASE_ENCODER, base_encoder)]
+                    if isinstance(outcome, FitFailure)]
             if lost:
                 failed += lost
                 log(f'seed {seed} fold {fold_id}: left out, ' + '; '.join(f"the fit at k={f['k']} failed: "
@@ -262,7 +277,8 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
                                 'n_train': len(fit_rows_of(fold, k))})
             log(f'seed {seed} fold {fold_id} ({len(people)} held out, {len(skipped)} left out): base model on '
                 f"{len(train)} ratings in {base['seconds']:.0f} s")
-            fold_records, calibration = score_fold(settings, data, Design(base['recommender'], data), fold, outcomes)
+            fold_records, calibration = score_fold(settings, data, Design(base['recommender'], data), fold, outcomes,
+                                                   base_encoder)
             records += fold_records
             for k, parts in calibration['new'].items():
                 pooled['new'].setdefault(k, []).extend(parts)
@@ -353,14 +369,17 @@ def goals(records: list, summary: dict, strategies: list, ks: list) -> dict:
     """The issue's goals, measured: each fold-in strategy at or below unpersonalised MSE in
     every fold at every k >= 1 (the folds that fail named); for each question strategy (the
     node's is ``NODE_STRATEGY``), the fewest questions reaching random's mean MSE at k = 10
-    and whether it is never behind random on the mean."""
+    and whether it is never behind random on the mean; and each fold-in's ``hand_over_k``."""
     never_worse = {}
     for method in summary:
         if method.startswith('fold-in'):
             failing = sorted({(r['seed'], r['fold'], r['k']) for r in records
                               if r['k'] >= 1 and method in r and r[method]['mse'] > r['unpersonalised']['mse']})
             never_worse[method] = {'met': not failing, 'failing': [list(f) for f in failing]}
-    out = {'never_worse': never_worse, 'questions': {}}
+    out = {'never_worse': never_worse, 'questions': {}, 'hand_over': {}}
+    for method in summary:
+        if method.startswith('fold-in') and BASE_ENCODER in summary:
+            out['hand_over'][method] = hand_over_k(records, method)
     if 'random' in strategies and 10 in summary.get('fold-in (random)', {}):
         random = summary['fold-in (random)']
         for strategy in strategies:
@@ -373,6 +392,16 @@ def goals(records: list, summary: dict, strategies: list, ks: list) -> dict:
                 'never_behind_random': all(summary[method][k]['mse'][0] <= random[k]['mse'][0]
                                            for k in ks if k in summary[method])}
     return out
+
+
+def hand_over_k(records: list, method: str) -> int | None:
+    """The smallest k from which ``method`` is at or below the base encoder's MSE in every
+    fold at that k and every larger one (None: not even at the largest): where serving a new
+    person the plain encoder could hand over to the fold-in."""
+    worse = {r['k'] for r in records if method in r and r[method]['mse'] > r[BASE_ENCODER]['mse']}
+    ks = sorted({r['k'] for r in records if method in r})
+    later = [k for k in ks if all(w < k for w in worse)]
+    return later[0] if later else None
 
 
 def write_results(folder: Path, result: dict, header: dict) -> dict:
@@ -439,6 +468,9 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
                          f"{reached if reached is not None else 'not reached'} "
                          f"(goal ≤ 5: {'met' if reached is not None and reached <= 5 else 'NOT met'}); never behind "
                          f"random: {'met' if held['never_behind_random'] else 'NOT met'}")
+        for method, k in checks.get('hand_over', {}).items():
+            lines.append(f'- {method} at or below the {BASE_ENCODER} in every fold from k = '
+                         + ('(not at any k)' if k is None else f'{k} on'))
         worst = max((abs(100 * cells[l] - 100 * float(l)) for _, _, cells in rows for l in levels), default=0.0)
         lines.append(f"- interval coverage within ±3 points of nominal: {'met' if worst <= 3 else 'NOT met'} "
                      f'(largest gap {worst:.1f} points)')

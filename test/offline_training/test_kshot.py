@@ -146,9 +146,22 @@ def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(syntheti
     calibration = results['calibration']
     assert set(calibration['new']) == {'0', '1', '2', '5'} and calibration['known']['n'] > 0
     assert set(results['goals']['never_worse']) == {'fold-in (random)', 'fold-in (active)'}
+    assert all(record['base encoder']['n'] == record['n_test'] for record in records)  # the plain encoder beside
+    assert set(results['goals']['hand_over']) == {'fold-in (random)', 'fold-in (active)'}
     text = (out / 'results.md').read_text()
     assert '| 5 |' in text and 'retrained' in text and '| known |' in text
     assert 'at or below unpersonalised MSE in every fold at every k ≥ 1' in capsys.readouterr().out
+
+
+def test_the_hand_over_k_is_where_the_fold_in_stays_at_or_below_the_base_encoder_in_every_fold():
+    def record(fold, k, fold_in, base):
+        return {'fold': fold, 'k': k, 'fold-in (x)': {'mse': fold_in}, 'base encoder': {'mse': base}}
+    records = [record(0, 0, 3.0, 2.0), record(1, 0, 3.0, 2.0), record(0, 1, 1.0, 2.0), record(1, 1, 2.5, 2.0),
+               record(0, 2, 1.0, 2.0), record(1, 2, 2.0, 2.0), record(0, 5, 2.1, 2.0), record(1, 5, 1.0, 2.0),
+               record(0, 10, 1.0, 2.0), record(1, 10, 1.0, 2.0)]
+    assert kshot_run.hand_over_k(records, 'fold-in (x)') == 10  # k = 2 holds in both folds, k = 5 not in fold 0
+    assert kshot_run.hand_over_k(records[:6], 'fold-in (x)') == 2
+    assert kshot_run.hand_over_k([record(0, 0, 3.0, 2.0)], 'fold-in (x)') is None
 
 
 def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root, synthetic, tmp_path, monkeypatch):
@@ -156,7 +169,8 @@ def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root
     original = kshot_run.fit_rows
 
     def fit_rows(experiment, train, test, keep, noise_rows=None, data=None):
-        seen.append((experiment['training']['joint_epochs'], np.asarray(train), np.asarray(test), keep))
+        if experiment['model'].get('variant') != 'base':  # the plain encoder beside each fold is not selection
+            seen.append((experiment['training']['joint_epochs'], np.asarray(train), np.asarray(test), keep))
         return original(experiment, train, test, keep, noise_rows, data)
     monkeypatch.setattr(kshot_run, 'fit_rows', fit_rows)
     out = tmp_path / 'kshot'
@@ -197,13 +211,14 @@ def test_fits_in_worker_processes_give_what_inline_fits_give(synthetic_root, tmp
 
 
 def test_a_fold_whose_fit_fails_is_left_out_and_named(synthetic_root, tmp_path, monkeypatch, capsys):
-    """The fifth fit (fold 1's retraining at k = 5: fold 0's four come first, each fold's
-    largest first) raises: fold 0 is reported, fold 1 is named and left out, status 1."""
+    """The sixth fit (fold 1's retraining at k = 5: fold 0's four and its base encoder come
+    first, each fold's largest first) raises: fold 0 is reported, fold 1 is named and left
+    out, status 1."""
     calls, fit_rows = [], kshot_run.fit_rows
 
     def failing_fifth(*args, **kwargs):
         calls.append(args)
-        if len(calls) == 5:
+        if len(calls) == 6:
             raise RuntimeError('injected')
         return fit_rows(*args, **kwargs)
 
