@@ -398,8 +398,9 @@ def hand_over_k(records: list, method: str) -> int | None:
     """The smallest k from which ``method`` is at or below the base encoder's MSE in every
     fold at that k and every larger one (None: not even at the largest): where serving a new
     person the plain encoder could hand over to the fold-in."""
-    worse = {r['k'] for r in records if method in r and r[method]['mse'] > r[BASE_ENCODER]['mse']}
-    ks = sorted({r['k'] for r in records if method in r})
+    scored = [r for r in records if method in r and BASE_ENCODER in r]
+    worse = {r['k'] for r in scored if r[method]['mse'] > r[BASE_ENCODER]['mse']}
+    ks = sorted({r['k'] for r in scored})
     later = [k for k in ks if all(w < k for w in worse)]
     return later[0] if later else None
 
