@@ -35,13 +35,13 @@ def grouped_folds(rows: np.ndarray, groups: np.ndarray, k: int, seed, deal: str 
     under every seed. With 'shuffled' they are dealt in the shuffled order: new folds for
     each seed, sizes less even.
     """
+    if deal not in DEALS:
+        raise ValueError(f'deal must be one of {DEALS}, got {deal!r}')
     rows = np.asarray(rows)
     labels, inverse, counts = np.unique(np.asarray(groups)[rows], return_inverse=True, return_counts=True)
     if not 2 <= k <= len(labels):
         raise ValueError(f'cannot deal {len(labels)} groups into {k} folds')
     shuffled = np.random.default_rng(seed).permutation(len(labels))
-    if deal not in DEALS:
-        raise ValueError(f'deal must be one of {DEALS}, got {deal!r}')
     order = shuffled[np.argsort(-counts[shuffled], kind='stable')] if deal == 'largest_first' else shuffled
     fold_of_group = np.empty(len(labels), dtype=np.int64)
     sizes = np.zeros(k, dtype=np.int64)

@@ -236,13 +236,13 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
     submitted, selection = {}, {}
 
     def submit(folds):  # the largest fits first, so that the last wave is short
+        experiments = {fold[:2]: with_settings(config.to_dict(), selection[fold[:2]]['chosen']) for fold in folds}
         order = sorted(((fold, k) for fold in folds for k in retrained_ks(settings)), key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
-            experiment = with_settings(config.to_dict(), selection[fold[:2]]['chosen'])
-            submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiment, fit_rows_of(fold, k), fold_test(fold),
-                                                         k == 0, fold[7])
+            submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiments[fold[:2]], fit_rows_of(fold, k),
+                                                         fold_test(fold), k == 0, fold[7])
         for fold in folds:  # the plain encoder beside them, trained on what the fold's model is
-            experiment = with_settings(config.to_dict(), selection[fold[:2]]['chosen'])
+            experiment = experiments[fold[:2]]
             submitted[fold[:2] + (BASE_ENCODER,)] = executor.submit(
                 fit_rows, {**experiment, 'model': {**experiment['model'], 'variant': 'base'}}, fit_rows_of(fold, 0),
                 fold_test(fold), False)
