@@ -292,11 +292,14 @@ class StarsRecommender:
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
         started = time.perf_counter()
+        stranger_rows = rows  # the plain encoder strangers may be served learns from every rating given
         if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
             rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
         self._trainer = trainer = StarsTrainer(self.config)
         self._fitting = (data, rows, noise_rows)
         with torch_state_kept():
+            if self.config.model.strangers == 'base_encoder':
+                trainer.stranger_model = StarsTrainer(self.config.stranger_encoder()).fit(data, stranger_rows).model
             trainer.fit(data, rows, on_epoch=on_epoch)
             seconds = time.perf_counter() - started
             _with_prior(trainer, data, rows, noise_rows)

@@ -314,6 +314,23 @@ def test_test_scores_a_stranger_as_predict_serves_them(tabular, tmp_path):
     assert not np.allclose(zero_row[np.arange(len(theirs)), tabular.actions[theirs]], served, atol=1e-5)
 
 
+@pytest.mark.parametrize('kind', ['tabular', 'graphs'])
+def test_strangers_served_the_base_encoder_get_the_plain_encoders_scores(kind, request):
+    """With ``model.strangers`` 'base_encoder' a person the model was not trained on is scored
+    as the plain encoder fitted on the same ratings scores everyone; the trained people
+    exactly as by the same model serving strangers the prior's mean."""
+    data = request.getfixturevalue(kind)
+    config = ExperimentConfig.from_dict(TABULAR if kind == 'tabular' else GRAPH)
+    stranger = data.users[0]
+    train, theirs = np.flatnonzero(data.users != stranger), np.flatnonzero(data.users == stranger)
+    served = StarsRecommender(config.replace(model={'strangers': 'base_encoder'})).fit(data, train)
+    base = StarsRecommender(config.replace(model={'variant': 'base'})).fit(data, train)
+    prior_mean = StarsRecommender(config).fit(data, train)
+    assert served.test(data, theirs) == base.test(data, theirs) != prior_mean.test(data, theirs)
+    others = np.flatnonzero(data.users == data.users[-1])
+    assert served.test(data, others) == prior_mean.test(data, others) != base.test(data, others)
+
+
 def test_refit_makes_folded_in_users_trained_ones(fitted, tabular):
     from stars_ros.personalisation.foldin import Rating
     scenes = [(tabular.scene_keys[k], list(tabular.store.scene(k))) for k in range(4)]

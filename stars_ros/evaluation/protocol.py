@@ -76,7 +76,7 @@ def _merge(base: dict, changes: dict) -> dict:
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'average_last': 'training',
               'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'user_dropout': 'training',
               'distil_members': 'training', 'pooled_stranger': 'training',
-              'dim': 'model'}
+              'dim': 'model', 'strangers': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
 #: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.
@@ -85,7 +85,8 @@ PEER_FAMILIES = ('surprise_svd', 'myfm')
 #: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off,
 #: ``stars_no_user_dropout`` with every example trained with its person's row,
 #: ``stars_undistilled`` trained once on the ratings instead of distilled from a seed ensemble,
-#: ``stars_mean_stranger`` with strangers served the others' mean, never the pooled row).
+#: ``stars_mean_stranger`` with strangers served the others' mean, never the pooled row,
+#: ``stars_prior_stranger`` with strangers served the prior's mean, never the plain encoder).
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
     'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
@@ -96,6 +97,7 @@ ABLATIONS = {
     'stars_no_user_dropout': ('StARS without user dropout', {'user_dropout': 0.0}),
     'stars_undistilled': ('StARS trained once, not distilled', {'distil_members': 0}),
     'stars_mean_stranger': ("StARS, strangers served the others' mean", {'pooled_stranger': False}),
+    'stars_prior_stranger': ("StARS, strangers served the prior's mean", {'strangers': 'prior_mean'}),
 }
 
 

@@ -32,6 +32,8 @@ PARTS = {
 }
 VARIANTS = ('base', *PARTS)
 ITEM_KEYINGS = ('identifier', 'prefix')
+#: What a person with no ratings is served (``ModelConfig.strangers``).
+STRANGER_SERVING = ('prior_mean', 'base_encoder')
 
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
 #: (an int is a float), NaN and infinities.
@@ -170,11 +172,16 @@ class ModelConfig(Section):
     The other variants are ablations of StARS (``PARTS``), for evaluation.
     ``dim`` is the size of h_i and of the user, scene and action embeddings. ``item_key``
     names the data's keying of items for q_i and b_i (``RatingData.item_keys``).
+    ``strangers`` says what a person with no ratings is served: ``prior_mean``, the model with
+    the fold-in prior's mean as their row; or ``base_encoder``, the prediction of a plain
+    encoder (the ``base`` variant, same settings, fitted on the same ratings beside the model
+    and kept in its checkpoint), the fold-in taking over from a person's first rating.
     """
 
     variant: Literal[VARIANTS] = 'stars'
     dim: Annotated[Int, Field(ge=1)] = 64
     item_key: Literal[ITEM_KEYINGS] = 'identifier'
+    strangers: Literal[STRANGER_SERVING] = 'prior_mean'
 
     @property
     def parts(self) -> frozenset:
@@ -278,7 +285,15 @@ class ExperimentConfig(Section):
     def _posterior_needs_factors(self) -> 'ExperimentConfig':
         if self.training.posterior_sweeps and self.model.variant == 'base':
             raise ValueError("training.posterior_sweeps: the 'base' variant has no factorisation part to sample")
+        if self.model.strangers == 'base_encoder' and self.model.variant == 'base':
+            raise ValueError("model.strangers: the 'base' variant serves everyone its one prediction already")
         return self
+
+    def stranger_encoder(self) -> 'ExperimentConfig':
+        """The plain encoder with these settings (the ``base`` variant, as an evaluation's
+        ``base`` row trains it): what strangers are served where ``model.strangers`` is
+        'base_encoder'."""
+        return self.replace(model={'variant': 'base', 'strangers': 'prior_mean'}, training={'posterior_sweeps': 0})
 
     def to_dict(self) -> dict:
         return self.model_dump()

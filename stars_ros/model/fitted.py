@@ -57,6 +57,7 @@ class FittedModel(Rows):
         self.action_names: tuple = ()
         self.rating_scale: tuple | None = None
         self.user_prior: dict | None = None  # personalisation.prior.UserPrior.to_dict(), kept by checkpoints
+        self.stranger_model: StarsModel | None = None  # the plain encoder strangers get (model.strangers)
 
     def user_index(self, users: Sequence[str]) -> torch.Tensor:
         return torch.from_numpy(self.user_vocabulary.rows([str(u) for u in users]))
@@ -89,6 +90,7 @@ class FittedModel(Rows):
         """``other`` given this one's weights, vocabularies, scale and prior (shared, not
         copied); returns ``other``. How a loaded checkpoint becomes trainable again."""
         other.model, other.rating_scale, other.user_prior = self.model, self.rating_scale, self.user_prior
+        other.stranger_model = self.stranger_model
         other.user_vocabulary, other.scene_vocabulary = self.user_vocabulary, self.scene_vocabulary
         other.action_names = self.action_names
         return other
@@ -102,7 +104,8 @@ class FittedModel(Rows):
         """
         model = self.require_model()
         model.eval()
-        return self.predict_scores_from_h(users, scene_keys, model.encode(scene_input))
+        scores = self.predict_scores_from_h(users, scene_keys, model.encode(scene_input))
+        return self._strangers_served(self.user_index(users), scene_input, np.arange(len(scores)), scores)
 
     @torch.no_grad()
     def predict_rows(self, data: RatingData, rows: np.ndarray) -> np.ndarray:
@@ -119,8 +122,25 @@ class FittedModel(Rows):
             h = model.encode(scenes)[torch.from_numpy(inverse).to(model.device)]
             keys = [items[s] for s in data.scenes[part]]
             scores = self.predict_scores_from_h(data.users[part], keys, h)
+            scores = self._strangers_served(self.user_index(data.users[part]), scenes, inverse, scores)
             predictions.append(scores[np.arange(len(part)), data.actions[part]])
         return np.concatenate(predictions) if predictions else np.zeros(0)
+
+    @torch.no_grad()
+    def _strangers_served(self, users: torch.Tensor, scene_input, inverse: np.ndarray, scores: np.ndarray) -> np.ndarray:
+        """``scores`` [R, actions] with each stranger's (UNKNOWN ``users``) rows replaced by the
+        plain encoder's prediction where the model serves strangers so (``stranger_model``);
+        row r scores scene ``inverse[r]`` of ``scene_input``."""
+        strangers = (users < 0).numpy()
+        if self.stranger_model is None or not strangers.any():
+            return scores
+        base = self.stranger_model
+        base.eval()
+        h = base.encode(scene_input.to(base.device) if hasattr(scene_input, 'to') else scene_input)
+        served = base.to_rating_scale(base.head(h)).cpu().numpy().astype(np.float64)
+        scores = scores.copy()
+        scores[strangers] = self.clip(served[np.asarray(inverse)[strangers]])
+        return scores
 
     @torch.no_grad()
     def predict_scores_from_h(self, users, scene_keys, h, user_rows: tuple | None = None) -> np.ndarray:

@@ -103,6 +103,7 @@ class StarsTrainer(FittedModel):
         child = StarsTrainer(self.config)
         child.rating_scale = self.rating_scale
         child.user_prior = self.user_prior  # the population's; the new people have no training covariance
+        child.stranger_model = self.stranger_model
         child.set_vocabularies(self.user_vocabulary.extended([str(u) for u in users]).keys,
                                self.scene_vocabulary.extended(scene_keys).keys, self.action_names)
         child.model = build_model(self.config, model.encoder.in_dim, model.encoder.input_kind, len(child.users),

@@ -156,6 +156,11 @@ def population(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
         scale[-1] = np.sqrt(p_var / b_var)
     covariance, shrinkage = ledoit_wolf(rows * scale)
     covariance = covariance / np.outer(scale, scale)
+    if not np.trace(covariance) > 0:  # every trained row alike (a model barely trained): no spread either
+        return np.zeros(size), np.eye(size), {'covariance': 'identity (the trained rows do not spread)',
+                                              'mean': 'zero', 'users': int(users)}
+    if np.linalg.eigvalsh(covariance)[0] <= 1e-12 * np.trace(covariance):  # too few rows to shrink from (two)
+        covariance, shrinkage = np.eye(size) * (np.trace(covariance) / size), 1.0
     mean = rows.mean(0)
     spread = np.trace(covariance) / size / users  # variance of each coordinate of the mean estimate
     norm = float(mean @ mean)

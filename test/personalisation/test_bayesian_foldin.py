@@ -95,6 +95,18 @@ def test_ledoit_wolf_keeps_the_trace_and_is_positive_definite_with_fewer_rows_th
     assert np.linalg.eigvalsh(sample).min() < 1e-10 < np.linalg.eigvalsh(covariance).min()
 
 
+def test_two_people_or_rows_that_do_not_spread_still_give_an_invertible_prior():
+    """Two rows give Ledoit–Wolf nothing to shrink with (a rank-one sample, shrinkage 0):
+    the covariance becomes its trace spread evenly; rows all alike give the identity."""
+    two = np.array([[0.0, 1.0, 0.2], [0.4, 0.0, 0.2]])
+    _, covariance, _ = population(two)
+    trace = np.trace(np.cov(two * [1, 1, 1], rowvar=False, bias=True))
+    assert np.linalg.eigvalsh(covariance).min() > 0
+    assert np.trace(covariance) == pytest.approx(trace)
+    mean, covariance, details = population(np.ones((4, 3)))
+    assert (covariance == np.eye(3)).all() and not mean.any() and 'do not spread' in details['covariance']
+
+
 def test_the_population_mean_is_shrunk_towards_zero_as_far_as_its_own_error_warrants():
     rng = np.random.default_rng(2)
     far = rng.normal(size=(10, 6)) * 0.1 + 5.0  # a mean far beyond its error: kept
