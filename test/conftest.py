@@ -13,6 +13,7 @@ from stars_ros.data import synthetic_socnav
 from stars_ros.data.ratings import load_dataset
 from stars_ros.data.scene_source import socnav1_root as default_socnav1_root
 from stars_ros.data.scene_source import read_scenes
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.training import split_rows
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,4 +92,14 @@ def tiny_checkpoint(synthetic, tmp_path_factory):
     train, held_out = split_rows(synthetic, 0.2, 0)
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
     StarsRecommender(TINY_CONFIG).fit(synthetic, train, noise_rows=held_out).save(path)
+    return path
+
+
+@pytest.fixture(scope='session')
+def tiny_base_stranger_checkpoint(synthetic, tmp_path_factory):
+    """``tiny_checkpoint``'s model serving strangers the plain encoder (``model.strangers``)."""
+    train, held_out = split_rows(synthetic, 0.2, 0)
+    path = tmp_path_factory.mktemp('checkpoint') / 'tiny_base_stranger.pt'
+    config = ExperimentConfig.from_dict(TINY_CONFIG).replace(model={'strangers': 'base_encoder'})
+    StarsRecommender(config).fit(synthetic, train, noise_rows=held_out).save(path)
     return path

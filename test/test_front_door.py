@@ -331,6 +331,51 @@ def test_strangers_served_the_base_encoder_get_the_plain_encoders_scores(kind, r
     assert served.test(data, others) == prior_mean.test(data, others) != base.test(data, others)
 
 
+@pytest.mark.parametrize('kind', ['tabular', 'graphs'])
+def test_a_stranger_is_served_the_base_encoder_until_their_first_rating(kind, request, tmp_path):
+    """Served as ``test`` scores them: predict and rank give a stranger the plain encoder's
+    scores, its explanation is all content, its score_sd the prior's and its
+    p_first_is_best centred on those scores; from the first rating on, the fold-in serves
+    them as a model serving strangers the prior's mean would; a saved and loaded checkpoint
+    serves the same."""
+    data = request.getfixturevalue(kind)
+    config = ExperimentConfig.from_dict(TABULAR if kind == 'tabular' else GRAPH)
+    served = StarsRecommender(config.replace(model={'strangers': 'base_encoder'})).fit(data)
+    base = StarsRecommender(config.replace(model={'variant': 'base'})).fit(data)
+    prior_mean = StarsRecommender(config).fit(data)
+    served.save(tmp_path / 'model.pt')
+    loaded = StarsRecommender.load(tmp_path / 'model.pt', data=data)
+    (user, scene), action = rows_of(data)[0], data.action_names[0]
+    for model in (served, loaded):
+        assert model.predict('stranger', scene, action) == base.predict('stranger', scene, action)
+        assert model.predict(user, scene, action) == prior_mean.predict(user, scene, action)
+        ranking = model.rank('stranger', scene, uncertainty=True, explain=kind == 'tabular')
+        expected = base.rank('stranger', scene)
+        assert [(r.name, r.score) for r in ranking] == [(r.name, r.score) for r in expected]
+        as_prior = {r.name: r for r in prior_mean.rank('stranger', scene, uncertainty=True)}
+        for entry in ranking:
+            assert entry.score_sd == pytest.approx(as_prior[entry.name].score_sd)
+            if entry.why is not None:  # graph scenes are explained from their dicts, not a data set's graphs
+                assert entry.why.personal_from == 'base_encoder' and entry.why.personal == 0
+                assert model.predictor.clip(np.array([entry.why.content])) == pytest.approx(entry.score, abs=1e-9)
+    # p_first_is_best draws θ around the mean of a Spread centred on the scores served
+    from stars_ros.personalisation.foldin import FoldIn
+    from stars_ros.personalisation.uncertainty import Uncertainty
+    predictor = served.predictor
+    h = predictor.encode([data.store.scene(0)]).astype(np.float64)
+    columns = np.arange(len(data.action_names))
+    served_z = np.linspace(-1.0, 1.0, len(columns))
+    spread = Uncertainty(FoldIn(predictor)).spread(predictor, 'stranger', np.repeat(h, len(columns), 0),
+                                                   np.full(len(columns), -1), columns, served_z=served_z)
+    assert spread.x @ spread.theta + spread.c == pytest.approx(served_z)
+    high = data.scale[1]
+    for model in (served, prior_mean):
+        model.fold_in('newcomer', [(scene, action, high)])
+    assert served.predict('newcomer', scene, action) == prior_mean.predict('newcomer', scene, action)
+    if kind == 'tabular':
+        assert served.rank('newcomer', scene, explain=True)[0].why.personal_from == 'folded_in'
+
+
 def test_refit_makes_folded_in_users_trained_ones(fitted, tabular):
     from stars_ros.personalisation.foldin import Rating
     scenes = [(tabular.scene_keys[k], list(tabular.store.scene(k))) for k in range(4)]

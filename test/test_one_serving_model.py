@@ -27,10 +27,13 @@ def _entries(ranking) -> dict:
     return {entry['action']: (entry['score'], entry['score_sd']) for entry in ranking}
 
 
-def test_the_node_and_the_front_door_give_identical_scores_sds_and_fold_ins(tiny_checkpoint, scenes):
+@pytest.mark.parametrize('strangers', ['prior_mean', 'base_encoder'])
+def test_the_node_and_the_front_door_give_identical_scores_sds_and_fold_ins(strangers, request, scenes):
+    checkpoint = request.getfixturevalue('tiny_checkpoint' if strangers == 'prior_mean'
+                                        else 'tiny_base_stranger_checkpoint')
     node = Node()
-    core = make_core(node, tiny_checkpoint)
-    front_door = StarsRecommender.load(tiny_checkpoint)
+    core = make_core(node, checkpoint)
+    front_door = StarsRecommender.load(checkpoint)
     scene_ids = [f'fresh-{k}' for k in range(len(scenes))]  # no trained q_i: both score the content alone
     for user in ('a', 'newcomer'):  # a trained person and a stranger
         for scene, scene_id in zip(scenes, scene_ids):

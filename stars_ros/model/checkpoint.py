@@ -29,6 +29,7 @@ FORMAT = 'stars_ros.checkpoint'  # a data format's name: it stays when modules m
 FORMAT_VERSION = 1
 _ZIP_MAGIC = b'PK\x03\x04'  # torch.save's format since torch 1.6
 _PICKLE_PROTOCOL = b'\x80'  # the legacy format: a pickle, protocol 2 or later
+STRANGER = 'stranger.'  # where a state dict holds the plain encoder strangers are served (model.strangers)
 
 
 def _tensors(content: dict) -> dict:
@@ -48,6 +49,13 @@ def _digest(metadata: dict, state: dict) -> str:
     return sha.hexdigest()
 
 
+def split_stranger(state: dict) -> tuple:
+    """(the model's state, the stranger encoder's state or None) of a checkpoint's state dict."""
+    own = {key: value for key, value in state.items() if not key.startswith(STRANGER)}
+    stranger = {key[len(STRANGER):]: value for key, value in state.items() if key.startswith(STRANGER)}
+    return own, stranger or None
+
+
 def served_content(fitted: FittedModel) -> tuple:
     """(metadata, state dict, personalisation prior or None) of ``fitted`` as its checkpoint
     holds them: what ``serving.ServedModel`` is built from, whether read from a file or not."""
@@ -63,6 +71,9 @@ def served_content(fitted: FittedModel) -> tuple:
         'rating_scale': list(fitted.rating_scale) if fitted.rating_scale is not None else None,
     }
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    if fitted.stranger_model is not None:  # the plain encoder strangers are served (model.strangers)
+        state.update({f'{STRANGER}{k}': v.detach().cpu().clone()
+                      for k, v in fitted.stranger_model.state_dict().items()})
     prior = None if fitted.user_prior is None else dict(fitted.user_prior)
     return metadata, state, prior
 
@@ -171,17 +182,22 @@ def load_checkpoint(path):
 
     content = read_checkpoint(path)
     metadata = content['metadata']
+    state, stranger_state = split_stranger(content['state_dict'])
+
+    def rebuilt(config, weights):
+        model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
+                            len(metadata['scene_keys']), len(metadata['actions']))
+        model.load_state_dict({name: torch.from_numpy(value) for name, value in weights.items()})
+        return model.eval()
     try:
         config = ExperimentConfig.from_dict(metadata['config'])
         fitted = FittedModel(config)
         fitted.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
-        model = build_model(config, metadata['feature_dim'], metadata['input_kind'], len(metadata['users']),
-                            len(metadata['scene_keys']), len(metadata['actions']))
-        model.load_state_dict({name: torch.from_numpy(value) for name, value in content['state_dict'].items()})
+        fitted.model = rebuilt(config, state)
+        if config.model.strangers == 'base_encoder':
+            fitted.stranger_model = rebuilt(config.stranger_encoder(), stranger_state or {})
     except (ConfigError, KeyError, RuntimeError, TypeError) as error:
         raise incompatible(path, error) from error
-    model.eval()
-    fitted.model = model
     scale = metadata.get('rating_scale')  # absent from checkpoints written before it was kept
     fitted.rating_scale = tuple(scale) if scale is not None else None
     prior = stored_prior(content)

@@ -6,6 +6,8 @@ StARS' score is a sum, so it splits exactly, on the rating scale (z × σ_a + μ
   (h_iᵀ r_a only in residual variants; a model without users puts its whole score here);
 * ``personal`` = ((p_u ⊙ (q_i + h_i))ᵀ r_a + b_u) σ_a — what this person adds; a stranger is
   scored with the personalisation prior's mean, so theirs is the population's (``personal_from``);
+  a stranger a checkpoint serves its plain encoder (``model.strangers``) has the whole score as
+  ``content``, and entity effects of that encoder;
 * ``scene``    = b_i σ_a — the identity offset of a scene seen in training (0 for a new one;
   q_i acts only through p_u, so it is in ``personal``).
 
@@ -30,7 +32,8 @@ from stars_ros.model.vocabulary import UNKNOWN
 class Why:
     """One ranked entry's explanation: its score's parts on the rating scale, where the
     personal part comes from ('trained', 'folded_in', 'prior': a stranger, or 'none': a
-    model without users), and the entities ((id, kind, effect), largest |effect| first)."""
+    model without users; 'base_encoder': a stranger scored by the plain encoder), and the
+    entities ((id, kind, effect), largest |effect| first)."""
 
     content: float
     personal: float
@@ -43,6 +46,8 @@ def personal_source(predictor, user_id) -> str:
     """Where ``user_id``'s p_u, b_u come from (see ``Why``)."""
     if not predictor.inference.personalised:
         return 'none'
+    if predictor.serves_stranger_encoder(user_id):
+        return 'base_encoder'
     if predictor.user_model(user_id) is not None:
         return 'folded_in'
     return 'trained' if predictor.knows_user(user_id) else 'prior'
@@ -93,11 +98,14 @@ def removal_effects(predictor, user_id, scenes, scene_ids=None) -> list:
     entities = [scene_entities(predictor, scene) for scene in scenes]
     inputs = [v for scene, found in zip(scenes, entities) for v in _variants(predictor, scene, found)]
     encoded = inputs if predictor.input_kind == 'graph' else np.stack(inputs)
-    h = predictor.inference.encode(encoded, len(inputs))
-    rows = (np.full(len(scenes), UNKNOWN) if scene_ids is None
-            else predictor.scene_rows(list(scene_ids)))
-    rows = np.repeat(rows, [len(found) + 1 for found in entities])
-    scores = predictor.inference.scores(h, _user_row(predictor, user_id), rows)
+    if predictor.serves_stranger_encoder(user_id):
+        scores = predictor.stranger_scores(encoded, len(inputs))
+    else:
+        h = predictor.inference.encode(encoded, len(inputs))
+        rows = (np.full(len(scenes), UNKNOWN) if scene_ids is None
+                else predictor.scene_rows(list(scene_ids)))
+        rows = np.repeat(rows, [len(found) + 1 for found in entities])
+        scores = predictor.inference.scores(h, _user_row(predictor, user_id), rows)
     results, start = [], 0
     for found in entities:
         block = scores[start:start + len(found) + 1]
@@ -115,12 +123,16 @@ def _user_row(predictor, user_id):
 
 
 def explain(predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: np.ndarray,
-            entity_effects: list, top_entities: int) -> list:
+            entity_effects: list, top_entities: int, served: np.ndarray | None = None) -> list:
     """``Why`` of each (scene, action) row: ``h`` [R, dim], ``scene_rows`` [R], ``actions`` [R],
     and per row (entities, effects [entities]) of ``removal_effects``, cut to the
-    ``top_entities`` largest |effect| (all with 0)."""
-    parts = score_parts(predictor, user_id, h, scene_rows, actions)
+    ``top_entities`` largest |effect| (all with 0). ``served`` [R]: the unclipped scores of a
+    stranger the plain encoder scores, all of them content."""
     source = personal_source(predictor, user_id)
+    if source == 'base_encoder':
+        parts = np.stack([np.asarray(served, dtype=np.float64), np.zeros(len(served)), np.zeros(len(served))])
+    else:
+        parts = score_parts(predictor, user_id, h, scene_rows, actions)
     whys = []
     for k, (found, effects) in enumerate(entity_effects):
         order = sorted(range(len(found)), key=lambda e: (-abs(effects[e]), e))

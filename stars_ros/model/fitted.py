@@ -127,7 +127,8 @@ class FittedModel(Rows):
         return np.concatenate(predictions) if predictions else np.zeros(0)
 
     @torch.no_grad()
-    def _strangers_served(self, users: torch.Tensor, scene_input, inverse: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    def _strangers_served(self, users: torch.Tensor, scene_input, inverse: np.ndarray,
+                          scores: np.ndarray) -> np.ndarray:
         """``scores`` [R, actions] with each stranger's (UNKNOWN ``users``) rows replaced by the
         plain encoder's prediction where the model serves strangers so (``stranger_model``);
         row r scores scene ``inverse[r]`` of ``scene_input``."""

@@ -98,6 +98,7 @@ class Predictor:
         self._user_models = {}
         self._user_models_lock = threading.Lock()  # orders writers; readers take the reference
         self._inference = served.inference
+        self._stranger_inference = served.stranger_inference  # None unless model.strangers is 'base_encoder'
         self._stranger = self._prior_mean(served)
         self._scene_rows = np.array([UNKNOWN], dtype=np.int64)  # broadcasts: no scene id, no q_i
 
@@ -193,12 +194,17 @@ class Predictor:
             raise SceneGraphError(f'tabular scenes must be finite rows of {self.served.feature_dim} features')
         return features
 
+    def encoder_input(self, scenes: Sequence, validate: bool = True):
+        """What the encoders read of scene-graph dicts (or featurised ``SceneGraph``) or
+        tabular feature rows, checked."""
+        if len(scenes) == 0:
+            raise SceneGraphError('no scenes to score')
+        return self._scene_input(scenes, validate)
+
     def encode(self, scenes: Sequence, validate: bool = True) -> np.ndarray:
         """h_i [len(scenes), dim] (float32) of scene-graph dicts (or featurised ``SceneGraph``)
         or tabular feature rows."""
-        if len(scenes) == 0:
-            raise SceneGraphError('no scenes to score')
-        return self._inference.encode(self._scene_input(scenes, validate), len(scenes))
+        return self._inference.encode(self.encoder_input(scenes, validate), len(scenes))
 
     def score(self, user_id, scenes: Sequence, scene_ids: Sequence | None = None,
               validate: bool = True) -> np.ndarray:
@@ -208,11 +214,31 @@ class Predictor:
         ``scene_ids`` optionally name training scenes so their q_i is used. ``validate=False``
         skips the schema check for scenes already validated against it (the node's requests).
         """
-        return self.scores_from_h(user_id, self.encode(scenes, validate), scene_ids)
+        inputs = self.encoder_input(scenes, validate)
+        if self.serves_stranger_encoder(user_id):
+            return self.clip(self.stranger_scores(inputs, len(scenes)))
+        return self.scores_from_h(user_id, self._inference.encode(inputs, len(scenes)), scene_ids)
+
+    def serves_stranger_encoder(self, user_id) -> bool:
+        """Whether ``user_id`` is scored by the plain encoder the checkpoint keeps for strangers
+        (``model.strangers`` 'base_encoder'): nobody trained, nothing folded in yet."""
+        return (self._stranger_inference is not None and self.user_model(user_id) is None
+                and self.trained_row(user_id) == UNKNOWN)
+
+    def stranger_scores(self, inputs, count: int) -> np.ndarray:
+        """The plain encoder's rating-scale scores [count, n_actions] (unclipped) of ``encoder_input``'s ``inputs``."""
+        inference = self._stranger_inference
+        return inference.scores(inference.encode(inputs, count), None, None)
+
+    @property
+    def stranger_inference(self) -> InferenceModel | None:
+        """The plain encoder's weights and arithmetic strangers are scored with (None: the prior's mean)."""
+        return self._stranger_inference
 
     def scores_from_h(self, user_id, h: np.ndarray, scene_ids: Sequence | None = None) -> np.ndarray:
-        """``score`` for scenes already encoded as ``h`` [len(scenes), dim], clipped to the
-        rating scale the checkpoint was trained on."""
+        """The model's scores for scenes already encoded as ``h`` [len(scenes), dim], clipped
+        to the rating scale the checkpoint was trained on (a stranger's from the prior's mean:
+        ``score`` serves the plain encoder's where the checkpoint keeps one)."""
         scene_rows = self._scene_rows if scene_ids is None else self.scene_rows(scene_ids)
         return self.clip(self._inference.scores(h, self._user_row(user_id), scene_rows))
 
@@ -303,8 +329,14 @@ class Predictor:
         actions = [self.query_action(query) for query in queries]
         graphs = [graph for query in queries for graph in query.graphs]
         scene_ids = [None if query.ranks_scenes else query.scene_id for query in queries for _ in query.graphs]
-        h = self.encode(graphs, validate=validate)
-        scores = self.scores_from_h(user_id, h, scene_ids)
+        inputs = self.encoder_input(graphs, validate)
+        h = self._inference.encode(inputs, len(graphs))
+        served_z = None  # a stranger the plain encoder scores: its z, which their uncertainty centres on
+        if self.serves_stranger_encoder(user_id):
+            base = self.stranger_scores(inputs, len(graphs))
+            scores, served_z = self.clip(base), (base - self._inference.target_mean) / self._inference.target_std
+        else:
+            scores = self.scores_from_h(user_id, h, scene_ids)
         if not np.isfinite(scores).all():
             raise StarsError('the model produced a non-finite score')
         results, row = [], 0
@@ -315,14 +347,17 @@ class Predictor:
                 columns = self.action_columns([action]) * len(names)
                 entry_h, rows = h[row:row + count], np.full(len(names), UNKNOWN)
                 entry_scores = scores[row:row + count, columns[0]]
+                entry_z = None if served_z is None else served_z[row:row + count, columns[0]]
             else:
                 names = list(query.actions or self.actions)
                 columns = self.action_columns(names)
                 entry_h = np.repeat(h[row:row + 1], len(names), axis=0)
                 rows = self.scene_rows([query.scene_id] * len(names))
                 entry_scores = scores[row, columns]
-            spread = None if uncertainty is None else uncertainty.spread(self, user_id, entry_h, rows, columns)
-            whys = (self._whys(user_id, query, entry_h, rows, columns, explain_entities)
+                entry_z = None if served_z is None else served_z[row, columns]
+            spread = (None if uncertainty is None
+                      else uncertainty.spread(self, user_id, entry_h, rows, columns, served_z=entry_z))
+            whys = (self._whys(user_id, query, entry_h, rows, columns, explain_entities, entry_z)
                     if explain_all or query.explain else None)
             ranked = rank_order(names, entry_scores, None if spread is None else spread.sd, whys)
             p_first = None if spread is None else spread.p_first_is_best(names.index(ranked[0].name))
@@ -330,12 +365,15 @@ class Predictor:
             row += count
         return results
 
-    def _whys(self, user_id, query, entry_h, scene_rows, columns, entities: int) -> list:
-        """``explain.Why`` of each entry of ``query`` (its scenes' removal variants in one pass)."""
+    def _whys(self, user_id, query, entry_h, scene_rows, columns, entities: int, served_z=None) -> list:
+        """``explain.Why`` of each entry of ``query`` (its scenes' removal variants in one pass;
+        ``served_z``: a stranger's normalised scores from the plain encoder)."""
         scene_ids = None if query.ranks_scenes else [query.scene_id]
         effects = removal_effects(self, user_id, query.graphs, scene_ids)
         if query.ranks_scenes:
             per_entry = [(found, effect[:, columns[0]]) for found, effect in effects]
         else:
             per_entry = [(effects[0][0], effects[0][1][:, column]) for column in columns]
-        return explain(self, user_id, entry_h, scene_rows, np.asarray(columns), per_entry, entities)
+        columns = np.asarray(columns)
+        served = None if served_z is None else self._inference.to_rating_scale(served_z, columns)
+        return explain(self, user_id, entry_h, scene_rows, columns, per_entry, entities, served)

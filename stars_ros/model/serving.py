@@ -16,7 +16,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from stars_ros.errors import ConfigError
-from stars_ros.model.checkpoint import incompatible, read_checkpoint, stored_prior
+from stars_ros.model.checkpoint import incompatible, read_checkpoint, split_stranger, stored_prior
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.backbones import normalise_name
 from stars_ros.model.serving_forms import GRAPH_BACKBONES, graph_serving_form
@@ -98,9 +98,18 @@ class ServedModel(Rows):
         self.user_prior = user_prior
         self.variant = self.config.model.variant
         self.personalised = self.variant != 'base'
+        state, stranger_state = split_stranger(state)
         self.feature_mean = np.array(state['feature_mean']) if 'feature_mean' in state else None
         self.inference = InferenceModel(state, self.variant, self.config.model.dim,
                                         encoder_serving_form(self.config, self.input_kind, self.feature_dim, state))
+        self.stranger_inference = None  # the plain encoder a stranger is scored by (model.strangers)
+        if self.config.model.strangers == 'base_encoder':
+            if stranger_state is None:
+                raise ConfigError("model.strangers is 'base_encoder', but the weights hold no stranger encoder")
+            config = self.config.stranger_encoder()
+            self.stranger_inference = InferenceModel(
+                stranger_state, 'base', config.model.dim,
+                encoder_serving_form(config, self.input_kind, self.feature_dim, stranger_state))
 
     @classmethod
     def load(cls, path) -> tuple:

@@ -472,8 +472,10 @@ class RankerCore:
         if len(self._strangers_reported) >= MAX_STRANGERS_REMEMBERED:
             self._strangers_reported.clear()
         self._strangers_reported.add(user_id)
-        self.report('unknown_user', f"user '{user_id}' is not in the training data: ranked by scene content and "
-                    'population offsets (reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
+        how = ('the plain scene encoder the checkpoint keeps for strangers' if self.predictor.stranger_inference
+               is not None else 'scene content and population offsets')
+        self.report('unknown_user', f"user '{user_id}' is not in the training data: ranked by {how} "
+                    '(reported once per user and checkpoint)', self.topics['stars/scene'], scene_id)
 
     def close(self):
         """Record the requests never scored, commit what waits for the state store, close

@@ -27,7 +27,8 @@ from stars_ros.model.vocabulary import UNKNOWN
 
 @dataclass(frozen=True)
 class Candidate:
-    """One question: rate ``action`` in scene ``scene_id`` (its candidate ``candidate``)."""
+    """One question: rate ``action`` in scene ``scene_id`` (its candidate ``candidate``,
+    the scene ``graph``)."""
 
     scene_id: str
     action: str
@@ -35,6 +36,7 @@ class Candidate:
     x: np.ndarray  # [dim+1]: the row of the linear form this rating would add
     c: float
     column: int
+    graph: object
 
 
 def candidates_of(predictor, request: messages.SceneRequest, h: np.ndarray) -> list:
@@ -44,13 +46,14 @@ def candidates_of(predictor, request: messages.SceneRequest, h: np.ndarray) -> l
         action = predictor.ranking_action(request.action)
         columns = np.full(len(request.labels), predictor.action_columns([action])[0])
         x, c = predictor.inference.linear_form(h, np.full(len(columns), UNKNOWN), columns)
-        return [Candidate(request.scene_id, action, label, x[k], float(c[k]), int(columns[k]))
+        return [Candidate(request.scene_id, action, label, x[k], float(c[k]), int(columns[k]), request.graphs[k])
                 for k, label in enumerate(request.labels)]
     names = list(request.actions or predictor.actions)
     columns = np.asarray(predictor.action_columns(names))
     rows = predictor.scene_rows([request.scene_id] * len(names))
     x, c = predictor.inference.linear_form(np.repeat(h[:1], len(names), axis=0), rows, columns)
-    return [Candidate(request.scene_id, name, None, x[k], float(c[k]), int(columns[k])) for k, name in enumerate(names)]
+    return [Candidate(request.scene_id, name, None, x[k], float(c[k]), int(columns[k]), request.graphs[0])
+            for k, name in enumerate(names)]
 
 
 def choose_question(personalisation, user_id: str, requests: list, recent_scenes: int) -> dict:
@@ -88,10 +91,11 @@ def choose_question(personalisation, user_id: str, requests: list, recent_scenes
     spread = uncertainty.rating_sd(np.stack([q.x for q in offered]), np.array([q.column for q in offered]), covariance)
     best = offered[int(np.argmax(spread))]
     gain = uncertainty.variance_reduction([(best.x[None], np.array([best.column]))], target_rows, covariance)[0]
-    theta = predictor.user_theta(user_id)
-    z = float(best.x @ theta + best.c)
-    score = float(predictor.clip(predictor.inference.to_rating_scale(np.array([z]),
-                                                                                 np.array([best.column])))[0])
+    if predictor.serves_stranger_encoder(user_id):  # the score the plain encoder serves them
+        score = float(predictor.score(user_id, [best.graph], validate=False)[0, best.column])
+    else:
+        z = float(best.x @ predictor.user_theta(user_id) + best.c)
+        score = float(predictor.clip(predictor.inference.to_rating_scale(np.array([z]), np.array([best.column])))[0])
     reply = {'user_id': user_id, 'scene_id': best.scene_id, 'action': best.action,
              'expected_variance_reduction': float(gain), 'score': score, 'score_sd': float(spread.max()),
              'candidates': len(offered), 'targets': len(targets), 'fingerprint': predictor.fingerprint}

@@ -95,15 +95,20 @@ class Uncertainty:
             return loaded(model.covariance)
         return self.foldin.covariance(user_id)
 
-    def spread(self, predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: Sequence[int]) -> Spread:
+    def spread(self, predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: Sequence[int],
+               served_z: np.ndarray | None = None) -> Spread:
         """The ``Spread`` of entries scored from h [n, dim] (their scenes' encodings), the
         trained scene rows ``scene_rows`` [n] (UNKNOWN: none) and action columns ``actions``,
-        for ``user_id`` as ``predictor`` serves them."""
+        for ``user_id`` as ``predictor`` serves them. ``served_z`` [n]: the normalised scores a
+        stranger is served by the plain encoder; the spread is then centred on them (a person's
+        deviation from the population, as the prior says, around the plain encoder's prediction)."""
         actions = np.asarray(actions, dtype=np.int64)
         x, c = self.inference.linear_form(np.asarray(h, dtype=np.float64), scene_rows, actions)
         covariance = self.covariance(user_id, predictor.user_model(user_id))
-        return Spread(self, x, c, actions, predictor.user_theta(user_id), covariance,
-                      self.rating_sd(x, actions, covariance))
+        theta = predictor.user_theta(user_id)
+        if served_z is not None:
+            c = np.asarray(served_z, dtype=np.float64) - x @ theta
+        return Spread(self, x, c, actions, theta, covariance, self.rating_sd(x, actions, covariance))
 
     def rating_sd(self, x: np.ndarray, actions: np.ndarray, covariance: np.ndarray) -> np.ndarray:
         """Predictive sd on the rating scale [R] of rows x [R, dim+1] of ``actions`` [R]."""
