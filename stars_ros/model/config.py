@@ -183,6 +183,15 @@ class ModelConfig(Section):
     item_key: Literal[ITEM_KEYINGS] = 'identifier'
     strangers: Literal[STRANGER_SERVING] = 'prior_mean'
 
+    @model_validator(mode='before')
+    @classmethod
+    def _base_serves_everyone_alike(cls, values):
+        """``base`` serves everyone its one prediction, so ``strangers`` means nothing to it (a
+        StARS config run as ``--variant base`` is the plain encoder, not an error)."""
+        if isinstance(values, dict) and values.get('variant') == 'base':
+            return {**values, 'strangers': 'prior_mean'}
+        return values
+
     @property
     def parts(self) -> frozenset:
         """What the variant has of StARS (``PARTS``); ``base`` has only the content."""
@@ -285,15 +294,13 @@ class ExperimentConfig(Section):
     def _posterior_needs_factors(self) -> 'ExperimentConfig':
         if self.training.posterior_sweeps and self.model.variant == 'base':
             raise ValueError("training.posterior_sweeps: the 'base' variant has no factorisation part to sample")
-        if self.model.strangers == 'base_encoder' and self.model.variant == 'base':
-            raise ValueError("model.strangers: the 'base' variant serves everyone its one prediction already")
         return self
 
     def stranger_encoder(self) -> 'ExperimentConfig':
         """The plain encoder with these settings (the ``base`` variant, as an evaluation's
         ``base`` row trains it): what strangers are served where ``model.strangers`` is
         'base_encoder'."""
-        return self.replace(model={'variant': 'base', 'strangers': 'prior_mean'}, training={'posterior_sweeps': 0})
+        return self.replace(model={'variant': 'base'}, training={'posterior_sweeps': 0})
 
     def to_dict(self) -> dict:
         return self.model_dump()

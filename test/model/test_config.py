@@ -126,3 +126,12 @@ def test_missing_keys_take_defaults_and_configs_are_immutable():
     assert (config.model.item_key, config.encoder.name, config.training.threads) == ('identifier', 'gat', 1)
     with pytest.raises(ValueError):
         config.training.lr = 1.0
+
+
+def test_a_stars_config_serving_strangers_the_plain_encoder_run_as_base_is_the_plain_encoder():
+    config = ExperimentConfig.from_dict({'model': {'strangers': 'base_encoder'}})
+    assert config.model.strangers == 'base_encoder'
+    assert config.replace(model={'variant': 'base'}).model.strangers == 'prior_mean'
+    assert config.stranger_encoder().model == config.replace(model={'variant': 'base'}).model
+    with pytest.raises(ConfigError, match='strangers'):
+        ExperimentConfig.from_dict({'model': {'strangers': 'nearest_person'}})
