@@ -5,6 +5,9 @@ checkpoint keeps one for them, ``model.strangers: base_encoder``, else the prior
     python benchmarks/stranger_cost.py [--checkpoint models/socnav1_gat_stars.pt] [--rankings 400] \
         [--data-root ../shared/datasets/socnav1] [--out results/stranger_cost.json]
 
+(``results/stranger_cost_prior_mean.json``: the same for the packaged checkpoint before it kept a
+plain encoder, ``git show 5eea9e7:models/socnav1_gat_stars.pt``, whose strangers get the prior's mean.)
+
 A ranking: the JSON scene request parsed, then ``rank(person, scene, uncertainty=True)``
 through the front door (``StarsRecommender.load``), as ``benchmarks/ensemble_cost.py`` times
 one member. The three people take turns over the requests, so the machine's drift reaches
@@ -73,7 +76,8 @@ def main(argv=None) -> int:
         print(f'{kind}: ranking p50 {figures["p50"]:.3f} ms p99 {figures["p99"]:.3f} ms')
     print(f'strangers served: {strangers}; checkpoint {checkpoint.stat().st_size / 2 ** 20:.2f} MiB')
     record = {**run_record(program_argv('benchmarks/stranger_cost.py', argv)),
-              'settings': {**vars(args), 'checkpoint': str(checkpoint)}, 'strangers': strangers,
+              'settings': {**vars(args), 'checkpoint': str(checkpoint)}, 'checkpoint_digest': recommender.fingerprint,
+              'strangers': strangers,
               'checkpoint_bytes': checkpoint.stat().st_size, 'ranking_ms': by_person}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(record, indent=1) + '\n')
