@@ -50,6 +50,16 @@ def percentiles(values) -> dict:
     return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)), 'n': len(values)}
 
 
+def serving_setup(args) -> tuple:
+    """(checkpoint path, SocNav1 scenes of annotator b, their JSON scene requests) for a
+    process set up as the node serves: BLAS on one thread, the request schema compiled."""
+    threadpool_limits(1, user_api='blas')  # as the node does
+    scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
+    messages.validator('scene_request')  # compiled once per process, as in the node before any request
+    return (Path(resolve_checkpoint(args.checkpoint)), scenes,
+            [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', help='default: the packaged model')
@@ -60,11 +70,7 @@ def main(argv=None) -> int:
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--out', default=str(REPO / 'results' / 'ensemble_cost.json'))
     args = parser.parse_args(argv)
-    threadpool_limits(1, user_api='blas')  # as the node does
-    checkpoint = Path(resolve_checkpoint(args.checkpoint))
-    scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
-    texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
-    messages.validator('scene_request')  # compiled once per process, as in the node before any request
+    checkpoint, scenes, texts = serving_setup(args)
 
     before = resident_bytes()
     members, memory = [], []

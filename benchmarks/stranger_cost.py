@@ -22,23 +22,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from ensemble_cost import percentiles, serving_setup  # noqa: E402  (one model's cost, timed the same way)
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros import StarsRecommender, messages  # noqa: E402
-from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
-from stars_ros.resources import resolve_checkpoint  # noqa: E402
 
 FOLDED_RATINGS = 5  # the folded-in person's ratings
-
-
-def percentiles(values) -> dict:
-    values = np.asarray(values, dtype=float)
-    return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)), 'n': len(values)}
 
 
 def main(argv=None) -> int:
@@ -48,11 +41,7 @@ def main(argv=None) -> int:
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--out', default=str(REPO / 'results' / 'stranger_cost.json'))
     args = parser.parse_args(argv)
-    threadpool_limits(1, user_api='blas')  # as the node does
-    checkpoint = Path(resolve_checkpoint(args.checkpoint))
-    scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
-    texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
-    messages.validator('scene_request')  # compiled once per process, as in the node before any request
+    checkpoint, scenes, texts = serving_setup(args)
 
     recommender = StarsRecommender.load(checkpoint)
     action = recommender.actions[0]
