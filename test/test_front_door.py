@@ -355,7 +355,7 @@ def test_a_stranger_is_served_the_base_encoder_until_their_first_rating(kind, re
         as_prior = {r.name: r for r in prior_mean.rank('stranger', scene, uncertainty=True)}
         for entry in ranking:
             assert entry.score_sd == pytest.approx(as_prior[entry.name].score_sd)
-            if entry.why is not None:  # graph scenes are explained from their dicts, not a data set's graphs
+            if entry.why is not None:  # graph scenes are explained from their dicts (below)
                 assert entry.why.personal_from == 'base_encoder' and entry.why.personal == 0
                 assert model.predictor.clip(np.array([entry.why.content])) == pytest.approx(entry.score, abs=1e-9)
     # p_first_is_best draws θ around the mean of a Spread centred on the scores served
@@ -374,6 +374,9 @@ def test_a_stranger_is_served_the_base_encoder_until_their_first_rating(kind, re
     assert served.predict('newcomer', scene, action) == prior_mean.predict('newcomer', scene, action)
     if kind == 'tabular':
         assert served.rank('newcomer', scene, explain=True)[0].why.personal_from == 'folded_in'
+    else:  # a data set's scene id gives a featurised graph, which names no entities to explain
+        with pytest.raises(StarsError, match='needs its content'):
+            served.rank('newcomer', scene, explain=True)
 
 
 def test_refit_makes_folded_in_users_trained_ones(fitted, tabular):

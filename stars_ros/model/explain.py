@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stars_ros.data.scene_graph import SceneGraph, entity_nodes, featurise, without_node
+from stars_ros.errors import StarsError
 from stars_ros.model.vocabulary import UNKNOWN
 
 
@@ -75,6 +76,9 @@ def scene_entities(predictor, scene) -> list:
     """(id, kind, index) of what can be removed from ``scene``: graph nodes (``entity_nodes``)
     or, for a tabular row, each feature (id: its column)."""
     if predictor.input_kind == 'graph':
+        if isinstance(scene, SceneGraph):
+            raise StarsError("explaining a scene needs its content (a scene-graph dict): a data set's scene id gives "
+                             'only its featurised graph, which names no entities')
         return entity_nodes(scene)
     return [(column, 'feature', column) for column in range(len(scene))]
 
