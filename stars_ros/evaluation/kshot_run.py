@@ -243,6 +243,9 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
                                                          fold_test(fold), k == 0, fold[7])
         for fold in folds:  # the plain encoder beside them, trained on what the fold's model is
             experiment = experiments[fold[:2]]
+            if experiment['model']['strangers'] == 'base_encoder':  # the fold's model serves new people that one
+                submitted[fold[:2] + (BASE_ENCODER,)] = submitted[fold[:2] + (0,)]
+                continue
             submitted[fold[:2] + (BASE_ENCODER,)] = executor.submit(
                 fit_rows, {**experiment, 'model': {**experiment['model'], 'variant': 'base'}}, fit_rows_of(fold, 0),
                 fold_test(fold), False)
@@ -303,6 +306,8 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     lowest chosen. Only the fold's training people are seen; a candidate whose fit fails
     counts as infinite error."""
     candidates = setting_candidates(settings.select)
+    # the validation people are trained ones: a plain encoder kept for strangers would go unused
+    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}
     pending = {}
