@@ -352,7 +352,8 @@ class StarsRecommender:
               default_regularisation: float | None = None) -> Refitted:
         """A new recommender in which each user of ``ratings`` ({user: [state.Rating]}, as
         ``personalisation.refit`` reads them from the node's logs or state store) is a
-        trained user: their (p_u, b_u) solved as ``fold_in`` and the node solve them (λ from
+        trained user: their (p_u, b_u) solved as ``fold_in`` and the node solve them, but as
+        the model scores a trained row (not around a plain encoder for strangers) (λ from
         ``regularisation`` {user: λ}, else ``default_regularisation``, else the posterior),
         written into new or replaced rows of the user table. With ``epochs`` > 0 every
         parameter is then fine-tuned for that many joint epochs on the feedback (plus the
@@ -366,7 +367,8 @@ class StarsRecommender:
         for user, user_ratings in ratings.items():
             lam = (regularisation or {}).get(user, default_regularisation)
             try:
-                solved[user] = solver.fit(user_ratings, user, DEFAULT_REGULARISATION if lam is None else lam)
+                solved[user] = solver.fit(user_ratings, user, DEFAULT_REGULARISATION if lam is None else lam,
+                                          hand_over=False)  # a trained row: scored as the model scores
             except StarsError as error:
                 failed[user] = str(error)
         trainer = StarsTrainer.resume(self.fitted).extended(users=list(solved))

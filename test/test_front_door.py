@@ -335,9 +335,9 @@ def test_strangers_served_the_base_encoder_get_the_plain_encoders_scores(kind, r
 def test_a_stranger_is_served_the_base_encoder_until_their_first_rating(kind, request, tmp_path):
     """Served as ``test`` scores them: predict and rank give a stranger the plain encoder's
     scores, its explanation is all content, its score_sd the prior's and its
-    p_first_is_best centred on those scores; from the first rating on, the fold-in serves
-    them as a model serving strangers the prior's mean would; a saved and loaded checkpoint
-    serves the same."""
+    p_first_is_best centred on those scores; from the first rating on, the fold-in takes over
+    from the plain encoder (by hand: its score plus σ xᵀ(θ − θ₀), θ the posterior of targets
+    z − (z_plain − xᵀθ₀)); a saved and loaded checkpoint serves the same."""
     data = request.getfixturevalue(kind)
     config = ExperimentConfig.from_dict(TABULAR if kind == 'tabular' else GRAPH)
     served = StarsRecommender(config.replace(model={'strangers': 'base_encoder'})).fit(data)
@@ -368,15 +368,42 @@ def test_a_stranger_is_served_the_base_encoder_until_their_first_rating(kind, re
     spread = Uncertainty(FoldIn(predictor)).spread(predictor, 'stranger', np.repeat(h, len(columns), 0),
                                                    np.full(len(columns), -1), columns, served_z=served_z)
     assert spread.x @ spread.theta + spread.c == pytest.approx(served_z)
-    high = data.scale[1]
-    for model in (served, prior_mean):
+    high, column = data.scale[1], 0
+    inference, theta0 = predictor.inference, FoldIn(predictor).population
+    mean, sd = inference.target_mean[column], inference.target_std[column]
+
+    def linear_and_plain(scene_id):  # x, c of the scene's rating of ``action``, and the plain encoder's z
+        content = data.store.scene(list(data.scene_keys).index(scene_id))
+        h = predictor.encode([content]).astype(np.float64)
+        x, c = inference.linear_form(h, predictor.scene_rows([scene_id]), np.array([column]))
+        plain = predictor.stranger_scores(predictor.encoder_input([content]), 1)[0, column]
+        return x, c, (plain - mean) / sd
+
+    other = next(key for _, key in rows_of(data) if key != scene)
+    for model in (served, loaded):
         model.fold_in('newcomer', [(scene, action, high)])
-    assert served.predict('newcomer', scene, action) == prior_mean.predict('newcomer', scene, action)
+        x, _, plain_z = linear_and_plain(scene)
+        theta, _ = FoldIn(model.predictor).posterior(x, np.array([(high - mean) / sd - plain_z + x[0] @ theta0]),
+                                                      np.array([column]))
+        for key in (scene, other):
+            x, _, plain_z = linear_and_plain(key)
+            expected = model.predictor.clip(np.array([mean + sd * (plain_z + x[0] @ (theta - theta0))]))[0]
+            assert model.predict('newcomer', key, action) == pytest.approx(expected, abs=1e-5)
+        assert model.predict('newcomer', scene, action) != base.predict('stranger', scene, action)
     if kind == 'tabular':
-        assert served.rank('newcomer', scene, explain=True)[0].why.personal_from == 'folded_in'
+        content = data.store.scene(list(data.scene_keys).index(scene))
+        plain = predictor.stranger_scores(predictor.encoder_input([content]), 1)[0]
+        for entry in served.rank('newcomer', content, explain=True):
+            why = entry.why
+            assert why.personal_from == 'folded_in' and why.personal != 0 and why.scene == 0
+            assert why.content == pytest.approx(plain[data.action_names.index(entry.name)], abs=1e-6)
+            assert served.predictor.clip(np.array([why.content + why.personal]))[0] == pytest.approx(entry.score,
+                                                                                                    abs=1e-6)
     else:  # a data set's scene id gives a featurised graph, which names no entities to explain
         with pytest.raises(StarsError, match='needs its content'):
             served.rank('newcomer', scene, explain=True)
+    served.fold_in('newcomer', [])  # nothing folded in: a stranger again
+    assert served.predict('newcomer', scene, action) == base.predict('stranger', scene, action)
 
 
 def test_refit_makes_folded_in_users_trained_ones(fitted, tabular):

@@ -110,7 +110,8 @@ def known_split(data, rows: np.ndarray, fraction: float, seed: int) -> tuple[np.
 
 class Design:
     """Fold-in and predictive distributions of dataset rows under one fitted model (every
-    scene encoded once)."""
+    scene encoded once). A new person's rows are as the node serves them: around the plain
+    encoder where the model keeps one for strangers (``FoldIn.hand_over_shift``)."""
 
     def __init__(self, fitted, data):
         self.fitted, self.data = fitted, data
@@ -118,25 +119,34 @@ class Design:
         self.uncertainty = Uncertainty(self.foldin)
         self.inference = self.foldin.inference
         self.h = encode_all(fitted, data)
+        plain = self.foldin.predictor.stranger_inference
+        self._plain_h = None if plain is None else encode_all(fitted, data, fitted.stranger_model)
 
-    def rows(self, rows: np.ndarray) -> tuple:
-        """(x, c, z, actions) of dataset ``rows``."""
+    def rows(self, rows: np.ndarray, user_id=None) -> tuple:
+        """(x, c, z, actions) of dataset ``rows`` as ``user_id`` is served (None: a new person)."""
         x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
-        return x, c, z, self.data.actions[rows]
+        actions = self.data.actions[rows]
+        if self._plain_h is not None and self.foldin.predictor.hands_over(user_id):
+            plain = self.foldin.predictor.stranger_inference.scores(self._plain_h[self.data.scenes[rows]], None, None)
+            c = c + self.foldin.shift(self.inference.to_z(plain[np.arange(len(rows)), actions], actions), x, c)
+        return x, c, z, actions
 
     def posterior(self, rows: np.ndarray, user_id=None, regularisation: float | None = None) -> tuple:
         """(θ mean, covariance) after the ratings of ``rows`` (none: the prior of ``user_id``,
         the population's for a new person), by ``FoldIn.posterior`` as the node solves it; a
         positive ``regularisation``: the ridge solve."""
-        x, c, z, actions = self.rows(rows)
+        x, c, z, actions = self.rows(rows, user_id)
         if regularisation and len(rows):
             theta = solve_ridge(x, z - c, self.foldin.prior(user_id), regularisation)
             return theta, float(self.foldin.noise.mean()) * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta)))
         return self.foldin.posterior(x, z - c, actions, user_id)
 
     def predict(self, rows: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
-        """Rating-scale predictions of ``rows``, clipped as served; θ None: the scene-only
-        model (p_u = 0, b_u = 0)."""
+        """Rating-scale predictions of a new person's ``rows``, clipped as served; θ None: the
+        scene-only model (p_u = 0, b_u = 0, the model's own offsets)."""
+        if theta is None:
+            x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
+            return self.predict_design((x, c, z, self.data.actions[rows]), None)
         return self.predict_design(self.rows(rows), theta)
 
     def predict_design(self, design: tuple, theta: np.ndarray | None) -> np.ndarray:
@@ -151,9 +161,10 @@ class Design:
         x, c, z, actions = design
         return self.foldin.posterior(x, z - c, actions, with_covariance=with_covariance)
 
-    def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray) -> tuple:
-        """(mean, sd) of the predictive distribution of ``rows`` on the rating scale (unclipped)."""
-        return self.predictive_design(self.rows(rows), theta, covariance)
+    def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray, user_id=None) -> tuple:
+        """(mean, sd) of the predictive distribution of ``user_id``'s ``rows`` on the rating
+        scale (unclipped)."""
+        return self.predictive_design(self.rows(rows, user_id), theta, covariance)
 
     def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray) -> tuple:
         """``predictive`` of rows whose ``rows(...)`` is ``design``."""

@@ -204,7 +204,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
         for name in sorted(set(users.tolist())):
             mine = users == name
             theta, covariance = design.posterior(np.zeros(0, dtype=np.int64), user_id=name)
-            means[mine], sds[mine] = design.predictive(known[mine], theta, covariance)
+            means[mine], sds[mine] = design.predictive(known[mine], theta, covariance, name)
         calibration['known'] = [coverage_part(data.scores[known], means, sds, design.foldin.user_prior.nu)]
     return records, calibration
 

@@ -6,8 +6,10 @@ StARS' score is a sum, so it splits exactly, on the rating scale (z × σ_a + μ
   (h_iᵀ r_a only in residual variants; a model without users puts its whole score here);
 * ``personal`` = ((p_u ⊙ (q_i + h_i))ᵀ r_a + b_u) σ_a — what this person adds; a stranger is
   scored with the personalisation prior's mean, so theirs is the population's (``personal_from``);
-  a stranger a checkpoint serves its plain encoder (``model.strangers``) has the whole score as
-  ``content``, and entity effects of that encoder;
+  on a checkpoint that serves people it was not trained on around its plain encoder
+  (``model.strangers``, ``Predictor.hands_over``) ``content`` is that encoder's score and
+  ``personal`` their departure from the prior's mean, σ_a xᵀ(θ_u − θ₀): 0 for a stranger
+  (``personal_from`` 'base_encoder') until ratings are folded in;
 * ``scene``    = b_i σ_a — the identity offset of a scene seen in training (0 for a new one;
   q_i acts only through p_u, so it is in ``personal``).
 
@@ -102,14 +104,13 @@ def removal_effects(predictor, user_id, scenes, scene_ids=None) -> list:
     entities = [scene_entities(predictor, scene) for scene in scenes]
     inputs = [v for scene, found in zip(scenes, entities) for v in _variants(predictor, scene, found)]
     encoded = inputs if predictor.input_kind == 'graph' else np.stack(inputs)
-    if predictor.serves_stranger_encoder(user_id):
+    if predictor.serves_stranger_encoder(user_id):  # the plain encoder alone: no StARS pass
         scores = predictor.stranger_scores(encoded, len(inputs))
     else:
         h = predictor.inference.encode(encoded, len(inputs))
         rows = (np.full(len(scenes), UNKNOWN) if scene_ids is None
                 else predictor.scene_rows(list(scene_ids)))
-        rows = np.repeat(rows, [len(found) + 1 for found in entities])
-        scores = predictor.inference.scores(h, _user_row(predictor, user_id), rows)
+        scores = predictor.unclipped_scores(user_id, encoded, h, np.repeat(rows, [len(found) + 1 for found in entities]))
     results, start = [], 0
     for found in entities:
         block = scores[start:start + len(found) + 1]
@@ -118,23 +119,16 @@ def removal_effects(predictor, user_id, scenes, scene_ids=None) -> list:
     return results
 
 
-def _user_row(predictor, user_id):
-    """(p_u, b_u) ``InferenceModel.scores`` takes for ``user_id`` (None without users)."""
-    if not predictor.inference.personalised:
-        return None
-    theta = predictor.user_theta(user_id).astype(np.float32)
-    return theta[:-1], theta[-1]
-
-
 def explain(predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: np.ndarray,
             entity_effects: list, top_entities: int, served: np.ndarray | None = None) -> list:
     """``Why`` of each (scene, action) row: ``h`` [R, dim], ``scene_rows`` [R], ``actions`` [R],
     and per row (entities, effects [entities]) of ``removal_effects``, cut to the
-    ``top_entities`` largest |effect| (all with 0). ``served`` [R]: the unclipped scores of a
-    stranger the plain encoder scores, all of them content."""
+    ``top_entities`` largest |effect| (all with 0). ``served`` [R]: the unclipped scores of one
+    ``Predictor.hands_over``: the plain encoder's content plus their departure, all personal."""
     source = personal_source(predictor, user_id)
-    if source == 'base_encoder':
-        parts = np.stack([np.asarray(served, dtype=np.float64), np.zeros(len(served)), np.zeros(len(served))])
+    if predictor.hands_over(user_id):
+        personal = predictor.departure(user_id, h, scene_rows)[np.arange(len(h)), actions]
+        parts = np.stack([np.asarray(served, dtype=np.float64) - personal, personal, np.zeros(len(h))])
     else:
         parts = score_parts(predictor, user_id, h, scene_rows, actions)
     whys = []

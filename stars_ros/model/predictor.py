@@ -3,7 +3,11 @@
 Unknown users and scenes are the normal case on a robot: a user gets the personalisation
 prior's mean (p_u, b_u) the checkpoint stores (``personalisation.prior``; zero in one without),
 a scene q_i = 0, b_i = 0, so the prediction is the content term plus population offsets, and
-``Ranking.known_user`` says so (Surprise's fallback-with-a-reason, without an exception).
+``Ranking.known_user`` says so (Surprise's fallback-with-a-reason, without an exception). A
+checkpoint that keeps a plain encoder for strangers (``model.strangers`` 'base_encoder') scores
+everyone it was not trained on around that encoder instead: its score plus the person's
+departure from the prior's mean, xᵀ(θ_u − θ₀) (``hands_over``), which is zero until ratings
+are folded in, so the fold-in takes over from the plain encoder rather than from the prior's mean.
 
 Users folded in after training (``stars_ros.personalisation.foldin``) are served from an overlay
 user_id -> UserModel that scoring consults before the trained table. The overlay is never
@@ -215,15 +219,21 @@ class Predictor:
         skips the schema check for scenes already validated against it (the node's requests).
         """
         inputs = self.encoder_input(scenes, validate)
-        if self.serves_stranger_encoder(user_id):
+        if self.serves_stranger_encoder(user_id):  # the plain encoder alone: no StARS pass
             return self.clip(self.stranger_scores(inputs, len(scenes)))
-        return self.scores_from_h(user_id, self._inference.encode(inputs, len(scenes)), scene_ids)
+        h = self._inference.encode(inputs, len(scenes))
+        return self.clip(self.unclipped_scores(user_id, inputs, h, self._rows_of(scene_ids)))
+
+    def hands_over(self, user_id) -> bool:
+        """Whether ``user_id`` is scored around the plain encoder the checkpoint keeps for
+        strangers (``model.strangers`` 'base_encoder'): anyone it was not trained on. Their
+        score is the plain encoder's plus their departure from the prior's mean (``departure``)."""
+        return self._stranger_inference is not None and self.trained_row(user_id) == UNKNOWN
 
     def serves_stranger_encoder(self, user_id) -> bool:
-        """Whether ``user_id`` is scored by the plain encoder the checkpoint keeps for strangers
-        (``model.strangers`` 'base_encoder'): nobody trained, nothing folded in yet."""
-        return (self._stranger_inference is not None and self.user_model(user_id) is None
-                and self.trained_row(user_id) == UNKNOWN)
+        """Whether ``user_id`` gets exactly the plain encoder's scores: ``hands_over`` them and
+        nothing is folded in yet."""
+        return self.hands_over(user_id) and self.user_model(user_id) is None
 
     def stranger_scores(self, inputs, count: int) -> np.ndarray:
         """The plain encoder's rating-scale scores [count, n_actions] (unclipped) of ``encoder_input``'s ``inputs``."""
@@ -235,12 +245,27 @@ class Predictor:
         """The plain encoder's weights and arithmetic strangers are scored with (None: the prior's mean)."""
         return self._stranger_inference
 
-    def scores_from_h(self, user_id, h: np.ndarray, scene_ids: Sequence | None = None) -> np.ndarray:
-        """The model's scores for scenes already encoded as ``h`` [len(scenes), dim], clipped
-        to the rating scale the checkpoint was trained on (a stranger's from the prior's mean:
-        ``score`` serves the plain encoder's where the checkpoint keeps one)."""
-        scene_rows = self._scene_rows if scene_ids is None else self.scene_rows(scene_ids)
-        return self.clip(self._inference.scores(h, self._user_row(user_id), scene_rows))
+    def departure(self, user_id, h: np.ndarray, scene_rows: np.ndarray) -> np.ndarray:
+        """What ``user_id``'s folded-in θ_u adds to the scores of scenes encoded as ``h``
+        [n, dim] over the prior's mean θ₀, σ_a xᵀ(θ_u − θ₀) [n, n_actions] on the rating scale
+        (zero with nothing folded in): a ``hands_over`` person's personal part."""
+        if self.user_model(user_id) is None:
+            return np.zeros((len(h), len(self.actions)))
+        inference = self._inference
+        return inference.scores(h, self._user_row(user_id), scene_rows) - inference.scores(h, self._stranger, scene_rows)
+
+    def unclipped_scores(self, user_id, inputs, h: np.ndarray, scene_rows: np.ndarray) -> np.ndarray:
+        """The scores [n, n_actions] ``user_id`` is served, before clipping, of ``encoder_input``'s
+        ``inputs`` encoded as ``h`` [n, dim], of training scene rows ``scene_rows`` [n] (or one
+        broadcast row): the model's from θ_u, or for one it ``hands_over``, the plain encoder's
+        plus their ``departure``."""
+        if self.hands_over(user_id):
+            return self.stranger_scores(inputs, len(h)) + self.departure(user_id, h, scene_rows)
+        return self._inference.scores(h, self._user_row(user_id), scene_rows)
+
+    def _rows_of(self, scene_ids: Sequence | None) -> np.ndarray:
+        """``scene_rows`` of ``scene_ids``; no ids: one UNKNOWN row that broadcasts (no q_i)."""
+        return self._scene_rows if scene_ids is None else self.scene_rows(scene_ids)
 
     def scene_rows(self, scene_ids: Sequence) -> np.ndarray:
         """The rows of q_i, b_i of training scenes ``scene_ids`` (UNKNOWN, -1, for an id the
@@ -248,7 +273,7 @@ class Predictor:
         return self.served.scene_vocabulary.rows(scene_ids)
 
     def user_theta(self, user_id) -> np.ndarray:
-        """θ = (p_u, b_u) [dim+1] (float64) that scores ``user_id`` (see ``scores_from_h``)."""
+        """θ = (p_u, b_u) [dim+1] (float64) that scores ``user_id`` (see ``unclipped_scores``)."""
         p, b = self._user_row(user_id)
         theta = np.empty(len(p) + 1)
         theta[:-1], theta[-1] = p, b
@@ -331,12 +356,11 @@ class Predictor:
         scene_ids = [None if query.ranks_scenes else query.scene_id for query in queries for _ in query.graphs]
         inputs = self.encoder_input(graphs, validate)
         h = self._inference.encode(inputs, len(graphs))
-        served_z = None  # a stranger the plain encoder scores: its z, which their uncertainty centres on
-        if self.serves_stranger_encoder(user_id):
-            base = self.stranger_scores(inputs, len(graphs))
-            scores, served_z = self.clip(base), (base - self._inference.target_mean) / self._inference.target_std
-        else:
-            scores = self.scores_from_h(user_id, h, scene_ids)
+        unclipped = self.unclipped_scores(user_id, inputs, h, self.scene_rows(scene_ids))
+        scores = self.clip(unclipped)
+        served_z = None  # one served around the plain encoder: their z, which their uncertainty centres on
+        if self.hands_over(user_id):
+            served_z = (unclipped - self._inference.target_mean) / self._inference.target_std
         if not np.isfinite(scores).all():
             raise StarsError('the model produced a non-finite score')
         results, row = [], 0
@@ -367,7 +391,7 @@ class Predictor:
 
     def _whys(self, user_id, query, entry_h, scene_rows, columns, entities: int, served_z=None) -> list:
         """``explain.Why`` of each entry of ``query`` (its scenes' removal variants in one pass;
-        ``served_z``: a stranger's normalised scores from the plain encoder)."""
+        ``served_z``: the normalised scores of one served around the plain encoder)."""
         scene_ids = None if query.ranks_scenes else [query.scene_id]
         effects = removal_effects(self, user_id, query.graphs, scene_ids)
         if query.ranks_scenes:

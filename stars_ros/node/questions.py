@@ -91,8 +91,9 @@ def choose_question(personalisation, user_id: str, requests: list, recent_scenes
     spread = uncertainty.rating_sd(np.stack([q.x for q in offered]), np.array([q.column for q in offered]), covariance)
     best = offered[int(np.argmax(spread))]
     gain = uncertainty.variance_reduction([(best.x[None], np.array([best.column]))], target_rows, covariance)[0]
-    if predictor.serves_stranger_encoder(user_id):  # the score the plain encoder serves them
-        score = float(predictor.score(user_id, [best.graph], validate=False)[0, best.column])
+    if predictor.hands_over(user_id):  # the score served around the plain encoder
+        scene_ids = None if best.candidate is not None else [best.scene_id]
+        score = float(predictor.score(user_id, [best.graph], scene_ids, validate=False)[0, best.column])
     else:
         z = float(best.x @ predictor.user_theta(user_id) + best.c)
         score = float(predictor.clip(predictor.inference.to_rating_scale(np.array([z]), np.array([best.column])))[0])

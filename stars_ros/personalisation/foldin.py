@@ -31,6 +31,13 @@ an outcome's noise is σ²_a + ``implicit_variance`` / σ_a² (z units; default 
 the rating scale, the law of total variance): the same linear row as a rating of that scene
 and action, weighted less.
 
+**Handing over from the plain encoder.** A checkpoint that keeps a plain encoder for strangers
+(``model.strangers`` 'base_encoder') serves a person it was not trained on that encoder's
+prediction z⁰ until they rate anything (``Predictor.hands_over``). Their fold-in then solves
+for their departure from it: c_j becomes z⁰_j − x_jᵀm₀ (``hand_over_shift`` adds the
+difference), so θ = m₀ reproduces the plain encoder exactly and each rating moves the
+prediction from there, z = z⁰ + xᵀ(θ − m₀), instead of dropping it to the prior's mean first.
+
 No λ is set by hand; a positive ``regularisation`` λ overrides the posterior with the ridge solve
 argmin ‖Xθ − (z − c)‖² + λ‖θ − m₀‖² (covariance σ̄²(XᵀX + λI)⁻¹, σ̄² the mean noise).
 
@@ -211,7 +218,7 @@ class FoldIn:
         self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
         self._cache_scenes = cache_scenes
         self.scene_by_scene = scene_by_scene
-        self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c)
+        self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c, hand_over_shift)
         self._lock = threading.Lock()
         scale_mixture_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
                                 self._population_precision, self._population_logdet)  # a process's first LAPACK solve costs
@@ -374,6 +381,27 @@ class FoldIn:
         x, c = self.design_from_h(self.encode([r.scene for r in ratings]), [r.scene_id for r in ratings], actions)
         return x, c, self.to_z([r.score for r in ratings], actions)
 
+    def hand_over_shift(self, ratings: Sequence[Rating], x: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """Per rating with rows ``x`` and offsets ``c``, what a person the predictor
+        ``hands_over`` has in place of c beyond it: the plain encoder's z minus the model's at
+        the prior's mean, z_plain − (xᵀθ₀ + c) (zeros for a checkpoint without a plain encoder).
+        Their regression targets are z − c − shift, so θ₀ reproduces the plain encoder. One
+        scene per pass, row by row: a rating's shift does not depend on the ratings built with
+        it (the node builds each as it comes, the front door all of a person's at once)."""
+        predictor = self.predictor
+        if predictor.stranger_inference is None:
+            return np.zeros(len(ratings))
+        plain = np.concatenate([predictor.stranger_scores(predictor.encoder_input([r.scene], validate=False), 1)
+                                for r in ratings])
+        actions = self.action_index([r.action for r in ratings])
+        return self.shift(self.to_z(plain[np.arange(len(ratings)), actions], actions), x, c)
+
+    def shift(self, plain_z: np.ndarray, x: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """z_plain − (xᵀθ₀ + c): how far the model at the prior's mean θ₀ is from the plain
+        encoder's normalised predictions ``plain_z`` of rows ``x`` with offsets ``c``."""
+        return np.asarray(plain_z, dtype=np.float64) - (np.einsum('rd,d->r', np.asarray(x, dtype=np.float64),
+                                                                  self.population) + c)
+
     def prepare(self, ratings: Sequence[Rating], limit: int) -> bool:
         """Build the regression rows of ``ratings`` not built yet whose scenes' h is cached
         or stored, and of at most ``limit`` others (encoding their scenes); True once every
@@ -394,15 +422,21 @@ class FoldIn:
         return len(to_encode) <= limit and len(built) <= limit
 
     # -- the solve ---------------------------------------------------------------------
-    def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None) -> UserModel:
+    def fit(self, ratings: Sequence[Rating], user_id=None, regularisation: float | None = None,
+            hand_over: bool | None = None) -> UserModel:
         """The user's posterior θ = (p_u, b_u) from ``ratings`` (see the module docstring);
-        a positive ``regularisation`` λ: the ridge solve towards the prior mean instead."""
+        a positive ``regularisation`` λ: the ridge solve towards the prior mean instead.
+        ``hand_over`` (default: whether the predictor ``hands_over`` ``user_id``): solve θ
+        as the departure from the plain encoder (``hand_over_shift``); False solves it as a
+        trained row is scored (the refit, which makes the person a trained one)."""
         lam = float(regularisation or 0.0)
         if not ratings:
             theta, covariance = self.posterior(np.zeros((0, self.dim + 1)), np.zeros(0), np.zeros(0, dtype=np.int64),
                                                user_id)
             return UserModel(theta[:-1], float(theta[-1]), 0, lam, covariance)
-        x, y = self.regression(ratings)
+        if hand_over is None:
+            hand_over = self.predictor.hands_over(user_id)
+        x, y = self.regression(ratings, hand_over)
         actions = self.action_index([r.action for r in ratings])
         if lam > 0:  # implicit outcomes weigh less here too: rows scaled by their noise ratio
             weight = np.sqrt(self.noise[actions] / self.rating_noise(ratings))[:, None]
@@ -412,10 +446,10 @@ class FoldIn:
             theta, covariance = self.posterior(x, y, actions, user_id, [r.implicit for r in ratings])
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)
 
-    def regression(self, ratings: Sequence[Rating]) -> tuple:
-        """(x [n, dim+1], y = z − c [n]) of ``ratings``, the rows ``design`` gives, each
-        computed once per rating and then kept (the entry keeps the rating alive, so its id
-        cannot be reused)."""
+    def regression(self, ratings: Sequence[Rating], hand_over: bool = False) -> tuple:
+        """(x [n, dim+1], y = z − c [n]) of ``ratings``, the rows ``design`` gives (``hand_over``:
+        y = z − c − ``hand_over_shift``), each computed once per rating and then kept (the
+        entry keeps the rating alive, so its id cannot be reused)."""
         keys = [id(rating) for rating in ratings]
         with self._lock:
             rows = [self._rows.get(key) for key in keys]
@@ -425,16 +459,22 @@ class FoldIn:
         missing = list({key: r for key, r, entry in zip(keys, ratings, rows) if entry is None}.values())
         if missing:
             x, c, z = self.design(missing)
-            new = {id(rating): (rating, row, target) for rating, row, target in zip(missing, x, z - c)}
+            shift = self.hand_over_shift(missing, x, c)
+            new = {id(rating): (rating, row, target, moved)
+                   for rating, row, target, moved in zip(missing, x, z - c, shift)}
             with self._lock:
                 self._rows.update(new)
                 while len(self._rows) > self._cache_scenes:
                     self._rows.popitem(last=False)
             rows = [new[key] if entry is None else entry for key, entry in zip(keys, rows)]
-        return np.array([row for _, row, _ in rows]), np.array([target for _, _, target in rows])
+        y = np.array([target - moved if hand_over else target for _, _, target, moved in rows])
+        return np.array([row for _, row, _, _ in rows]), y
 
-    def predict(self, user: UserModel, ratings: Sequence[Rating]) -> np.ndarray:
-        """Rating-scale predictions of ``user`` for the (scene, action) of ``ratings``."""
+    def predict(self, user: UserModel, ratings: Sequence[Rating], user_id=None) -> np.ndarray:
+        """Rating-scale predictions of ``user`` (``user_id``'s model) for the (scene, action)
+        of ``ratings``, as the predictor serves them."""
         actions = self.action_index([r.action for r in ratings])
         x, c = self.design_from_h(self.encode([r.scene for r in ratings]), [r.scene_id for r in ratings], actions)
+        if self.predictor.hands_over(user_id):
+            c = c + self.hand_over_shift(ratings, x, c)
         return self.to_rating_scale(x @ np.append(user.p, user.b) + c, actions)

@@ -209,11 +209,12 @@ def user_rows(inference) -> np.ndarray:
     return np.concatenate([inference.user_rows, inference.user_offsets[:, None]], axis=1).astype(np.float64)
 
 
-def encode_all(fitted, data) -> np.ndarray:
-    """h_i of every scene of ``data`` [n_scenes, dim] (float64) under ``fitted``'s encoder."""
+def encode_all(fitted, data, model=None) -> np.ndarray:
+    """h_i of every scene of ``data`` [n_scenes, dim] (float64) under ``fitted``'s encoder (or
+    ``model``'s, e.g. its ``stranger_model``)."""
     import torch  # training's form
 
-    model = fitted.require_model()
+    model = fitted.require_model() if model is None else model
     parts = []
     with torch.no_grad():
         for start in range(0, len(data.scene_keys), 512):

@@ -43,7 +43,7 @@ def test_gnn_parts_sum_to_the_unclipped_score(gcn, synthetic_scenes):
     assert np.abs(score_parts(gcn, user, h, trained, np.zeros(20, dtype=np.int64))[2]).max() > 0  # b_i counts
     for scene_rows, scene_ids in ((np.full(20, UNKNOWN), None), (trained, ids)):
         served = _check_parts_sum(gcn, user, h, scene_rows)
-        np.testing.assert_allclose(gcn.clip(served), gcn.scores_from_h(user, h, scene_ids), atol=1e-6)
+        np.testing.assert_allclose(gcn.clip(served), gcn.score(user, synthetic_scenes[:20], scene_ids), atol=1e-6)
 
 
 def test_a_strangers_personal_part_is_the_prior_means(gcn, synthetic_scenes):

@@ -150,6 +150,8 @@ def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(stranger
         served = 'base encoder' if strangers == 'base_encoder' else 'unpersonalised'  # the prior's mean: 0 here
         assert abs(zero['retrained']['mse'] - zero[served]['mse']) < 1e-6  # k = 0 is the fold's model
         assert zero['fold-in (random)'] == zero['fold-in (active)']  # no question asked yet: the prior mean
+        if strangers == 'base_encoder':  # which the fold-in takes over from the plain encoder's prediction
+            assert abs(zero['fold-in (random)']['mse'] - zero['base encoder']['mse']) < 1e-6
         for record in records:  # the same test rows for every k the same people cover
             if record['covered'] == zero['covered']:
                 assert record['n_test'] == zero['n_test'] and record['unpersonalised'] == zero['unpersonalised']
