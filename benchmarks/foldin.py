@@ -6,7 +6,11 @@
 1. ROS-free: SocNav1 annotators stream ``--ratings`` ratings each (default 200, the node's
    ``fold_in_max_ratings``); after each one the user is re-solved with ``FoldIn.fit`` from
    all their ratings so far, as the node does it (the rated scene's request text parsed
-   again, its h the one its ranking computed). p50 / p99 by number of ratings.
+   again, its h the one its ranking computed). p50 / p99 by number of ratings. ``--people
+   trained`` (default) folds each annotator in as the checkpoint's own person (their trained
+   row's Gaussian update); ``new`` as a person it was not trained on ('new-' and the name),
+   the robot's usual case: the scale mixture, and on a checkpoint with a plain encoder for
+   strangers the hand-over (one more encoder pass per rating).
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' (another process, as
    another person's device would be) gets scenes ranked at ``--stream-rate`` per second.
@@ -62,15 +66,17 @@ def percentiles(values) -> dict:
             'max': float(values.max()), 'count': int(len(values))}
 
 
-def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict:
+def time_updates(predictor, scenes_by_user: dict, regularisation: float, prefix: str = '') -> dict:
     """ms per update by rating count, as in the node: the newly rated scene's request text is
     parsed again, its h is the one its ranking computed (handed to the fold-in's cache), and
     the user is re-solved from all their ratings so far (``regularisation`` 0: the Gaussian
     posterior, the node's default; > 0: the ridge override). Reference, same run: the solve
-    building every rating's regression row again (``design`` and the same solve)."""
+    building every rating's regression row again (``design`` and the same solve). ``prefix``
+    names each annotator as a person (``prefix`` + name)."""
     times, rebuilt = {}, {}
     messages.validator('scene_request')  # compiled once per process: the node has done it before any feedback
-    for user, scenes in scenes_by_user.items():
+    for name, scenes in scenes_by_user.items():
+        user = prefix + name
         foldin = FoldIn(predictor)
         texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
         ratings = []
@@ -84,6 +90,8 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float) -> dict
             times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
             started = time.perf_counter()
             x, c, z = foldin.design(ratings)
+            if predictor.hands_over(user):
+                c = c + foldin.hand_over_shift(ratings, x, c)
             theta = (solve_ridge(x, z - c, foldin.prior(user), regularisation) if regularisation else
                      foldin.posterior(x, z - c, np.zeros(len(z), dtype=int), user)[0])
             rebuilt.setdefault(n, []).append((time.perf_counter() - started) * 1e3)
@@ -323,6 +331,8 @@ def main(argv=None) -> int:
                         help='ratings each streams (part 1; annotators with fewer are left out)')
     parser.add_argument('--regularisation', type=float, default=0.0,
                         help="fold-in λ; 0 (default, the node's): the Gaussian posterior")
+    parser.add_argument('--people', choices=('trained', 'new'), default='trained',
+                        help="part 1's annotators as the checkpoint's own people, or as people it was not trained on")
     parser.add_argument('--no-live', action='store_true', help='part 1 only (no node started)')
     parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per condition")
     parser.add_argument('--blocks', type=int, default=6,
@@ -344,8 +354,8 @@ def main(argv=None) -> int:
     scenes_by_user = {name: scenes[:args.ratings] for name in annotators
                       if len(scenes := read_scenes(raw / f'{name}.jsonl')) >= args.ratings}
     scenes_by_user = dict(list(scenes_by_user.items())[:args.users])
-    offline = time_updates(predictor, scenes_by_user, args.regularisation)
-    print(f'{len(scenes_by_user)} annotators stream {args.ratings} ratings each')
+    offline = time_updates(predictor, scenes_by_user, args.regularisation, 'new-' if args.people == 'new' else '')
+    print(f'{len(scenes_by_user)} annotators stream {args.ratings} ratings each, as {args.people} people')
     for n in sorted({1, 2, 5, 10, 20, 50, 100, 200, args.ratings} & set(offline['update_ms'])):
         update, reference = offline['update_ms'][n], offline['reference_solve_rebuilding_rows_ms'][n]
         print(f'{n:3d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms; reference, the '

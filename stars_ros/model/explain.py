@@ -124,7 +124,7 @@ def explain(predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: 
     """``Why`` of each (scene, action) row: ``h`` [R, dim], ``scene_rows`` [R], ``actions`` [R],
     and per row (entities, effects [entities]) of ``removal_effects``, cut to the
     ``top_entities`` largest |effect| (all with 0). ``served`` [R]: the unclipped scores of one
-    ``Predictor.hands_over``: the plain encoder's content plus their departure, all personal."""
+    ``Predictor.hands_over``: the plain encoder's score (content) plus their departure (personal)."""
     source = personal_source(predictor, user_id)
     if predictor.hands_over(user_id):
         personal = predictor.departure(user_id, h, scene_rows)[np.arange(len(h)), actions]

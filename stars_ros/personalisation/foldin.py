@@ -408,15 +408,17 @@ class FoldIn:
         one is built, unless this call built more than ``limit`` rows (then the next call
         says so). A caller that must stay responsive (the node's executor, solving a person
         restored with hundreds of ratings) spreads that person's first solve over several
-        calls this way: the rows in one, the solve in the next."""
+        calls this way: the rows in one, the solve in the next. With a plain encoder for
+        strangers every row takes a pass of it (``hand_over_shift``), so none counts as free."""
         with self._lock:
             missing = [rating for rating in ratings if id(rating) not in self._rows]
         if not missing:
             return True
         self._read_stored([rating.scene for rating in missing])
         with self._lock:
-            encoded = [rating for rating in missing if id(rating.scene) in self._cache]
-            to_encode = [rating for rating in missing if id(rating.scene) not in self._cache]
+            free = self.predictor.stranger_inference is None
+            encoded = [rating for rating in missing if free and id(rating.scene) in self._cache]
+            to_encode = [rating for rating in missing if not (free and id(rating.scene) in self._cache)]
         built = encoded + to_encode[:limit]
         self.regression(built)
         return len(to_encode) <= limit and len(built) <= limit
