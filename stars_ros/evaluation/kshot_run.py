@@ -19,6 +19,7 @@ from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Desig
                                        known_split, random_sets, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.metrics import regression_report
 
 METRICS = ('mse', 'pearson_r', 'ccc')
@@ -247,7 +248,7 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
                 submitted[fold[:2] + (BASE_ENCODER,)] = submitted[fold[:2] + (0,)]
                 continue
             submitted[fold[:2] + (BASE_ENCODER,)] = executor.submit(
-                fit_rows, {**experiment, 'model': {**experiment['model'], 'variant': 'base'}}, fit_rows_of(fold, 0),
+                fit_rows, ExperimentConfig.from_dict(experiment).stranger_encoder().to_dict(), fit_rows_of(fold, 0),
                 fold_test(fold), False)
 
     records, timings, folds, failed, left_out = [], [], {}, [], {}
