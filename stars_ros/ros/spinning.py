@@ -2,6 +2,7 @@
 life of a node executable from ``rclpy.init`` to a clean shutdown, bounded in time."""
 from __future__ import annotations
 
+import ctypes
 import os
 import re
 import signal
@@ -22,6 +23,7 @@ USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declarat
 DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
 CLOSE_WAIT_S = 12.0  # longest wait for ``close`` then (the state store joins its writer for up to 10 s)
 SIGNAL_SHUTDOWN_WAIT_S = 1.0  # how long an error out of rclpy.spin may take to turn out to be a signal's shutdown
+_PY_EVAL_INPUT = 258  # Py_eval_input (Python.h)
 
 
 def _rcl_message(error: Exception) -> str:
@@ -147,6 +149,7 @@ class _Ending:
                 self.done.add('shutdown')
                 rclpy.try_shutdown()
             _ignore_signals()  # rclpy's shutdown puts back the handlers it found: Python's raises KeyboardInterrupt
+            _forget_handled_interrupt()
         except KeyboardInterrupt:
             raise  # ``run`` goes on, the watchdog still watching
         except BaseException:
@@ -178,6 +181,19 @@ def _ignore_signals():
                 break
             except KeyboardInterrupt:
                 continue
+
+
+def _forget_handled_interrupt():
+    """Let the process exit with its own status after a signal's KeyboardInterrupt was handled.
+    CPython marks a KeyboardInterrupt that ends code run by ``PyRun_String`` as unhandled even
+    when a caller catches it, and at exit then kills its own process with SIGINT (status -2, no
+    traceback); rclpy's extension runs Python code that way, so a Ctrl-C landing there ended a
+    node that had shut down cleanly with -2 (seen in CI). Each ``PyRun_String`` clears that mark
+    before it evaluates, so one of a constant does; signals are ignored by now, so nothing can
+    set it again."""
+    run = ctypes.pythonapi.PyRun_String
+    run.restype, run.argtypes = ctypes.py_object, [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
+    run(b'None', _PY_EVAL_INPUT, {}, {})
 
 
 def _usage_error(name: str, message: str):

@@ -1,6 +1,8 @@
 """Nodes end cleanly when a signal shuts ROS down, whenever it lands, and within a bound when
 the middleware hangs in their shutdown."""
 import signal
+import subprocess
+import sys
 import threading
 import types
 
@@ -125,3 +127,28 @@ def test_a_signal_whose_handler_runs_late_does_not_end_the_ending(monkeypatch, i
     spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
     assert calls == ['shutdown'] and node.calls == ['destroyed', 'closed']
     assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+_INTERRUPTED_IN_PYRUN_STRING = '''
+import ctypes
+evaluate = ctypes.pythonapi.PyRun_String
+evaluate.restype, evaluate.argtypes = ctypes.py_object, [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
+
+def interrupted(node=None):  # a Ctrl-C whose KeyboardInterrupt is raised in code rclpy's extension evaluates
+    evaluate(b'raise KeyboardInterrupt', 257, {}, {})  # Py_file_input
+'''
+
+
+@pytest.mark.parametrize('ended_by, status', [('caught', -signal.SIGINT), ('run_node', 0)])
+def test_a_signal_handled_inside_code_run_by_pyrun_string_still_exits_0(ended_by, status):
+    """CPython exits -2 at the end of a process whose PyRun_String code ended in a
+    KeyboardInterrupt, even one caught (``caught``: what a node's Ctrl-C gave in CI); a node
+    that ``run_node`` ended cleanly exits 0. The process is the subject: its exit status."""
+    ending = {'caught': 'try:\n    interrupted()\nexcept KeyboardInterrupt:\n    pass\n',
+              'run_node': ('import rclpy\nfrom stars_ros.ros import spinning\n'
+                           'rclpy.init, rclpy.try_shutdown = (lambda args=None: None), (lambda: None)\n'
+                           'spinning.run_node("test", lambda: types.SimpleNamespace(destroy_node=lambda: None), '
+                           'interrupted)\n')}[ended_by]
+    child = subprocess.run([sys.executable, '-c', _INTERRUPTED_IN_PYRUN_STRING + 'import types\n' + ending],
+                           capture_output=True, text=True, timeout=120)
+    assert child.returncode == status, child.stderr
