@@ -10,7 +10,8 @@
    trained`` (default) folds each annotator in as the checkpoint's own person (their trained
    row's Gaussian update); ``new`` as a person it was not trained on ('new-' and the name),
    the robot's usual case: the scale mixture, and on a checkpoint with a plain encoder for
-   strangers the hand-over (one more encoder pass per rating).
+   strangers the hand-over (one more encoder pass per rating). ``--repeats`` runs it that many
+   times, one after the other, and records each run's figures and their median.
 2. Live node (its own process, loopback DDS, recording on): a client ranks scenes for user
    'other', one request in flight at a time, while user 'streamer' (another process, as
    another person's device would be) gets scenes ranked at ``--stream-rate`` per second.
@@ -334,6 +335,7 @@ def main(argv=None) -> int:
     parser.add_argument('--people', choices=('trained', 'new'), default='trained',
                         help="part 1's annotators as the checkpoint's own people, or as people it was not trained on")
     parser.add_argument('--no-live', action='store_true', help='part 1 only (no node started)')
+    parser.add_argument('--repeats', type=int, default=1, help='runs of part 1, one after the other (their median)')
     parser.add_argument('--requests', type=int, default=1500, help="rankings of 'other' per condition")
     parser.add_argument('--blocks', type=int, default=6,
                         help='rounds of blocks (one block of each condition per round) into which they are split')
@@ -354,8 +356,16 @@ def main(argv=None) -> int:
     scenes_by_user = {name: scenes[:args.ratings] for name in annotators
                       if len(scenes := read_scenes(raw / f'{name}.jsonl')) >= args.ratings}
     scenes_by_user = dict(list(scenes_by_user.items())[:args.users])
-    offline = time_updates(predictor, scenes_by_user, args.regularisation, 'new-' if args.people == 'new' else '')
+    runs = [time_updates(predictor, scenes_by_user, args.regularisation, 'new-' if args.people == 'new' else '')
+            for _ in range(args.repeats)]
+    offline = runs[0]
     print(f'{len(scenes_by_user)} annotators stream {args.ratings} ratings each, as {args.people} people')
+    if args.repeats > 1:  # the machine drifts between runs: every run's figures, and their median
+        offline['runs_update_ms_all'] = [run['update_ms_all'] for run in runs]
+        offline['median_update_p50_ms'] = float(np.median([run['update_ms_all']['p50'] for run in runs]))
+        print('update p50 / p99 of each run, all updates: '
+              + ', '.join(f"{run['update_ms_all']['p50']:.3f} / {run['update_ms_all']['p99']:.3f} ms" for run in runs)
+              + f"; median p50 {offline['median_update_p50_ms']:.3f} ms. Per length, the first run:")
     for n in sorted({1, 2, 5, 10, 20, 50, 100, 200, args.ratings} & set(offline['update_ms'])):
         update, reference = offline['update_ms'][n], offline['reference_solve_rebuilding_rows_ms'][n]
         print(f'{n:3d} ratings: update p50 {update["p50"]:.3f} ms p99 {update["p99"]:.3f} ms; reference, the '
