@@ -69,7 +69,8 @@ def percentiles(values) -> dict:
 
 def time_updates(predictor, scenes_by_user: dict, regularisation: float, prefix: str = '') -> dict:
     """ms per update by rating count, as in the node: the newly rated scene's request text is
-    parsed again, its h is the one its ranking computed (handed to the fold-in's cache), and
+    parsed again, its h (and for a person served around the plain encoder, that encoder's
+    scores) is the one its ranking computed (handed to the fold-in's cache), and
     the user is re-solved from all their ratings so far (``regularisation`` 0: the Gaussian
     posterior, the node's default; > 0: the ridge override). Reference, same run: the solve
     building every rating's regression row again (``design`` and the same solve). ``prefix``
@@ -82,10 +83,11 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float, prefix:
         texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
         ratings = []
         for n, (scene, text) in enumerate(zip(scenes, texts), 1):
-            h = predictor.encode([scene])  # ranking the scene computed its h before the feedback came
+            scored = predictor.rank_many(user, [messages.parse_scene_request(text)])[0]  # ranking the scene
+            # computed its h (and the plain encoder's scores, for a person served around it) before the feedback came
             started = time.perf_counter()
             request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
-            foldin.remember([request.graphs[0]], h)
+            foldin.remember([request.graphs[0]], scored.h, plain=scored.plain)
             ratings.append(Rating(request.graphs[0], 'navigate', scene['score'] / 100, request.scene_id))
             model = foldin.fit(ratings, user, regularisation)
             times.setdefault(n, []).append((time.perf_counter() - started) * 1e3)

@@ -68,12 +68,16 @@ class Scored:
     """One ranking of ``rank_many``: its entries (best first, cut to ``top_k``), the action
     that ranked candidate scenes (None for action ranking), h_i of the query's scenes
     [len(graphs), dim] (float32: feedback on them is folded in without encoding them again),
-    and the probability that the first entry is truly the best (None without uncertainty)."""
+    the probability that the first entry is truly the best (None without uncertainty), and for
+    a person served around the plain encoder (``Predictor.hands_over``) that encoder's unclipped
+    scores of the scenes [len(graphs), n_actions] (None for anyone else: their feedback's
+    fold-in needs no pass of it again, ``FoldIn.hand_over_shift``)."""
 
     ranked: list
     action: str | None
     h: np.ndarray
     p_first_is_best: float | None = None
+    plain: np.ndarray | None = None
 
 
 def rank_order(names: Sequence[str], scores, sds=None, whys=None) -> list:
@@ -254,13 +258,16 @@ class Predictor:
         inference = self._inference
         return inference.scores(h, self._user_row(user_id), scene_rows) - inference.scores(h, self._stranger, scene_rows)
 
-    def unclipped_scores(self, user_id, inputs, h: np.ndarray, scene_rows: np.ndarray) -> np.ndarray:
+    def unclipped_scores(self, user_id, inputs, h: np.ndarray, scene_rows: np.ndarray,
+                         plain: np.ndarray | None = None) -> np.ndarray:
         """The scores [n, n_actions] ``user_id`` is served, before clipping, of ``encoder_input``'s
         ``inputs`` encoded as ``h`` [n, dim], of training scene rows ``scene_rows`` [n] (or one
         broadcast row): the model's from θ_u, or for one it ``hands_over``, the plain encoder's
-        plus their ``departure``."""
+        (``plain`` where the caller computed its ``stranger_scores``) plus their ``departure``."""
         if self.hands_over(user_id):
-            return self.stranger_scores(inputs, len(h)) + self.departure(user_id, h, scene_rows)
+            if plain is None:
+                plain = self.stranger_scores(inputs, len(h))
+            return plain + self.departure(user_id, h, scene_rows)
         return self._inference.scores(h, self._user_row(user_id), scene_rows)
 
     def _rows_of(self, scene_ids: Sequence | None) -> np.ndarray:
@@ -356,7 +363,8 @@ class Predictor:
         scene_ids = [None if query.ranks_scenes else query.scene_id for query in queries for _ in query.graphs]
         inputs = self.encoder_input(graphs, validate)
         h = self._inference.encode(inputs, len(graphs))
-        unclipped = self.unclipped_scores(user_id, inputs, h, self.scene_rows(scene_ids))
+        plain = self.stranger_scores(inputs, len(graphs)) if self.hands_over(user_id) else None
+        unclipped = self.unclipped_scores(user_id, inputs, h, self.scene_rows(scene_ids), plain)
         scores = self.clip(unclipped)
         served_z = None  # one served around the plain encoder: their z, which their uncertainty centres on
         if self.hands_over(user_id):
@@ -385,7 +393,8 @@ class Predictor:
                     if explain_all or query.explain else None)
             ranked = rank_order(names, entry_scores, None if spread is None else spread.sd, whys)
             p_first = None if spread is None else spread.p_first_is_best(names.index(ranked[0].name))
-            results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + count], p_first))
+            results.append(Scored(ranked[:top_k] if top_k else ranked, action, h[row:row + count], p_first,
+                                  None if plain is None else plain[row:row + count]))
             row += count
         return results
 

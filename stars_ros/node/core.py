@@ -437,7 +437,7 @@ class RankerCore:
                 self.replied.append((item, reply, result.ranked))
             outcomes.append((reply, None))
             self._period_stats.ranking(processing_ms, self._fold_in_spans.overlap(item.received, started) / 1e6)
-            self.personalisation.scenes.ranked(request.scene_id, item.message, predictor, result.h)
+            self.personalisation.scenes.ranked(request.scene_id, item.message, predictor, result.h, result.plain)
             self.problems.ranked()
             if item.user_id is not None and not known and not personalised:
                 self._report_stranger(item.user_id, request.scene_id)

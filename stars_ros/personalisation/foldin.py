@@ -42,8 +42,9 @@ No λ is set by hand; a positive ``regularisation`` λ overrides the posterior w
 argmin ‖Xθ − (z − c)‖² + λ‖θ − m₀‖² (covariance σ̄²(XᵀX + λI)⁻¹, σ̄² the mean noise).
 
 Encoding a scene is what costs, so h_i is cached per scene object, and the ranker node hands
-over the h its ranking of the rated scene computed (``remember``): re-solving a user after
-one more rating is then one solve. x_j and c_j come from the predictor's
+over the h its ranking of the rated scene computed (``remember``), with the plain encoder's
+scores where that ranking served a person around it: re-solving a user after one more rating
+is then one solve. x_j and c_j come from the predictor's
 ``InferenceModel.linear_form``: the weights and the arithmetic the node scores with, not a
 copy of them. ROS-free: the ranker node, the offline refit, the front door and the k-shot
 evaluation all use ``FoldIn``.
@@ -55,7 +56,7 @@ import threading
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy import linalg
+from scipy.linalg import lapack
 
 from stars_ros.errors import OutOfScaleError, StarsError, UnknownActionError
 from stars_ros.model.vocabulary import UNKNOWN
@@ -108,16 +109,33 @@ def check_outcome(score: float, scale) -> None:
                               f'(stayed engaged) or bottom {scale[0]:g} (disengaged)')
 
 
+def cholesky(matrix: np.ndarray) -> np.ndarray:
+    """The lower Cholesky factor of a symmetric positive-definite float64 ``matrix``, by
+    LAPACK's potrf directly: ``scipy.linalg.cho_factor``'s checks and wrapping cost more than
+    the factorisation itself at the fold-in's sizes (d + 1 = 65), and an update factorises
+    once per prior scale."""
+    factor, info = lapack.dpotrf(matrix, lower=1, clean=0)
+    if info != 0:
+        raise np.linalg.LinAlgError(f'matrix is not positive definite (LAPACK potrf info {info})')
+    return factor
+
+
+def cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """matrix⁻¹ ``rhs`` from ``cholesky(matrix)`` (LAPACK's potrs; ``rhs`` a vector or columns)."""
+    solution, info = lapack.dpotrs(factor, rhs, lower=1)
+    if info != 0:
+        raise ValueError(f'LAPACK potrs: argument {-info} is invalid')
+    return solution
+
+
 def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
                        prior_precision: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(mean, covariance) of θ given y ~ N(xθ, diag(noise)) and θ ~ N(prior_mean, prior_precision⁻¹)."""
     x = np.asarray(x, dtype=np.float64)
     weighted = x / np.asarray(noise, dtype=np.float64)[:, None]
-    precision = prior_precision + weighted.T @ x
-    factor = linalg.cho_factor(precision, lower=True, check_finite=False)
-    mean = linalg.cho_solve(factor, prior_precision @ prior_mean + weighted.T @ np.asarray(y, dtype=np.float64),
-                            check_finite=False)
-    return mean, linalg.cho_solve(factor, np.eye(len(mean)), check_finite=False)
+    factor = cholesky(prior_precision + weighted.T @ x)
+    mean = cho_solve(factor, prior_precision @ prior_mean + weighted.T @ np.asarray(y, dtype=np.float64))
+    return mean, cho_solve(factor, np.eye(len(mean)))
 
 
 def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
@@ -145,13 +163,13 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
             covariances.append(np.zeros((size, size)))
             log_evidence.append(-0.5 * base)
             continue
-        factor = linalg.cho_factor(prior_precision / scale + gram, lower=True, check_finite=False)
-        shift = linalg.cho_solve(factor, pull, check_finite=False)
-        logdet = 2 * np.sum(np.log(np.diag(factor[0])))
+        factor = cholesky(prior_precision / scale + gram)
+        shift = cho_solve(factor, pull)
+        logdet = 2 * np.sum(np.log(np.diag(factor)))
         log_evidence.append(-0.5 * (base - pull @ shift + size * np.log(scale) + prior_logdet + logdet))
         means.append(prior_mean + shift)
         if with_covariance:
-            covariances.append(linalg.cho_solve(factor, np.eye(size), check_finite=False))
+            covariances.append(cho_solve(factor, np.eye(size)))
     log_evidence = np.array(log_evidence)
     weights = np.exp(log_evidence - log_evidence.max())
     weights /= weights.sum()
@@ -159,7 +177,7 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
     if not with_covariance:
         return mean, None, weights
     spread = np.array(means) - mean
-    covariance = np.einsum('s,sde->de', weights, np.array(covariances)) + np.einsum('s,sd,se->de', weights, spread, spread)
+    covariance = np.einsum('s,sde->de', weights, np.array(covariances)) + (spread * weights[:, None]).T @ spread
     return mean, covariance, weights
 
 
@@ -214,7 +232,7 @@ class FoldIn:
         self._stranger_covariance = float(np.mean(PRIOR_SCALES)) * self.user_prior.covariance  # read per ranking
         self._stranger_covariance.flags.writeable = False
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
-        self._cache = collections.OrderedDict()  # id(scene) -> (scene, h, not yet handed to the store)
+        self._cache = collections.OrderedDict()  # id(scene) -> (scene, h, not yet handed to the store, plain scores)
         self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
         self._cache_scenes = cache_scenes
         self.scene_by_scene = scene_by_scene
@@ -324,15 +342,18 @@ class FoldIn:
         rows = self.predictor.scene_rows(list(scene_keys))
         return self.inference.linear_form(np.asarray(h, dtype=np.float64), rows, actions)
 
-    def remember(self, scenes: Sequence, rows: np.ndarray, fresh: bool = True) -> None:
+    def remember(self, scenes: Sequence, rows: np.ndarray, fresh: bool = True,
+                 plain: np.ndarray | None = None) -> None:
         """Cache h [len(scenes), dim] of ``scenes``, encoded by this FoldIn's predictor (the
-        node passes what ranking them computed); ``fresh``: not read from a store, so
-        ``take_encodings`` hands it over. The key is the scene object, which the entry keeps
-        alive so its id cannot be reused."""
+        node passes what ranking them computed), and ``plain``, its plain encoder's unclipped
+        scores [len(scenes), n_actions] where that ranking computed them (``Scored.plain``);
+        ``fresh``: not read from a store, so ``take_encodings`` hands it over. The key is the
+        scene object, which the entry keeps alive so its id cannot be reused."""
         rows = np.asarray(rows, dtype=np.float64)
+        plain = [None] * len(rows) if plain is None else np.asarray(plain, dtype=np.float64)
         with self._lock:
-            for scene, row in zip(scenes, rows):
-                self._cache[id(scene)] = (scene, row, fresh)
+            for scene, row, scores in zip(scenes, rows, plain):
+                self._cache[id(scene)] = (scene, row, fresh, scores)
                 self._cache.move_to_end(id(scene))
             while len(self._cache) > self._cache_scenes:
                 self._cache.popitem(last=False)
@@ -346,7 +367,7 @@ class FoldIn:
                 entry = self._cache.get(id(scene))
                 if entry is not None and entry[2]:
                     taken[id(scene)] = entry[1]
-                    self._cache[id(scene)] = (scene, entry[1], False)
+                    self._cache[id(scene)] = (scene, entry[1], False, entry[3])
         return taken
 
     def _read_stored(self, scenes: Sequence) -> None:
@@ -385,14 +406,17 @@ class FoldIn:
         """Per rating with rows ``x`` and offsets ``c``, what a person the predictor
         ``hands_over`` has in place of c beyond it: the plain encoder's z minus the model's at
         the prior's mean, z_plain − (xᵀθ₀ + c) (zeros for a checkpoint without a plain encoder).
-        Their regression targets are z − c − shift, so θ₀ reproduces the plain encoder. One
-        scene per pass, row by row: a rating's shift does not depend on the ratings built with
-        it (the node builds each as it comes, the front door all of a person's at once)."""
+        Their regression targets are z − c − shift, so θ₀ reproduces the plain encoder. The
+        plain encoder's scores are those ``remember`` kept of a scene, else one scene per pass,
+        row by row: a rating's shift does not depend on the ratings built with it (the node
+        builds each as it comes, the front door all of a person's at once)."""
         predictor = self.predictor
         if predictor.stranger_inference is None:
             return np.zeros(len(ratings))
-        plain = np.concatenate([predictor.stranger_scores(predictor.encoder_input([r.scene], validate=False), 1)
-                                for r in ratings])
+        with self._lock:
+            kept = [self._cache.get(id(r.scene), (None,) * 4)[3] for r in ratings]
+        plain = np.stack([predictor.stranger_scores(predictor.encoder_input([r.scene], validate=False), 1)[0]
+                          if scores is None else scores for r, scores in zip(ratings, kept)])
         actions = self.action_index([r.action for r in ratings])
         return self.shift(self.to_z(plain[np.arange(len(ratings)), actions], actions), x, c)
 
@@ -409,16 +433,19 @@ class FoldIn:
         says so). A caller that must stay responsive (the node's executor, solving a person
         restored with hundreds of ratings) spreads that person's first solve over several
         calls this way: the rows in one, the solve in the next. With a plain encoder for
-        strangers every row takes a pass of it (``hand_over_shift``), so none counts as free."""
+        strangers a row whose plain scores are not kept takes a pass of it (``hand_over_shift``),
+        so only a row with both kept counts as free."""
         with self._lock:
             missing = [rating for rating in ratings if id(rating) not in self._rows]
         if not missing:
             return True
         self._read_stored([rating.scene for rating in missing])
         with self._lock:
-            free = self.predictor.stranger_inference is None
-            encoded = [rating for rating in missing if free and id(rating.scene) in self._cache]
-            to_encode = [rating for rating in missing if not (free and id(rating.scene) in self._cache)]
+            plain_free = self.predictor.stranger_inference is None
+            kept = [id(rating.scene) in self._cache and (plain_free or self._cache[id(rating.scene)][3] is not None)
+                    for rating in missing]
+        encoded = [rating for rating, free in zip(missing, kept) if free]
+        to_encode = [rating for rating, free in zip(missing, kept) if not free]
         built = encoded + to_encode[:limit]
         self.regression(built)
         return len(to_encode) <= limit and len(built) <= limit

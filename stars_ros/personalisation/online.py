@@ -62,15 +62,16 @@ class SceneMemory:
         if len(self._scenes) > self.size:
             self._scenes.popitem(last=False)
 
-    def ranked(self, scene_id: str, request, predictor, h) -> None:
-        """Keep the h [len(graphs), dim] that ranking ``request`` computed, unless a newer
-        request took its scene id since."""
+    def ranked(self, scene_id: str, request, predictor, h, plain=None) -> None:
+        """Keep the h [len(graphs), dim] that ranking ``request`` computed (and the plain
+        encoder's scores, ``Scored.plain``, where it computed them), unless a newer request took
+        its scene id since."""
         remembered = self._scenes.get(scene_id)
         if remembered is not None and remembered[0] is request:
-            remembered[1] = (predictor, h)
+            remembered[1] = (predictor, h, plain)
 
     def recent(self, count: int) -> list:
-        """[(scene_id, request, (predictor, h) or None)] of the ``count`` latest, newest first."""
+        """[(scene_id, request, (predictor, h, plain) or None)] of the ``count`` latest, newest first."""
         latest = []
         for scene_id in reversed(self._scenes):
             if len(latest) == count:
@@ -79,7 +80,7 @@ class SceneMemory:
         return latest
 
     def get(self, scene_id: str) -> tuple:
-        """(request, (predictor, h) or None); (None, None) for a scene not remembered."""
+        """(request, (predictor, h, plain) or None); (None, None) for a scene not remembered."""
         return tuple(self._scenes.get(scene_id, (None, None)))
 
     def forget(self, named: Callable[[bytes], bool]) -> int:
@@ -221,7 +222,9 @@ class Personalisation:
                 and encoded[0] is self.foldin.predictor and not self.sharing:  # h from ranking it: the
             # solve need not encode (a shared rating is encoded alone, as its peers encode it)
             index = request.labels.index(feedback.candidate) if request.ranks_scenes else 0
-            self.foldin.remember([rating.scene], encoded[1][index:index + 1])
+            plain = encoded[2]
+            self.foldin.remember([rating.scene], encoded[1][index:index + 1],
+                                 plain=None if plain is None else plain[index:index + 1])
         return rating
 
     def add_peer_ratings(self, user_id: str, entries: list, peer: str = '') -> bool:

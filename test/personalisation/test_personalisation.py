@@ -55,7 +55,7 @@ def _rank(core: Personalisation, scene_id: str, payload: dict) -> str:
     text = messages.dumps(payload)
     core.scenes.received(scene_id, text)
     [scored] = rank_batch(core.predictor, [Pending(messages.parse_scene_request(text), None, 0, text)])
-    core.scenes.ranked(scene_id, text, core.predictor, scored.h)
+    core.scenes.ranked(scene_id, text, core.predictor, scored.h, scored.plain)
     return text
 
 
@@ -81,6 +81,33 @@ def test_feedback_on_a_ranked_scene_is_solved_from_its_h_and_served(predictor, s
     assert np.allclose(model.p, expected.p, atol=1e-5) and model.b == pytest.approx(expected.b, abs=1e-5)
     assert predictor.user_model('newcomer') is model and predictor.personalised_from('newcomer') == 1
     assert core.solve_next() is None and not core.pending and log.reports == []
+
+
+def test_a_person_served_around_the_plain_encoder_is_solved_without_another_pass_of_either_encoder(
+        tiny_base_stranger_checkpoint, scenes, monkeypatch):
+    """Ranking a person served around the plain encoder keeps that encoder's scores with h
+    (``Scored.plain``), for an action's scene and for a candidate scene: the solve after their
+    feedback passes neither encoder again and gives the hand-over fold-in computed from scratch."""
+    predictor = Predictor.load(tiny_base_stranger_checkpoint)
+    core = _personalisation(predictor, Log())
+    placements = scene_request('placements', scenes[1], placements=3)
+    _rank(core, scenes[0]['identifier'], scene_request(scenes[0]['identifier'], scenes[0]))
+    _rank(core, 'placements', placements)
+
+    def encoded(*args, **kwargs):
+        raise AssertionError('the solve passed a scene its ranking had encoded through an encoder')
+    for method in ('encode', 'encoder_input', 'stranger_scores'):
+        monkeypatch.setattr(predictor, method, encoded)
+    assert _rate(core, 'newcomer', scenes[0]) is None
+    assert core.add_feedback(Feedback('newcomer', 'placements', 0.25,
+                                      candidate=placements['candidates'][2]['candidate'])) is None
+    user_id, model = core.solve_next(min_ratings=2)
+    monkeypatch.undo()
+    ratings = core.histories.ratings('newcomer')
+    assert user_id == 'newcomer' and len(ratings) == 2 and ratings[1].scene_id is None
+    expected = FoldIn(Predictor.load(tiny_base_stranger_checkpoint)).fit(ratings, 'newcomer')
+    assert np.allclose(model.p, expected.p, atol=1e-6) and model.b == pytest.approx(expected.b, abs=1e-6)
+    assert np.allclose(model.covariance, expected.covariance, atol=1e-9)
 
 
 def test_feedback_that_names_no_usable_rating_says_why(predictor, scenes):
@@ -277,7 +304,7 @@ def test_scene_memory_keeps_the_latest_requests_and_ignores_a_stale_ranking():
     memory.received('b', 'newer b')
     memory.ranked('b', 'text b', 'predictor', 'h')  # the older request under that id
     assert memory.get('b') == ('newer b', None)
-    memory.ranked('b', 'newer b', 'predictor', 'h')
-    assert memory.get('b') == ('newer b', ('predictor', 'h'))
+    memory.ranked('b', 'newer b', 'predictor', 'h', 'plain')
+    assert memory.get('b') == ('newer b', ('predictor', 'h', 'plain'))
     memory.received('d', 'text d')  # b was received last, so c goes
     assert memory.get('c') == (None, None) and memory.get('b')[0] == 'newer b'
