@@ -34,6 +34,7 @@ VARIANTS = ('base', *PARTS)
 ITEM_KEYINGS = ('identifier', 'prefix')
 #: What a person with no ratings is served (``ModelConfig.strangers``).
 STRANGER_SERVING = ('prior_mean', 'base_encoder')
+PRIOR_SCALE_WEIGHTS = ('equal', 'held_out')  # training.prior_scale_weights
 
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
 #: (an int is a float), NaN and infinities.
@@ -222,6 +223,10 @@ class TrainConfig(Section):
     training ratings) where each trained person's held-out ratings say it predicts a person
     it was not fitted on better than the others' mean does (``personalisation.prior``); False
     keeps the others' mean.
+    ``prior_scale_weights``: how likely a new person's scale τ on the prior covariance is to be
+    each of ``personalisation.prior.PRIOR_SCALES`` before their first rating: 'equal' (each
+    alike), or 'held_out', fitted to the trained people's held-out ratings, each person's
+    residual from the prior's mean weighed as a stranger's (``prior.fitted_scale_weights``).
     ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
     ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
     (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
@@ -242,6 +247,7 @@ class TrainConfig(Section):
     posterior_burn_in: Annotated[Int, Field(ge=0)] = 50
     user_dropout: Annotated[Float, Field(ge=0.0, le=1.0)] = 0.0
     pooled_stranger: bool = True
+    prior_scale_weights: Literal[PRIOR_SCALE_WEIGHTS] = 'equal'
     distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1

@@ -16,7 +16,8 @@ prior) and independent noise z_j − c_j − x_jᵀθ ~ N(0, σ²_{a_j}) give th
 one (d+1)×(d+1) Cholesky solve in float64 per prior scale: a person's departure from the
 population is not known in advance, so the prior covariance is τS₀ with τ one of
 ``prior.PRIOR_SCALES`` (0: the person is the population mean), each weighted by the
-marginal likelihood of the person's answers under it (``scale_mixture_posterior``). A person
+marginal likelihood of the person's answers under it times its prior weight
+(``UserPrior.scale_prior``: equal, or fitted to held-out ratings; ``scale_mixture_posterior``). A person
 whose answers the population explains keeps close to it; one who departs consistently moves
 as far as their answers warrant. The served θ is the mixture's mean, its covariance (the
 mixture's, moment-matched) what ``uncertainty`` turns into a score's standard deviation. A
@@ -140,18 +141,21 @@ def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_me
 
 def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
                             prior_precision: np.ndarray, prior_logdet: float,
-                            scales: Sequence[float] = PRIOR_SCALES,
-                            with_covariance: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                            scales: Sequence[float] = PRIOR_SCALES, with_covariance: bool = True,
+                            scale_prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """(mean, covariance, weights) of θ given y ~ N(xθ, diag(noise)) and θ ~ N(prior_mean, τΣ)
-    with τ equally likely each of ``scales`` (Σ = prior_precision⁻¹, ``prior_logdet`` its log
-    determinant; τ = 0 pins θ to the mean). ``weights`` [scales] are the posterior
-    probabilities of the scales, from each one's marginal likelihood of y; the mean and
-    covariance are the mixture's (``with_covariance`` False: None, and d fewer solves per scale)."""
+    with τ one of ``scales`` with probabilities ``scale_prior`` (default: equal; Σ =
+    prior_precision⁻¹, ``prior_logdet`` its log determinant; τ = 0 pins θ to the mean).
+    ``weights`` [scales] are the posterior probabilities of the scales, each one's prior
+    probability times its marginal likelihood of y; the mean and covariance are the mixture's
+    (``with_covariance`` False: None, and d fewer solves per scale)."""
     x, noise = np.asarray(x, dtype=np.float64), np.asarray(noise, dtype=np.float64)
     size = len(prior_mean)
+    scale_prior = (np.full(len(scales), 1 / len(scales)) if scale_prior is None
+                   else np.asarray(scale_prior, dtype=np.float64))
     if not len(x):
-        covariance = float(np.mean(scales)) * np.linalg.inv(prior_precision) if with_covariance else None
-        return prior_mean.copy(), covariance, np.full(len(scales), 1 / len(scales))
+        covariance = float(scale_prior @ np.asarray(scales)) * np.linalg.inv(prior_precision) if with_covariance else None
+        return prior_mean.copy(), covariance, scale_prior.copy()
     residual = np.asarray(y, dtype=np.float64) - x @ prior_mean
     weighted = x / noise[:, None]
     gram, pull = weighted.T @ x, weighted.T @ residual
@@ -170,7 +174,8 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
         means.append(prior_mean + shift)
         if with_covariance:
             covariances.append(cho_solve(factor, np.eye(size)))
-    log_evidence = np.array(log_evidence)
+    with np.errstate(divide='ignore'):  # a scale of prior weight 0 gets none after
+        log_evidence = np.array(log_evidence) + np.log(scale_prior)
     weights = np.exp(log_evidence - log_evidence.max())
     weights /= weights.sum()
     mean = np.einsum('s,sd->d', weights, np.array(means))
@@ -229,8 +234,9 @@ class FoldIn:
         self.implicit_noise = self._implicit_noise(implicit_variance, served.rating_scale)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
-        self._stranger_covariance = float(np.mean(PRIOR_SCALES)) * self.user_prior.covariance  # read per ranking
-        self._stranger_covariance.flags.writeable = False
+        self._scale_prior = self.user_prior.scale_prior
+        self._stranger_covariance = float(self._scale_prior @ np.asarray(PRIOR_SCALES)) * self.user_prior.covariance
+        self._stranger_covariance.flags.writeable = False  # read per ranking
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
         self._cache = collections.OrderedDict()  # id(scene) -> (scene, h, not yet handed to the store, plain scores)
         self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
@@ -312,14 +318,14 @@ class FoldIn:
         mean, covariance, precision = self.prior_distribution(user_id)
         if precision is self._population_precision:
             return scale_mixture_posterior(x, y, noise, mean, precision, self._population_logdet,
-                                           with_covariance=with_covariance)[:2]
+                                           with_covariance=with_covariance, scale_prior=self._scale_prior)[:2]
         if not len(x):
             return mean, covariance
         return gaussian_posterior(x, y, noise, mean, precision)
 
     def covariance(self, user_id=None) -> np.ndarray:
         """Cov θ of ``user_id`` before any feedback, as ``fit`` gives it with no ratings: a
-        known person's own, else the population's scale mixture's (Σ₀ times the mean scale)."""
+        known person's own, else the population's scale mixture's (Σ₀ times the scales' prior mean)."""
         _, covariance, precision = self.prior_distribution(user_id)
         return self._stranger_covariance if precision is self._population_precision else covariance
 

@@ -43,6 +43,14 @@ estimates what that needs from the trained people and their training ratings:
   treats a person's scale τ on Σ₀ as unknown, one of ``PRIOR_SCALES`` (E τ = 1.075, so the
   population spread stays about Σ₀), and weighs them by the marginal likelihood of the person's
   own answers (``foldin.scale_mixture_posterior``).
+- **How likely each scale is** before a person's first answer: equally (the default), or, with
+  ``training.prior_scale_weights`` 'held_out', as the trained people's held-out ratings say
+  (``fitted_scale_weights``): each trained person's held-out residuals from the prior's mean,
+  weighed as a stranger's would be, tell how far people depart from μ₀ in ratings the fit did
+  not see, where the spread of their trained rows (Σ₀) may overstate it (a fitted row also
+  fits its person's noise). For a checkpoint that serves strangers its plain encoder, the
+  residuals are still those from the prior's mean: that encoder has learnt from the held-out
+  ratings too, so its residuals there would understate the departure.
 
 A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
 written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its user rows, assumes
@@ -57,6 +65,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stars_ros.data.splits import held_examples
+from stars_ros.errors import ConfigError
 from stars_ros.model.serving import inference_of
 
 log = logging.getLogger(__name__)
@@ -64,6 +73,7 @@ DEFAULT_NOISE = 1.0  # z-scale noise variance assumed when a checkpoint stores n
 NU_GRID = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, math.inf)  # candidate degrees of freedom
 PRIOR_SCALES = (0.0, 0.3, 1.0, 3.0)  # a person's scale τ on Σ₀, equally likely a priori (mean 1.075)
 NOISE_SHARE = 0.1  # share of the examples a default fit holds out for the noise (``held_out_split``)
+SCALE_PSEUDOCOUNT = 1.0  # per scale, added to the people that fit the scales' weights (a Dirichlet prior)
 
 
 @dataclass(frozen=True)
@@ -71,7 +81,9 @@ class UserPrior:
     """N(mean, covariance) over θ = (p_u, b_u) [dim+1] (float64), the z-scale noise variance
     per action ``noise`` [actions], and for trained people ``user_covariance``
     [users, dim+1, dim+1] (None: they start from Σ₀ around their row), the predictive's
-    degrees of freedom ``nu`` (inf: Gaussian). ``details`` says how it was estimated."""
+    degrees of freedom ``nu`` (inf: Gaussian), and ``scale_weights`` [len(PRIOR_SCALES)], how
+    likely a new person's scale τ on Σ₀ is to be each one before their first answer (None:
+    equally). ``details`` says how it was estimated."""
 
     mean: np.ndarray
     covariance: np.ndarray
@@ -79,6 +91,14 @@ class UserPrior:
     user_covariance: np.ndarray | None = None
     details: dict = field(default_factory=dict)
     nu: float = math.inf
+    scale_weights: np.ndarray | None = None
+
+    @property
+    def scale_prior(self) -> np.ndarray:
+        """P(τ) over ``PRIOR_SCALES`` before a person's first answer."""
+        if self.scale_weights is None:
+            return np.full(len(PRIOR_SCALES), 1 / len(PRIOR_SCALES))
+        return self.scale_weights
 
     def to_dict(self) -> dict:
         """Tensors and plain values, as a weights-only checkpoint holds them."""
@@ -89,6 +109,8 @@ class UserPrior:
                   'nu': torch.tensor(float(self.nu), dtype=torch.float64)}
         if self.user_covariance is not None:
             values['user_covariance'] = torch.from_numpy(self.user_covariance.astype(np.float32))
+        if self.scale_weights is not None:
+            values['scale_weights'] = torch.from_numpy(self.scale_weights.copy())
         return values
 
     @classmethod
@@ -97,7 +119,9 @@ class UserPrior:
             return np.asarray(values[name], dtype=np.float64)  # a tensor (a fitted model's) or an array (a file's)
         users = array('user_covariance') if values.get('user_covariance') is not None else None
         nu = float(array('nu')) if values.get('nu') is not None else math.inf  # earlier checkpoints: Gaussian
-        return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})), nu)
+        scales = array('scale_weights') if values.get('scale_weights') is not None else None  # earlier: equal
+        return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})), nu,
+                   scales)
 
 
 def ledoit_wolf(rows: np.ndarray) -> tuple[np.ndarray, float]:
@@ -126,6 +150,39 @@ def student_t_nu(standardised: np.ndarray) -> float:
             return float(stats.norm.logpdf(standardised).sum())
         return float(stats.t.logpdf(standardised, nu, scale=math.sqrt((nu - 2) / nu)).sum())
     return max(NU_GRID, key=log_likelihood)
+
+
+def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray,
+                         covariance: np.ndarray, scales=PRIOR_SCALES,
+                         pseudocount: float = SCALE_PSEUDOCOUNT) -> np.ndarray:
+    """P(τ) over ``scales``: the weights under which each person's residuals r [n] (rows x
+    [n, dim+1] with noise variances ``noise`` [n], of ``people`` [n]) are most likely as a
+    stranger's, r = x(θ − μ₀) + ε with θ − μ₀ ~ N(0, τΣ₀) (``covariance``) and one τ per
+    person drawn from the weights: EM for a mixture's weights (each person's responsibilities,
+    then their mean), with ``pseudocount`` people added to every scale, so that no scale's
+    weight reaches 0 (a new person could then never be found to be there)."""
+    log_likelihood = []
+    for person in np.unique(people):
+        mine = people == person
+        xs, rs = x[mine], r[mine]
+        projected = xs @ covariance @ xs.T
+        row = []
+        for scale in scales:
+            total = scale * projected + np.diag(noise[mine])
+            logdet = np.linalg.slogdet(total)[1]
+            row.append(-0.5 * (rs @ np.linalg.solve(total, rs) + logdet + len(rs) * math.log(2 * math.pi)))
+        log_likelihood.append(row)
+    log_likelihood = np.array(log_likelihood)
+    weights = np.full(len(scales), 1 / len(scales))
+    for _ in range(10_000):
+        joint = log_likelihood + np.log(weights)
+        responsibility = np.exp(joint - joint.max(1, keepdims=True))
+        responsibility /= responsibility.sum(1, keepdims=True)
+        updated = (responsibility.sum(0) + pseudocount) / (len(responsibility) + pseudocount * len(scales))
+        if np.max(np.abs(updated - weights)) < 1e-12:
+            return updated
+        weights = updated
+    return weights
 
 
 def held_out_split(data, rows: np.ndarray, share: float = NOISE_SHARE, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -270,6 +327,16 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
     if held_out and weight is not None and fitted.config.training.pooled_stranger:
         mean, details = _pooled_if_better(mean, details, trained, x, z - c, 1.0 / noise[actions], users,
                                           precision, (known, noise_x, noise_z - noise_c, weight))
+    scale_weights = None
+    if fitted.config.training.prior_scale_weights == 'held_out':
+        if not held_out:
+            raise ConfigError("training.prior_scale_weights 'held_out' needs held-out ratings of the trained people "
+                             '(noise_rows)')
+        stranger_residual = noise_z - noise_c - noise_x @ mean  # as a stranger served the prior's mean
+        scale_weights = fitted_scale_weights(noise_x, stranger_residual, noise[residual_actions], known, covariance)
+        details = {**details, 'prior_scale_weights': [round(float(w), 6) for w in scale_weights],
+                   'prior_scale_weights_from': f'held-out ratings of {len(np.unique(known))} trained people, '
+                                               f'{SCALE_PSEUDOCOUNT:g} pseudo-person per scale'}
     user_covariance = np.empty((len(trained), len(mean), len(mean)))
     for row in range(len(trained)):
         mine = users == row
@@ -277,7 +344,7 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
     source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
     details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows)),
                'nu': f'maximum likelihood on {source}', 'prior_scales': list(PRIOR_SCALES)}
-    return UserPrior(mean, covariance, noise, user_covariance, details, nu)
+    return UserPrior(mean, covariance, noise, user_covariance, details, nu, scale_weights)
 
 
 def _pooled_if_better(mean: np.ndarray, details: dict, trained: np.ndarray, x: np.ndarray, r: np.ndarray,

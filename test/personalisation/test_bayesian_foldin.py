@@ -9,6 +9,7 @@ import torch
 from scipy import stats
 
 from conftest import TINY_CONFIG
+from stars_ros.errors import ConfigError
 from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.serving import inference_of
@@ -73,6 +74,73 @@ def test_the_scale_mixture_is_bayes_rule_over_the_scales_by_hand():
     none_mean, none_covariance, _ = scale_mixture_posterior(np.zeros((0, 2)), np.zeros(0), np.zeros(0), prior_mean,
                                                             np.linalg.inv(prior_covariance), np.log(2.0), scales)
     assert none_mean == pytest.approx(prior_mean) and none_covariance == pytest.approx(prior_covariance * 2.5 / 3)
+    # with prior weights π over the scales: Bayes' rule weighs each evidence by its π
+    scale_prior = np.array([0.6, 0.3, 0.1])
+    weighted = scale_prior * np.array(evidence) / np.sum(scale_prior * np.array(evidence))
+    mean = sum(w * m for w, m in zip(weighted, means))
+    covariance = sum(w * (c + np.outer(m - mean, m - mean)) for w, m, c in zip(weighted, means, covariances))
+    got_mean, got_covariance, got_weights = scale_mixture_posterior(
+        x, y, noise, prior_mean, np.linalg.inv(prior_covariance), np.log(2.0), scales, scale_prior=scale_prior)
+    assert got_weights == pytest.approx(weighted, abs=1e-12) and got_mean == pytest.approx(mean, abs=1e-12)
+    assert got_covariance == pytest.approx(covariance, abs=1e-12)
+    _, none_covariance, none_weights = scale_mixture_posterior(
+        np.zeros((0, 2)), np.zeros(0), np.zeros(0), prior_mean, np.linalg.inv(prior_covariance), np.log(2.0), scales,
+        scale_prior=scale_prior)
+    assert none_weights == pytest.approx(scale_prior) and none_covariance == pytest.approx(prior_covariance * 0.35)
+
+
+def test_the_scale_weights_fitted_to_held_out_people_recover_how_far_they_depart():
+    """People whose θ − μ₀ is drawn at τ = 0 (70 %) or τ = 3 (30 %) on Σ₀, each rating 40
+    scenes: EM over the people's marginal likelihoods finds those shares, with one pseudo-person
+    per scale (so every scale keeps a weight); each person's likelihood by hand is N(r; 0, τXΣ₀Xᵀ + D)."""
+    rng = np.random.default_rng(7)
+    scales, size, people = (0.0, 0.3, 1.0, 3.0), 3, 400
+    covariance = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 0.8]])
+    far = rng.random(people) < 0.3
+    x, r, who, noise = [], [], [], []
+    for person in range(people):
+        rows = rng.normal(size=(40, size))
+        theta = rng.multivariate_normal(np.zeros(size), (3.0 if far[person] else 0.0) * covariance)
+        variance = rng.uniform(0.2, 0.4, 40)
+        x.append(rows), r.append(rows @ theta + rng.normal(size=40) * np.sqrt(variance))
+        who.append(np.full(40, person)), noise.append(variance)
+    x, r, who, noise = map(np.concatenate, (x, r, who, noise))
+    weights = prior_module.fitted_scale_weights(x, r, noise, who, covariance, scales)
+    assert weights.sum() == pytest.approx(1.0)
+    assert weights[0] == pytest.approx(0.7, abs=0.06) and weights[3] == pytest.approx(0.3, abs=0.06)
+    assert weights[1] + weights[2] < 0.06 and (weights > 0).all()
+    # the fixed point: each weight is the mean responsibility, the pseudo-people counted
+    likelihood = np.array([[stats.multivariate_normal.logpdf(r[who == p], np.zeros(40), s * x[who == p] @ covariance
+                                                             @ x[who == p].T + np.diag(noise[who == p]))
+                            for s in scales] for p in range(people)])
+    responsibility = np.exp(likelihood + np.log(weights))
+    responsibility /= responsibility.sum(1, keepdims=True)
+    assert weights == pytest.approx((responsibility.sum(0) + 1.0) / (people + 4.0), abs=1e-9)
+
+
+def test_fitted_scale_weights_go_through_the_checkpoint_into_the_fold_in(synthetic, tmp_path):
+    """``training.prior_scale_weights`` 'held_out': the prior keeps the fitted weights, a
+    checkpoint's dict carries them, and the fold-in starts a new person from them (their
+    covariance before any answer is Σ₀ times the weights' mean scale); 'equal' keeps none."""
+    train, held = split_rows(synthetic, 0.2, 0)
+    config = ExperimentConfig.from_dict(TINY_CONFIG).replace(training={'prior_scale_weights': 'held_out'})
+    fitted = StarsTrainer(config).fit(synthetic, train)
+    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert prior.scale_weights.sum() == pytest.approx(1.0) and (prior.scale_weights > 0).all()
+    assert prior.details['prior_scale_weights'] == pytest.approx(prior.scale_weights, abs=1e-6)
+    restored = UserPrior.from_dict(prior.to_dict())
+    assert restored.scale_prior == pytest.approx(prior.scale_weights)
+    fitted.user_prior = prior.to_dict()
+    foldin = FoldIn(Predictor.from_model(fitted))
+    expected = float(prior.scale_weights @ np.array(prior_module.PRIOR_SCALES)) * prior.covariance
+    assert foldin.covariance('stranger') == pytest.approx(expected)
+    fitted.config = config.replace(training={'prior_scale_weights': 'equal'})
+    equal = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert equal.scale_weights is None and equal.scale_prior == pytest.approx(np.full(4, 0.25))
+    assert UserPrior.from_dict(equal.to_dict()).scale_weights is None
+    fitted.config = config
+    with pytest.raises(ConfigError, match='needs held-out ratings'):
+        estimate_prior(fitted, synthetic, train)
 
 
 def test_the_student_t_tails_are_found_and_its_intervals_have_unit_variance():
