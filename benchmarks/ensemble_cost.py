@@ -11,7 +11,8 @@ members cost, so no ensemble needs training to be timed. A ranking: the JSON sce
 parsed once, then every member ranks the scene for one folded-in person with ``score_sd``
 (``rank(..., uncertainty=True)``) and the scores are averaged. An update: the rated scene's
 request parsed once, then every member re-solves the person from all their ratings so far,
-the rated scene's h cached from its ranking (as ``benchmarks/foldin.py`` times one model).
+the rated scene's h (and the plain encoder's scores the person is served around) cached from
+its ranking (as ``benchmarks/foldin.py`` times one model).
 K = 1…5 take turns over the requests, so the machine's drift reaches all alike. Memory: the
 process's resident size after loading each member, less before the first (so K = 1 also
 holds the serving libraries the first load imports). BLAS on one thread, as in the node.
@@ -99,12 +100,13 @@ def main(argv=None) -> int:
             np.mean([[entry.score for entry in sorted(ranking, key=lambda e: e.name)] for ranking in rankings],
                     axis=0)  # the ensemble's scores: part of what a ranking costs
             ranking_ms[k].append((time.perf_counter() - started) * 1e3)
-            h = [member.predictor.encode([request.graphs[0]]) for member in members[:k]]  # as its ranking made it
+            scored = [member.predictor.rank_many('person', [request], validate=False)[0]  # h and the plain
+                      for member in members[:k]]  # encoder's scores, as its ranking made them
             started = time.perf_counter()
             request = messages.parse_scene_request(text, messages.DEFAULT_MAX_BYTES)
             rated = [*ratings, Rating(request.graphs[0], action, scene['score'] / 100, request.scene_id)]
-            for solver, member_h in zip(solvers[:k], h):
-                solver.remember([request.graphs[0]], member_h)
+            for solver, member_scored in zip(solvers[:k], scored):
+                solver.remember([request.graphs[0]], member_scored.h, plain=member_scored.plain)
                 solver.fit(rated, 'person', 0.0)
             update_ms[k].append((time.perf_counter() - started) * 1e3)
 
