@@ -367,7 +367,7 @@ class Predictor:
         unclipped = self.unclipped_scores(user_id, inputs, h, self.scene_rows(scene_ids), plain)
         scores = self.clip(unclipped)
         served_z = None  # one served around the plain encoder: their z, which their uncertainty centres on
-        if self.hands_over(user_id):
+        if plain is not None:
             served_z = (unclipped - self._inference.target_mean) / self._inference.target_std
         if not np.isfinite(scores).all():
             raise StarsError('the model produced a non-finite score')

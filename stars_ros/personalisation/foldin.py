@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import collections
 import threading
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 from scipy.linalg import lapack
@@ -66,6 +66,16 @@ from stars_ros.state.person import Rating, UserModel, check_score
 
 DEFAULT_REGULARISATION = 0.0  # 0: the Gaussian posterior; a positive λ: the ridge override
 DEFAULT_CACHE_SCENES = 4096
+
+
+class _Encoded(NamedTuple):
+    """What ``FoldIn`` keeps of one scene: the scene (kept alive, so its id is not reused), its
+    h, whether a store has yet to be handed it, and the plain encoder's scores (None: not kept)."""
+
+    scene: object
+    h: np.ndarray
+    fresh: bool
+    plain: np.ndarray | None
 
 
 def rating_from_feedback(feedback, request, predictor) -> Rating | str:
@@ -154,7 +164,8 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
     scale_prior = (np.full(len(scales), 1 / len(scales)) if scale_prior is None
                    else np.asarray(scale_prior, dtype=np.float64))
     if not len(x):
-        covariance = float(scale_prior @ np.asarray(scales)) * np.linalg.inv(prior_precision) if with_covariance else None
+        covariance = None if not with_covariance else \
+            float(scale_prior @ np.asarray(scales)) * np.linalg.inv(prior_precision)
         return prior_mean.copy(), covariance, scale_prior.copy()
     residual = np.asarray(y, dtype=np.float64) - x @ prior_mean
     weighted = x / noise[:, None]
@@ -238,7 +249,7 @@ class FoldIn:
         self._stranger_covariance = float(self._scale_prior @ np.asarray(PRIOR_SCALES)) * self.user_prior.covariance
         self._stranger_covariance.flags.writeable = False  # read per ranking
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
-        self._cache = collections.OrderedDict()  # id(scene) -> (scene, h, not yet handed to the store, plain scores)
+        self._cache = collections.OrderedDict()  # id(scene) -> _Encoded
         self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
         self._cache_scenes = cache_scenes
         self.scene_by_scene = scene_by_scene
@@ -359,7 +370,7 @@ class FoldIn:
         plain = [None] * len(rows) if plain is None else np.asarray(plain, dtype=np.float64)
         with self._lock:
             for scene, row, scores in zip(scenes, rows, plain):
-                self._cache[id(scene)] = (scene, row, fresh, scores)
+                self._cache[id(scene)] = _Encoded(scene, row, fresh, scores)
                 self._cache.move_to_end(id(scene))
             while len(self._cache) > self._cache_scenes:
                 self._cache.popitem(last=False)
@@ -371,9 +382,9 @@ class FoldIn:
         with self._lock:
             for scene in scenes:
                 entry = self._cache.get(id(scene))
-                if entry is not None and entry[2]:
-                    taken[id(scene)] = entry[1]
-                    self._cache[id(scene)] = (scene, entry[1], False, entry[3])
+                if entry is not None and entry.fresh:
+                    taken[id(scene)] = entry.h
+                    self._cache[id(scene)] = entry._replace(fresh=False)
         return taken
 
     def _read_stored(self, scenes: Sequence) -> None:
@@ -393,7 +404,7 @@ class FoldIn:
         scenes encoded now."""
         self._read_stored(scenes)
         with self._lock:
-            found = {id(s): self._cache[id(s)][1] for s in scenes if id(s) in self._cache}
+            found = {id(s): self._cache[id(s)].h for s in scenes if id(s) in self._cache}
         missing = list({id(s): s for s in scenes if id(s) not in found}.values())
         if missing:
             h = (np.concatenate([self.predictor.encode([scene]) for scene in missing]) if self.scene_by_scene
@@ -420,7 +431,7 @@ class FoldIn:
         if predictor.stranger_inference is None:
             return np.zeros(len(ratings))
         with self._lock:
-            kept = [self._cache.get(id(r.scene), (None,) * 4)[3] for r in ratings]
+            kept = [entry.plain if (entry := self._cache.get(id(r.scene))) is not None else None for r in ratings]
         plain = np.stack([predictor.stranger_scores(predictor.encoder_input([r.scene], validate=False), 1)[0]
                           if scores is None else scores for r, scores in zip(ratings, kept)])
         actions = self.action_index([r.action for r in ratings])
@@ -447,11 +458,11 @@ class FoldIn:
             return True
         self._read_stored([rating.scene for rating in missing])
         with self._lock:
-            plain_free = self.predictor.stranger_inference is None
-            kept = [id(rating.scene) in self._cache and (plain_free or self._cache[id(rating.scene)][3] is not None)
-                    for rating in missing]
-        encoded = [rating for rating, free in zip(missing, kept) if free]
-        to_encode = [rating for rating, free in zip(missing, kept) if not free]
+            needs_plain = self.predictor.stranger_inference is not None
+            free = [(entry := self._cache.get(id(rating.scene))) is not None
+                    and not (needs_plain and entry.plain is None) for rating in missing]
+        encoded = [rating for rating, cached in zip(missing, free) if cached]
+        to_encode = [rating for rating, cached in zip(missing, free) if not cached]
         built = encoded + to_encode[:limit]
         self.regression(built)
         return len(to_encode) <= limit and len(built) <= limit
