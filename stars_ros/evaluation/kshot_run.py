@@ -158,6 +158,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
             continue
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
                  'prior_scale_weights': [round(float(w), 6) for w in design.foldin.user_prior.scale_prior],
+                 'prior_noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
         if base_encoder is not None:
             entry[BASE_ENCODER] = report(

@@ -35,6 +35,7 @@ ITEM_KEYINGS = ('identifier', 'prefix')
 #: What a person with no ratings is served (``ModelConfig.strangers``).
 STRANGER_SERVING = ('prior_mean', 'base_encoder')
 PRIOR_SCALE_WEIGHTS = ('equal', 'held_out')  # training.prior_scale_weights
+PRIOR_NOISE = ('held_out_residual', 'less_row_uncertainty')  # training.prior_noise
 
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
 #: (an int is a float), NaN and infinities.
@@ -227,6 +228,11 @@ class TrainConfig(Section):
     each of ``personalisation.prior.PRIOR_SCALES`` before their first rating: 'equal' (each
     alike), or 'held_out', fitted to the trained people's held-out ratings, each person's
     residual from the prior's mean weighed as a stranger's (``prior.fitted_scale_weights``).
+    ``prior_noise``: the rating noise σ²_a the fold-in and ``score_sd`` use, from the trained
+    people's held-out ratings: 'held_out_residual', their mean squared residual from the trained
+    rows, or 'less_row_uncertainty', that less the part each trained row's own uncertainty adds
+    to it (its posterior variance there), so that a new person's intervals do not count the
+    row's error twice (``prior.noise_less_row_uncertainty``).
     ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
     ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
     (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
@@ -248,6 +254,7 @@ class TrainConfig(Section):
     user_dropout: Annotated[Float, Field(ge=0.0, le=1.0)] = 0.0
     pooled_stranger: bool = True
     prior_scale_weights: Literal[PRIOR_SCALE_WEIGHTS] = 'equal'
+    prior_noise: Literal[PRIOR_NOISE] = 'held_out_residual'
     distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1

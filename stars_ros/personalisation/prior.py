@@ -51,6 +51,14 @@ estimates what that needs from the trained people and their training ratings:
   fits its person's noise). For a checkpoint that serves strangers its plain encoder, the
   residuals are still those from the prior's mean: that encoder has learnt from the held-out
   ratings too, so its residuals there would understate the departure.
+- **The noise without the rows' own error** (``training.prior_noise`` 'less_row_uncertainty'): a
+  trained person's held-out residual carries the noise and the error of their fitted row,
+  whose variance there is xᵀ C_u x (C_u their posterior covariance, below). Served to a new
+  person, the noise adds to their own posterior's xᵀ Cov x, so that row error would be counted
+  twice and their intervals would be too wide, the more so the fewer ratings trained people
+  have. This option takes it out (``noise_less_row_uncertainty``, a method-of-moments fixed
+  point, since C_u depends on the noise) and finds ν on the residuals standardised by the
+  whole known-person predictive. The default keeps the plain mean squared residual.
 
 A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
 written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its user rows, assumes
@@ -74,6 +82,7 @@ NU_GRID = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, math.in
 PRIOR_SCALES = (0.0, 0.3, 1.0, 3.0)  # a person's scale τ on Σ₀, equally likely a priori (mean 1.075)
 NOISE_SHARE = 0.1  # share of the examples a default fit holds out for the noise (``held_out_split``)
 SCALE_PSEUDOCOUNT = 1.0  # per scale, added to the people that fit the scales' weights (a Dirichlet prior)
+NOISE_FLOOR = 0.1  # share of its plain held-out estimate an action's noise keeps when row error is taken out
 
 
 @dataclass(frozen=True)
@@ -183,6 +192,44 @@ def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people
             return updated
         weights = updated
     return weights
+
+
+def known_covariances(precision: np.ndarray, x: np.ndarray, actions: np.ndarray, people: np.ndarray,
+                      noise: np.ndarray, users: int) -> np.ndarray:
+    """C_u = (Σ₀⁻¹ + XᵀD⁻¹X)⁻¹ [users, dim+1, dim+1]: each trained person's posterior covariance
+    from their training ratings, rows x [n, dim+1] of ``people`` [n] (D: ``noise`` of each
+    rating's action [n] ``actions``), Σ₀⁻¹ ``precision``."""
+    covariance = np.empty((users, len(precision), len(precision)))
+    for person in range(users):
+        mine = people == person
+        covariance[person] = np.linalg.inv(precision + (x[mine] / noise[actions[mine], None]).T @ x[mine])
+    return covariance
+
+
+def noise_less_row_uncertainty(residual: np.ndarray, actions: np.ndarray, x: np.ndarray, people: np.ndarray,
+                               plain: np.ndarray, covariances, tolerance: float = 1e-9,
+                               sweeps: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """(σ²_a [actions], the row variance xᵀ C_u x of each residual [n]): per action, the mean of
+    residual² − xᵀ C_u x over held-out ratings (``residual`` [n] of rows x [n, dim+1] of
+    ``people`` [n], ``actions`` [n]), never below ``NOISE_FLOOR`` of its plain estimate
+    ``plain`` [actions]. C_u = ``covariances(σ²)`` [users, dim+1, dim+1] depends on the noise,
+    so the two are iterated to their fixed point, starting from ``plain``."""
+    noise, floor = plain.copy(), NOISE_FLOOR * plain
+    for _ in range(sweeps):
+        covariance = covariances(noise)
+        row_variance = np.empty(len(residual))
+        for person in np.unique(people):
+            mine = people == person
+            row_variance[mine] = np.einsum('nd,de,ne->n', x[mine], covariance[person], x[mine])
+        updated = plain.copy()
+        for a in np.unique(actions):
+            mine = actions == a
+            updated[a] = max(float(np.mean(residual[mine] ** 2 - row_variance[mine])), floor[a])
+        converged = np.max(np.abs(updated - noise) / plain) < tolerance
+        noise = updated
+        if converged:
+            break
+    return noise, row_variance
 
 
 def held_out_split(data, rows: np.ndarray, share: float = NOISE_SHARE, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -322,8 +369,20 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
     for a in range(len(noise)):
         if (residual_actions == a).any():
             noise[a] = float(np.mean(residual[residual_actions == a] ** 2))
-    nu = student_t_nu(residual / np.sqrt(noise[residual_actions]))
     precision = np.linalg.inv(covariance)
+    predictive_variance = noise[residual_actions]
+    if fitted.config.training.prior_noise == 'less_row_uncertainty':
+        if not held_out:
+            raise ConfigError("training.prior_noise 'less_row_uncertainty' needs held-out ratings of the trained "
+                              'people (noise_rows)')
+        plain_noise = noise
+        noise, row_variance = noise_less_row_uncertainty(
+            residual, residual_actions, noise_x, known, plain_noise,
+            lambda candidate: known_covariances(precision, x, actions, users, candidate, len(trained)))
+        predictive_variance = noise[residual_actions] + row_variance
+        details = {**details, 'noise_less_row_uncertainty': True,
+                   'noise_held_out_residual': [round(float(v), 6) for v in plain_noise]}
+    nu = student_t_nu(residual / np.sqrt(predictive_variance))
     if held_out and weight is not None and fitted.config.training.pooled_stranger:
         mean, details = _pooled_if_better(mean, details, trained, x, z - c, 1.0 / noise[actions], users,
                                           precision, (known, noise_x, noise_z - noise_c, weight))
@@ -337,12 +396,11 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
         details = {**details, 'prior_scale_weights': [round(float(w), 6) for w in scale_weights],
                    'prior_scale_weights_from': f'held-out ratings of {len(np.unique(known))} trained people, '
                                                f'{SCALE_PSEUDOCOUNT:g} pseudo-person per scale'}
-    user_covariance = np.empty((len(trained), len(mean), len(mean)))
-    for row in range(len(trained)):
-        mine = users == row
-        user_covariance[row] = np.linalg.inv(precision + (x[mine] / noise[actions[mine], None]).T @ x[mine])
+    user_covariance = known_covariances(precision, x, actions, users, noise, len(trained))
     source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
-    details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows)),
+    less = (", less each trained row's posterior variance there"
+            if fitted.config.training.prior_noise == 'less_row_uncertainty' else '')
+    details = {**details, 'noise': f'mean squared z-residual of {source}{less}, per action', 'ratings': int(len(rows)),
                'nu': f'maximum likelihood on {source}', 'prior_scales': list(PRIOR_SCALES)}
     return UserPrior(mean, covariance, noise, user_covariance, details, nu, scale_weights)
 

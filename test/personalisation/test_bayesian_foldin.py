@@ -143,6 +143,64 @@ def test_fitted_scale_weights_go_through_the_checkpoint_into_the_fold_in(synthet
         estimate_prior(fitted, synthetic, train)
 
 
+def test_the_noise_less_row_uncertainty_recovers_the_true_noise_from_bayesian_rows():
+    """People θ ~ N(0, Σ₀), two actions with noise 0.5 and 2.0: each trained row is the exact
+    posterior mean from 6 training ratings, so a held-out residual has variance σ²_a + xᵀC_u x.
+    Its plain mean square overstates σ²_a; taking the row variance out recovers it, and the
+    result is the fixed point σ²_a = mean(residual² − xᵀC_u(σ²)x) by hand."""
+    rng = np.random.default_rng(11)
+    size, people, train, held = 4, 600, 6, 8
+    covariance = np.diag([1.0, 0.6, 0.4, 0.8])
+    precision = np.linalg.inv(covariance)
+    truth = np.array([0.5, 2.0])
+    train_x, train_a, train_who, held_x, held_a, held_who, residual = [], [], [], [], [], [], []
+    for person in range(people):
+        theta = rng.multivariate_normal(np.zeros(size), covariance)
+        xs, acts = rng.normal(size=(train, size)), rng.integers(0, 2, train)
+        ys = xs @ theta + rng.normal(size=train) * np.sqrt(truth[acts])
+        row_covariance = np.linalg.inv(precision + (xs / truth[acts, None]).T @ xs)
+        row = row_covariance @ (xs / truth[acts, None]).T @ ys
+        hx, ha = rng.normal(size=(held, size)), rng.integers(0, 2, held)
+        residual.append(hx @ theta + rng.normal(size=held) * np.sqrt(truth[ha]) - hx @ row)
+        train_x.append(xs), train_a.append(acts), train_who.append(np.full(train, person))
+        held_x.append(hx), held_a.append(ha), held_who.append(np.full(held, person))
+    train_x, train_a, train_who, held_x, held_a, held_who, residual = map(
+        np.concatenate, (train_x, train_a, train_who, held_x, held_a, held_who, residual))
+    plain = np.array([np.mean(residual[held_a == a] ** 2) for a in (0, 1)])
+    noise, row_variance = prior_module.noise_less_row_uncertainty(
+        residual, held_a, held_x, held_who, plain,
+        lambda candidate: prior_module.known_covariances(precision, train_x, train_a, train_who, candidate, people))
+    assert (plain > truth * 1.15).all()  # the row's error inflates the plain estimate
+    assert noise == pytest.approx(truth, rel=0.08)
+    rows = prior_module.known_covariances(precision, train_x, train_a, train_who, noise, people)
+    by_hand = np.array([held_x[i] @ rows[held_who[i]] @ held_x[i] for i in range(len(residual))])
+    assert row_variance == pytest.approx(by_hand, rel=1e-6)
+    assert noise == pytest.approx([np.mean(residual[held_a == a] ** 2 - by_hand[held_a == a]) for a in (0, 1)],
+                                  rel=1e-6)
+
+
+def test_the_noise_less_row_uncertainty_keeps_its_floor_and_goes_through_the_fit(synthetic):
+    """An action whose row variance exceeds its residuals keeps ``NOISE_FLOOR`` of its plain
+    estimate; on a fit, the option lowers the noise below the plain held-out one, says so, and
+    needs held-out ratings."""
+    x = np.ones((4, 1))
+    noise, _ = prior_module.noise_less_row_uncertainty(
+        np.full(4, 0.1), np.zeros(4, dtype=int), x, np.zeros(4, dtype=int), np.array([0.01]),
+        lambda candidate: np.ones((1, 1, 1)))
+    assert noise == pytest.approx([0.1 * 0.01])
+    train, held = split_rows(synthetic, 0.2, 0)
+    config = ExperimentConfig.from_dict(TINY_CONFIG).replace(training={'prior_noise': 'less_row_uncertainty'})
+    fitted = StarsTrainer(config).fit(synthetic, train)
+    less = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert less.noise[0] < less.details['noise_held_out_residual'][0] and 'posterior variance' in less.details['noise']
+    fitted.config = config.replace(training={'prior_noise': 'held_out_residual'})
+    plain = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert plain.noise[0] == pytest.approx(less.details['noise_held_out_residual'][0], rel=1e-5)
+    fitted.config = config
+    with pytest.raises(ConfigError, match='prior_noise'):
+        estimate_prior(fitted, synthetic, train)
+
+
 def test_the_student_t_tails_are_found_and_its_intervals_have_unit_variance():
     rng = np.random.default_rng(4)
     gaussian = rng.standard_normal(4000)
