@@ -309,8 +309,12 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     lowest chosen. Only the fold's training people are seen; a candidate whose fit fails
     counts as infinite error."""
     candidates = setting_candidates(settings.select)
-    # the validation people are trained ones: a plain encoder kept for strangers would go unused
-    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}}
+    # the validation people are trained ones: a plain encoder kept for strangers would go unused,
+    # and so would prior scale weights fitted to its residuals (the prior does not enter the scores)
+    training = experiment['training']
+    if training.get('prior_scale_weights') == 'held_out_plain':
+        training = {**training, 'prior_scale_weights': 'equal'}
+    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}, 'training': training}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}
     pending = {}

@@ -34,7 +34,7 @@ VARIANTS = ('base', *PARTS)
 ITEM_KEYINGS = ('identifier', 'prefix')
 #: What a person with no ratings is served (``ModelConfig.strangers``).
 STRANGER_SERVING = ('prior_mean', 'base_encoder')
-PRIOR_SCALE_WEIGHTS = ('equal', 'held_out')  # training.prior_scale_weights
+PRIOR_SCALE_WEIGHTS = ('equal', 'held_out', 'held_out_plain')  # training.prior_scale_weights
 PRIOR_NOISE = ('held_out_residual', 'less_row_uncertainty')  # training.prior_noise
 
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
@@ -227,7 +227,9 @@ class TrainConfig(Section):
     ``prior_scale_weights``: how likely a new person's scale τ on the prior covariance is to be
     each of ``personalisation.prior.PRIOR_SCALES`` before their first rating: 'equal' (each
     alike), or 'held_out', fitted to the trained people's held-out ratings, each person's
-    residual from the prior's mean weighed as a stranger's (``prior.fitted_scale_weights``).
+    residual from the prior's mean weighed as a stranger's (``prior.fitted_scale_weights``), or
+    'held_out_plain', the same with each residual from the plain encoder strangers are served
+    (``model.strangers`` 'base_encoder'; that encoder then does not train on those ratings).
     ``prior_noise``: the rating noise σ²_a the fold-in and ``score_sd`` use, from the trained
     people's held-out ratings: 'held_out_residual', their mean squared residual from the trained
     rows, or 'less_row_uncertainty', that less the part each trained row's own uncertainty adds
@@ -307,6 +309,14 @@ class ExperimentConfig(Section):
     def _posterior_needs_factors(self) -> 'ExperimentConfig':
         if self.training.posterior_sweeps and self.model.variant == 'base':
             raise ValueError("training.posterior_sweeps: the 'base' variant has no factorisation part to sample")
+        return self
+
+    @model_validator(mode='after')
+    def _plain_scales_need_a_plain_encoder(self) -> 'ExperimentConfig':
+        if (self.training.prior_scale_weights == 'held_out_plain' and self.model.variant != 'base'
+                and self.model.strangers != 'base_encoder'):
+            raise ValueError("training.prior_scale_weights 'held_out_plain' weighs residuals from the plain encoder "
+                             "strangers are served: it needs model.strangers 'base_encoder'")
         return self
 
     def stranger_encoder(self) -> 'ExperimentConfig':

@@ -50,7 +50,10 @@ estimates what that needs from the trained people and their training ratings:
   not see, where the spread of their trained rows (Σ₀) may overstate it (a fitted row also
   fits its person's noise). For a checkpoint that serves strangers its plain encoder, the
   residuals are still those from the prior's mean: that encoder has learnt from the held-out
-  ratings too, so its residuals there would understate the departure.
+  ratings too, so its residuals there would understate the departure. With 'held_out_plain'
+  they are the residuals from the plain encoder, which then trains without those ratings
+  (``StarsRecommender.fit``): a handed-over stranger is served that encoder, so their
+  departure is measured from what they are served.
 - **The noise without the rows' own error** (``training.prior_noise`` 'less_row_uncertainty'): a
   trained person's held-out residual carries the noise and the error of their fitted row,
   whose variance there is xᵀ C_u x (C_u their posterior covariance, below). Served to a new
@@ -337,6 +340,18 @@ def rows_design(fitted, inference, data, rows: np.ndarray, h: np.ndarray) -> tup
     return x, c, inference.to_z(data.scores[rows], actions)
 
 
+def plain_z(fitted, inference, data, rows: np.ndarray) -> np.ndarray:
+    """The plain encoder's normalised predictions [n] of ``rows`` of ``data`` (``fitted``'s
+    ``stranger_model``, what a stranger is served), on the z-scale of ``inference``."""
+    if fitted.stranger_model is None:
+        raise ConfigError("training.prior_scale_weights 'held_out_plain' needs a plain encoder for strangers "
+                          "(model.strangers 'base_encoder')")
+    h = encode_all(fitted, data, fitted.stranger_model)[data.scenes[rows]]
+    actions = data.actions[rows]
+    scores = inference_of(fitted.stranger_model).scores(h, None, None)
+    return inference.to_z(scores[np.arange(len(rows)), actions], actions)
+
+
 def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
                    noise_rows: np.ndarray | None = None) -> UserPrior:
     """The prior of a model ``fitted`` (``stars_ros.model.training``'s training class) on
@@ -387,14 +402,20 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
         mean, details = _pooled_if_better(mean, details, trained, x, z - c, 1.0 / noise[actions], users,
                                           precision, (known, noise_x, noise_z - noise_c, weight))
     scale_weights = None
-    if fitted.config.training.prior_scale_weights == 'held_out':
+    weights_from = fitted.config.training.prior_scale_weights
+    if weights_from != 'equal':
         if not held_out:
-            raise ConfigError("training.prior_scale_weights 'held_out' needs held-out ratings of the trained people "
-                             '(noise_rows)')
-        stranger_residual = noise_z - noise_c - noise_x @ mean  # as a stranger served the prior's mean
+            raise ConfigError(f"training.prior_scale_weights '{weights_from}' needs held-out ratings of the trained "
+                              'people (noise_rows)')
+        if weights_from == 'held_out_plain':  # as a stranger served the plain encoder
+            stranger_residual = noise_z - plain_z(fitted, inference, data, noise_rows)
+        else:  # as a stranger served the prior's mean
+            stranger_residual = noise_z - noise_c - noise_x @ mean
         scale_weights = fitted_scale_weights(noise_x, stranger_residual, noise[residual_actions], known, covariance)
+        served = 'the plain encoder' if weights_from == 'held_out_plain' else "the prior's mean"
         details = {**details, 'prior_scale_weights': [round(float(w), 6) for w in scale_weights],
                    'prior_scale_weights_from': f'held-out ratings of {len(np.unique(known))} trained people, '
+                                               f'residuals from {served}, '
                                                f'{SCALE_PSEUDOCOUNT:g} pseudo-person per scale'}
     user_covariance = known_covariances(precision, x, actions, users, noise, len(trained))
     source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'

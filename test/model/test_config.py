@@ -33,6 +33,7 @@ def test_defaults_are_the_published_optimiser():
     ({'training': {'device': 'gpu'}}, r'^training\.device: must be'),
     ({'training': {'device': 'cuda:x'}}, r'^training\.device: must be'),
     ({'training': {'device': 'CUDA'}}, r'^training\.device: must be'),
+    ({'training': {'prior_scale_weights': 'held_out_plain'}}, r"needs model\.strangers 'base_encoder'"),
 ])
 def test_bad_values_refused(values, message):
     with pytest.raises(ConfigError, match=message):

@@ -201,6 +201,40 @@ def test_the_noise_less_row_uncertainty_keeps_its_floor_and_goes_through_the_fit
         estimate_prior(fitted, synthetic, train)
 
 
+def test_scale_weights_from_the_plain_encoder_weigh_its_residuals_where_it_did_not_train(synthetic, monkeypatch):
+    """``training.prior_scale_weights`` 'held_out_plain': the weights are EM's over each trained
+    person's held-out residuals from the plain encoder (scored here by its torch head), which
+    the front door then trains without those ratings; without a plain encoder it is refused."""
+    train, held = split_rows(synthetic, 0.2, 0)
+    config = ExperimentConfig.from_dict(TINY_CONFIG).replace(model={'strangers': 'base_encoder'},
+                                                             training={'prior_scale_weights': 'held_out_plain'})
+    fitted = StarsTrainer(config).fit(synthetic, train)
+    with pytest.raises(ConfigError, match='plain encoder'):
+        estimate_prior(fitted, synthetic, train, noise_rows=held)
+    fitted.stranger_model = plain = StarsTrainer(config.stranger_encoder()).fit(synthetic, train).model
+    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    assert 'plain encoder' in prior.details['prior_scale_weights_from']
+    inference = inference_of(fitted.require_model())
+    known = held[fitted.user_vocabulary.rows(list(synthetic.users[held])) >= 0]
+    people = fitted.user_vocabulary.rows(list(synthetic.users[known]))
+    actions = synthetic.actions[known]
+    with torch.no_grad():
+        h = plain.encode(synthetic.store.batch(torch.from_numpy(synthetic.scenes[known])))
+        served = plain.to_rating_scale(plain.head(h)).double().numpy()[np.arange(len(known)), actions]
+    x, c, z = prior_module.rows_design(fitted, inference, synthetic, known, encode_all(fitted, synthetic))
+    residual = z - inference.to_z(served, actions)
+    expected = prior_module.fitted_scale_weights(x, residual, prior.noise[actions], people, prior.covariance)
+    assert prior.scale_weights == pytest.approx(expected, abs=1e-6)
+    fitted_rows = []
+    original = StarsTrainer.fit
+    monkeypatch.setattr(StarsTrainer, 'fit', lambda self, data, rows, **kw: (fitted_rows.append(np.asarray(rows)),
+                                                                              original(self, data, rows, **kw))[1])
+    from stars_ros import StarsRecommender
+    StarsRecommender(config.to_dict()).fit(synthetic, train)
+    plain_rows, stars_rows = fitted_rows
+    assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(train)
+
+
 def test_the_student_t_tails_are_found_and_its_intervals_have_unit_variance():
     rng = np.random.default_rng(4)
     gaussian = rng.standard_normal(4000)
