@@ -9,6 +9,7 @@ import torch
 from scipy import stats
 
 from conftest import TINY_CONFIG
+from stars_ros import StarsRecommender
 from stars_ros.errors import ConfigError
 from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint
 from stars_ros.model.config import ExperimentConfig
@@ -229,7 +230,6 @@ def test_scale_weights_from_the_plain_encoder_weigh_its_residuals_where_it_did_n
     original = StarsTrainer.fit
     monkeypatch.setattr(StarsTrainer, 'fit', lambda self, data, rows, **kw: (fitted_rows.append(np.asarray(rows)),
                                                                               original(self, data, rows, **kw))[1])
-    from stars_ros import StarsRecommender
     StarsRecommender(config.to_dict()).fit(synthetic, train)
     plain_rows, stars_rows = fitted_rows
     assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(train)
