@@ -31,7 +31,8 @@ def socnav1_path() -> Path:
 
 #: Where the files that start processes or train models live, heaviest first: collected first,
 #: so xdist's workers (``--dist loadfile``, files handed out in collection order) take them
-#: on early and end together on the many small in-process files.
+#: on early and end together on the many small in-process files. Any file with a ``slow`` test
+#: goes before every file without one, wherever it lives.
 HEAVY_FIRST = ('test_colcon_build.py', 'ros/', 'hri/', 'evaluation/', 'offline_training/', 'state/', 'node/')
 
 
@@ -41,7 +42,8 @@ def _weight_rank(item) -> int:
 
 
 def pytest_collection_modifyitems(items):
-    items.sort(key=_weight_rank)  # stable: each file's tests keep their order
+    slow_files = {item.path for item in items if item.get_closest_marker('slow')}
+    items.sort(key=lambda item: (item.path not in slow_files, _weight_rank(item)))  # stable: a file's tests keep their order
 
 
 def pytest_runtest_setup(item):
