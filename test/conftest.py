@@ -43,7 +43,8 @@ def _weight_rank(item) -> int:
 
 def pytest_collection_modifyitems(items):
     slow_files = {item.path for item in items if item.get_closest_marker('slow')}
-    items.sort(key=lambda item: (item.path not in slow_files, _weight_rank(item)))  # stable: a file's tests keep their order
+    # stable: each file's tests keep their order
+    items.sort(key=lambda item: (item.path not in slow_files, _weight_rank(item)))
 
 
 def pytest_runtest_setup(item):

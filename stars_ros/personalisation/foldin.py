@@ -164,8 +164,8 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
     scale_prior = (np.full(len(scales), 1 / len(scales)) if scale_prior is None
                    else np.asarray(scale_prior, dtype=np.float64))
     if not len(x):
-        covariance = None if not with_covariance else \
-            float(scale_prior @ np.asarray(scales)) * np.linalg.inv(prior_precision)
+        covariance = (float(scale_prior @ np.asarray(scales)) * np.linalg.inv(prior_precision)
+                      if with_covariance else None)
         return prior_mean.copy(), covariance, scale_prior.copy()
     residual = np.asarray(y, dtype=np.float64) - x @ prior_mean
     weighted = x / noise[:, None]
