@@ -159,6 +159,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
                  'prior_scale_weights': [round(float(w), 6) for w in design.foldin.user_prior.scale_prior],
                  'prior_noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
+                 'prior_spread': design.foldin.user_prior.details.get('prior_spread', 1.0),
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
         if base_encoder is not None:
             entry[BASE_ENCODER] = report(
@@ -310,10 +311,13 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     counts as infinite error."""
     candidates = setting_candidates(settings.select)
     # the validation people are trained ones: a plain encoder kept for strangers would go unused,
-    # and so would prior scale weights fitted to its residuals (the prior does not enter the scores)
-    training = experiment['training']
+    # and so would a prior's scale weights or spread fitted to its residuals (the prior does not
+    # enter the scores)
+    training = {**experiment['training']}
     if training.get('prior_scale_weights') == 'held_out_plain':
-        training = {**training, 'prior_scale_weights': 'equal'}
+        training['prior_scale_weights'] = 'equal'
+    if training.get('prior_spread') == 'held_out_plain':
+        training['prior_spread'] = 'trained_rows'
     experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}, 'training': training}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}

@@ -36,6 +36,7 @@ ITEM_KEYINGS = ('identifier', 'prefix')
 STRANGER_SERVING = ('prior_mean', 'base_encoder')
 PRIOR_SCALE_WEIGHTS = ('equal', 'held_out', 'held_out_plain')  # training.prior_scale_weights
 PRIOR_NOISE = ('held_out_residual', 'less_row_uncertainty')  # training.prior_noise
+PRIOR_SPREAD = ('trained_rows', 'held_out_plain')  # training.prior_spread
 
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
 #: (an int is a float), NaN and infinities.
@@ -235,6 +236,11 @@ class TrainConfig(Section):
     rows, or 'less_row_uncertainty', that less the part each trained row's own uncertainty adds
     to it (its posterior variance there), so that a new person's intervals do not count the
     row's error twice (``prior.noise_less_row_uncertainty``).
+    ``prior_spread``: the covariance a new person starts from: 'trained_rows', Σ₀, the spread of
+    the trained people's rows, or 'held_out_plain', gΣ₀ with g the maximum marginal likelihood of
+    the trained people's held-out residuals from the plain encoder strangers are served
+    (``prior.fitted_spread``; needs ``model.strangers`` 'base_encoder' and equal scale weights,
+    since g and fitted weights would trade off; that encoder then does not train on those ratings).
     ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
     ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
     (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
@@ -257,6 +263,7 @@ class TrainConfig(Section):
     pooled_stranger: bool = True
     prior_scale_weights: Literal[PRIOR_SCALE_WEIGHTS] = 'equal'
     prior_noise: Literal[PRIOR_NOISE] = 'held_out_residual'
+    prior_spread: Literal[PRIOR_SPREAD] = 'trained_rows'
     distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
@@ -312,11 +319,17 @@ class ExperimentConfig(Section):
         return self
 
     @model_validator(mode='after')
-    def _plain_scales_need_a_plain_encoder(self) -> 'ExperimentConfig':
-        if (self.training.prior_scale_weights == 'held_out_plain' and self.model.variant != 'base'
-                and self.model.strangers != 'base_encoder'):
-            raise ValueError("training.prior_scale_weights 'held_out_plain' weighs residuals from the plain encoder "
-                             "strangers are served: it needs model.strangers 'base_encoder'")
+    def _plain_residuals_need_a_plain_encoder(self) -> 'ExperimentConfig':
+        training = self.training
+        for setting, value in (('prior_scale_weights', training.prior_scale_weights),
+                               ('prior_spread', training.prior_spread)):
+            if value == 'held_out_plain' and self.model.variant != 'base' and self.model.strangers != 'base_encoder':
+                raise ValueError(f"training.{setting} 'held_out_plain' fits residuals from the plain encoder "
+                                 "strangers are served: it needs model.strangers 'base_encoder'")
+        if training.prior_spread != 'trained_rows' and training.prior_scale_weights != 'equal':
+            raise ValueError(f"training.prior_spread '{training.prior_spread}' fits the size of the scale mixture "
+                             f"with its scales equally likely: it needs training.prior_scale_weights 'equal', not "
+                             f"'{training.prior_scale_weights}'")
         return self
 
     def stranger_encoder(self) -> 'ExperimentConfig':

@@ -62,6 +62,13 @@ estimates what that needs from the trained people and their training ratings:
   have. This option takes it out (``noise_less_row_uncertainty``, a method-of-moments fixed
   point, since C_u depends on the noise) and finds ν on the residuals standardised by the
   whole known-person predictive. The default keeps the plain mean squared residual.
+- **How far strangers spread** (``training.prior_spread`` 'held_out_plain'): Σ₀ is the spread of
+  the trained rows, which fit each person's noise as well as their taste and may spread further
+  than people depart from what a stranger is served. This option serves a new person the
+  covariance gΣ₀, g the maximum marginal likelihood of the trained people's held-out residuals
+  from the plain encoder (``fitted_spread``; the scales equally likely, so the mixture keeps its
+  shape and g sets its size, without the floor a pseudocount puts under the fitted weights).
+  Trained people keep their posterior covariances from Σ₀. The default keeps Σ₀.
 
 A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
 written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its user rows, assumes
@@ -85,6 +92,7 @@ NU_GRID = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, math.in
 PRIOR_SCALES = (0.0, 0.3, 1.0, 3.0)  # a person's scale τ on Σ₀, equally likely a priori (mean 1.075)
 NOISE_SHARE = 0.1  # share of the examples a default fit holds out for the noise (``held_out_split``)
 SCALE_PSEUDOCOUNT = 1.0  # per scale, added to the people that fit the scales' weights (a Dirichlet prior)
+SPREAD_BOUNDS = (1e-4, 1e4)  # the range searched for the size g of a stranger's covariance gΣ₀
 NOISE_FLOOR = 0.1  # share of its plain held-out estimate an action's noise keeps when row error is taken out
 
 
@@ -195,6 +203,45 @@ def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people
             return updated
         weights = updated
     return weights
+
+
+def fitted_spread(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray, covariance: np.ndarray,
+                  scale_prior: np.ndarray, scales=PRIOR_SCALES, bounds=SPREAD_BOUNDS) -> float:
+    """The g in ``bounds`` under which each person's residuals r [n] (rows x [n, dim+1] with noise
+    variances ``noise`` [n], of ``people`` [n]) are most likely as a stranger's, r = x(θ − μ₀) + ε
+    with θ − μ₀ ~ N(0, gτΣ₀) (Σ₀ ``covariance``) and one τ per person drawn from ``scale_prior``
+    over ``scales``: maximum marginal likelihood over log g, a grid then bounded Brent around its
+    best point. Each person's likelihood is evaluated in the eigenbasis of D^-½XΣ₀XᵀD^-½ (D their
+    noise), so every g costs O(n) once the eigenvalues are known."""
+    from scipy.optimize import minimize_scalar  # estimation only: serving never fits a prior
+
+    people_terms = []
+    for person in np.unique(people):
+        mine = people == person
+        weight = 1.0 / np.sqrt(noise[mine])
+        whitened = x[mine] * weight[:, None]
+        eigenvalues, vectors = np.linalg.eigh(whitened @ covariance @ whitened.T)
+        rotated = vectors.T @ (r[mine] * weight)
+        constant = -0.5 * (np.sum(np.log(noise[mine])) + mine.sum() * math.log(2 * math.pi))
+        people_terms.append((np.clip(eigenvalues, 0.0, None), rotated ** 2, constant))
+    log_prior = np.log(np.asarray(scale_prior, dtype=np.float64))
+    scales = np.asarray(scales, dtype=np.float64)
+
+    def negative_log_likelihood(log_g: float) -> float:
+        total = 0.0
+        for eigenvalues, squared, constant in people_terms:
+            spread = 1.0 + math.exp(log_g) * scales[:, None] * eigenvalues[None, :]  # [scales, n]
+            per_scale = constant - 0.5 * np.sum(squared / spread + np.log(spread), axis=1) + log_prior
+            top = per_scale.max()
+            total += top + math.log(np.exp(per_scale - top).sum())
+        return -total
+
+    low, high = math.log(bounds[0]), math.log(bounds[1])
+    grid = np.linspace(low, high, 61)
+    best = int(np.argmin([negative_log_likelihood(g) for g in grid]))
+    bracket = (grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)])
+    found = minimize_scalar(negative_log_likelihood, bounds=bracket, method='bounded', options={'xatol': 1e-8})
+    return float(math.exp(found.x if found.fun <= negative_log_likelihood(grid[best]) else grid[best]))
 
 
 def known_covariances(precision: np.ndarray, x: np.ndarray, actions: np.ndarray, people: np.ndarray,
@@ -402,15 +449,15 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
         mean, details = _pooled_if_better(mean, details, trained, x, z - c, 1.0 / noise[actions], users,
                                           precision, (known, noise_x, noise_z - noise_c, weight))
     scale_weights = None
-    weights_from = fitted.config.training.prior_scale_weights
+    weights_from, spread_from = fitted.config.training.prior_scale_weights, fitted.config.training.prior_spread
+    for setting, value in (('prior_scale_weights', weights_from), ('prior_spread', spread_from)):
+        if value not in ('equal', 'trained_rows') and not held_out:
+            raise ConfigError(f"training.{setting} '{value}' needs held-out ratings of the trained people (noise_rows)")
+    if 'held_out_plain' in (weights_from, spread_from):  # as a stranger served the plain encoder
+        plain_residual = noise_z - plain_z(fitted, inference, data, noise_rows)
     if weights_from != 'equal':
-        if not held_out:
-            raise ConfigError(f"training.prior_scale_weights '{weights_from}' needs held-out ratings of the trained "
-                              'people (noise_rows)')
-        if weights_from == 'held_out_plain':  # as a stranger served the plain encoder
-            stranger_residual = noise_z - plain_z(fitted, inference, data, noise_rows)
-        else:  # as a stranger served the prior's mean
-            stranger_residual = noise_z - noise_c - noise_x @ mean
+        stranger_residual = (plain_residual if weights_from == 'held_out_plain'
+                             else noise_z - noise_c - noise_x @ mean)  # as a stranger served the prior's mean
         scale_weights = fitted_scale_weights(noise_x, stranger_residual, noise[residual_actions], known, covariance)
         served = 'the plain encoder' if weights_from == 'held_out_plain' else "the prior's mean"
         details = {**details, 'prior_scale_weights': [round(float(w), 6) for w in scale_weights],
@@ -418,6 +465,13 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
                                                f'residuals from {served}, '
                                                f'{SCALE_PSEUDOCOUNT:g} pseudo-person per scale'}
     user_covariance = known_covariances(precision, x, actions, users, noise, len(trained))
+    if spread_from == 'held_out_plain':  # a stranger's covariance gΣ₀; trained people keep theirs from Σ₀
+        spread = fitted_spread(noise_x, plain_residual, noise[residual_actions], known, covariance,
+                               np.full(len(PRIOR_SCALES), 1 / len(PRIOR_SCALES)))
+        covariance = spread * covariance
+        details = {**details, 'prior_spread': round(spread, 6),
+                   'prior_spread_from': f'maximum marginal likelihood of held-out ratings of '
+                                        f'{len(np.unique(known))} trained people, residuals from the plain encoder'}
     source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
     less = (", less each trained row's posterior variance there"
             if fitted.config.training.prior_noise == 'less_row_uncertainty' else '')

@@ -12,6 +12,7 @@ from stars_ros.evaluation import kshot_run
 from stars_ros.evaluation.kshot import (EXACT_SETS, STRATEGIES, Design, Person, annotator_folds, coverage, known_split,
                                        random_sets, reveal_pools)
 from stars_ros import StarsRecommender
+from stars_ros.personalisation.prior import SPREAD_BOUNDS
 from conftest import TINY_CONFIG
 
 
@@ -178,23 +179,31 @@ def test_the_hand_over_k_is_where_the_fold_in_stays_at_or_below_the_base_encoder
 
 
 def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root, synthetic, tmp_path, monkeypatch):
+    """On the packaged config with the prior's spread fitted to the plain encoder's residuals:
+    a selection fit serves no stranger, so it fits no plain encoder and no spread (a config
+    with either refused), and the kept fits do, each record saying its spread."""
     seen = []
     original = kshot_run.fit_rows
 
     def fit_rows(experiment, train, test, keep, noise_rows=None, data=None):
         if experiment['model'].get('variant') != 'base':  # the plain encoder beside each fold is not selection
             seen.append((experiment['training']['joint_epochs'], np.asarray(train), np.asarray(test), keep))
+            assert (experiment['model']['strangers'], experiment['training']['prior_spread']) == (
+                ('base_encoder', 'held_out_plain') if keep else ('prior_mean', 'trained_rows'))
         return original(experiment, train, test, keep, noise_rows, data)
     monkeypatch.setattr(kshot_run, 'fit_rows', fit_rows)
+    config = yaml.safe_load(open('config/socnav1_gat.yaml'))
+    config['training']['prior_spread'] = 'held_out_plain'
+    (tmp_path / 'config.yaml').write_text(yaml.safe_dump(config))
     out = tmp_path / 'kshot'
-    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out', str(out),
-                       '--quick', '--retrain-ks', '0', '--select', 'joint_epochs=1,3']) == 0
+    assert kshot.main(['--config', str(tmp_path / 'config.yaml'), '--data-root', str(synthetic_root), '--out',
+                       str(out), '--quick', '--retrain-ks', '0', '--select', 'joint_epochs=1,3']) == 0
     results = json.loads((out / 'results.json').read_text())
     held_out = [set(people) for people in results['folds']['0']]
     assert len(results['selection']) == 2
     for entry, people in zip(results['selection'], held_out):
         errors = entry['validation_mse']
-        assert set(errors) == {'{"joint_epochs": 1}', '{"joint_epochs": 3}'}
+        assert set(errors) == {'{"joint_epochs": 1}', '{"joint_epochs": 3}'} and np.isfinite(list(errors.values())).all()
         assert entry['chosen'] == json.loads(min(errors, key=errors.get))
     selection_fits = [fit for fit in seen if not fit[3]]  # with --retrain-ks 0 the only fits not kept
     assert len(selection_fits) == 4  # two candidates, two folds
@@ -204,6 +213,7 @@ def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root
     finals = [fit for fit in seen if fit[3]]
     assert sorted(fit[0] for fit in finals) == sorted(e['chosen']['joint_epochs'] for e in results['selection'])
     assert 'chosen per fold inside its training people' in (out / 'results.md').read_text()
+    assert all(SPREAD_BOUNDS[0] <= record['prior_spread'] <= SPREAD_BOUNDS[1] for record in results['records'])
 
 
 @pytest.mark.slow

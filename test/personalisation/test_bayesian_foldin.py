@@ -235,6 +235,88 @@ def test_scale_weights_from_the_plain_encoder_weigh_its_residuals_where_it_did_n
     assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(train)
 
 
+def test_the_fitted_spread_recovers_the_size_of_the_covariance_people_depart_by():
+    """People whose θ − μ₀ is drawn from the equal scale mixture on 0.4·Σ₀, 30 ratings each:
+    the maximum marginal likelihood g is near 0.4, its likelihood by hand (scipy's multivariate
+    normal, mixed over the scales) is no lower there than a little either side, and ratings
+    that carry only noise send g to the bottom of its range."""
+    rng = np.random.default_rng(5)
+    scales, size, people, n = prior_module.PRIOR_SCALES, 3, 300, 30
+    covariance = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 0.8]])
+    equal = np.full(len(scales), 1 / len(scales))
+    x, r, who, noise = [], [], [], []
+    for person in range(people):
+        rows = rng.normal(size=(n, size))
+        theta = rng.multivariate_normal(np.zeros(size), 0.4 * scales[rng.integers(len(scales))] * covariance)
+        variance = rng.uniform(0.2, 0.4, n)
+        x.append(rows), r.append(rows @ theta + rng.normal(size=n) * np.sqrt(variance))
+        who.append(np.full(n, person)), noise.append(variance)
+    x, r, who, noise = map(np.concatenate, (x, r, who, noise))
+    spread = prior_module.fitted_spread(x, r, noise, who, covariance, equal)
+    assert spread == pytest.approx(0.4, rel=0.2)
+
+    def by_hand(g):
+        total = 0.0
+        for p in range(people):
+            mine = who == p
+            per_scale = [stats.multivariate_normal.logpdf(r[mine], np.zeros(n), g * s * x[mine] @ covariance
+                                                          @ x[mine].T + np.diag(noise[mine])) for s in scales]
+            total += np.log(np.mean(np.exp(per_scale)))
+        return total
+    assert by_hand(spread) >= max(by_hand(spread * 0.97), by_hand(spread * 1.03))
+    quiet = rng.normal(size=len(r)) * np.sqrt(noise)
+    assert prior_module.fitted_spread(x, quiet, noise, who, covariance, equal) < 0.05
+
+
+def test_the_fitted_spread_goes_through_the_fit_and_serves_strangers_g_times_the_trained_spread(synthetic,
+                                                                                               monkeypatch):
+    """``training.prior_spread`` 'held_out_plain': a stranger's covariance is g times the trained
+    rows' Σ₀, g ``fitted_spread`` of the held-out residuals from the plain encoder (here one
+    off by an offset per person, 0.7 noise sd, so that g is inside its range: the tiny model's own plain
+    encoder leaves residuals the noise explains); trained people keep their covariances from
+    Σ₀; the front door trains that encoder without those ratings; the config refuses it
+    without a plain encoder or with fitted scale weights."""
+    train, held = split_rows(synthetic, 0.2, 0)
+    config = ExperimentConfig.from_dict(TINY_CONFIG).replace(model={'strangers': 'base_encoder'},
+                                                             training={'prior_spread': 'held_out_plain'})
+    fitted = StarsTrainer(config).fit(synthetic, train)
+    fitted.stranger_model = StarsTrainer(config.stranger_encoder()).fit(synthetic, train).model
+    fitted.config = config.replace(training={'prior_spread': 'trained_rows'})
+    rows = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    inference = inference_of(fitted.require_model())
+    known = held[fitted.user_vocabulary.rows(list(synthetic.users[held])) >= 0]
+    people = fitted.user_vocabulary.rows(list(synthetic.users[known]))
+    actions = synthetic.actions[known]
+    x = prior_module.rows_design(fitted, inference, synthetic, known, encode_all(fitted, synthetic))[0]
+    offset = np.random.default_rng(3).normal(0.0, 0.7 * np.sqrt(rows.noise.mean()), len(fitted.user_vocabulary))
+
+    def plain_off_by_an_offset(fitted, inference, data, rows):
+        z = prior_module.rows_design(fitted, inference, data, rows, encode_all(fitted, data))[2]
+        return z - offset[fitted.user_vocabulary.rows(list(data.users[rows]))]
+    monkeypatch.setattr(prior_module, 'plain_z', plain_off_by_an_offset)
+    fitted.config = config
+    spread = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    g = spread.details['prior_spread']
+    assert prior_module.SPREAD_BOUNDS[0] < g < prior_module.SPREAD_BOUNDS[1]
+    assert 'plain encoder' in spread.details['prior_spread_from'] and 'prior_spread' not in rows.details
+    assert spread.covariance == pytest.approx(g * rows.covariance, rel=1e-5)
+    assert spread.user_covariance == pytest.approx(rows.user_covariance)
+    expected = prior_module.fitted_spread(x, offset[people], rows.noise[actions], people, rows.covariance,
+                                          np.full(4, 0.25))
+    assert g == pytest.approx(expected, rel=1e-5)
+    fitted_rows = []
+    original = StarsTrainer.fit
+    monkeypatch.setattr(StarsTrainer, 'fit', lambda self, data, rows, **kw: (fitted_rows.append(np.asarray(rows)),
+                                                                              original(self, data, rows, **kw))[1])
+    StarsRecommender(config.to_dict()).fit(synthetic, train)
+    plain_rows, stars_rows = fitted_rows
+    assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(train)
+    with pytest.raises(ConfigError, match="prior_spread .held_out_plain. fits residuals from the plain encoder"):
+        config.replace(model={'strangers': 'prior_mean'})
+    with pytest.raises(ConfigError, match="needs training.prior_scale_weights .equal."):
+        config.replace(training={'prior_scale_weights': 'held_out_plain'})
+
+
 def test_the_student_t_tails_are_found_and_its_intervals_have_unit_variance():
     rng = np.random.default_rng(4)
     gaussian = rng.standard_normal(4000)
