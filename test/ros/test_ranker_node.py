@@ -88,14 +88,18 @@ SETTLED = 'settled-'  # the scene ids of _settle's markers
 def _settle(client, scenes, attempts: int = 10):
     """Return once every answer to the requests sent so far has reached ``client``. The node
     takes stars/scene in order and each of its topics arrives in order: a request ranked
-    after all of them (sent again while a full queue refuses it), then, once that ranking
-    is in, a request refused at once, whose error follows every earlier error."""
+    after all of them (sent again while a full queue refuses it, once a ranking has come
+    since, so the queue has had room made in it: a refusal comes back faster than a ranking
+    is made), then, once that ranking is in, a request refused at once, whose error follows
+    every earlier error."""
     for attempt in range(attempts):
         scene_id = f'{SETTLED}{time.monotonic_ns()}'
         client.scene({'scene_id': scene_id, 'user_id': KNOWN_USER, 'graph': scenes[0]})
         if client.wait(lambda: client.ranking_for(scene_id) is not None or any(
                 e['scene_id'] == scene_id for e in client.errors), 20) and client.ranking_for(scene_id):
             break
+        rankings = len(client.snapshot(client.rankings))
+        client.wait(lambda: len(client.snapshot(client.rankings)) > rankings, 20)
     else:
         pytest.fail(f'no request was ranked in {attempts} attempts')
     refused = f'{SETTLED}{time.monotonic_ns()}'
