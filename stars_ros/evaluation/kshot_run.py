@@ -198,6 +198,8 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
                 reports.append(report(data, rows, predictions[rows], examples))
             entry[method] = {key: type(value)(np.mean([r[key] for r in reports])) for key, value in reports[0].items()}
         entry[ridge] = report(data, rows, ridge_predictions[rows], examples)
+        if calibration['new'].get(k):  # this fold's alone, so that the pooled table hides no fold
+            entry['calibration'] = pooled_coverage(calibration['new'][k])
         if k in outcomes:
             entry['retrained'] = report(data, rows, outcomes[k]['predictions'][np.searchsorted(fold_test(fold), rows)],
                                         examples)
@@ -348,20 +350,24 @@ def methods_of(entry: dict) -> list:
     return [key for key in entry if isinstance(entry[key], dict) and 'mse' in entry[key]]
 
 
+def pooled_coverage(parts: list) -> dict:
+    """{level: coverage, 'n', 'draws', 'mean_sd', 'nu'} of ``coverage_part``s pooled, each
+    weighted by its ratings; ``n``: the ratings of their draw 0s, ``draws``: how many parts."""
+    sizes = np.array([p['n'] for p in parts])
+    return {**{level: float(np.average([p['coverage'][level] for p in parts], weights=sizes))
+               for level in parts[0]['coverage']},
+            'n': int(sum(p['n'] for p in parts if p['draw'] == 0)), 'draws': len(parts),
+            'mean_sd': float(sum(p['sd_sum'] for p in parts) / sizes.sum()),
+            'nu': sorted({p['nu'] for p in parts})}
+
+
 def calibration_table(pooled: dict) -> dict:
     """{'new': {k: {level: coverage}}, 'known': {level: coverage}, 'n': ...} pooled over folds
-    and draws (``coverage_part``s; each fold's intervals from its own prior's ν, each draw of a
+    and draws (``pooled_coverage``; each fold's intervals from its own prior's ν, each draw of a
     fold weighted by its ratings); ``n``: the ratings of one draw of every fold."""
-    def cover(parts):
-        sizes = np.array([p['n'] for p in parts])
-        return {**{level: float(np.average([p['coverage'][level] for p in parts], weights=sizes))
-                   for level in parts[0]['coverage']},
-                'n': int(sum(p['n'] for p in parts if p['draw'] == 0)),
-                'mean_sd': float(sum(p['sd_sum'] for p in parts) / sizes.sum()),
-                'nu': sorted({p['nu'] for p in parts})}
-    table = {'new': {str(k): cover(parts) for k, parts in sorted(pooled['new'].items())}}
+    table = {'new': {str(k): pooled_coverage(parts) for k, parts in sorted(pooled['new'].items())}}
     if pooled['known']:
-        table['known'] = cover(pooled['known'])
+        table['known'] = pooled_coverage(pooled['known'])
     return table
 
 
@@ -472,6 +478,17 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
     for who, k, cells in rows:
         lines.append(f"| {who} | {k} | {cells['n']} | {cells['mean_sd']:.4f} | {', '.join(f'{v:g}' for v in cells['nu'])} | "
                      + ' | '.join(f'{100 * cells[l]:.1f}' for l in levels) + ' |')
+    by_fold = [r for r in result['records'] if 'calibration' in r]
+    if by_fold:
+        folds = sorted({(r['seed'], r['fold']) for r in by_fold})
+        cells = {(r['seed'], r['fold'], r['k']): r['calibration'] for r in by_fold}
+        lines += ['', 'The same per fold (new people; ' + ', '.join(f'{float(l):.0%}' for l in levels) + '):', '',
+                  '| k | ' + ' | '.join(f'seed {s} fold {f}' for s, f in folds) + ' |',
+                  '| --- |' + ' --- |' * len(folds)]
+        for k in sorted({r['k'] for r in by_fold}):
+            lines.append(f'| {k} | ' + ' | '.join(
+                ', '.join(f'{100 * cells[s, f, k][l]:.1f}' for l in levels) if (s, f, k) in cells else '–'
+                for s, f in folds) + ' |')
     if checks:
         lines += ['', 'Goals:', '']
         for method, held in checks['never_worse'].items():
