@@ -202,6 +202,18 @@ def test_the_noise_less_row_uncertainty_keeps_its_floor_and_goes_through_the_fit
         estimate_prior(fitted, synthetic, train)
 
 
+def assert_the_plain_encoder_trains_without_the_held_out_ratings(config, data, rows, monkeypatch):
+    """The front door's ``fit`` with ``config`` trains the plain encoder on the rows StARS
+    trains on: ``rows`` less the held-out share the prior's residuals come from."""
+    fitted_rows = []
+    original = StarsTrainer.fit
+    monkeypatch.setattr(StarsTrainer, 'fit', lambda self, data, rows, **kw: (fitted_rows.append(np.asarray(rows)),
+                                                                              original(self, data, rows, **kw))[1])
+    StarsRecommender(config.to_dict()).fit(data, rows)
+    plain_rows, stars_rows = fitted_rows
+    assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(rows)
+
+
 def test_scale_weights_from_the_plain_encoder_weigh_its_residuals_where_it_did_not_train(synthetic, monkeypatch):
     """``training.prior_scale_weights`` 'held_out_plain': the weights are EM's over each trained
     person's held-out residuals from the plain encoder (scored here by its torch head), which
@@ -226,13 +238,7 @@ def test_scale_weights_from_the_plain_encoder_weigh_its_residuals_where_it_did_n
     residual = z - inference.to_z(served, actions)
     expected = prior_module.fitted_scale_weights(x, residual, prior.noise[actions], people, prior.covariance)
     assert prior.scale_weights == pytest.approx(expected, abs=1e-6)
-    fitted_rows = []
-    original = StarsTrainer.fit
-    monkeypatch.setattr(StarsTrainer, 'fit', lambda self, data, rows, **kw: (fitted_rows.append(np.asarray(rows)),
-                                                                              original(self, data, rows, **kw))[1])
-    StarsRecommender(config.to_dict()).fit(synthetic, train)
-    plain_rows, stars_rows = fitted_rows
-    assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(train)
+    assert_the_plain_encoder_trains_without_the_held_out_ratings(config, synthetic, train, monkeypatch)
 
 
 def test_the_fitted_spread_recovers_the_size_of_the_covariance_people_depart_by():
@@ -304,13 +310,7 @@ def test_the_fitted_spread_goes_through_the_fit_and_serves_strangers_g_times_the
     expected = prior_module.fitted_spread(x, offset[people], rows.noise[actions], people, rows.covariance,
                                           np.full(4, 0.25))
     assert g == pytest.approx(expected, rel=1e-5)
-    fitted_rows = []
-    original = StarsTrainer.fit
-    monkeypatch.setattr(StarsTrainer, 'fit', lambda self, data, rows, **kw: (fitted_rows.append(np.asarray(rows)),
-                                                                              original(self, data, rows, **kw))[1])
-    StarsRecommender(config.to_dict()).fit(synthetic, train)
-    plain_rows, stars_rows = fitted_rows
-    assert np.array_equal(plain_rows, stars_rows) and len(plain_rows) < len(train)
+    assert_the_plain_encoder_trains_without_the_held_out_ratings(config, synthetic, train, monkeypatch)
     with pytest.raises(ConfigError, match="prior_spread .held_out_plain. fits residuals from the plain encoder"):
         config.replace(model={'strangers': 'prior_mean'})
     with pytest.raises(ConfigError, match="needs training.prior_scale_weights .equal."):
