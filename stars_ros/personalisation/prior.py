@@ -172,6 +172,34 @@ def student_t_nu(standardised: np.ndarray) -> float:
     return max(NU_GRID, key=log_likelihood)
 
 
+def people_spectra(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray,
+                   covariance: np.ndarray) -> list:
+    """Per person (in ``np.unique(people)`` order), what the marginal likelihood of their
+    residuals r [n] (rows x [n, dim+1] with noise variances ``noise`` [n], of ``people`` [n])
+    needs for any covariance cΣ₀ (Σ₀ ``covariance``): the eigenvalues λ of D^-½XΣ₀XᵀD^-½ (D
+    their noise), their whitened residuals squared in that eigenbasis, and the constant part."""
+    spectra = []
+    for person in np.unique(people):
+        mine = people == person
+        weight = 1.0 / np.sqrt(noise[mine])
+        whitened = x[mine] * weight[:, None]
+        eigenvalues, vectors = np.linalg.eigh(whitened @ covariance @ whitened.T)
+        constant = -0.5 * (np.sum(np.log(noise[mine])) + mine.sum() * math.log(2 * math.pi))
+        spectra.append((np.clip(eigenvalues, 0.0, None), (vectors.T @ (r[mine] * weight)) ** 2, constant))
+    return spectra
+
+
+def scale_log_likelihoods(spectra: list, sizes: np.ndarray) -> np.ndarray:
+    """log N(r; 0, cXΣ₀Xᵀ + D) [people, sizes] for each person of ``people_spectra`` and each
+    c of ``sizes``: −½ Σ (s²/(1 + cλ) + log(1 + cλ)) plus the constant, O(n) per c."""
+    sizes = np.asarray(sizes, dtype=np.float64)
+    rows = []
+    for eigenvalues, squared, constant in spectra:
+        spread = 1.0 + sizes[:, None] * eigenvalues[None, :]  # [sizes, n]
+        rows.append(constant - 0.5 * np.sum(squared / spread + np.log(spread), axis=1))
+    return np.array(rows)
+
+
 def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray,
                          covariance: np.ndarray, scales=PRIOR_SCALES,
                          pseudocount: float = SCALE_PSEUDOCOUNT) -> np.ndarray:
@@ -181,18 +209,7 @@ def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people
     person drawn from the weights: EM for a mixture's weights (each person's responsibilities,
     then their mean), with ``pseudocount`` people added to every scale, so that no scale's
     weight reaches 0 (a new person could then never be found to be there)."""
-    log_likelihood = []
-    for person in np.unique(people):
-        mine = people == person
-        xs, rs = x[mine], r[mine]
-        projected = xs @ covariance @ xs.T
-        row = []
-        for scale in scales:
-            total = scale * projected + np.diag(noise[mine])
-            logdet = np.linalg.slogdet(total)[1]
-            row.append(-0.5 * (rs @ np.linalg.solve(total, rs) + logdet + len(rs) * math.log(2 * math.pi)))
-        log_likelihood.append(row)
-    log_likelihood = np.array(log_likelihood)
+    log_likelihood = scale_log_likelihoods(people_spectra(x, r, noise, people, covariance), scales)
     weights = np.full(len(scales), 1 / len(scales))
     for _ in range(10_000):
         joint = log_likelihood + np.log(weights)
@@ -211,33 +228,18 @@ def fitted_spread(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.nd
     variances ``noise`` [n], of ``people`` [n]) are most likely as a stranger's, r = x(θ − μ₀) + ε
     with θ − μ₀ ~ N(0, gτΣ₀) (Σ₀ ``covariance``) and one τ per person drawn from ``scale_prior``
     over ``scales``: maximum marginal likelihood over log g, a grid then bounded Brent around its
-    best point. Each person's likelihood is evaluated in the eigenbasis of D^-½XΣ₀XᵀD^-½ (D their
-    noise), so every g costs O(n) once the eigenvalues are known."""
+    best point (``scale_log_likelihoods`` of gτ, mixed over τ)."""
     from scipy.optimize import minimize_scalar  # estimation only: serving never fits a prior
+    from scipy.special import logsumexp
 
-    people_terms = []
-    for person in np.unique(people):
-        mine = people == person
-        weight = 1.0 / np.sqrt(noise[mine])
-        whitened = x[mine] * weight[:, None]
-        eigenvalues, vectors = np.linalg.eigh(whitened @ covariance @ whitened.T)
-        rotated = vectors.T @ (r[mine] * weight)
-        constant = -0.5 * (np.sum(np.log(noise[mine])) + mine.sum() * math.log(2 * math.pi))
-        people_terms.append((np.clip(eigenvalues, 0.0, None), rotated ** 2, constant))
+    spectra = people_spectra(x, r, noise, people, covariance)
     log_prior = np.log(np.asarray(scale_prior, dtype=np.float64))
     scales = np.asarray(scales, dtype=np.float64)
 
     def negative_log_likelihood(log_g: float) -> float:
-        total = 0.0
-        for eigenvalues, squared, constant in people_terms:
-            spread = 1.0 + math.exp(log_g) * scales[:, None] * eigenvalues[None, :]  # [scales, n]
-            per_scale = constant - 0.5 * np.sum(squared / spread + np.log(spread), axis=1) + log_prior
-            top = per_scale.max()
-            total += top + math.log(np.exp(per_scale - top).sum())
-        return -total
+        return -float(logsumexp(scale_log_likelihoods(spectra, math.exp(log_g) * scales) + log_prior, axis=1).sum())
 
-    low, high = math.log(bounds[0]), math.log(bounds[1])
-    grid = np.linspace(low, high, 61)
+    grid = np.linspace(math.log(bounds[0]), math.log(bounds[1]), 61)
     best = int(np.argmin([negative_log_likelihood(g) for g in grid]))
     bracket = (grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)])
     found = minimize_scalar(negative_log_likelihood, bounds=bracket, method='bounded', options={'xatol': 1e-8})

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from offline_training import learning_curve
 from stars_ros.evaluation import executors, report
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError
@@ -323,7 +324,6 @@ def test_learning_curve_cli_writes_its_results(synthetic_root, tmp_path, capsys)
     assert len((out / 'records.jsonl').read_text().splitlines()) == 8
     bad = tmp_path / 'bad.yaml'
     bad.write_text(yaml.safe_dump({'protocol': 'protocol.yaml'}))
-    from offline_training import learning_curve
     assert learning_curve.main(['--config', str(bad), '--data-root', str(synthetic_root),
                                 '--out', str(tmp_path / 'refused')]) == 2
     assert f'{bad}: backbone: required key missing' in capsys.readouterr().err
