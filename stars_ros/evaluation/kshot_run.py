@@ -160,6 +160,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
                  'prior_scale_weights': [round(float(w), 6) for w in design.foldin.user_prior.scale_prior],
                  'prior_noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
                  'prior_spread': design.foldin.user_prior.details.get('prior_spread', 1.0),
+                 'stranger_noise_share': design.foldin.user_prior.details.get('stranger_noise_share', 1.0),
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
         if base_encoder is not None:
             entry[BASE_ENCODER] = report(
@@ -313,13 +314,15 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     counts as infinite error."""
     candidates = setting_candidates(settings.select)
     # the validation people are trained ones: a plain encoder kept for strangers would go unused,
-    # and so would a prior's scale weights or spread fitted to its residuals (the prior does not
-    # enter the scores)
+    # and so would a prior's scale weights, spread or stranger noise fitted to its residuals (the
+    # prior does not enter the scores)
     training = {**experiment['training']}
     if training.get('prior_scale_weights') == 'held_out_plain':
         training['prior_scale_weights'] = 'equal'
     if training.get('prior_spread') == 'held_out_plain':
         training['prior_spread'] = 'trained_rows'
+    if training.get('stranger_noise') == 'held_out_plain':
+        training['stranger_noise'] = 'trained_people'
     experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}, 'training': training}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}

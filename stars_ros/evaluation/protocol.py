@@ -76,7 +76,8 @@ def _merge(base: dict, changes: dict) -> dict:
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'average_last': 'training',
               'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'user_dropout': 'training',
               'distil_members': 'training', 'pooled_stranger': 'training', 'prior_scale_weights': 'training',
-              'prior_noise': 'training', 'prior_spread': 'training', 'dim': 'model', 'strangers': 'model'}
+              'prior_noise': 'training', 'prior_spread': 'training', 'stranger_noise': 'training', 'dim': 'model',
+              'strangers': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
 #: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.

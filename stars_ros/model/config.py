@@ -37,6 +37,7 @@ STRANGER_SERVING = ('prior_mean', 'base_encoder')
 PRIOR_SCALE_WEIGHTS = ('equal', 'held_out', 'held_out_plain')  # training.prior_scale_weights
 PRIOR_NOISE = ('held_out_residual', 'less_row_uncertainty')  # training.prior_noise
 PRIOR_SPREAD = ('trained_rows', 'held_out_plain')  # training.prior_spread
+STRANGER_NOISE = ('trained_people', 'held_out_plain')  # training.stranger_noise
 
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
 #: (an int is a float), NaN and infinities.
@@ -241,6 +242,9 @@ class TrainConfig(Section):
     the trained people's held-out residuals from the plain encoder strangers are served
     (``prior.fitted_spread``; needs ``model.strangers`` 'base_encoder' and equal scale weights,
     since g and fitted weights would trade off; that encoder then does not train on those ratings).
+    ``stranger_noise``: the rating noise of a person the model was not trained on:
+    'trained_people', the trained people's σ²_a, or 'held_out_plain', s·σ²_a with s fitted
+    together with ``prior_spread``'s g (needs ``prior_spread`` 'held_out_plain').
     ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
     ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
     (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
@@ -264,6 +268,7 @@ class TrainConfig(Section):
     prior_scale_weights: Literal[PRIOR_SCALE_WEIGHTS] = 'equal'
     prior_noise: Literal[PRIOR_NOISE] = 'held_out_residual'
     prior_spread: Literal[PRIOR_SPREAD] = 'trained_rows'
+    stranger_noise: Literal[STRANGER_NOISE] = 'trained_people'
     distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
@@ -330,6 +335,10 @@ class ExperimentConfig(Section):
             raise ValueError(f"training.prior_spread '{training.prior_spread}' fits the size of the scale mixture "
                              f"with its scales equally likely: it needs training.prior_scale_weights 'equal', not "
                              f"'{training.prior_scale_weights}'")
+        if training.stranger_noise != 'trained_people' and training.prior_spread != 'held_out_plain':
+            raise ValueError(f"training.stranger_noise '{training.stranger_noise}' is fitted together with the "
+                             f"prior's spread: it needs training.prior_spread 'held_out_plain', not "
+                             f"'{training.prior_spread}'")
         return self
 
     def stranger_encoder(self) -> 'ExperimentConfig':

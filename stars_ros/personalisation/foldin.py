@@ -242,6 +242,7 @@ class FoldIn:
         self.user_prior = prior_of(served, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
+        self.stranger_noise = self.noise if self.user_prior.stranger_noise is None else self.user_prior.stranger_noise
         self.implicit_noise = self._implicit_noise(implicit_variance, served.rating_scale)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
@@ -269,14 +270,21 @@ class FoldIn:
             raise ValueError(f'implicit_variance must be positive, got {variance}')
         return variance / np.asarray(self.inference.target_std, dtype=np.float64) ** 2
 
-    def rating_noise(self, ratings: Sequence[Rating]) -> np.ndarray:
-        """z-scale noise variance of each rating (``noise_of``)."""
-        return self.noise_of(self.action_index([r.action for r in ratings]), [r.implicit for r in ratings])
+    def noise_for(self, user_id=None) -> np.ndarray:
+        """z-scale noise variance of ``user_id``'s ratings per action [actions]: the trained
+        people's σ²_a for a person the checkpoint knows, else a stranger's (``UserPrior.stranger_noise``)."""
+        return self.noise if self.predictor.trained_row(user_id) != UNKNOWN else self.stranger_noise
 
-    def noise_of(self, actions: np.ndarray, implicit) -> np.ndarray:
-        """z-scale noise variance of observations of ``actions`` (indices): the action's, plus
-        ``implicit_noise`` where ``implicit`` (bools) marks an implicit outcome."""
-        return self.noise[actions] + np.where(np.asarray(implicit, dtype=bool), self.implicit_noise[actions], 0.0)
+    def rating_noise(self, ratings: Sequence[Rating], user_id=None) -> np.ndarray:
+        """z-scale noise variance of each of ``user_id``'s ratings (``noise_of``)."""
+        return self.noise_of(self.action_index([r.action for r in ratings]), [r.implicit for r in ratings], user_id)
+
+    def noise_of(self, actions: np.ndarray, implicit, user_id=None) -> np.ndarray:
+        """z-scale noise variance of ``user_id``'s observations of ``actions`` (indices): the
+        action's (``noise_for``), plus ``implicit_noise`` where ``implicit`` (bools) marks an
+        implicit outcome."""
+        return (self.noise_for(user_id)[actions]
+                + np.where(np.asarray(implicit, dtype=bool), self.implicit_noise[actions], 0.0))
 
     @property
     def cached(self) -> tuple[int, int]:
@@ -325,7 +333,7 @@ class FoldIn:
         departure from the population is already measured). ``implicit`` (bools [n]) marks
         implicit outcomes, which take ``noise_of``'s larger noise. ``with_covariance`` False:
         the covariance of a new person's posterior is not computed (None), only its mean."""
-        noise = self.noise_of(actions, np.zeros(len(actions), dtype=bool) if implicit is None else implicit)
+        noise = self.noise_of(actions, np.zeros(len(actions), dtype=bool) if implicit is None else implicit, user_id)
         mean, covariance, precision = self.prior_distribution(user_id)
         if precision is self._population_precision:
             return scale_mixture_posterior(x, y, noise, mean, precision, self._population_logdet,
@@ -485,9 +493,10 @@ class FoldIn:
         x, y = self.regression(ratings, hand_over)
         actions = self.action_index([r.action for r in ratings])
         if lam > 0:  # implicit outcomes weigh less here too: rows scaled by their noise ratio
-            weight = np.sqrt(self.noise[actions] / self.rating_noise(ratings))[:, None]
+            noise = self.noise_for(user_id)
+            weight = np.sqrt(noise[actions] / self.rating_noise(ratings, user_id))[:, None]
             theta = solve_ridge(x * weight, y * weight[:, 0], self.prior(user_id), lam)
-            covariance = float(self.noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
+            covariance = float(noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
         else:
             theta, covariance = self.posterior(x, y, actions, user_id, [r.implicit for r in ratings])
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)

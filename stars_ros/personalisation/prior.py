@@ -69,6 +69,12 @@ estimates what that needs from the trained people and their training ratings:
   from the plain encoder (``fitted_spread``; the scales equally likely, so the mixture keeps its
   shape and g sets its size, without the floor a pseudocount puts under the fitted weights).
   Trained people keep their posterior covariances from Σ₀. The default keeps Σ₀.
+- **How noisy a stranger's ratings are** (``training.stranger_noise`` 'held_out_plain', with
+  ``prior_spread`` 'held_out_plain'): σ²_a is the trained rows' held-out error, which need not
+  be a handed-over stranger's: at k = 0 their residual is the plain encoder's. This option
+  fits a share s with g, the same marginal likelihood with noise s·σ²_a
+  (``fitted_spread(fit_noise=True)``); a stranger's ratings and predictive then carry s·σ²_a
+  (``UserPrior.stranger_noise``), trained people keep σ²_a. The default keeps σ²_a for all.
 
 A checkpoint stores the estimate (``to_dict``; model.checkpoint keeps it as data). One
 written before has none: ``prior_of`` then estimates Σ₀ and μ₀ from its user rows, assumes
@@ -93,6 +99,7 @@ PRIOR_SCALES = (0.0, 0.3, 1.0, 3.0)  # a person's scale τ on Σ₀, equally lik
 NOISE_SHARE = 0.1  # share of the examples a default fit holds out for the noise (``held_out_split``)
 SCALE_PSEUDOCOUNT = 1.0  # per scale, added to the people that fit the scales' weights (a Dirichlet prior)
 SPREAD_BOUNDS = (1e-4, 1e4)  # the range searched for the size g of a stranger's covariance gΣ₀
+NOISE_SHARE_BOUNDS = (1e-2, 1e2)  # the range searched for the share s of the noise a stranger's ratings carry
 NOISE_FLOOR = 0.1  # share of its plain held-out estimate an action's noise keeps when row error is taken out
 
 
@@ -103,7 +110,8 @@ class UserPrior:
     [users, dim+1, dim+1] (None: they start from Σ₀ around their row), the predictive's
     degrees of freedom ``nu`` (inf: Gaussian), and ``scale_weights`` [len(PRIOR_SCALES)], how
     likely a new person's scale τ on Σ₀ is to be each one before their first answer (None:
-    equally). ``details`` says how it was estimated."""
+    equally), and ``stranger_noise`` [actions], the noise variance of the ratings of a person the
+    model was not trained on (None: ``noise``). ``details`` says how it was estimated."""
 
     mean: np.ndarray
     covariance: np.ndarray
@@ -112,6 +120,7 @@ class UserPrior:
     details: dict = field(default_factory=dict)
     nu: float = math.inf
     scale_weights: np.ndarray | None = None
+    stranger_noise: np.ndarray | None = None
 
     @property
     def scale_prior(self) -> np.ndarray:
@@ -131,6 +140,8 @@ class UserPrior:
             values['user_covariance'] = torch.from_numpy(self.user_covariance.astype(np.float32))
         if self.scale_weights is not None:
             values['scale_weights'] = torch.from_numpy(self.scale_weights.copy())
+        if self.stranger_noise is not None:
+            values['stranger_noise'] = torch.from_numpy(self.stranger_noise.copy())
         return values
 
     @classmethod
@@ -140,8 +151,9 @@ class UserPrior:
         users = array('user_covariance') if values.get('user_covariance') is not None else None
         nu = float(array('nu')) if values.get('nu') is not None else math.inf  # earlier checkpoints: Gaussian
         scales = array('scale_weights') if values.get('scale_weights') is not None else None  # earlier: equal
+        strangers = array('stranger_noise') if values.get('stranger_noise') is not None else None  # earlier: noise
         return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})), nu,
-                   scales)
+                   scales, strangers)
 
 
 def ledoit_wolf(rows: np.ndarray) -> tuple[np.ndarray, float]:
@@ -173,31 +185,32 @@ def student_t_nu(standardised: np.ndarray) -> float:
 
 
 def people_spectra(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray,
-                   covariance: np.ndarray) -> list:
-    """Per person (in ``np.unique(people)`` order), what the marginal likelihood of their
-    residuals r [n] (rows x [n, dim+1] with noise variances ``noise`` [n], of ``people`` [n])
-    needs for any covariance cΣ₀ (Σ₀ ``covariance``): the eigenvalues λ of D^-½XΣ₀XᵀD^-½ (D
-    their noise), their whitened residuals squared in that eigenbasis, and the constant part."""
-    spectra = []
+                   covariance: np.ndarray) -> tuple:
+    """What the marginal likelihood of each person's residuals r [n] (rows x [n, dim+1] with
+    noise variances ``noise`` [n], of ``people`` [n]) needs for any covariance cΣ₀ (Σ₀
+    ``covariance``), people in ``np.unique(people)`` order: the eigenvalues λ of each one's
+    D^-½XΣ₀XᵀD^-½ (D their noise) and their whitened residuals squared in that eigenbasis
+    (both [n], one person after another), where each person starts in them [people], and
+    each one's constant part [people]."""
+    eigenvalues, squared, starts, constants = [], [], [], []
     for person in np.unique(people):
         mine = people == person
         weight = 1.0 / np.sqrt(noise[mine])
         whitened = x[mine] * weight[:, None]
-        eigenvalues, vectors = np.linalg.eigh(whitened @ covariance @ whitened.T)
-        constant = -0.5 * (np.sum(np.log(noise[mine])) + mine.sum() * math.log(2 * math.pi))
-        spectra.append((np.clip(eigenvalues, 0.0, None), (vectors.T @ (r[mine] * weight)) ** 2, constant))
-    return spectra
+        values, vectors = np.linalg.eigh(whitened @ covariance @ whitened.T)
+        starts.append(sum(map(len, eigenvalues)))
+        eigenvalues.append(np.clip(values, 0.0, None))
+        squared.append((vectors.T @ (r[mine] * weight)) ** 2)
+        constants.append(-0.5 * (np.sum(np.log(noise[mine])) + mine.sum() * math.log(2 * math.pi)))
+    return np.concatenate(eigenvalues), np.concatenate(squared), np.array(starts), np.array(constants)
 
 
-def scale_log_likelihoods(spectra: list, sizes: np.ndarray) -> np.ndarray:
-    """log N(r; 0, cXΣ₀Xᵀ + D) [people, sizes] for each person of ``people_spectra`` and each
-    c of ``sizes``: −½ Σ (s²/(1 + cλ) + log(1 + cλ)) plus the constant, O(n) per c."""
-    sizes = np.asarray(sizes, dtype=np.float64)
-    rows = []
-    for eigenvalues, squared, constant in spectra:
-        spread = 1.0 + sizes[:, None] * eigenvalues[None, :]  # [sizes, n]
-        rows.append(constant - 0.5 * np.sum(squared / spread + np.log(spread), axis=1))
-    return np.array(rows)
+def scale_log_likelihoods(spectra: tuple, sizes: np.ndarray, noise_share: float = 1.0) -> np.ndarray:
+    """log N(r; 0, cXΣ₀Xᵀ + sD) [people, sizes] for each person of ``people_spectra``, each c of
+    ``sizes`` and s ``noise_share``: −½ Σ (w²/(s + cλ) + log(s + cλ)) plus the constant, O(n) per c."""
+    eigenvalues, squared, starts, constants = spectra
+    spread = noise_share + np.asarray(sizes, dtype=np.float64)[:, None] * eigenvalues[None, :]  # [sizes, n]
+    return constants[:, None] - 0.5 * np.add.reduceat(squared / spread + np.log(spread), starts, axis=1).T
 
 
 def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray,
@@ -223,27 +236,46 @@ def fitted_scale_weights(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people
 
 
 def fitted_spread(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.ndarray, covariance: np.ndarray,
-                  scale_prior: np.ndarray, scales=PRIOR_SCALES, bounds=SPREAD_BOUNDS) -> float:
-    """The g in ``bounds`` under which each person's residuals r [n] (rows x [n, dim+1] with noise
-    variances ``noise`` [n], of ``people`` [n]) are most likely as a stranger's, r = x(θ − μ₀) + ε
-    with θ − μ₀ ~ N(0, gτΣ₀) (Σ₀ ``covariance``) and one τ per person drawn from ``scale_prior``
-    over ``scales``: maximum marginal likelihood over log g, a grid then bounded Brent around its
-    best point (``scale_log_likelihoods`` of gτ, mixed over τ)."""
-    from scipy.optimize import minimize_scalar  # estimation only: serving never fits a prior
+                  scale_prior: np.ndarray, scales=PRIOR_SCALES, bounds=SPREAD_BOUNDS,
+                  fit_noise: bool = False) -> tuple[float, float]:
+    """(g, s): the g in ``bounds`` under which each person's residuals r [n] (rows x [n, dim+1]
+    with noise variances ``noise`` [n], of ``people`` [n]) are most likely as a stranger's,
+    r = x(θ − μ₀) + ε with θ − μ₀ ~ N(0, gτΣ₀) (Σ₀ ``covariance``), ε ~ N(0, s·noise) and one τ
+    per person drawn from ``scale_prior`` over ``scales``; s = 1 unless ``fit_noise``, else the
+    noise's share fitted with g (in ``NOISE_SHARE_BOUNDS``). Maximum marginal likelihood over
+    log g (and log s): a grid, then a bounded search from its best point (``scale_log_likelihoods``
+    of gτ, mixed over τ)."""
+    from scipy.optimize import minimize, minimize_scalar  # estimation only: serving never fits a prior
     from scipy.special import logsumexp
 
     spectra = people_spectra(x, r, noise, people, covariance)
     log_prior = np.log(np.asarray(scale_prior, dtype=np.float64))
     scales = np.asarray(scales, dtype=np.float64)
 
-    def negative_log_likelihood(log_g: float) -> float:
-        return -float(logsumexp(scale_log_likelihoods(spectra, math.exp(log_g) * scales) + log_prior, axis=1).sum())
+    def negative_log_likelihood(log_g: float, log_s: float = 0.0) -> float:
+        likelihood = scale_log_likelihoods(spectra, math.exp(log_g) * scales, math.exp(log_s))
+        return -float(logsumexp(likelihood + log_prior, axis=1).sum())
 
-    grid = np.linspace(math.log(bounds[0]), math.log(bounds[1]), 61)
-    best = int(np.argmin([negative_log_likelihood(g) for g in grid]))
-    bracket = (grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)])
-    found = minimize_scalar(negative_log_likelihood, bounds=bracket, method='bounded', options={'xatol': 1e-8})
-    return float(math.exp(found.x if found.fun <= negative_log_likelihood(grid[best]) else grid[best]))
+    g_grid = np.linspace(math.log(bounds[0]), math.log(bounds[1]), 61)
+    if not fit_noise:
+        best = int(np.argmin([negative_log_likelihood(g) for g in g_grid]))
+        bracket = (g_grid[max(best - 1, 0)], g_grid[min(best + 1, len(g_grid) - 1)])
+        found = minimize_scalar(negative_log_likelihood, bounds=bracket, method='bounded', options={'xatol': 1e-8})
+        return float(math.exp(found.x if found.fun <= negative_log_likelihood(g_grid[best]) else g_grid[best])), 1.0
+    s_grid = np.linspace(math.log(NOISE_SHARE_BOUNDS[0]), math.log(NOISE_SHARE_BOUNDS[1]), 41)
+    grid = [(g, s_) for g in g_grid for s_ in s_grid]
+    start = np.array(grid[int(np.argmin([negative_log_likelihood(g, s_) for g, s_ in grid]))])
+    limits = [(math.log(bounds[0]), math.log(bounds[1])),
+              (math.log(NOISE_SHARE_BOUNDS[0]), math.log(NOISE_SHARE_BOUNDS[1]))]
+    upper = np.array([limit[1] for limit in limits])
+    steps = np.array([g_grid[1] - g_grid[0], s_grid[1] - s_grid[0]])  # a simplex one grid cell wide, inwards:
+    steps = np.diag(np.where(start + steps > upper, -steps, steps))  # scipy's default moves a coordinate at 0
+    # (s = 1, a grid point) by 0.00025 and can stop there
+    found = minimize(lambda point: negative_log_likelihood(*point), start, method='Nelder-Mead', bounds=limits,
+                     options={'xatol': 1e-8, 'fatol': 1e-10, 'maxiter': 2000,
+                              'initial_simplex': np.vstack([start, start + steps])})
+    best = found.x if found.fun <= negative_log_likelihood(*start) else start
+    return float(math.exp(best[0])), float(math.exp(best[1]))
 
 
 def known_covariances(precision: np.ndarray, x: np.ndarray, actions: np.ndarray, people: np.ndarray,
@@ -466,20 +498,25 @@ def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
                    'prior_scale_weights_from': f'held-out ratings of {len(np.unique(known))} trained people, '
                                                f'residuals from {served}, '
                                                f'{SCALE_PSEUDOCOUNT:g} pseudo-person per scale'}
-    user_covariance = known_covariances(precision, x, actions, users, noise, len(trained))
+    user_covariance, stranger_noise = known_covariances(precision, x, actions, users, noise, len(trained)), None
     if spread_from == 'held_out_plain':  # a stranger's covariance gΣ₀; trained people keep theirs from Σ₀
-        spread = fitted_spread(noise_x, plain_residual, noise[residual_actions], known, covariance,
-                               np.full(len(PRIOR_SCALES), 1 / len(PRIOR_SCALES)))
+        with_noise = fitted.config.training.stranger_noise == 'held_out_plain'
+        spread, noise_share = fitted_spread(noise_x, plain_residual, noise[residual_actions], known, covariance,
+                                            np.full(len(PRIOR_SCALES), 1 / len(PRIOR_SCALES)), fit_noise=with_noise)
         covariance = spread * covariance
-        details = {**details, 'prior_spread': round(spread, 6),
-                   'prior_spread_from': f'maximum marginal likelihood of held-out ratings of '
-                                        f'{len(np.unique(known))} trained people, residuals from the plain encoder'}
+        fitted_from = (f'maximum marginal likelihood of held-out ratings of {len(np.unique(known))} trained people, '
+                       'residuals from the plain encoder')
+        details = {**details, 'prior_spread': round(spread, 6), 'prior_spread_from': fitted_from}
+        if with_noise:  # a stranger's ratings carry s·σ²_a, s fitted with g; trained people keep σ²_a
+            stranger_noise = noise_share * noise
+            details = {**details, 'stranger_noise_share': round(noise_share, 6),
+                       'stranger_noise_from': f'{fitted_from}, fitted with prior_spread'}
     source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
     less = (", less each trained row's posterior variance there"
             if fitted.config.training.prior_noise == 'less_row_uncertainty' else '')
     details = {**details, 'noise': f'mean squared z-residual of {source}{less}, per action', 'ratings': int(len(rows)),
                'nu': f'maximum likelihood on {source}', 'prior_scales': list(PRIOR_SCALES)}
-    return UserPrior(mean, covariance, noise, user_covariance, details, nu, scale_weights)
+    return UserPrior(mean, covariance, noise, user_covariance, details, nu, scale_weights, stranger_noise)
 
 
 def _pooled_if_better(mean: np.ndarray, details: dict, trained: np.ndarray, x: np.ndarray, r: np.ndarray,

@@ -258,8 +258,8 @@ def test_the_fitted_spread_recovers_the_size_of_the_covariance_people_depart_by(
         x.append(rows), r.append(rows @ theta + rng.normal(size=n) * np.sqrt(variance))
         who.append(np.full(n, person)), noise.append(variance)
     x, r, who, noise = map(np.concatenate, (x, r, who, noise))
-    spread = prior_module.fitted_spread(x, r, noise, who, covariance, equal)
-    assert spread == pytest.approx(0.4, rel=0.2)
+    spread, share = prior_module.fitted_spread(x, r, noise, who, covariance, equal)
+    assert spread == pytest.approx(0.4, rel=0.2) and share == 1.0  # the noise's share is not fitted here
 
     def by_hand(g):
         total = 0.0
@@ -271,7 +271,45 @@ def test_the_fitted_spread_recovers_the_size_of_the_covariance_people_depart_by(
         return total
     assert by_hand(spread) >= max(by_hand(spread * 0.97), by_hand(spread * 1.03))
     quiet = rng.normal(size=len(r)) * np.sqrt(noise)
-    assert prior_module.fitted_spread(x, quiet, noise, who, covariance, equal) < 0.05
+    assert prior_module.fitted_spread(x, quiet, noise, who, covariance, equal)[0] < 0.05
+
+
+def test_the_spread_and_the_noise_share_fitted_together_recover_both():
+    """People at 0.4·Σ₀ (the equal scale mixture) whose ratings carry 1.12 times the stated
+    noise (beside the search grid's point s = 1, where a search can stick), 30 ratings each:
+    fitted together, g is near 0.4 and s near 1.12; the likelihood by hand (scipy's multivariate
+    normal, mixed over the scales) is no lower there than a little either side in each;
+    residuals with no departure send g to the bottom of its range and keep s."""
+    rng = np.random.default_rng(6)
+    scales, size, people, n = prior_module.PRIOR_SCALES, 3, 300, 30
+    covariance = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 0.8]])
+    equal = np.full(len(scales), 1 / len(scales))
+    x, r, who, noise = [], [], [], []
+    for person in range(people):
+        rows = rng.normal(size=(n, size))
+        theta = rng.multivariate_normal(np.zeros(size), 0.4 * scales[rng.integers(len(scales))] * covariance)
+        variance = rng.uniform(0.2, 0.4, n)
+        x.append(rows), r.append(rows @ theta + rng.normal(size=n) * np.sqrt(1.12 * variance))
+        who.append(np.full(n, person)), noise.append(variance)
+    x, r, who, noise = map(np.concatenate, (x, r, who, noise))
+    spread, share = prior_module.fitted_spread(x, r, noise, who, covariance, equal, fit_noise=True)
+    assert spread == pytest.approx(0.4, rel=0.2) and share == pytest.approx(1.12, rel=0.05)
+
+    def by_hand(g, s):
+        total = 0.0
+        for p in range(60):  # a fifth of the people: enough to place the optimum of their own sum
+            mine = who == p
+            per_scale = [stats.multivariate_normal.logpdf(r[mine], np.zeros(n), g * t * x[mine] @ covariance
+                                                          @ x[mine].T + s * np.diag(noise[mine])) for t in scales]
+            total += np.log(np.mean(np.exp(per_scale)))
+        return total
+    few = who < 60
+    g, s = prior_module.fitted_spread(x[few], r[few], noise[few], who[few], covariance, equal, fit_noise=True)
+    best = by_hand(g, s)
+    assert best >= max(by_hand(g * 0.97, s), by_hand(g * 1.03, s), by_hand(g, s * 0.97), by_hand(g, s * 1.03))
+    quiet = rng.normal(size=len(r)) * np.sqrt(2.0 * noise)
+    g, s = prior_module.fitted_spread(x, quiet, noise, who, covariance, equal, fit_noise=True)
+    assert g < 0.05 and s == pytest.approx(2.0, rel=0.1)
 
 
 def test_the_fitted_spread_goes_through_the_fit_and_serves_strangers_g_times_the_trained_spread(synthetic,
@@ -309,12 +347,65 @@ def test_the_fitted_spread_goes_through_the_fit_and_serves_strangers_g_times_the
     assert spread.user_covariance == pytest.approx(rows.user_covariance)
     expected = prior_module.fitted_spread(x, offset[people], rows.noise[actions], people, rows.covariance,
                                           np.full(4, 0.25))
-    assert g == pytest.approx(expected, rel=1e-5)
+    assert (g, 1.0) == pytest.approx(expected, rel=1e-5)
+    assert spread.stranger_noise is None and 'stranger_noise_share' not in spread.details
+    fitted.config = config.replace(training={'stranger_noise': 'held_out_plain'})
+    noisy = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    g, share = prior_module.fitted_spread(x, offset[people], rows.noise[actions], people, rows.covariance,
+                                          np.full(4, 0.25), fit_noise=True)
+    assert noisy.details['prior_spread'] == pytest.approx(g, rel=1e-5)
+    assert noisy.details['stranger_noise_share'] == pytest.approx(share, rel=1e-5)
+    assert noisy.covariance == pytest.approx(g * rows.covariance, rel=1e-5)
+    assert noisy.stranger_noise == pytest.approx(share * rows.noise, rel=1e-5)
+    assert noisy.noise == pytest.approx(rows.noise) and noisy.user_covariance == pytest.approx(rows.user_covariance)
     assert_the_plain_encoder_trains_without_the_held_out_ratings(config, synthetic, train, monkeypatch)
     with pytest.raises(ConfigError, match="prior_spread .held_out_plain. fits residuals from the plain encoder"):
         config.replace(model={'strangers': 'prior_mean'})
     with pytest.raises(ConfigError, match="needs training.prior_scale_weights .equal."):
         config.replace(training={'prior_scale_weights': 'held_out_plain'})
+    with pytest.raises(ConfigError, match="stranger_noise .held_out_plain. is fitted together with the prior's spread"):
+        config.replace(training={'prior_spread': 'trained_rows', 'stranger_noise': 'held_out_plain'})
+
+
+def test_a_strangers_own_noise_goes_through_the_checkpoint_into_their_fold_in_and_score_sd(synthetic,
+                                                                                          synthetic_scenes):
+    """``UserPrior.stranger_noise``: a checkpoint's dict carries it (one without it gives
+    strangers the trained people's noise); a stranger's posterior weighs their ratings by it
+    and their score_sd adds it, while a trained person keeps the trained people's noise."""
+    train, _ = split_rows(synthetic, 0.2, 0)
+    fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
+    prior = estimate_prior(fitted, synthetic, train)
+    assert UserPrior.from_dict(prior.to_dict()).stranger_noise is None
+    quieter = UserPrior(prior.mean, prior.covariance, prior.noise, prior.user_covariance, prior.details, prior.nu,
+                        None, 0.3 * prior.noise)
+    restored = UserPrior.from_dict(quieter.to_dict())
+    assert restored.stranger_noise == pytest.approx(0.3 * prior.noise)
+    fitted.user_prior = quieter.to_dict()
+    predictor = Predictor.from_model(fitted)
+    foldin, known = FoldIn(predictor), predictor.users[0]
+    assert foldin.noise_for('stranger') == pytest.approx(0.3 * prior.noise)
+    assert foldin.noise_for(known) == pytest.approx(prior.noise)
+    ratings = ratings_of(synthetic_scenes, 5)
+    model = foldin.fit(ratings, 'stranger')
+    x, y = foldin.regression(ratings)
+    mean, covariance, precision = foldin.prior_distribution('stranger')
+    expected, expected_covariance, _ = scale_mixture_posterior(x, y, 0.3 * prior.noise[np.zeros(5, dtype=int)], mean,
+                                                               precision, np.linalg.slogdet(covariance)[1])
+    assert np.append(model.p, model.b) == pytest.approx(expected)
+    assert model.covariance == pytest.approx(expected_covariance)
+    trained = foldin.fit(ratings, known, hand_over=False)
+    mean, _, precision = foldin.prior_distribution(known)
+    expected = gaussian_posterior(x, y, prior.noise[np.zeros(5, dtype=int)], mean, precision)[0]
+    assert np.append(trained.p, trained.b) == pytest.approx(expected)
+    uncertainty = Uncertainty(foldin)
+    h = predictor.encode(synthetic_scenes[20:21]).astype(np.float64)
+    x, _ = predictor.inference.linear_form(h, np.array([-1]), np.array([0]))
+    sd = uncertainty.spread(predictor, 'stranger', h, np.array([-1]), [0]).sd[0]
+    by_hand = np.sqrt(x[0] @ foldin.covariance('stranger') @ x[0] + 0.3 * prior.noise[0])
+    assert sd == pytest.approx(by_hand * predictor.inference.target_std[0])
+    known_sd = uncertainty.spread(predictor, known, h, np.array([-1]), [0]).sd[0]
+    by_hand = np.sqrt(x[0] @ foldin.covariance(known) @ x[0] + prior.noise[0])
+    assert known_sd == pytest.approx(by_hand * predictor.inference.target_std[0])
 
 
 def test_the_student_t_tails_are_found_and_its_intervals_have_unit_variance():
@@ -499,9 +590,10 @@ def test_score_sd_shrinks_with_feedback_and_is_the_hand_formula(predictor, synth
     uncertainty = Uncertainty(foldin)
     h = predictor.encode(synthetic_scenes[20:21]).astype(np.float64)
     x, _ = predictor.inference.linear_form(h, np.array([-1]), np.array([0]))
-    before = uncertainty.rating_sd(x, np.array([0]), uncertainty.covariance('newcomer'))[0]
+    before = uncertainty.rating_sd(x, np.array([0]), uncertainty.covariance('newcomer'), uncertainty.noise('newcomer'))[0]
     model = foldin.fit(ratings_of(synthetic_scenes, 10), 'newcomer')
-    after = uncertainty.rating_sd(x, np.array([0]), uncertainty.covariance('newcomer', model))[0]
+    after = uncertainty.rating_sd(x, np.array([0]), uncertainty.covariance('newcomer', model),
+                                  uncertainty.noise('newcomer'))[0]
     by_hand = np.sqrt(x[0] @ model.covariance @ x[0] + foldin.noise[0]) * predictor.inference.target_std[0]
     assert after == pytest.approx(by_hand)
     assert after < before
@@ -532,7 +624,7 @@ def test_the_question_that_teaches_most_is_the_one_along_the_targets_uncertainty
     covariance = np.diag([4.0, 0.25])
     targets = (np.array([[1.0, 0.0], [1.0, 0.0]]), np.zeros(2, dtype=int))  # both load on θ₀ only
     along, across = (np.array([[1.0, 0.0]]), np.zeros(1, dtype=int)), (np.array([[0.0, 1.0]]), np.zeros(1, dtype=int))
-    gains = uncertainty.variance_reduction([along, across], targets, covariance)
+    gains = uncertainty.variance_reduction([along, across], targets, covariance, uncertainty.foldin.noise)
     # by hand: asking x = e₀: k_t = 4 for both targets, innovation 4 + 0.5; 2 · 4 · 16 / 4.5; across: k_t = 0
     assert gains == pytest.approx([2 * 4 * 16 / 4.5, 0.0])
 
@@ -543,17 +635,18 @@ def test_the_decision_value_is_the_expected_gain_of_re_choosing_by_hand():
     # one decision of two entries: scores 2·θ₀ and 2·θ₁ (rating scale), now 0.6 against 0: the first leads
     decision = (np.array([[1.0, 0.0], [0.0, 1.0]]), np.zeros(2), np.zeros(2, dtype=int))
     along, far = (np.array([[1.0, 0.0]]), np.zeros(1, dtype=int)), (np.array([[0.0, 0.0]]), np.zeros(1, dtype=int))
-    values = uncertainty.log_decision_value([along, far], [decision], mean, covariance)
+    noise = uncertainty.foldin.noise
+    values = uncertainty.log_decision_value([along, far], [decision], mean, covariance, noise)
     # by hand: the gap's row g = 2·(1, −1), its mean 0.6; asking x = e₀: X Σ g = 8, innovation 4 + 0.5,
     # s² = 64 / 4.5; the gain s·ψ(0.6 / s), ψ(z) = φ(z) − z(1 − Φ(z)); a question loading on nothing gains 0
     s = np.sqrt(64 / 4.5)
     z = 0.6 / s
     assert np.exp(values) == pytest.approx([s * (stats.norm.pdf(z) - z * stats.norm.sf(z)), 0.0])
-    clear, far_clear = uncertainty.log_decision_value([along], [decision], np.array([30.0, 0.0]), covariance)[0], \
-        uncertainty.log_decision_value([along], [decision], np.array([300.0, 0.0]), covariance)[0]
+    clear, far_clear = uncertainty.log_decision_value([along], [decision], np.array([30.0, 0.0]), covariance, noise)[0], \
+        uncertainty.log_decision_value([along], [decision], np.array([300.0, 0.0]), covariance, noise)[0]
     assert values[0] - 10 > clear > far_clear > -np.inf  # a clear choice is worth little, yet still ordered
     single = (decision[0][:1], decision[1][:1], decision[2][:1])
-    assert uncertainty.log_decision_value([along], [single], mean, covariance)[0] == -np.inf  # nothing to choose
+    assert uncertainty.log_decision_value([along], [single], mean, covariance, noise)[0] == -np.inf  # nothing to choose
 
 
 def test_log_psi_is_the_expected_shortfall_and_keeps_its_digits_far_out():
