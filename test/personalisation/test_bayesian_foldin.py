@@ -241,37 +241,50 @@ def test_scale_weights_from_the_plain_encoder_weigh_its_residuals_where_it_did_n
     assert_the_plain_encoder_trains_without_the_held_out_ratings(config, synthetic, train, monkeypatch)
 
 
+DEPARTURE_COVARIANCE = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 0.8]])  # Σ₀ of the simulated people
+EQUAL_SCALES = np.full(len(prior_module.PRIOR_SCALES), 1 / len(prior_module.PRIOR_SCALES))
+
+
+def departing_people(rng, noise_share: float, people: int = 300, n: int = 30) -> tuple:
+    """(x, r, who, noise) of ``people`` simulated strangers, ``n`` ratings each: θ − μ₀ drawn
+    from the equal scale mixture on 0.4·Σ₀, ratings whose noise is ``noise_share`` times the
+    stated variance ``noise``."""
+    x, r, who, noise = [], [], [], []
+    for person in range(people):
+        rows = rng.normal(size=(n, 3))
+        scale = prior_module.PRIOR_SCALES[rng.integers(len(prior_module.PRIOR_SCALES))]
+        theta = rng.multivariate_normal(np.zeros(3), 0.4 * scale * DEPARTURE_COVARIANCE)
+        variance = rng.uniform(0.2, 0.4, n)
+        x.append(rows), r.append(rows @ theta + rng.normal(size=n) * np.sqrt(noise_share * variance))
+        who.append(np.full(n, person)), noise.append(variance)
+    return tuple(map(np.concatenate, (x, r, who, noise)))
+
+
+def marginal_likelihood_by_hand(x, r, who, noise, people: int, g: float, s: float = 1.0) -> float:
+    """Σ over the first ``people`` of log mean_τ N(r; 0, gτXΣ₀Xᵀ + sD) by scipy's multivariate normal."""
+    total = 0.0
+    for person in range(people):
+        mine = who == person
+        per_scale = [stats.multivariate_normal.logpdf(r[mine], np.zeros(mine.sum()),
+                                                      g * t * x[mine] @ DEPARTURE_COVARIANCE @ x[mine].T
+                                                      + s * np.diag(noise[mine])) for t in prior_module.PRIOR_SCALES]
+        total += np.log(np.mean(np.exp(per_scale)))
+    return total
+
+
 def test_the_fitted_spread_recovers_the_size_of_the_covariance_people_depart_by():
     """People whose θ − μ₀ is drawn from the equal scale mixture on 0.4·Σ₀, 30 ratings each:
     the maximum marginal likelihood g is near 0.4, its likelihood by hand (scipy's multivariate
     normal, mixed over the scales) is no lower there than a little either side, and ratings
     that carry only noise send g to the bottom of its range."""
     rng = np.random.default_rng(5)
-    scales, size, people, n = prior_module.PRIOR_SCALES, 3, 300, 30
-    covariance = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 0.8]])
-    equal = np.full(len(scales), 1 / len(scales))
-    x, r, who, noise = [], [], [], []
-    for person in range(people):
-        rows = rng.normal(size=(n, size))
-        theta = rng.multivariate_normal(np.zeros(size), 0.4 * scales[rng.integers(len(scales))] * covariance)
-        variance = rng.uniform(0.2, 0.4, n)
-        x.append(rows), r.append(rows @ theta + rng.normal(size=n) * np.sqrt(variance))
-        who.append(np.full(n, person)), noise.append(variance)
-    x, r, who, noise = map(np.concatenate, (x, r, who, noise))
-    spread, share = prior_module.fitted_spread(x, r, noise, who, covariance, equal)
+    x, r, who, noise = departing_people(rng, 1.0)
+    spread, share = prior_module.fitted_spread(x, r, noise, who, DEPARTURE_COVARIANCE, EQUAL_SCALES)
     assert spread == pytest.approx(0.4, rel=0.2) and share == 1.0  # the noise's share is not fitted here
-
-    def by_hand(g):
-        total = 0.0
-        for p in range(people):
-            mine = who == p
-            per_scale = [stats.multivariate_normal.logpdf(r[mine], np.zeros(n), g * s * x[mine] @ covariance
-                                                          @ x[mine].T + np.diag(noise[mine])) for s in scales]
-            total += np.log(np.mean(np.exp(per_scale)))
-        return total
-    assert by_hand(spread) >= max(by_hand(spread * 0.97), by_hand(spread * 1.03))
+    by_hand = [marginal_likelihood_by_hand(x, r, who, noise, 300, g) for g in (spread, spread * 0.97, spread * 1.03)]
+    assert by_hand[0] >= max(by_hand[1:])
     quiet = rng.normal(size=len(r)) * np.sqrt(noise)
-    assert prior_module.fitted_spread(x, quiet, noise, who, covariance, equal)[0] < 0.05
+    assert prior_module.fitted_spread(x, quiet, noise, who, DEPARTURE_COVARIANCE, EQUAL_SCALES)[0] < 0.05
 
 
 def test_the_spread_and_the_noise_share_fitted_together_recover_both():
@@ -281,34 +294,17 @@ def test_the_spread_and_the_noise_share_fitted_together_recover_both():
     normal, mixed over the scales) is no lower there than a little either side in each;
     residuals with no departure send g to the bottom of its range and keep s."""
     rng = np.random.default_rng(6)
-    scales, size, people, n = prior_module.PRIOR_SCALES, 3, 300, 30
-    covariance = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 0.8]])
-    equal = np.full(len(scales), 1 / len(scales))
-    x, r, who, noise = [], [], [], []
-    for person in range(people):
-        rows = rng.normal(size=(n, size))
-        theta = rng.multivariate_normal(np.zeros(size), 0.4 * scales[rng.integers(len(scales))] * covariance)
-        variance = rng.uniform(0.2, 0.4, n)
-        x.append(rows), r.append(rows @ theta + rng.normal(size=n) * np.sqrt(1.12 * variance))
-        who.append(np.full(n, person)), noise.append(variance)
-    x, r, who, noise = map(np.concatenate, (x, r, who, noise))
-    spread, share = prior_module.fitted_spread(x, r, noise, who, covariance, equal, fit_noise=True)
+    x, r, who, noise = departing_people(rng, 1.12)
+    spread, share = prior_module.fitted_spread(x, r, noise, who, DEPARTURE_COVARIANCE, EQUAL_SCALES, fit_noise=True)
     assert spread == pytest.approx(0.4, rel=0.2) and share == pytest.approx(1.12, rel=0.05)
-
-    def by_hand(g, s):
-        total = 0.0
-        for p in range(60):  # a fifth of the people: enough to place the optimum of their own sum
-            mine = who == p
-            per_scale = [stats.multivariate_normal.logpdf(r[mine], np.zeros(n), g * t * x[mine] @ covariance
-                                                          @ x[mine].T + s * np.diag(noise[mine])) for t in scales]
-            total += np.log(np.mean(np.exp(per_scale)))
-        return total
-    few = who < 60
-    g, s = prior_module.fitted_spread(x[few], r[few], noise[few], who[few], covariance, equal, fit_noise=True)
-    best = by_hand(g, s)
-    assert best >= max(by_hand(g * 0.97, s), by_hand(g * 1.03, s), by_hand(g, s * 0.97), by_hand(g, s * 1.03))
+    few = who < 60  # a fifth of the people: enough to place the optimum of their own sum
+    g, s = prior_module.fitted_spread(x[few], r[few], noise[few], who[few], DEPARTURE_COVARIANCE, EQUAL_SCALES,
+                                      fit_noise=True)
+    by_hand = [marginal_likelihood_by_hand(x, r, who, noise, 60, *point)
+               for point in ((g, s), (g * 0.97, s), (g * 1.03, s), (g, s * 0.97), (g, s * 1.03))]
+    assert by_hand[0] >= max(by_hand[1:])
     quiet = rng.normal(size=len(r)) * np.sqrt(2.0 * noise)
-    g, s = prior_module.fitted_spread(x, quiet, noise, who, covariance, equal, fit_noise=True)
+    g, s = prior_module.fitted_spread(x, quiet, noise, who, DEPARTURE_COVARIANCE, EQUAL_SCALES, fit_noise=True)
     assert g < 0.05 and s == pytest.approx(2.0, rel=0.1)
 
 
