@@ -5,7 +5,8 @@ Gaussian (``foldin``: N(m, Σ) — the posterior after a person's feedback, thei
 for a person the checkpoint knows, else the population prior). So
 
 - **score_sd**: the predictive standard deviation of the person's rating, on the rating
-  scale: σ_a · sqrt(xᵀΣx + σ²_a(noise)), σ_a the action's training standard deviation.
+  scale: σ_a · sqrt(xᵀΣx + σ²_a(noise)), σ_a the action's training standard deviation and
+  σ²_a(noise) the person's rating noise (``FoldIn.noise_for``: a stranger's may differ).
   Clipping the served score to the rating scale does not change it: it describes the
   unclipped predictive, whose mean the clipped score is.
 - **intervals**: the predictive is a Student-t with that standard deviation and the prior's
