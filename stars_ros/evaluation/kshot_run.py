@@ -19,7 +19,7 @@ from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Desig
                                        known_split, random_sets, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
-from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.config import ExperimentConfig, TrainConfig
 from stars_ros.model.metrics import regression_report
 
 METRICS = ('mse', 'pearson_r', 'ccc')
@@ -316,13 +316,9 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     # the validation people are trained ones: a plain encoder kept for strangers would go unused,
     # and so would a prior's scale weights, spread or stranger noise fitted to its residuals (the
     # prior does not enter the scores)
-    training = {**experiment['training']}
-    if training.get('prior_scale_weights') == 'held_out_plain':
-        training['prior_scale_weights'] = 'equal'
-    if training.get('prior_spread') == 'held_out_plain':
-        training['prior_spread'] = 'trained_rows'
-    if training.get('stranger_noise') == 'held_out_plain':
-        training['stranger_noise'] = 'trained_people'
+    defaults = TrainConfig.model_fields
+    training = {key: defaults[key].default if value == 'held_out_plain' else value
+                for key, value in experiment['training'].items()}
     experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}, 'training': training}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}

@@ -243,39 +243,33 @@ def fitted_spread(x: np.ndarray, r: np.ndarray, noise: np.ndarray, people: np.nd
     r = x(θ − μ₀) + ε with θ − μ₀ ~ N(0, gτΣ₀) (Σ₀ ``covariance``), ε ~ N(0, s·noise) and one τ
     per person drawn from ``scale_prior`` over ``scales``; s = 1 unless ``fit_noise``, else the
     noise's share fitted with g (in ``NOISE_SHARE_BOUNDS``). Maximum marginal likelihood over
-    log g (and log s): a grid, then a bounded search from its best point (``scale_log_likelihoods``
-    of gτ, mixed over τ)."""
-    from scipy.optimize import minimize, minimize_scalar  # estimation only: serving never fits a prior
+    log g (and log s): a grid (61 points, × 41), then bounded Nelder–Mead from its best point
+    (``scale_log_likelihoods`` of gτ, mixed over τ)."""
+    from scipy.optimize import minimize  # estimation only: serving never fits a prior
     from scipy.special import logsumexp
 
     spectra = people_spectra(x, r, noise, people, covariance)
     log_prior = np.log(np.asarray(scale_prior, dtype=np.float64))
     scales = np.asarray(scales, dtype=np.float64)
+    limits = [bounds] + ([NOISE_SHARE_BOUNDS] if fit_noise else [])  # log g (and log s)
+    limits = np.log(np.array(limits, dtype=np.float64))
 
-    def negative_log_likelihood(log_g: float, log_s: float = 0.0) -> float:
-        likelihood = scale_log_likelihoods(spectra, math.exp(log_g) * scales, math.exp(log_s))
+    def negative_log_likelihood(point: np.ndarray) -> float:
+        share = math.exp(point[1]) if fit_noise else 1.0
+        likelihood = scale_log_likelihoods(spectra, math.exp(point[0]) * scales, share)
         return -float(logsumexp(likelihood + log_prior, axis=1).sum())
 
-    g_grid = np.linspace(math.log(bounds[0]), math.log(bounds[1]), 61)
-    if not fit_noise:
-        best = int(np.argmin([negative_log_likelihood(g) for g in g_grid]))
-        bracket = (g_grid[max(best - 1, 0)], g_grid[min(best + 1, len(g_grid) - 1)])
-        found = minimize_scalar(negative_log_likelihood, bounds=bracket, method='bounded', options={'xatol': 1e-8})
-        return float(math.exp(found.x if found.fun <= negative_log_likelihood(g_grid[best]) else g_grid[best])), 1.0
-    s_grid = np.linspace(math.log(NOISE_SHARE_BOUNDS[0]), math.log(NOISE_SHARE_BOUNDS[1]), 41)
-    grid = [(g, s_) for g in g_grid for s_ in s_grid]
-    start = np.array(grid[int(np.argmin([negative_log_likelihood(g, s_) for g, s_ in grid]))])
-    limits = [(math.log(bounds[0]), math.log(bounds[1])),
-              (math.log(NOISE_SHARE_BOUNDS[0]), math.log(NOISE_SHARE_BOUNDS[1]))]
-    upper = np.array([limit[1] for limit in limits])
-    steps = np.array([g_grid[1] - g_grid[0], s_grid[1] - s_grid[0]])  # a simplex one grid cell wide, inwards:
-    steps = np.diag(np.where(start + steps > upper, -steps, steps))  # scipy's default moves a coordinate at 0
+    grids = [np.linspace(low, high, size) for (low, high), size in zip(limits, (61, 41))]
+    points = np.stack(np.meshgrid(*grids, indexing='ij'), axis=-1).reshape(-1, len(grids))
+    start = points[int(np.argmin([negative_log_likelihood(point) for point in points]))]
+    steps = np.array([grid[1] - grid[0] for grid in grids])  # a simplex one grid cell wide, inwards: scipy's
+    steps = np.diag(np.where(start + steps > limits[:, 1], -steps, steps))  # default moves a coordinate at 0
     # (s = 1, a grid point) by 0.00025 and can stop there
-    found = minimize(lambda point: negative_log_likelihood(*point), start, method='Nelder-Mead', bounds=limits,
+    found = minimize(negative_log_likelihood, start, method='Nelder-Mead', bounds=limits,
                      options={'xatol': 1e-8, 'fatol': 1e-10, 'maxiter': 2000,
                               'initial_simplex': np.vstack([start, start + steps])})
-    best = found.x if found.fun <= negative_log_likelihood(*start) else start
-    return float(math.exp(best[0])), float(math.exp(best[1]))
+    best = np.exp(found.x if found.fun <= negative_log_likelihood(start) else start)
+    return float(best[0]), float(best[1]) if fit_noise else 1.0
 
 
 def known_covariances(precision: np.ndarray, x: np.ndarray, actions: np.ndarray, people: np.ndarray,
