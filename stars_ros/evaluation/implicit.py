@@ -60,7 +60,9 @@ def starts(person: Person) -> np.ndarray:
 
 def mse_explicit(design: Design, person: Person, k: int) -> np.ndarray:
     """Squared errors on the test rows after ``k`` pool ratings in turn, their expectation
-    over the start."""
+    over the start (at k = 0 every start sees nothing: ``unpersonalised_errors``)."""
+    if k == 0:
+        return unpersonalised_errors(design, person)
     return np.mean([_errors(design, person, design.posterior(_acted_on(person, k, start))[0])
                     for start in starts(person)], axis=0)
 
@@ -69,9 +71,8 @@ def mse_implicit(design: Design, person: Person, n: int, model: OutcomeModel, rn
                  scale: tuple) -> np.ndarray:
     """Squared errors on the test rows after ``n`` implicit outcomes drawn on the pool's
     ratings in turn from a start drawn by ``rng`` (a fresh draw each time)."""
-    foldin = design.foldin
     if n == 0:
-        return _errors(design, person, foldin.prior_distribution(None)[0])
+        return unpersonalised_errors(design, person)
     rows = _acted_on(person, n, int(rng.choice(starts(person))))
     return _errors_after(design, person, rows, model.stayed(rng, design.data.scores[rows], scale), scale)
 
@@ -81,7 +82,7 @@ def expected_mse_implicit(design: Design, person: Person, n: int, model: Outcome
     of ``n`` actions: every start, and every one of the 2ⁿ outcome sequences weighted by its
     probability (exact, no draws; for small n, where one outcome moves the posterior most)."""
     if n == 0:
-        return _errors(design, person, design.foldin.prior_distribution(None)[0])
+        return unpersonalised_errors(design, person)
     expected, begins = 0.0, starts(person)
     for start in begins:
         rows = _acted_on(person, n, start)
@@ -91,6 +92,13 @@ def expected_mse_implicit(design: Design, person: Person, n: int, model: Outcome
             expected = expected + np.prod(np.where(stayed, p, 1.0 - p)) * _errors_after(design, person, rows, stayed,
                                                                                           scale)
     return expected / len(begins)
+
+
+def unpersonalised_errors(design: Design, person: Person) -> np.ndarray:
+    """Squared errors on the test rows before any feedback: the one starting point that the
+    explicit (k = 0) and implicit (n = 0) curves share, computed once so that they agree to
+    the bit rather than up to the order of a sum."""
+    return _errors(design, person, design.foldin.prior_distribution(None)[0])
 
 
 def _acted_on(person: Person, n: int, start: int) -> np.ndarray:
