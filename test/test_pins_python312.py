@@ -3,7 +3,7 @@ ROS workspace"), without a 3.12 interpreter: pip's resolver in dry-run mode with
 ``--python-version 3.12 --only-binary=:all:`` picks, for every pin, a wheel a CPython 3.12
 can install. pip evaluates environment markers for the running interpreter, not for 3.12;
 requirements.txt has none. It needs the package index, as scripts/setup_venv.sh does: with
-none reachable it fails, saying so, rather than skipping (a skip here could never fail offline).
+none reachable it fails, saying so, rather than skipping (a skip here could never fail offline)."""
 import json
 import re
 import subprocess
