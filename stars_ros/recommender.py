@@ -295,9 +295,6 @@ class StarsRecommender:
         stranger_rows = rows  # the plain encoder strangers may be served learns from every rating given
         if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
             rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
-            if 'held_out_plain' in (self.config.training.prior_scale_weights, self.config.training.prior_spread):
-                # its residuals there weigh the prior's scales or set its spread
-                stranger_rows = rows
         self._trainer = trainer = StarsTrainer(self.config)
         self._fitting = (data, rows, noise_rows)
         with torch_state_kept():

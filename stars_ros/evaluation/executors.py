@@ -140,8 +140,6 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     fitted = time.perf_counter()
     result = scores(recommender)
     predicted = time.perf_counter()
-    if recommender.teachers:  # the ensemble a distilled model was taught by, on the same test rows
-        result['teachers'] = regression_report(y, recommender.teachers_predict_rows(data, task.test), actions)
     model = recommender.model
     return {**result, 'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
             'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs,

@@ -138,8 +138,7 @@ class Design:
         x, c, z, actions = self.rows(rows, user_id)
         if regularisation and len(rows):
             theta = solve_ridge(x, z - c, self.foldin.prior(user_id), regularisation)
-            return theta, (float(self.foldin.noise_for(user_id).mean())
-                           * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta))))
+            return theta, float(self.foldin.noise.mean()) * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta)))
         return self.foldin.posterior(x, z - c, actions, user_id)
 
     def predict(self, rows: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
@@ -165,13 +164,12 @@ class Design:
     def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray, user_id=None) -> tuple:
         """(mean, sd) of the predictive distribution of ``user_id``'s ``rows`` on the rating
         scale (unclipped)."""
-        return self.predictive_design(self.rows(rows, user_id), theta, covariance, user_id)
+        return self.predictive_design(self.rows(rows, user_id), theta, covariance)
 
-    def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray, user_id=None) -> tuple:
+    def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray) -> tuple:
         """``predictive`` of rows whose ``rows(...)`` is ``design``."""
         x, c, _, actions = design
-        sd = self.uncertainty.rating_sd(x, actions, covariance, self.uncertainty.noise(user_id))
-        return self.inference.to_rating_scale(x @ theta + c, actions), sd
+        return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
 
     def reveal_order(self, person: Person, strategy: str, count: int) -> list:
         """The first ``count`` pool examples ``strategy`` asks about, in order."""
@@ -184,19 +182,19 @@ class Design:
         decisions = [(b[0], b[1], b[3]) for b in blocks]
         if all(len(b[0]) == 1 for b in blocks):
             decisions = [(targets[0], np.concatenate([b[1] for b in blocks]), targets[1])]
-        asked, noise = [], self.uncertainty.noise(None)
+        asked = []
         while len(asked) < min(count, len(person.pool)):
             theta, covariance = self.posterior(person.rows(asked))
             remaining = [e for e in range(len(person.pool)) if e not in asked]
             if strategy == 'uncertainty':
-                gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance, noise) ** 2)
+                gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance) ** 2)
                          for e in remaining]
             elif strategy == 'decision':
                 gains = self.uncertainty.log_decision_value([(blocks[e][0], blocks[e][3]) for e in remaining],
-                                                            decisions, theta, covariance, noise)
+                                                            decisions, theta, covariance)
             else:
                 gains = self.uncertainty.variance_reduction([(blocks[e][0], blocks[e][3]) for e in remaining], targets,
-                                                            covariance, noise)
+                                                            covariance)
             asked.append(remaining[int(np.argmax(gains))])
         return asked
 

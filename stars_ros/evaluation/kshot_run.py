@@ -19,7 +19,7 @@ from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Desig
                                        known_split, random_sets, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
-from stars_ros.model.config import ExperimentConfig, TrainConfig
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.metrics import regression_report
 
 METRICS = ('mse', 'pearson_r', 'ccc')
@@ -157,10 +157,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
         if not len(rows):
             continue
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
-                 'prior_scale_weights': [round(float(w), 6) for w in design.foldin.user_prior.scale_prior],
-                 'prior_noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
-                 'prior_spread': design.foldin.user_prior.details.get('prior_spread', 1.0),
-                 'stranger_noise_share': design.foldin.user_prior.details.get('stranger_noise_share', 1.0),
+                 'noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
         if base_encoder is not None:
             entry[BASE_ENCODER] = report(
@@ -313,13 +310,8 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     lowest chosen. Only the fold's training people are seen; a candidate whose fit fails
     counts as infinite error."""
     candidates = setting_candidates(settings.select)
-    # the validation people are trained ones: a plain encoder kept for strangers would go unused,
-    # and so would a prior's scale weights, spread or stranger noise fitted to its residuals (the
-    # prior does not enter the scores)
-    defaults = TrainConfig.model_fields
-    training = {key: defaults[key].default if value == 'held_out_plain' else value
-                for key, value in experiment['training'].items()}
-    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}, 'training': training}
+    # the validation people are trained ones: a plain encoder kept for strangers would go unused
+    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}
     pending = {}

@@ -88,7 +88,7 @@ class ServedModel(Rows):
     """
 
     def __init__(self, metadata: dict, state: Mapping[str, np.ndarray], user_prior: dict | None = None):
-        self.config = ExperimentConfig.from_dict(metadata['config'])
+        self.config = ExperimentConfig.from_checkpoint(metadata['config'])
         self.user_vocabulary = Vocabulary(metadata['users'])
         self.scene_vocabulary = Vocabulary(metadata['scene_keys'])
         self.action_names = tuple(metadata['actions'])
