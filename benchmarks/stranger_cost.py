@@ -9,7 +9,8 @@ checkpoint keeps one for them, ``model.strangers: base_encoder``, else the prior
 plain encoder, ``git show 5eea9e7:models/socnav1_gat_stars.pt``, whose strangers get the prior's mean.)
 
 A ranking: the JSON scene request parsed, then ``rank(person, scene, uncertainty=True)``
-through the front door (``StarsRecommender.load``). The three people take turns over the requests, so the machine's drift reaches
+through the front door (``StarsRecommender.load``). The three people take turns over the
+requests, so the machine's drift reaches
 all alike. BLAS on one thread, as in the node.
 """
 from __future__ import annotations
@@ -37,7 +38,8 @@ FOLDED_RATINGS = 5  # the folded-in person's ratings
 
 def percentiles(values) -> dict:
     values = np.asarray(values, dtype=float)
-    return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)), 'n': len(values)}
+    return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)),
+            'n': len(values)}
 
 
 def serving_setup(args) -> tuple:

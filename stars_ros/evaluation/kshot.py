@@ -36,10 +36,11 @@ import numpy as np
 
 from stars_ros.data.splits import held_examples
 from stars_ros.errors import StarsError
-from stars_ros.model.predictor import Predictor
-from stars_ros.personalisation.foldin import FoldIn, solve_ridge
-from stars_ros.personalisation.prior import encode_all, rows_design
-from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
+from stars_ros.model.scoring import served_encodings, served_plain_scores
+from stars_ros.personalisation.foldin import solve_ridge
+from stars_ros.personalisation.prior import rows_design
+from stars_ros.personalisation.stack import serving_stack
+from stars_ros.personalisation.uncertainty import student_t_quantile
 
 STRATEGIES = ('random', 'uncertainty', 'active', 'decision')
 NODE_STRATEGY = 'uncertainty'  # the criterion the node's stars/question_request uses (node.questions)
@@ -114,21 +115,22 @@ class Design:
     encoder where the model keeps one for strangers (``FoldIn.hand_over_shift``)."""
 
     def __init__(self, fitted, data):
-        self.fitted, self.data = fitted, data
-        self.foldin = FoldIn(Predictor.from_model(fitted))
-        self.uncertainty = Uncertainty(self.foldin)
+        self.data = data
+        stack = serving_stack(fitted)  # the served form, as the node folds people in
+        self.predictor, self.foldin, self.uncertainty = stack.predictor, stack.require_foldin(), stack.uncertainty
         self.inference = self.foldin.inference
-        self.h = encode_all(fitted, data)
-        plain = self.foldin.predictor.stranger_inference
-        self._plain_h = None if plain is None else encode_all(fitted, data, fitted.stranger_model)
+        self.h = served_encodings(self.predictor, data)
+        self._plain = None  # a new person is served around the plain encoder, where the model keeps one
+        if self.predictor.stranger_inference is not None:
+            self._plain = served_plain_scores(self.predictor, data)
 
     def rows(self, rows: np.ndarray, user_id=None) -> tuple:
         """(x, c, z, actions) of dataset ``rows`` as ``user_id`` is served (None: a new person)."""
-        x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
+        x, c, z = rows_design(self.predictor, self.data, rows, self.h)
         actions = self.data.actions[rows]
-        if self._plain_h is not None and self.foldin.predictor.hands_over(user_id):
-            plain = self.foldin.predictor.stranger_inference.scores(self._plain_h[self.data.scenes[rows]], None, None)
-            c = c + self.foldin.shift(self.inference.to_z(plain[np.arange(len(rows)), actions], actions), x, c)
+        if self._plain is not None and self.predictor.hands_over(user_id):
+            plain = self._plain[self.data.scenes[rows], actions]
+            c = c + self.foldin.shift(self.inference.to_z(plain, actions), x, c)
         return x, c, z, actions
 
     def posterior(self, rows: np.ndarray, user_id=None, regularisation: float | None = None) -> tuple:
@@ -145,7 +147,7 @@ class Design:
         """Rating-scale predictions of a new person's ``rows``, clipped as served; θ None: the
         scene-only model (p_u = 0, b_u = 0, the model's own offsets)."""
         if theta is None:
-            x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
+            x, c, z = rows_design(self.predictor, self.data, rows, self.h)
             return self.predict_design((x, c, z, self.data.actions[rows]), None)
         return self.predict_design(self.rows(rows), theta)
 
@@ -153,7 +155,7 @@ class Design:
         """``predict`` of rows whose ``rows(...)`` is ``design`` (computed once, for many θ)."""
         x, c, _, actions = design
         z = c if theta is None else x @ theta + c
-        return self.fitted.clip(self.inference.to_rating_scale(z, actions))
+        return self.predictor.clip(self.inference.to_rating_scale(z, actions))
 
     def posterior_design(self, design: tuple, with_covariance: bool = True) -> tuple:
         """``posterior`` of a new person from rows whose ``rows(...)`` is ``design`` (covariance

@@ -74,7 +74,8 @@ def _merge(base: dict, changes: dict) -> dict:
 
 #: Settings a protocol's ``search`` may vary, and the config section each belongs to.
 SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training',
-              'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'dim': 'model', 'strangers': 'model'}
+              'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'dim': 'model',
+              'strangers': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
 #: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.

@@ -77,9 +77,9 @@ def torch_state_kept():
 
 class StarsTrainer(FittedModel):
     """The training side of a StARS model: a ``FittedModel`` that fits and fine-tunes on
-    ``RatingData`` rows (``fit``, ``fine_tune``, ``extended``) and evaluates on them
-    (``predict_rows``, ``evaluate``). The user-facing API (fit, predict, rank, fold_in,
-    test, save, load) is ``stars_ros.StarsRecommender``.
+    ``RatingData`` rows (``fit``, ``fine_tune``, ``extended``). The shipped model is fitted by
+    ``model.recipe`` and scored by its served form (``model.scoring``); the user-facing API
+    (fit, predict, rank, fold_in, test, save, load) is ``stars_ros.StarsRecommender``.
 
     Args:
         config (ExperimentConfig): encoder, model, training and split settings.
@@ -197,7 +197,8 @@ class StarsTrainer(FittedModel):
             torch.set_num_threads(cfg.threads)
             rows = np.arange(len(data)) if rows is None else np.asarray(rows)
             losses = self._run_epochs('joint', epochs, data, self.training_set(data, rows), model,
-                                      self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2)
+                                      self.trainable_parameters(), np.random.default_rng(cfg.seed),
+                                      cfg.embedding_l2)
         model.eval()
         return losses
 

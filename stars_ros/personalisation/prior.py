@@ -14,7 +14,7 @@ estimates what that needs from the trained people and their training ratings:
   the data by a consistent estimate of the optimal one.) b_u is rescaled to the average p
   variance before shrinking and back after, so the identity target fits both.
 - **Mean μ₀**: the mean trained row, shrunk towards θ = 0 (the scene-only prediction every
-  stranger got before). With held-out ratings of the trained people (``noise_rows``) the
+  stranger got before). With held-out ratings of the trained people (``HeldOut``) the
   weight is the one that predicts them best when each person is served the mean of the
   *others* (``held_out_mean_weight``: least squares, clipped to [0, 1]): the mean helps a
   stranger only as far as it carries over to a person it was not fitted on. On SocNav1 the
@@ -23,10 +23,11 @@ estimates what that needs from the trained people and their training ratings:
   held-out ratings (``prior_of``'s fallback) the positive-part James–Stein factor shrinks the
   mean as far as its own Σ₀/U error warrants.
 - **Noise σ²_a**: per action, the mean squared z-residual of held-out ratings of the trained
-  people (``noise_rows``: examples the fit did not see, scored from their trained rows),
-  else of the training ratings. Training residuals understate the noise a new person's
-  ratings carry (the model has fitted them): the posterior then trusts a person's first
-  answers too much, and its intervals are too narrow.
+  people (``held_out_residuals``: examples a fit did not see, scored in its served form from
+  their rows of that fit; ``model.recipe`` makes that fit on the rows less those examples and
+  the shipped model on every row), else of the training ratings. Training residuals understate
+  the noise a new person's ratings carry (the model has fitted them): the posterior then trusts
+  a person's first answers too much, and its intervals are too narrow.
 - **Known people**: each trained person starts from their own row with the posterior
   covariance (Σ₀⁻¹ + XᵀD⁻¹X)⁻¹ of their training ratings.
 - **Tails ν**: real rating errors are heavier-tailed than the Gaussian (more of them near the
@@ -52,7 +53,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stars_ros.data.splits import held_examples
-from stars_ros.model.serving import inference_of
 
 log = logging.getLogger(__name__)
 DEFAULT_NOISE = 1.0  # z-scale noise variance assumed when a checkpoint stores none
@@ -93,9 +93,9 @@ class UserPrior:
         users = array('user_covariance') if values.get('user_covariance') is not None else None
         nu = float(array('nu')) if values.get('nu') is not None else math.inf  # earlier checkpoints: Gaussian
         unread = sorted(set(values) - {'mean', 'covariance', 'noise', 'user_covariance', 'details', 'nu'})
-        if unread:  # e.g. an unshipped experiment's fitted scale weights: the fold-in weighs the scales equally
-            log.warning(f"this checkpoint's prior holds {', '.join(unread)}, which this version does not read "
-                        '(experiments that did not ship): the fold-in serves without them')
+        if unread:  # e.g. an unshipped experiment's fitted scale weights: the scales stay equally likely
+            log.warning(f"this checkpoint's prior holds {', '.join(unread)}, which this version does "
+                        'not read (experiments that did not ship): the fold-in serves without them')
         return cls(array('mean'), array('covariance'), array('noise'), users, dict(values.get('details', {})), nu)
 
 
@@ -202,65 +202,83 @@ def user_rows(inference) -> np.ndarray:
     return np.concatenate([inference.user_rows, inference.user_offsets[:, None]], axis=1).astype(np.float64)
 
 
-def encode_all(fitted, data, model=None) -> np.ndarray:
-    """h_i of every scene of ``data`` [n_scenes, dim] (float64) under ``fitted``'s encoder (or
-    ``model``'s, e.g. its ``stranger_model``)."""
-    import torch  # training's form
-
-    model = fitted.require_model() if model is None else model
-    parts = []
-    with torch.no_grad():
-        for start in range(0, len(data.scene_keys), 512):
-            index = torch.arange(start, min(start + 512, len(data.scene_keys)))
-            parts.append(model.encode(data.store.batch(index).to(model.device)).double().cpu().numpy())
-    return np.concatenate(parts)
-
-
-def rows_design(fitted, inference, data, rows: np.ndarray, h: np.ndarray) -> tuple:
-    """(x [n, dim+1], c [n], z [n]) of ``rows`` of ``data``: the linear form of each rating's
-    normalised prediction in θ (``InferenceModel.linear_form``) and its z-scored score; ``h``
-    is ``encode_all``'s."""
-    items = data.item_keys(fitted.config.model.item_key)
+def rows_design(predictor, data, rows: np.ndarray, h: np.ndarray) -> tuple:
+    """(x [n, dim+1], c [n], z [n]) of ``rows`` of ``data`` as ``predictor`` serves them: the
+    linear form of each rating's normalised prediction in θ (``InferenceModel.linear_form``)
+    and its z-scored score; ``h``: every scene's, ``scoring.served_encodings``'."""
+    items = data.item_keys(predictor.served.config.model.item_key)
     scenes, actions = data.scenes[rows], data.actions[rows]
-    x, c = inference.linear_form(h[scenes], fitted.scene_vocabulary.rows([items[s] for s in scenes]), actions)
+    inference = predictor.inference
+    x, c = inference.linear_form(h[scenes], predictor.scene_rows([items[s] for s in scenes]), actions)
     return x, c, inference.to_z(data.scores[rows], actions)
 
 
-def estimate_prior(fitted, data, rows: np.ndarray, h: np.ndarray | None = None,
-                   noise_rows: np.ndarray | None = None) -> UserPrior:
-    """The prior of a model ``fitted`` (``stars_ros.model.training``'s training class) on
-    ``rows`` of ``data`` (RatingData); the noise from ``noise_rows`` (held-out ratings of the
-    trained people) when given. See the module docstring. ``h``: ``encode_all``'s, if
-    already computed."""
-    inference = inference_of(fitted.require_model())
+@dataclass(frozen=True)
+class HeldOut:
+    """What ratings a model was not fitted on say of its people (``held_out_residuals``):
+    each rating's z-residual from its person's trained row [n] and action [n], and the weight
+    of the trained rows' mean that best predicts each person from the others' (None: untold)."""
+
+    residual: np.ndarray
+    actions: np.ndarray
+    mean_weight: float | None
+
+
+def served(fitted):
+    """The ``Predictor`` of ``fitted``: its served form, as its checkpoint would be served."""
+    from stars_ros.model.predictor import Predictor  # the served form of the fitted model
+    return Predictor.from_model(fitted)
+
+
+def held_out_residuals(fitted, data, rows: np.ndarray) -> HeldOut:
+    """``HeldOut`` of ``rows`` of ``data``, ratings of trained people that ``fitted``
+    (``model.fitted.FittedModel``) was not fitted on, scored in its served form (ratings of
+    anyone else are left out)."""
+    from stars_ros.model.scoring import served_encodings
+
+    predictor = served(fitted)
+    h = served_encodings(predictor, data)
+    rows = np.asarray(rows, dtype=np.int64)
+    people = np.array([predictor.trained_row(user) for user in data.users[rows]], dtype=np.int64)
+    rows, people = rows[people >= 0], people[people >= 0]
+    trained = user_rows(predictor.inference)
+    x, c, z = rows_design(predictor, data, rows, h)
+    residual = z - (np.einsum('nd,nd->n', x, trained[people]) + c)
+    return HeldOut(residual, data.actions[rows], held_out_mean_weight(trained, people, x, z - c))
+
+
+def estimate_prior(fitted, data, rows: np.ndarray, held_out: HeldOut | None = None) -> UserPrior:
+    """The prior of a model ``fitted`` (``model.fitted.FittedModel``) on its training ``rows``
+    of ``data`` (RatingData), computed in its served form: Σ₀ and the known people's
+    covariances from its trained rows and ``rows``; the noise, tails and the mean's weight from
+    ``held_out`` (ratings the model, or a fit of it on less, did not see: ``model.recipe``),
+    else from the training ratings. See the module docstring."""
+    from stars_ros.model.scoring import served_encodings
+
+    predictor = served(fitted)
+    inference = predictor.inference
     trained = user_rows(inference)
     mean, covariance, details = population(trained)
-    rows = np.asarray(rows)
-    h = encode_all(fitted, data) if h is None else h
-    x, c, z = rows_design(fitted, inference, data, rows, h)
-    users, actions = fitted.user_vocabulary.rows(list(data.users[rows])), data.actions[rows]
-    held_out = noise_rows is not None and len(noise_rows) > 0
-    if held_out:
-        noise_rows = np.asarray(noise_rows)
-        known = fitted.user_vocabulary.rows(list(data.users[noise_rows]))
-        noise_rows, known = noise_rows[known >= 0], known[known >= 0]
-        noise_x, noise_c, noise_z = rows_design(fitted, inference, data, noise_rows, h)
-        residual, residual_actions = noise_z - (np.einsum('nd,nd->n', noise_x, trained[known]) + noise_c), \
-            data.actions[noise_rows]
-        weight = held_out_mean_weight(trained, known, noise_x, noise_z - noise_c)
-        if weight is not None:
-            mean = weight * trained.mean(0)
-            details = {**details, 'mean': 'weight from held-out ratings, each person against the others\' mean',
-                       'mean_weight': round(weight, 6), 'james_stein_weight': details.get('mean_weight')}
+    rows = np.asarray(rows, dtype=np.int64)
+    x, c, z = rows_design(predictor, data, rows, served_encodings(predictor, data))
+    users, actions = np.array([predictor.trained_row(u) for u in data.users[rows]]), data.actions[rows]
+    if held_out is not None and len(held_out.residual):
+        residual, residual_actions = held_out.residual, held_out.actions
+        source = f'{len(residual)} held-out ratings of the trained people'
+        if held_out.mean_weight is not None:
+            mean = held_out.mean_weight * trained.mean(0)
+            details = {**details, 'mean': "weight from held-out ratings, each person against the others' mean",
+                       'mean_weight': round(held_out.mean_weight, 6),
+                       'james_stein_weight': details.get('mean_weight')}
     else:
         residual, residual_actions = z - (np.einsum('nd,nd->n', x, trained[users]) + c), actions
+        source = 'the training ratings'
     noise = np.ones(len(inference.target_mean))
     for a in range(len(noise)):
         if (residual_actions == a).any():
             noise[a] = float(np.mean(residual[residual_actions == a] ** 2))
     nu = student_t_nu(residual / np.sqrt(noise[residual_actions]))
     user_covariance = known_covariances(np.linalg.inv(covariance), x, actions, users, noise, len(trained))
-    source = f'{len(residual)} held-out ratings of the trained people' if held_out else 'the training ratings'
     details = {**details, 'noise': f'mean squared z-residual of {source}, per action', 'ratings': int(len(rows)),
                'nu': f'maximum likelihood on {source}', 'prior_scales': list(PRIOR_SCALES)}
     return UserPrior(mean, covariance, noise, user_covariance, details, nu)

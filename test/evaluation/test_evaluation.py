@@ -21,7 +21,6 @@ from stars_ros.evaluation.executors import FitTask, run_fit
 from stars_ros.evaluation.folds import grouped_folds, make_folds, sweep_samples
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
 from stars_ros.model.training import StarsTrainer
-from stars_ros.personalisation.prior import held_out_split
 from stars_ros.evaluation.summaries import paired_tests, time_accounting
 
 REPO = Path(__file__).resolve().parents[2]

@@ -11,6 +11,7 @@ from stars_ros.errors import NotFittedError
 from stars_ros.model.model import StarsModel
 from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.model.vocabulary import UNKNOWN
+from conftest import served_report, served_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
          'training': {'pretrain_epochs': 2, 'joint_epochs': 4, 'lr': 3e-3, 'batch_size': 128, 'threads': 1}}
@@ -40,10 +41,11 @@ def test_stars_and_its_ablations_start_exactly_where_base_ends(synthetic, rows):
     yet predicts what the scene-only model predicts."""
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 2, 'joint_epochs': 0})
-    base = StarsTrainer(config.replace(model={'variant': 'base'})).fit(synthetic, train).predict_rows(synthetic, test)
+    base = served_rows(StarsTrainer(config.replace(model={'variant': 'base'})).fit(synthetic, train),
+                       synthetic, test)
     for variant in ('stars', 'base_user_bias', 'stars_no_q'):
         started = StarsTrainer(config.replace(model={'variant': variant})).fit(synthetic, train)
-        np.testing.assert_allclose(started.predict_rows(synthetic, test), base, atol=1e-6)
+        np.testing.assert_allclose(served_rows(started, synthetic, test), base, atol=1e-6)
 
 
 def test_ablations_keep_their_missing_parts_at_zero(synthetic, rows):
@@ -65,7 +67,7 @@ def test_predictions_stay_on_the_rating_scale(synthetic, rows):
     assert recommender.rating_scale == (0.0, 1.0)
     with torch.no_grad():
         recommender.model.bias.fill_(40.0)  # far above the scale
-    assert np.all(recommender.predict_rows(synthetic, test) == 1.0)
+    assert np.all(served_rows(recommender, synthetic, test) == 1.0)
 
 
 def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(synthetic):
@@ -91,7 +93,7 @@ def test_training_lowers_the_loss_and_beats_the_mean(synthetic, rows, variant):
     joint = recommender.history['joint']
     assert joint[-1] < joint[0]
     assert len(recommender.history['pretrain']) == (0 if variant == 'mf' else 2)
-    metrics = recommender.evaluate(synthetic, test)
+    metrics = served_report(recommender, synthetic, test)
     mean_mse = float(np.mean((synthetic.scores[test] - synthetic.scores[train].mean()) ** 2))
     if variant != 'mf':  # content models must beat the global mean already
         assert metrics['mse'] < mean_mse
@@ -101,8 +103,8 @@ def test_training_lowers_the_loss_and_beats_the_mean(synthetic, rows, variant):
 def test_training_is_deterministic(synthetic, rows):
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL)
-    first = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
-    second = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
+    first = served_rows(StarsTrainer(config).fit(synthetic, train[:800]), synthetic, test)
+    second = served_rows(StarsTrainer(config).fit(synthetic, train[:800]), synthetic, test)
     assert np.array_equal(first, second)
 
 
@@ -123,7 +125,7 @@ def test_divergence_is_reported(synthetic, rows):
 
 def test_predict_before_fit():
     with pytest.raises(NotFittedError, match='not fitted'):
-        StarsTrainer(ExperimentConfig()).predict_scores(['a'], [None], None)
+        StarsTrainer(ExperimentConfig()).require_model()
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason='checks the message torch gives without a GPU')
@@ -150,9 +152,9 @@ def test_cuda_fit_matches_the_cpu_fit(synthetic, rows, encoder, variant):
         recommender = StarsTrainer(config.replace(training={'device': device}))
         seen = []
         recommender.fit(synthetic, train, on_epoch=lambda stage, epoch: seen.append(
-            (next(recommender.model.parameters()).device.type, recommender.predict_rows(synthetic, test))))
+            (next(recommender.model.parameters()).device.type, served_rows(recommender, synthetic, test))))
         assert {t.device.type for t in recommender.model.state_dict().values()} == {'cpu'}
-        fitted[device] = (seen, recommender.predict_rows(synthetic, test), recommender.history)
+        fitted[device] = (seen, served_rows(recommender, synthetic, test), recommender.history)
     (cpu_seen, cpu_final, cpu_history), (gpu_seen, gpu_final, gpu_history) = fitted['cpu'], fitted['cuda']
     assert {d for d, _ in gpu_seen} == {'cuda'} and len(gpu_seen) == len(cpu_seen)
     for (_, on_cpu), (_, on_gpu) in zip(cpu_seen, gpu_seen):

@@ -73,8 +73,7 @@ def test_random_answers_score_the_mean_over_every_first_answer(design, synthetic
     MSE of the posterior from that one answer (by hand, through ``Design``)."""
     held = ['a', 'b']
     people, left_out = reveal_pools(synthetic, held, 4, seed=0)
-    fold = (0, 0, held, np.zeros(0, dtype=np.int64), people, left_out, np.zeros(0, dtype=np.int64),
-            np.zeros(0, dtype=np.int64))
+    fold = (0, 0, held, np.zeros(0, dtype=np.int64), people, left_out, np.zeros(0, dtype=np.int64))
     settings = kshot_run.KShotSettings(folds=2, seeds=(0,), pool=4, ks=(1,), strategies=('random',), retrain_ks=(0,),
                                        known_test=0.0, ridge_lambda=1.0, random_sets=64)
     records, _ = kshot_run.score_fold(settings, synthetic, design, fold, {})
@@ -190,11 +189,11 @@ def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root
     seen = []
     original = kshot_run.fit_rows
 
-    def fit_rows(experiment, train, test, keep, noise_rows=None, data=None):
+    def fit_rows(experiment, train, test, keep, data=None):
         if experiment['model'].get('variant') != 'base':  # the plain encoder beside each fold is not selection
             seen.append((experiment['training']['joint_epochs'], np.asarray(train), np.asarray(test), keep))
             assert experiment['model']['strangers'] == ('base_encoder' if keep else 'prior_mean')
-        return original(experiment, train, test, keep, noise_rows, data)
+        return original(experiment, train, test, keep, data)
     monkeypatch.setattr(kshot_run, 'fit_rows', fit_rows)
     out = tmp_path / 'kshot'
     assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out',

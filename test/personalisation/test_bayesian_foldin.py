@@ -11,13 +11,13 @@ from scipy import stats
 from conftest import TINY_CONFIG
 from stars_ros.model.checkpoint import load_checkpoint, read_checkpoint, stored_prior
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.serving import inference_of
+from stars_ros.model.scoring import served_encodings
 from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.model.predictor import Predictor
 from stars_ros.personalisation import prior as prior_module
 from stars_ros.personalisation.foldin import FoldIn, Rating, gaussian_posterior, scale_mixture_posterior, solve_ridge
-from stars_ros.personalisation.prior import (UserPrior, encode_all, estimate_prior, held_out_mean_weight, ledoit_wolf,
-                                             population)
+from stars_ros.personalisation.prior import (UserPrior, estimate_prior, held_out_mean_weight, held_out_residuals,
+                                             ledoit_wolf, population)
 from stars_ros.personalisation.uncertainty import Uncertainty, log_psi, student_t_quantile
 
 
@@ -132,14 +132,14 @@ def test_the_held_out_mean_weight_is_least_squares_against_the_others_mean_by_ha
 def test_a_population_mean_that_points_against_held_out_people_is_not_used(synthetic):
     train, held = split_rows(synthetic, 0.2, 0)
     fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
-    inference = inference_of(fitted.require_model())
-    x, c, z = prior_module.rows_design(fitted, inference, synthetic, held, encode_all(fitted, synthetic))
+    predictor = Predictor.from_model(fitted)
+    x, c, z = prior_module.rows_design(predictor, synthetic, held, served_encodings(predictor, synthetic))
     # every trained person moved alike along p's first coordinate, against what their held-out ratings say
     # (x does not depend on θ): a mean far beyond its own error, which James–Stein keeps
     shift = np.zeros(fitted.config.model.dim)
     shift[0] = -5.0 * np.sign(np.sum(x[:, 0] * (z - c)))
     fitted.require_model().user_embedding.weight.data += torch.from_numpy(shift).float()
-    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
+    prior = estimate_prior(fitted, synthetic, train, held_out_residuals(fitted, synthetic, held))
     assert prior.details['james_stein_weight'] > 0.9
     assert prior.details['mean_weight'] == 0.0 and not prior.mean.any()
     assert 'held-out' in prior.details['mean']
@@ -148,14 +148,15 @@ def test_a_population_mean_that_points_against_held_out_people_is_not_used(synth
 def test_the_noise_comes_from_held_out_ratings_when_given(synthetic):
     train, held = split_rows(synthetic, 0.2, 0)
     fitted = StarsTrainer(ExperimentConfig.from_dict(TINY_CONFIG)).fit(synthetic, train)
-    prior = estimate_prior(fitted, synthetic, train, noise_rows=held)
-    # by the model's own scoring (not the linear form the estimate uses): trained rows, unclipped
-    inference = inference_of(fitted.require_model())
+    prior = estimate_prior(fitted, synthetic, train, held_out_residuals(fitted, synthetic, held))
+    # by the served scoring (not the linear form the estimate uses): trained rows, unclipped
+    predictor = Predictor.from_model(fitted)
+    inference = predictor.inference
     users = fitted.user_vocabulary.rows(list(synthetic.users[held]))
     known, users = held[users >= 0], users[users >= 0]
     items = synthetic.item_keys(fitted.config.model.item_key)
     scenes = fitted.scene_vocabulary.rows([items[s] for s in synthetic.scenes[known]])
-    h = encode_all(fitted, synthetic)[synthetic.scenes[known]].astype(np.float32)
+    h = served_encodings(predictor, synthetic, synthetic.scenes[known]).astype(np.float32)
     actions = synthetic.actions[known]
     scores = inference.scores(h, (inference.user_rows[users], inference.user_offsets[users]), scenes)
     errors = (synthetic.scores[known] - scores[np.arange(len(known)), actions]) / inference.target_std[actions]
@@ -191,13 +192,14 @@ def test_an_older_checkpoint_without_a_prior_still_loads_and_says_so(tiny_checkp
     assert (foldin.noise == prior_module.DEFAULT_NOISE).all()
 
 
-def test_a_prior_of_an_unshipped_experiment_loads_with_equal_scales_and_the_trained_noise(tiny_checkpoint, caplog):
+def test_a_prior_of_an_unshipped_experiment_loads_with_equal_scales_and_one_noise(tiny_checkpoint, caplog):
     """A prior written with fitted scale weights or a stranger's own noise (options that did not
     ship) still loads: the fold-in weighs the scales equally and gives everyone the trained
     people's noise, and says so."""
     stored = stored_prior(read_checkpoint(tiny_checkpoint))
     plain = UserPrior.from_dict(stored)
-    older = {**stored, 'scale_weights': np.array([0.7, 0.1, 0.1, 0.1]), 'strangers_own_noise': 0.3 * plain.noise}
+    older = {**stored, 'scale_weights': np.array([0.7, 0.1, 0.1, 0.1]),
+             'strangers_own_noise': 0.3 * plain.noise}
     with caplog.at_level(logging.WARNING, logger=prior_module.__name__):
         restored = UserPrior.from_dict(older)
     assert 'scale_weights, strangers_own_noise' in caplog.text
