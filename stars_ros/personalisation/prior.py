@@ -58,7 +58,7 @@ log = logging.getLogger(__name__)
 DEFAULT_NOISE = 1.0  # z-scale noise variance assumed when a checkpoint stores none
 NU_GRID = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, math.inf)  # candidate degrees of freedom
 PRIOR_SCALES = (0.0, 0.3, 1.0, 3.0)  # a person's scale τ on Σ₀, equally likely a priori (mean 1.075)
-NOISE_SHARE = 0.1  # share of the examples a default fit holds out for the noise (``held_out_split``)
+NOISE_SHARE = 0.1  # share of the examples the hold-out fit leaves out for the noise (``held_out_split``)
 
 
 @dataclass(frozen=True)
