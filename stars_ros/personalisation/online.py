@@ -152,11 +152,9 @@ class Personalisation:
         reading the h of restored people's scenes from the store (not with fleet sharing, which
         encodes each scene on its own so that peers' models agree to the last bit); no fold-in
         nor uncertainty (and a warning) for a model without users."""
-        stored = None
-        if self.store is not None and not self.sharing:
-            def stored(scenes):
-                return self.store.encodings(scenes, predictor.fingerprint)
-        stack = serving_stack(predictor, scene_by_scene=self.sharing, stored=stored)
+        from_store = self.store is not None and not self.sharing
+        stack = serving_stack(predictor, scene_by_scene=self.sharing, stored=(
+            lambda scenes: self.store.encodings(scenes, predictor.fingerprint)) if from_store else None)
         if stack.foldin is None:
             self._logger.warning(f'no online fold-in with this checkpoint: {stack.no_foldin}')
         return stack.predictor, stack.foldin, stack.uncertainty

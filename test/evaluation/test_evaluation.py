@@ -20,7 +20,6 @@ from stars_ros.errors import ConfigError
 from stars_ros.evaluation.executors import FitTask, run_fit
 from stars_ros.evaluation.folds import grouped_folds, make_folds, sweep_samples
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
-from stars_ros.model.training import StarsTrainer
 from stars_ros.evaluation.summaries import paired_tests, time_accounting
 
 REPO = Path(__file__).resolve().parents[2]

@@ -8,9 +8,7 @@ import torch
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError, DataError, TrainingDivergedError
 from stars_ros.errors import NotFittedError
-from stars_ros.model.model import StarsModel
 from stars_ros.model.training import StarsTrainer, split_rows
-from stars_ros.model.vocabulary import UNKNOWN
 from conftest import served_report, served_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
