@@ -1,6 +1,6 @@
-"""The one fit recipe of a shipped model: ``Recipe`` (``StarsRecommender.fit``, ``train``,
-``evaluate``, k-shot, the learning curve, the implicit simulation and the benchmarks fit
-through it).
+"""The one fit recipe of a shipped model: ``Recipe``. ``StarsRecommender.fit`` is it, and so
+``train``, ``evaluate`` (and its learning curves), k-shot and the implicit simulation fit
+through it, as do myFM's base h_i.
 
 Given rating rows, it trains
 
@@ -14,11 +14,12 @@ Given rating rows, it trains
    trained person's covariance from its own rows, the noise from step 2.
 
 So the model that ships learns from every rating it is given, and the prior's noise is still
-measured on ratings the model that made it did not fit. A hold-out fit followed by a refit
-costs one more fit of the model; cross-fitting (K fits, each scoring its held-out share) would
-cost K, for a noise estimate from every rating instead of a tenth, which the prior's per-action
-mean squared residual does not need. The noise describes the hold-out fit, trained on 90 % of
-the rows: the refit, on all of them, is at least as good, so the intervals err wide.
+measured on ratings the model that made it did not fit. The hold-out fit is the model the
+recipe before this one shipped (the same rows, seeds and settings). A hold-out fit followed by
+a refit costs one fit more than that recipe; cross-fitting (K fits, each scoring its held-out
+share) would cost K, for a noise estimate from every rating instead of a tenth. The noise is
+the hold-out fit's, on 90 % of the rows: how far the refit's own error differs is what the
+canonical runs' row of the earlier recipe beside this one shows.
 """
 from __future__ import annotations
 
