@@ -54,7 +54,8 @@ sys.path.insert(0, str(REPO))
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros import messages  # noqa: E402
-from stars_ros.personalisation.foldin import FoldIn, Rating, solve_ridge  # noqa: E402
+from stars_ros.personalisation.foldin import Rating, solve_ridge  # noqa: E402
+from stars_ros.personalisation.stack import serving_stack  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
@@ -79,7 +80,7 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float, prefix:
     messages.validator('scene_request')  # compiled once per process: the node has done it before any feedback
     for name, scenes in scenes_by_user.items():
         user = prefix + name
-        foldin = FoldIn(predictor)
+        foldin = serving_stack(predictor).require_foldin()
         texts = [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes]
         ratings = []
         for n, (scene, text) in enumerate(zip(scenes, texts), 1):

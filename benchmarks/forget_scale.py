@@ -40,7 +40,8 @@ from stars_ros import recording  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
-from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
+from stars_ros.personalisation.foldin import Rating  # noqa: E402
+from stars_ros.personalisation.stack import serving_stack  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 from stars_ros.state.store import StateStore  # noqa: E402
 
@@ -73,7 +74,8 @@ def fill_bag(folder: Path, scenes: list, people: int, megabytes: float) -> dict:
 
 def fill_store(folder: Path, checkpoint: str, scenes: list, people: int, ratings: int) -> None:
     predictor = Predictor.load(checkpoint)
-    model = FoldIn(predictor).fit([Rating(scenes[0], 'navigate', 0.5)], 'probe')  # what a store holds per person
+    foldin = serving_stack(predictor).require_foldin()
+    model = foldin.fit([Rating(scenes[0], 'navigate', 0.5)], 'probe')  # what a store holds per person
     state_scale.fill(folder, predictor, model, scenes, people, ratings, random.Random(5),
                      state_scale.encodings(predictor, scenes))
     store = StateStore(folder, 'forget_scale', on_error=print)

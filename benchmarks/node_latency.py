@@ -241,8 +241,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     from stars_ros.data.scene_store import GraphStore
     from stars_ros.node.batching import Pending, rank_batch
     from stars_ros.node.markers import encode_marker_array, ranking_markers
-    from stars_ros.personalisation.foldin import FoldIn
-    from stars_ros.personalisation.uncertainty import Uncertainty
+    from stars_ros.personalisation.stack import serving_stack
 
     from threadpoolctl import threadpool_limits
 
@@ -250,7 +249,7 @@ def in_process(checkpoint: str, scenes: list, count: int = 500) -> dict:
     threadpool_limits(1, user_api='blas')  # as the node does; OpenBLAS threads on busy cores slow explained requests
     predictor = Predictor.load(resolve_checkpoint(checkpoint))
     model = load_checkpoint(resolve_checkpoint(checkpoint))[0].require_model()  # the torch form, timed beside
-    uncertainty = Uncertainty(FoldIn(predictor))  # as the node serves: score_sd and p_first_is_best
+    uncertainty = serving_stack(predictor).uncertainty  # as the node serves: score_sd and p_first_is_best
     steps = {}
 
     def request_total(text, spread=uncertainty, explanations=(False, 5)):

@@ -47,7 +47,8 @@ from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import git_state, machine, program_argv  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
-from stars_ros.personalisation.foldin import FoldIn, Rating  # noqa: E402
+from stars_ros.personalisation.foldin import Rating  # noqa: E402
+from stars_ros.personalisation.stack import serving_stack  # noqa: E402
 from stars_ros.personalisation.online import Personalisation  # noqa: E402
 from stars_ros.state import migration  # noqa: E402
 from stars_ros.state.store import PersonUpdate, StateStore, write_people  # noqa: E402
@@ -244,7 +245,7 @@ def main(argv=None) -> int:
     scenes = [s for name in 'abcdefgh' for s in read_scenes(Path(args.data_root) / 'raw' / f'{name}.jsonl')]
     checkpoint = resolve_checkpoint(args.checkpoint)
     predictor = Predictor.load(checkpoint)
-    model = FoldIn(predictor).fit([Rating(scenes[0], 'navigate', 0.5)], 'probe')
+    model = serving_stack(predictor).require_foldin().fit([Rating(scenes[0], 'navigate', 0.5)], 'probe')
     results = {'command': shlex.join(program_argv('benchmarks/state_scale.py', argv)), 'git': git_state(),
                'sizes': {}, 'settings': {**{k: v for k, v in vars(args).items() if k not in ('out', 'data_root')},
                                          'checkpoint': checkpoint, 'scenes': f'{len(scenes)} SocNav1 scenes (a-h)',

@@ -9,8 +9,8 @@ checkpoint keeps one for them, ``model.strangers: base_encoder``, else the prior
 plain encoder, ``git show 5eea9e7:models/socnav1_gat_stars.pt``, whose strangers get the prior's mean.)
 
 A ranking: the JSON scene request parsed, then ``rank(person, scene, uncertainty=True)``
-through the front door (``StarsRecommender.load``), as ``benchmarks/ensemble_cost.py`` times
-one member. The three people take turns over the requests, so the machine's drift reaches
+through the front door (``StarsRecommender.load``). The three people take turns over the
+requests, so the machine's drift reaches
 all alike. BLAS on one thread, as in the node.
 """
 from __future__ import annotations
@@ -22,16 +22,34 @@ import time
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ensemble_cost import percentiles, serving_setup  # noqa: E402  (one model's cost, timed the same way)
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros import StarsRecommender, messages  # noqa: E402
+from stars_ros.data.scene_source import read_scenes  # noqa: E402
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
+from stars_ros.resources import resolve_checkpoint  # noqa: E402
 
 FOLDED_RATINGS = 5  # the folded-in person's ratings
+
+
+def percentiles(values) -> dict:
+    values = np.asarray(values, dtype=float)
+    return {'p50': float(np.percentile(values, 50)), 'p99': float(np.percentile(values, 99)),
+            'n': len(values)}
+
+
+def serving_setup(args) -> tuple:
+    """(checkpoint path, SocNav1 scenes of annotator b, their JSON scene requests) for a
+    process set up as the node serves: BLAS on one thread, the request schema compiled."""
+    threadpool_limits(1, user_api='blas')  # as the node does
+    scenes = read_scenes(Path(args.data_root) / 'raw' / 'b.jsonl')
+    messages.validator('scene_request')  # compiled once per process, as in the node before any request
+    return (Path(resolve_checkpoint(args.checkpoint)), scenes,
+            [json.dumps({'scene_id': s['identifier'], 'graph': s}) for s in scenes])
 
 
 def main(argv=None) -> int:

@@ -9,10 +9,9 @@ refused (``--allow-dirty`` runs anyway, ``--quick`` always may); results.json re
 commit, whether the tree was dirty and the device every fit ran on.
 
 Leave-people-out folds (people shuffled with each of ``--seeds`` and dealt into ``--folds``
-groups). Per fold a model is trained on the other people's examples, less a seeded
-``--known-test`` share of them: half of it gives the personalisation prior its noise
-variance (``estimate_prior``'s held-out rows), the other half checks the known people's
-calibration. With ``--select SETTING=V1,V2`` (repeatable) the fold's training settings are
+groups). Per fold a model is trained by the one recipe (``stars_ros.model.recipe``) on the
+other people's examples, less half of a seeded ``--known-test`` share of them, which checks
+the known people's calibration. With ``--select SETTING=V1,V2`` (repeatable) the fold's training settings are
 chosen first, inside its training people: each combination is fitted on their examples less a
 seeded 20 % and scored on those, and the lowest MSE is the fold's (recorded per fold). For every held-out
 person ``stars_ros.evaluation.kshot`` sets aside a seeded pool of ``--pool`` examples (one

@@ -75,8 +75,8 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     recommender = StarsRecommender(config)
     pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
-    try:  # the fold-in's noise from the held-out split: training residuals understate it
-        recommender.fit(data, train, noise_rows=test if len(test) else None, on_epoch=None if args.quiet else
+    try:  # the one recipe: every training rating, the prior's noise from a fit on less (model.recipe)
+        recommender.fit(data, train, on_epoch=None if args.quiet else
                         Progress(recommender, pretrain, config.training.joint_epochs))
     except StarsError as error:
         print(f'error: {error}', file=sys.stderr)

@@ -61,7 +61,7 @@ from stars_ros.errors import NotFittedError, OutOfScaleError, StarsError, Unknow
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.predictor import Predictor, RankQuery
 from stars_ros.personalisation.foldin import FoldIn
-from stars_ros.personalisation.uncertainty import Uncertainty
+from stars_ros.personalisation.stack import ServingStack, serving_stack
 from stars_ros.state import Rating, check_score
 
 if TYPE_CHECKING:
@@ -163,16 +163,6 @@ def _data(data) -> 'RatingData':
     return data if isinstance(data, RatingData) else load_dataset(data)
 
 
-def _with_prior(fitted, data, rows, noise_rows):
-    """``fitted`` given the fold-in's prior of its weights on ``rows`` (noise from
-    ``noise_rows``) if it is personalised; returns it."""
-    from stars_ros.personalisation.prior import estimate_prior
-
-    if fitted.require_model().personalised:
-        fitted.user_prior = estimate_prior(fitted, data, rows, noise_rows=noise_rows).to_dict()
-    return fitted
-
-
 class StarsRecommender:
     """Fit a StARS model, predict and rank for a user, fold a user in, save and load.
 
@@ -184,10 +174,8 @@ class StarsRecommender:
     def __init__(self, config=None):
         self.config = _config(config)
         self._predictor: Predictor | None = None
-        self._fold_in: FoldIn | None = None
-        self._uncertainty: Uncertainty | None = None
-        self._trainer = None  # the StarsTrainer of the latest fit (None for a loaded model)
-        self._fitting = None  # (data, training rows, noise rows) of the latest fit
+        self._stack: ServingStack | None = None  # the predictor's fold-in and uncertainty, once needed
+        self._recipe = None  # the model.recipe.Recipe of the latest fit (None for a loaded model)
         self._fitted: FittedModel | None = None  # the torch model; a loaded one's is read when first needed
         self._path = None  # the checkpoint a loaded model came from
         self._catalogue: SceneCatalogue | None = None
@@ -245,24 +233,20 @@ class StarsRecommender:
             self._fitted = load_checkpoint(self._path)[0]
         return self._fitted
 
-    def fitted_now(self) -> FittedModel:
-        """Inside ``fit``'s ``on_epoch``: the model ``fit`` would return were training to end
-        now (a copy with the posterior head of the current weights, if the settings have one,
-        and their prior), so that a learning curve scores what its settings describe."""
-        from stars_ros.model.training import StarsTrainer
-
-        if self._trainer is None:
+    def fitted_now(self, stage: str, epoch: int) -> FittedModel:
+        """Inside ``fit``'s ``on_epoch(stage, epoch)``: the model ``fit`` would return were
+        training to end now (``model.recipe.Recipe.now``), so that a learning curve scores what
+        its settings describe."""
+        if self._recipe is None:
             raise NotFittedError('fitted_now is for on_epoch, while fit runs')
-        data, rows, noise_rows = self._fitting
-        now = (self._trainer.with_posterior_head(data, rows) if self.config.training.posterior_sweeps
-               else self._trainer.copy_into(StarsTrainer(self.config)))
-        return _with_prior(now, data, rows, noise_rows)
+        return self._recipe.now(stage, epoch)
 
     @property
     def history(self) -> dict:
         """Training losses per epoch of the latest ``fit``, by stage ('pretrain', 'joint'),
         as they grow during it (empty for a loaded model)."""
-        return {'pretrain': [], 'joint': []} if self._trainer is None else self._trainer.history
+        trainer = None if self._recipe is None else self._recipe.trainer
+        return {'pretrain': [], 'joint': []} if trainer is None else trainer.history
 
     @property
     def checkpoint_metadata(self) -> dict:
@@ -271,41 +255,28 @@ class StarsRecommender:
         return {key: dict(value) for key, value in self._checkpoint.items()}
 
     def _serve(self, fitted: 'FittedModel | None', predictor: Predictor, data: 'RatingData | None') -> None:
-        self._fitted, self._predictor, self._fold_in, self._uncertainty = fitted, predictor, None, None
+        self._fitted, self._predictor, self._stack = fitted, predictor, None
         self._catalogue = None if data is None else SceneCatalogue(data, predictor.served.config.model.item_key)
 
     # -- fit, save, load -----------------------------------------------------------------
-    def fit(self, data, rows: Sequence[int] | None = None, noise_rows: Sequence[int] | None = None,
+    def fit(self, data, rows: Sequence[int] | None = None,
             on_epoch: Callable[[str, int], None] | None = None) -> 'StarsRecommender':
         """Train on ``rows`` of ``data`` (a RatingData, or what ``load_dataset`` reads;
-        every rating by default); returns self. A personalised variant also gets the
-        fold-in's prior (``personalisation.prior``), its rating noise and tails from
-        ``noise_rows`` (held-out ratings of the trained people) when given; else a seeded
-        ``prior.NOISE_SHARE`` of each person's examples is held out of the training for them
-        (``prior.held_out_split``), as ``train`` and ``kshot`` hold out theirs, so a person
-        folded in here is treated as on the robot. ``on_epoch(stage, epoch)`` is called after
-        each epoch (``StarsTrainer.fit``; ``history`` holds the losses). Earlier fold-ins are
-        dropped. Leaves torch's threads, default dtype and random state as it found them."""
-        from stars_ros.model.training import StarsTrainer, torch_state_kept  # training (and pandas): only to fit
-        from stars_ros.personalisation.prior import held_out_split
+        every rating by default) by the one recipe (``model.recipe``): the model learns from
+        every rating given, a personalised variant gets the fold-in's prior
+        (``personalisation.prior``), its rating noise and tails from a fit on less, so a person
+        folded in here is treated as on the robot. Returns self. ``on_epoch(stage, epoch)`` is
+        called after each epoch of the model's training (``history`` holds the losses;
+        ``fitted_now`` the model so far). Earlier fold-ins are dropped. Leaves torch's threads,
+        default dtype and random state as it found them."""
+        from stars_ros.model.recipe import Recipe  # training (and pandas): only to fit
 
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
         started = time.perf_counter()
-        stranger_rows = rows  # the plain encoder strangers may be served learns from every rating given
-        if self.config.model.variant != 'base' and noise_rows is None:  # base: no fold-in, no prior
-            rows, noise_rows = held_out_split(data, rows, seed=self.config.split.seed)
-            if 'held_out_plain' in (self.config.training.prior_scale_weights, self.config.training.prior_spread):
-                # its residuals there weigh the prior's scales or set its spread
-                stranger_rows = rows
-        self._trainer = trainer = StarsTrainer(self.config)
-        self._fitting = (data, rows, noise_rows)
-        with torch_state_kept():
-            if self.config.model.strangers == 'base_encoder':
-                trainer.stranger_model = StarsTrainer(self.config.stranger_encoder()).fit(data, stranger_rows).model
-            trainer.fit(data, rows, on_epoch=on_epoch)
-            seconds = time.perf_counter() - started
-            _with_prior(trainer, data, rows, noise_rows)
+        self._recipe = recipe = Recipe(self.config)
+        trainer = recipe.fit(data, rows, on_epoch)
+        seconds = time.perf_counter() - started
         self._serve(trainer, Predictor.from_model(trainer), data)
         self._checkpoint = {
             'data': {'fingerprint': data.fingerprint, 'source': data.source, 'n_ratings': len(data),
@@ -344,12 +315,17 @@ class StarsRecommender:
     def test(self, data=None, rows: Sequence[int] | None = None) -> dict:
         """Macro-averaged MSE, RMSE, Pearson r and CCC (and ``n``) on ``rows`` of ``data``
         (default: the data ids are looked up in; every row by default), on the rating scale,
-        users scored from their trained rows (Surprise's ``test`` on a test set)."""
+        each rating scored as ``predict`` serves it (``model.scoring``; Surprise's ``test`` on
+        a test set)."""
         data = self.data if data is None else _data(data)
         if data is None:
             raise ValueError('test needs data: give it, or load the model with data=...')
+        from stars_ros.model.metrics import regression_report
+        from stars_ros.model.scoring import served_predictions
+
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
-        return self.fitted.evaluate(data, rows)
+        predictions = served_predictions(self.predictor, data, rows)
+        return regression_report(data.scores[rows], predictions, data.actions[rows])
 
     def refit(self, ratings: dict, regularisation: dict | None = None, data=None, epochs: int = 0,
               default_regularisation: float | None = None) -> Refitted:
@@ -421,15 +397,14 @@ class StarsRecommender:
         """``Predictor.rank_many``'s options for ``score_sd`` (``uncertainty``) and ``why``."""
         options = {'explain_all': explain, 'explain_entities': 0}
         if uncertainty:
-            if self._uncertainty is None:
-                self._uncertainty = Uncertainty(self._fold_in_solver())
-            options['uncertainty'] = self._uncertainty
+            self._fold_in_solver()  # StarsError for a model without users
+            options['uncertainty'] = self._stack.uncertainty
         return options
 
     def _fold_in_solver(self) -> FoldIn:
-        if self._fold_in is None:
-            self._fold_in = FoldIn(self.predictor)  # StarsError for a model without users
-        return self._fold_in
+        if self._stack is None:
+            self._stack = serving_stack(self.predictor)
+        return self._stack.require_foldin()
 
     def predict(self, user, scene, action: str, uncertainty: bool = False, explain: bool = False) -> Prediction:
         """The score ``user`` would give ``action`` in ``scene`` (an id or content), on the

@@ -25,6 +25,32 @@ TINY_CONFIG = {
 }
 
 
+def served_rows(fitted, data, rows):
+    """The served form's predictions of ``rows`` of ``data`` by a fitted model held in memory
+    (``model.scoring``): how every figure is scored."""
+    from stars_ros.model.predictor import Predictor
+    from stars_ros.model.scoring import served_predictions
+    return served_predictions(Predictor.from_model(fitted), data, rows)
+
+
+def served_report(fitted, data, rows) -> dict:
+    """``model.metrics.regression_report`` of ``served_rows``."""
+    from stars_ros.model.metrics import regression_report
+    return regression_report(data.scores[rows], served_rows(fitted, data, rows), data.actions[rows])
+
+
+def torch_scores(fitted, users, scene_keys, batch, user_rows=None):
+    """Training's torch forward of ``fitted`` (a ``model.fitted.FittedModel``): clipped
+    rating-scale scores [len(users), actions] of encoder input ``batch``, ``user_rows`` (p, b_u)
+    in place of the user table's, against which the served form is checked."""
+    import numpy as np
+    import torch
+    model = fitted.require_model()
+    with torch.no_grad():
+        z = model(fitted.user_index(users), fitted.scene_index(scene_keys), model.encode(batch), user_rows)
+    return fitted.clip(model.to_rating_scale(z).numpy().astype(np.float64))
+
+
 def socnav1_path() -> Path:
     return default_socnav1_root()
 
@@ -92,17 +118,17 @@ def synthetic_scenes(synthetic_root) -> list:
 @pytest.fixture(scope='session')
 def tiny_checkpoint(synthetic, tmp_path_factory):
     """A small StARS-GCN trained on 80 % of the generated ratings (a second), saved to disk."""
-    train, held_out = split_rows(synthetic, 0.2, 0)
+    train, _ = split_rows(synthetic, 0.2, 0)
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny.pt'
-    StarsRecommender(TINY_CONFIG).fit(synthetic, train, noise_rows=held_out).save(path)
+    StarsRecommender(TINY_CONFIG).fit(synthetic, train).save(path)
     return path
 
 
 @pytest.fixture(scope='session')
 def tiny_base_stranger_checkpoint(synthetic, tmp_path_factory):
     """``tiny_checkpoint``'s model serving strangers the plain encoder (``model.strangers``)."""
-    train, held_out = split_rows(synthetic, 0.2, 0)
+    train, _ = split_rows(synthetic, 0.2, 0)
     path = tmp_path_factory.mktemp('checkpoint') / 'tiny_base_stranger.pt'
     config = ExperimentConfig.from_dict(TINY_CONFIG).replace(model={'strangers': 'base_encoder'})
-    StarsRecommender(config).fit(synthetic, train, noise_rows=held_out).save(path)
+    StarsRecommender(config).fit(synthetic, train).save(path)
     return path

@@ -16,6 +16,8 @@ from stars_ros.data.scene_source import socnav1_root
 from stars_ros.errors import DataError, StarsError, UnknownActionError, UnknownSceneError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import NotFittedError
+from stars_ros.evaluation.executors import FitTask, fit_and_predict
+from stars_ros.model.metrics import regression_report
 
 REPO = Path(__file__).resolve().parents[1]
 TABULAR = {'encoder': {'name': 'mlp', 'hidden': 16, 'layers': 1}, 'model': {'dim': 8},
@@ -295,8 +297,8 @@ def test_test_scores_held_out_rows_as_the_fitted_model_does(tabular, tmp_path):
 
 
 def test_test_scores_a_stranger_as_predict_serves_them(tabular, tmp_path):
-    """Evaluation scores with ``test``: a person the model was not trained on gets the prior's
-    mean there too, the row the node serves a stranger, not the zero row."""
+    """``test`` scores each rating as ``predict`` serves it: a person the model was not trained
+    on gets the prior's mean, the row the node serves a stranger, not the zero row."""
     stranger = tabular.users[0]
     fitted = StarsRecommender(TABULAR).fit(tabular, np.flatnonzero(tabular.users != stranger))
     # a prior mean away from zero (this small fit's is zero), else the two rows would agree anyway
@@ -304,14 +306,39 @@ def test_test_scores_a_stranger_as_predict_serves_them(tabular, tmp_path):
     fitted.save(tmp_path / 'model.pt')
     recommender = StarsRecommender.load(tmp_path / 'model.pt', data=tabular)
     theirs = np.flatnonzero(tabular.users == stranger)
-    served = [recommender.predict(stranger, tabular.scene_keys[tabular.scenes[row]],
-                                  tabular.action_names[tabular.actions[row]]) for row in theirs]
-    assert recommender.fitted.predict_rows(tabular, theirs) == pytest.approx(served, abs=1e-5)
-    zero_row = recommender.fitted.predict_scores_from_h(
-        [stranger] * len(theirs), [tabular.scene_keys[s] for s in tabular.scenes[theirs]],
-        recommender.fitted.model.encode(tabular.store.batch(torch.from_numpy(tabular.scenes[theirs]))),
-        user_rows=(torch.zeros(len(theirs), recommender.config.model.dim), torch.zeros(len(theirs), 1)))
+    served = np.array([recommender.predict(stranger, tabular.scene_keys[tabular.scenes[row]],
+                                           tabular.action_names[tabular.actions[row]]) for row in theirs])
+    assert recommender.test(tabular, theirs) == regression_report(tabular.scores[theirs], served,
+                                                                  tabular.actions[theirs])
+    predictor, dim = recommender.predictor, TABULAR['model']['dim']
+    h = predictor.encode([tabular.store.scene(s) for s in tabular.scenes[theirs]])
+    keys = [tabular.scene_keys[s] for s in tabular.scenes[theirs]]
+    zero = (np.zeros(dim, np.float32), np.float32(0))
+    zero_row = predictor.inference.scores(h, zero, predictor.scene_rows(keys))
     assert not np.allclose(zero_row[np.arange(len(theirs)), tabular.actions[theirs]], served, atol=1e-5)
+
+
+@pytest.mark.parametrize('kind, strangers', [('tabular', 'prior_mean'), ('graphs', 'base_encoder')])
+def test_evaluates_predictions_are_what_the_saved_fit_serves_exactly(kind, strangers, request, tmp_path):
+    """The one scoring path: ``evaluate``'s prediction of a test rating (``executors.fit_and_predict``)
+    is exactly ``StarsRecommender.load`` of that fit's checkpoint's ``predict`` of it, for a
+    known person's held-out ratings and for a stranger's, on a tabular and a graph backbone."""
+    data = request.getfixturevalue(kind)
+    config = ExperimentConfig.from_dict(TABULAR if kind == 'tabular' else GRAPH).replace(
+        model={'strangers': strangers})
+    stranger, known = data.users[0], data.users[-1]
+    theirs, mine = np.flatnonzero(data.users == stranger), np.flatnonzero(data.users == known)
+    test = np.sort(np.concatenate([theirs, mine[::3]]))
+    train = np.setdiff1d(np.arange(len(data)), test)
+    task = FitTask('StARS', '0:0', 'final', config.to_dict(), train, test)
+    fitted, predictions, _ = fit_and_predict(task, data)
+    fitted.recommender.save(tmp_path / 'fit.pt')
+    loaded = StarsRecommender.load(tmp_path / 'fit.pt', data=data)
+    served = [loaded.predict(data.users[row], data.scene_keys[data.scenes[row]],
+                             data.action_names[data.actions[row]]) for row in test]
+    assert predictions.tolist() == [float(score) for score in served]
+    assert loaded.predictor.hands_over(stranger) == (strangers == 'base_encoder')
+    assert loaded.predictor.knows_user(known) and not loaded.predictor.knows_user(stranger)
 
 
 @pytest.mark.parametrize('kind', ['tabular', 'graphs'])

@@ -105,47 +105,64 @@ def worker_data() -> RatingData:
 
 
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
-    """Fit ``task``'s model as ``train`` fits it (``StarsRecommender.fit``: a personalised
-    model holds a share of each person's examples out for its prior) and return its test
-    metrics, z-RMSE and seconds (and, with ``curve_at``, the same at those joint epochs under
-    ``curve``). Strangers are scored as the node serves them: the prior's mean."""
-    from stars_ros.recommender import StarsRecommender
+    """Fit ``task``'s model as ``train`` fits it (``StarsRecommender.fit``, the one recipe) and
+    return its test metrics, z-RMSE and seconds (and, with ``curve_at``, the same at those
+    joint epochs under ``curve``), every prediction the served form's (``fit_and_predict``)."""
     data = worker_data() if data is None else data
     if task.peer:
         from stars_ros.evaluation.peers import run_peer
         return run_peer(task.peer, task.peer_settings, task.experiment, data, task.train, task.test, task.curve_at)
     config = ExperimentConfig.from_dict(task.experiment)
     started = time.perf_counter()
-    front = StarsRecommender(config)
-    y, actions = data.scores[task.test], data.actions[task.test]
-    curve = []
-
-    def scores(scored):
-        predictions = scored.predict_rows(data, task.test)
-        model = scored.model
-        return {**regression_report(y, predictions, actions),
-                'z_rmse': normalised_rmse(y, predictions, actions, model.target_mean.cpu().numpy(),
-                                          model.target_std.cpu().numpy())}
-
-    def score_curve(stage, epoch):
-        if stage == 'joint' and epoch in task.curve_at:
-            curve.append({'epoch': epoch, **scores(front.fitted_now())})
     try:
-        front.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
-        recommender = front.fitted
+        fitted, predictions, curve = fit_and_predict(task, data)
     except TrainingDivergedError as error:  # one diverged fit must not end a long run
         return {**{m: math.nan for m in METRICS}, 'n': len(task.test), 'z_rmse': math.inf,
                 'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
                 'error': str(error), **({'curve': []} if task.curve_at else {})}
-    fitted = time.perf_counter()
-    result = scores(recommender)
-    predicted = time.perf_counter()
-    if recommender.teachers:  # the ensemble a distilled model was taught by, on the same test rows
-        result['teachers'] = regression_report(y, recommender.teachers_predict_rows(data, task.test), actions)
-    model = recommender.model
-    return {**result, 'fit_seconds': fitted - started, 'predict_seconds': predicted - fitted,
-            'epochs': (config.training.pretrain_epochs if model.uses_content else 0) + config.training.joint_epochs,
+    inference, training = fitted.predictor.inference, config.training
+    return {**_scores(data, task.test, predictions, inference), 'fit_seconds': fitted.fit_seconds,
+            'predict_seconds': fitted.predict_seconds,
+            'epochs': (training.pretrain_epochs if inference.uses_content else 0) + training.joint_epochs,
             **({'curve': curve} if task.curve_at else {})}
+
+
+class Fitted:
+    """``fit_and_predict``'s fitted front door (``recommender``), its ``predictor`` and the
+    seconds its fit and its predictions took."""
+
+    def __init__(self, recommender, fit_seconds: float, predict_seconds: float):
+        self.recommender, self.predictor = recommender, recommender.predictor
+        self.fit_seconds, self.predict_seconds = fit_seconds, predict_seconds
+
+
+def _scores(data: RatingData, rows: np.ndarray, predictions: np.ndarray, inference) -> dict:
+    y, actions = data.scores[rows], data.actions[rows]
+    return {**regression_report(y, predictions, actions),
+            'z_rmse': normalised_rmse(y, predictions, actions, inference.target_mean, inference.target_std)}
+
+
+def fit_and_predict(task: FitTask, data: RatingData) -> tuple:
+    """(``Fitted``, predictions of ``task.test``, curve points): the StARS fit of ``task``
+    through the front door, each test rating scored as ``StarsRecommender.load`` of its
+    checkpoint would serve it (``model.scoring``), the same at each joint epoch of
+    ``curve_at`` from the model ``fit`` would return then (``fitted_now``)."""
+    from stars_ros.model.predictor import Predictor
+    from stars_ros.model.scoring import served_predictions
+    from stars_ros.recommender import StarsRecommender
+
+    front, curve = StarsRecommender(ExperimentConfig.from_dict(task.experiment)), []
+
+    def score_curve(stage, epoch):
+        if stage == 'joint' and epoch in task.curve_at:
+            predictor = Predictor.from_model(front.fitted_now(stage, epoch))
+            predictions = served_predictions(predictor, data, task.test)
+            curve.append({'epoch': epoch, **_scores(data, task.test, predictions, predictor.inference)})
+    started = time.perf_counter()
+    front.fit(data, task.train, on_epoch=score_curve if task.curve_at else None)
+    fitted = time.perf_counter()
+    predictions = served_predictions(front.predictor, data, task.test)
+    return Fitted(front, fitted - started, time.perf_counter() - fitted), predictions, curve
 
 
 class _InlineExecutor(futures.Executor):

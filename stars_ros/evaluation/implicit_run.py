@@ -14,7 +14,7 @@ from stars_ros.data import crowd_data
 from stars_ros.data.ratings import load_dataset
 from stars_ros.evaluation.implicit import (OutcomeModel, exchange_rate, expected_mse_implicit, mse_explicit,
                                           mse_implicit)
-from stars_ros.evaluation.kshot import Design, annotator_folds, known_split, reveal_pools
+from stars_ros.evaluation.kshot import Design, annotator_folds, reveal_pools
 from stars_ros.evaluation.plots import pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.model.config import ExperimentConfig
@@ -41,9 +41,8 @@ def run_dataset(name: str, args, ns, ks) -> dict:
     config = ExperimentConfig.from_yaml(config_path)
     per_fold, covered, left_out = [], 0, 0
     for fold, held_out in enumerate(annotator_folds(data.users, args.folds, args.seed)):
-        rows = np.flatnonzero(~np.isin(data.users, held_out))
-        train, noise = known_split(data, rows, 0.1, args.seed)
-        design = Design(StarsRecommender(config).fit(data, train, noise_rows=noise).fitted, data)
+        train = np.flatnonzero(~np.isin(data.users, held_out))
+        design = Design(StarsRecommender(config).fit(data, train).fitted, data)
         people, _ = reveal_pools(data, held_out, args.pool, args.seed)
         people = {p: person for p, person in people.items() if len(person.rows(range(len(person.pool)))) >= max(ks)}
         covered += len(people)

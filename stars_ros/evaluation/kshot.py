@@ -36,10 +36,11 @@ import numpy as np
 
 from stars_ros.data.splits import held_examples
 from stars_ros.errors import StarsError
-from stars_ros.model.predictor import Predictor
-from stars_ros.personalisation.foldin import FoldIn, solve_ridge
-from stars_ros.personalisation.prior import encode_all, rows_design
-from stars_ros.personalisation.uncertainty import Uncertainty, student_t_quantile
+from stars_ros.model.scoring import served_encodings, served_plain_scores
+from stars_ros.personalisation.foldin import solve_ridge
+from stars_ros.personalisation.prior import rows_design
+from stars_ros.personalisation.stack import serving_stack
+from stars_ros.personalisation.uncertainty import student_t_quantile
 
 STRATEGIES = ('random', 'uncertainty', 'active', 'decision')
 NODE_STRATEGY = 'uncertainty'  # the criterion the node's stars/question_request uses (node.questions)
@@ -114,21 +115,22 @@ class Design:
     encoder where the model keeps one for strangers (``FoldIn.hand_over_shift``)."""
 
     def __init__(self, fitted, data):
-        self.fitted, self.data = fitted, data
-        self.foldin = FoldIn(Predictor.from_model(fitted))
-        self.uncertainty = Uncertainty(self.foldin)
+        self.data = data
+        stack = serving_stack(fitted)  # the served form, as the node folds people in
+        self.predictor, self.foldin, self.uncertainty = stack.predictor, stack.require_foldin(), stack.uncertainty
         self.inference = self.foldin.inference
-        self.h = encode_all(fitted, data)
-        plain = self.foldin.predictor.stranger_inference
-        self._plain_h = None if plain is None else encode_all(fitted, data, fitted.stranger_model)
+        self.h = served_encodings(self.predictor, data)
+        self._plain = None  # a new person is served around the plain encoder, where the model keeps one
+        if self.predictor.stranger_inference is not None:
+            self._plain = served_plain_scores(self.predictor, data)
 
     def rows(self, rows: np.ndarray, user_id=None) -> tuple:
         """(x, c, z, actions) of dataset ``rows`` as ``user_id`` is served (None: a new person)."""
-        x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
+        x, c, z = rows_design(self.predictor, self.data, rows, self.h)
         actions = self.data.actions[rows]
-        if self._plain_h is not None and self.foldin.predictor.hands_over(user_id):
-            plain = self.foldin.predictor.stranger_inference.scores(self._plain_h[self.data.scenes[rows]], None, None)
-            c = c + self.foldin.shift(self.inference.to_z(plain[np.arange(len(rows)), actions], actions), x, c)
+        if self._plain is not None and self.predictor.hands_over(user_id):
+            plain = self._plain[self.data.scenes[rows], actions]
+            c = c + self.foldin.shift(self.inference.to_z(plain, actions), x, c)
         return x, c, z, actions
 
     def posterior(self, rows: np.ndarray, user_id=None, regularisation: float | None = None) -> tuple:
@@ -138,15 +140,14 @@ class Design:
         x, c, z, actions = self.rows(rows, user_id)
         if regularisation and len(rows):
             theta = solve_ridge(x, z - c, self.foldin.prior(user_id), regularisation)
-            return theta, (float(self.foldin.noise_for(user_id).mean())
-                           * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta))))
+            return theta, float(self.foldin.noise.mean()) * np.linalg.inv(x.T @ x + regularisation * np.eye(len(theta)))
         return self.foldin.posterior(x, z - c, actions, user_id)
 
     def predict(self, rows: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
         """Rating-scale predictions of a new person's ``rows``, clipped as served; θ None: the
         scene-only model (p_u = 0, b_u = 0, the model's own offsets)."""
         if theta is None:
-            x, c, z = rows_design(self.fitted, self.inference, self.data, rows, self.h)
+            x, c, z = rows_design(self.predictor, self.data, rows, self.h)
             return self.predict_design((x, c, z, self.data.actions[rows]), None)
         return self.predict_design(self.rows(rows), theta)
 
@@ -154,7 +155,7 @@ class Design:
         """``predict`` of rows whose ``rows(...)`` is ``design`` (computed once, for many θ)."""
         x, c, _, actions = design
         z = c if theta is None else x @ theta + c
-        return self.fitted.clip(self.inference.to_rating_scale(z, actions))
+        return self.predictor.clip(self.inference.to_rating_scale(z, actions))
 
     def posterior_design(self, design: tuple, with_covariance: bool = True) -> tuple:
         """``posterior`` of a new person from rows whose ``rows(...)`` is ``design`` (covariance
@@ -165,13 +166,12 @@ class Design:
     def predictive(self, rows: np.ndarray, theta: np.ndarray, covariance: np.ndarray, user_id=None) -> tuple:
         """(mean, sd) of the predictive distribution of ``user_id``'s ``rows`` on the rating
         scale (unclipped)."""
-        return self.predictive_design(self.rows(rows, user_id), theta, covariance, user_id)
+        return self.predictive_design(self.rows(rows, user_id), theta, covariance)
 
-    def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray, user_id=None) -> tuple:
+    def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray) -> tuple:
         """``predictive`` of rows whose ``rows(...)`` is ``design``."""
         x, c, _, actions = design
-        sd = self.uncertainty.rating_sd(x, actions, covariance, self.uncertainty.noise(user_id))
-        return self.inference.to_rating_scale(x @ theta + c, actions), sd
+        return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
 
     def reveal_order(self, person: Person, strategy: str, count: int) -> list:
         """The first ``count`` pool examples ``strategy`` asks about, in order."""
@@ -184,19 +184,19 @@ class Design:
         decisions = [(b[0], b[1], b[3]) for b in blocks]
         if all(len(b[0]) == 1 for b in blocks):
             decisions = [(targets[0], np.concatenate([b[1] for b in blocks]), targets[1])]
-        asked, noise = [], self.uncertainty.noise(None)
+        asked = []
         while len(asked) < min(count, len(person.pool)):
             theta, covariance = self.posterior(person.rows(asked))
             remaining = [e for e in range(len(person.pool)) if e not in asked]
             if strategy == 'uncertainty':
-                gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance, noise) ** 2)
+                gains = [np.sum(self.uncertainty.rating_sd(blocks[e][0], blocks[e][3], covariance) ** 2)
                          for e in remaining]
             elif strategy == 'decision':
                 gains = self.uncertainty.log_decision_value([(blocks[e][0], blocks[e][3]) for e in remaining],
-                                                            decisions, theta, covariance, noise)
+                                                            decisions, theta, covariance)
             else:
                 gains = self.uncertainty.variance_reduction([(blocks[e][0], blocks[e][3]) for e in remaining], targets,
-                                                            covariance, noise)
+                                                            covariance)
             asked.append(remaining[int(np.argmax(gains))])
         return asked
 

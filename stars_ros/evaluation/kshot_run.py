@@ -19,8 +19,9 @@ from stars_ros.evaluation.kshot import (EXACT_SETS, LEVELS, NODE_STRATEGY, Desig
                                        known_split, random_sets, reveal_pools)
 from stars_ros.evaluation.plots import label_axis, pyplot, save_png
 from stars_ros.evaluation.stats import mean_sd
-from stars_ros.model.config import ExperimentConfig, TrainConfig
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.metrics import regression_report
+from stars_ros.model.scoring import served_predictions
 
 METRICS = ('mse', 'pearson_r', 'ccc')
 RANKING = 'regret'  # first-choice regret, where an example rates several actions
@@ -61,18 +62,17 @@ def with_settings(experiment: dict, chosen: dict) -> dict:
     return {**experiment, 'training': {**experiment['training'], **chosen}}
 
 
-def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, noise_rows=None, data=None) -> dict:
-    """One fit through the front door (in a ``fit_executor`` worker, or inline with
-    ``data``): seconds, predictions on ``test``, and with ``keep`` the fitted model itself
-    (``model.fitted``, on the CPU, with the personalisation prior a checkpoint keeps, its
-    noise from ``noise_rows``, held-out ratings of the trained people), where the fold-in
-    designs are computed."""
+def fit_rows(experiment: dict, train: np.ndarray, test: np.ndarray, keep: bool, data=None) -> dict:
+    """One fit through the front door, the one recipe (in a ``fit_executor`` worker, or inline
+    with ``data``): seconds, the served form's predictions on ``test`` (``model.scoring``), and
+    with ``keep`` the fitted model itself (``model.fitted``, on the CPU, with the
+    personalisation prior a checkpoint keeps), where the fold-in designs are computed."""
     data = worker_data() if data is None else data
     started = time.perf_counter()
-    recommender = StarsRecommender(experiment).fit(data, train, noise_rows=noise_rows)
+    recommender = StarsRecommender(experiment).fit(data, train)
     seconds = time.perf_counter() - started
-    fitted = recommender.fitted
-    return {'seconds': seconds, 'predictions': fitted.predict_rows(data, test), 'recommender': fitted if keep else None}
+    return {'seconds': seconds, 'predictions': served_predictions(recommender.predictor, data, test),
+            'recommender': recommender.fitted if keep else None}
 
 
 def report(data, rows, predictions, examples) -> dict:
@@ -97,24 +97,27 @@ def first_choice_regret(y: np.ndarray, p: np.ndarray, groups: np.ndarray) -> flo
 
 def plan_folds(settings, data) -> list:
     """(seed, fold id, held-out people, training rows, {person: Person}, left out, known
-    people's test rows, their rows for the prior's noise) of every fold of every seed."""
+    people's test rows) of every fold of every seed. Half of the known people's held-out
+    examples check their calibration; the other half trains (the recipe holds out its own
+    ratings for the prior's noise, ``model.recipe``)."""
     plan = []
     for seed in settings.seeds:
         for fold_id, held_out in enumerate(annotator_folds(data.users, settings.folds, seed)):
             train = np.flatnonzero(~np.isin(data.users, held_out))
             train, held = known_split(data, train, settings.known_test, seed)
-            noise, known = known_split(data, held, 0.5, seed + 1)  # half for the prior's noise, half to check it
+            trained_too, known = known_split(data, held, 0.5, seed + 1)  # half to check their calibration
+            train = np.sort(np.concatenate([train, trained_too]))
             if settings.max_train_rows and len(train) > settings.max_train_rows:
                 train = np.sort(np.random.default_rng([seed, fold_id]).choice(train, settings.max_train_rows,
                                                                               replace=False))
             people, left_out = reveal_pools(data, held_out, settings.pool, seed)
-            plan.append((seed, fold_id, held_out, train, people, left_out, known, noise))
+            plan.append((seed, fold_id, held_out, train, people, left_out, known))
     return plan
 
 
 def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
     """The training rows at ``k``: the fold's, plus each held-out person's first k random answers."""
-    _, _, _, train, people, _, _, _ = fold
+    _, _, _, train, people, _, _ = fold
     if k == 0:
         return train
     return np.sort(np.concatenate([train, *(person.rows(range(min(k, len(person.pool)))) for person in people.values())]))
@@ -142,7 +145,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
     metrics at k are the mean over its answer sets: one per person for a question strategy,
     ``random_sets`` for random answers (set ``number`` of every covered person is one draw of
     the fold's metrics)."""
-    seed, fold_id, held, _, people, _, known, _ = fold
+    seed, fold_id, held, _, people, _, known = fold
     examples = data.examples
     orders = {(name, strategy): design.reveal_order(person, strategy, max(settings.ks))
               for name, person in people.items() for strategy in settings.strategies if strategy != 'random'}
@@ -157,10 +160,7 @@ def score_fold(settings, data, design: Design, fold: tuple, outcomes: dict,
         if not len(rows):
             continue
         entry = {'seed': seed, 'fold': fold_id, 'k': k, 'held_out': held, 'covered': covered, 'n_test': len(rows),
-                 'prior_scale_weights': [round(float(w), 6) for w in design.foldin.user_prior.scale_prior],
-                 'prior_noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
-                 'prior_spread': design.foldin.user_prior.details.get('prior_spread', 1.0),
-                 'stranger_noise_share': design.foldin.user_prior.details.get('stranger_noise_share', 1.0),
+                 'noise': [round(float(v), 6) for v in design.foldin.user_prior.noise],
                  'unpersonalised': report(data, rows, design.predict(rows, None), examples)}
         if base_encoder is not None:
             entry[BASE_ENCODER] = report(
@@ -247,7 +247,7 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
         order = sorted(((fold, k) for fold in folds for k in retrained_ks(settings)), key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiments[fold[:2]], fit_rows_of(fold, k),
-                                                         fold_test(fold), k == 0, fold[7])
+                                                         fold_test(fold), k == 0)
         for fold in folds:  # the plain encoder beside them, trained on what the fold's model is
             experiment = experiments[fold[:2]]
             if experiment['model']['strangers'] == 'base_encoder':  # the fold's model serves new people that one
@@ -264,7 +264,7 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
         if fits.jobs > 1:  # every fit at once; inline, fold by fold, so that partial results come as it goes
             submit(plan)
         for fold in plan:
-            seed, fold_id, held, train, people, skipped, known, _ = fold
+            seed, fold_id, held, train, people, skipped, known = fold
             if fits.jobs == 1:
                 submit([fold])
             outcomes = {k: fit_outcome(submitted.pop((seed, fold_id, k)), f'seed {seed} fold {fold_id} k={k}')
@@ -313,13 +313,8 @@ def select_settings(settings, data, plan: list, experiment: dict, executor, log=
     lowest chosen. Only the fold's training people are seen; a candidate whose fit fails
     counts as infinite error."""
     candidates = setting_candidates(settings.select)
-    # the validation people are trained ones: a plain encoder kept for strangers would go unused,
-    # and so would a prior's scale weights, spread or stranger noise fitted to its residuals (the
-    # prior does not enter the scores)
-    defaults = TrainConfig.model_fields
-    training = {key: defaults[key].default if value == 'held_out_plain' else value
-                for key, value in experiment['training'].items()}
-    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}, 'training': training}
+    # the validation people are trained ones: a plain encoder kept for strangers would go unused
+    experiment = {**experiment, 'model': {**experiment['model'], 'strangers': 'prior_mean'}}
     if len(candidates) == 1:
         return {fold[:2]: {'chosen': candidates[0], 'validation_mse': {}} for fold in plan}
     pending = {}

@@ -143,13 +143,15 @@ def _myfm(data: RatingData, train, test, features: np.ndarray, settings: MyFMSet
 
 
 def _encoded_scenes(data: RatingData, train, experiment: dict) -> tuple:
-    """(h_i of every scene, epochs) under a base model trained on ``train``."""
-    from stars_ros.model.training import StarsTrainer
-    from stars_ros.personalisation.prior import encode_all
+    """(h_i of every scene, epochs) under a base model trained on ``train`` by the one recipe,
+    each scene encoded by its served form (``model.scoring``)."""
+    from stars_ros.model.predictor import Predictor
+    from stars_ros.model.recipe import Recipe
+    from stars_ros.model.scoring import served_encodings
     config = ExperimentConfig.from_dict(experiment)
-    trainer = StarsTrainer(config)
-    trainer.fit(data, train)
-    return encode_all(trainer, data), config.training.pretrain_epochs + config.training.joint_epochs
+    trainer = Recipe(config).fit(data, train)
+    epochs = config.training.pretrain_epochs + config.training.joint_epochs
+    return served_encodings(Predictor.from_model(trainer), data), epochs
 
 
 def peer_predictions(peer: str, settings_text: str, experiment: dict, data: RatingData, train: np.ndarray,

@@ -73,10 +73,8 @@ def _merge(base: dict, changes: dict) -> dict:
 
 
 #: Settings a protocol's ``search`` may vary, and the config section each belongs to.
-SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training', 'average_last': 'training',
-              'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'user_dropout': 'training',
-              'distil_members': 'training', 'pooled_stranger': 'training', 'prior_scale_weights': 'training',
-              'prior_noise': 'training', 'prior_spread': 'training', 'stranger_noise': 'training', 'dim': 'model',
+SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'training',
+              'posterior_sweeps': 'training', 'posterior_burn_in': 'training', 'dim': 'model',
               'strangers': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
@@ -84,9 +82,6 @@ FAMILIES = ('base', 'stars', 'mf')
 PEER_FAMILIES = ('surprise_svd', 'myfm')
 #: StARS ablations: label suffix and the settings that differ from full StARS (they win over
 #: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off,
-#: ``stars_no_user_dropout`` with every example trained with its person's row,
-#: ``stars_undistilled`` trained once on the ratings instead of distilled from a seed ensemble,
-#: ``stars_mean_stranger`` with strangers served the others' mean, never the pooled row,
 #: ``stars_prior_stranger`` with strangers served the prior's mean, never the plain encoder).
 ABLATIONS = {
     'user_bias': ('user offsets only', {'variant': 'user_bias'}),
@@ -95,9 +90,6 @@ ABLATIONS = {
     'stars_no_residual': ('StARS without the h_i residual', {'variant': 'stars_no_residual'}),
     'stars_prefix': ('StARS, items keyed by prefix', {'item_key': 'prefix'}),
     'stars_point': ('StARS, trained point estimate (no posterior head)', {'posterior_sweeps': 0}),
-    'stars_no_user_dropout': ('StARS without user dropout', {'user_dropout': 0.0}),
-    'stars_undistilled': ('StARS trained once, not distilled', {'distil_members': 0}),
-    'stars_mean_stranger': ("StARS, strangers served the others' mean", {'pooled_stranger': False}),
     'stars_prior_stranger': ("StARS, strangers served the prior's mean", {'strangers': 'prior_mean'}),
 }
 
@@ -407,8 +399,6 @@ class ProtocolRun:
                  'fold': fold_id, 'fraction': fraction, 'stage': stage, 'settings': settings,
                  'T1': pair[0], 'T2': pair[1], 'n_train': n_train, 'n_test': n_test,
                  **{k: scores[k] for k in (*METRICS, 'fit_seconds', 'predict_seconds', 'epochs')}}
-        if 'teachers' in scores:
-            entry['teachers'] = scores['teachers']
         self._stamp(entry, scores)
         if 'error' in scores:
             entry['error'] = scores['error']

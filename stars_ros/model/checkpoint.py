@@ -190,7 +190,7 @@ def load_checkpoint(path):
         model.load_state_dict({name: torch.from_numpy(value) for name, value in weights.items()})
         return model.eval()
     try:
-        config = ExperimentConfig.from_dict(metadata['config'])
+        config = ExperimentConfig.from_checkpoint(metadata['config'])
         fitted = FittedModel(config)
         fitted.set_vocabularies(metadata['users'], metadata['scene_keys'], metadata['actions'])
         fitted.model = rebuilt(config, state)

@@ -34,11 +34,6 @@ VARIANTS = ('base', *PARTS)
 ITEM_KEYINGS = ('identifier', 'prefix')
 #: What a person with no ratings is served (``ModelConfig.strangers``).
 STRANGER_SERVING = ('prior_mean', 'base_encoder')
-PRIOR_SCALE_WEIGHTS = ('equal', 'held_out', 'held_out_plain')  # training.prior_scale_weights
-PRIOR_NOISE = ('held_out_residual', 'less_row_uncertainty')  # training.prior_noise
-PRIOR_SPREAD = ('trained_rows', 'held_out_plain')  # training.prior_spread
-STRANGER_NOISE = ('trained_people', 'held_out_plain')  # training.stranger_noise
-
 #: Strict numbers: an int field refuses '64', 64.7 and True; a float field refuses text
 #: (an int is a float), NaN and infinities.
 Int = Annotated[int, Strict()]
@@ -206,52 +201,15 @@ class TrainConfig(Section):
     """Two-step training: ``pretrain_epochs`` (T1) of encoder + temporary head, then
     ``joint_epochs`` (T2) of the whole model. AdamW defaults are the published ones.
     ``embedding_l2`` weighs the L2 penalty on the user and scene rows of each batch during
-    joint training (0 leaves only AdamW's weight decay). ``average_last`` > 0: the fitted
-    weights are the mean of the weights after each of the last ``average_last`` joint epochs
-    (all of them when there are fewer): stochastic weight averaging (Izmailov et al. 2018),
-    one model served at the same cost that averages along its trajectory instead of keeping
-    its last point; 0 keeps the last point. ``posterior_sweeps`` > 0: after joint training,
-    with the encoder frozen, a blocked Gibbs sampler with learned prior precisions runs that
-    many sweeps over the factorisation part (user, scene and action rows and offsets) from
-    the trained weights, and the fitted rows are the means of the draws after the first
-    ``posterior_burn_in`` sweeps (``model.posterior``): a Bayesian head with myFM's edge, one
-    model served at the same cost; 0 keeps the trained point estimate. Not for ``base``, which
-    has no factorisation part. ``user_dropout`` > 0: in each joint epoch every training example
-    is scored as a stranger's (p_u = 0, b_u = 0, the row an unseen person is served) with that
-    probability, so the population part of the model (h_iᵀ r_a + b_i + b) is trained as a
-    prediction for someone it has never seen, not only as what every person's row adds to;
-    0 trains every example with its person's row, 1 none (the person rows stay zero).
-    ``pooled_stranger``: the prior's mean, the row a stranger is served and a new person is
-    folded in from, may be the pooled row (the one θ that best predicts every trained person's
-    training ratings) where each trained person's held-out ratings say it predicts a person
-    it was not fitted on better than the others' mean does (``personalisation.prior``); False
-    keeps the others' mean.
-    ``prior_scale_weights``: how likely a new person's scale τ on the prior covariance is to be
-    each of ``personalisation.prior.PRIOR_SCALES`` before their first rating: 'equal' (each
-    alike), or 'held_out', fitted to the trained people's held-out ratings, each person's
-    residual from the prior's mean weighed as a stranger's (``prior.fitted_scale_weights``), or
-    'held_out_plain', the same with each residual from the plain encoder strangers are served
-    (``model.strangers`` 'base_encoder'; that encoder then does not train on those ratings).
-    ``prior_noise``: the rating noise σ²_a the fold-in and ``score_sd`` use, from the trained
-    people's held-out ratings: 'held_out_residual', their mean squared residual from the trained
-    rows, or 'less_row_uncertainty', that less the part each trained row's own uncertainty adds
-    to it (its posterior variance there), so that a new person's intervals do not count the
-    row's error twice (``prior.noise_less_row_uncertainty``).
-    ``prior_spread``: the covariance a new person starts from: 'trained_rows', Σ₀, the spread of
-    the trained people's rows, or 'held_out_plain', gΣ₀ with g the maximum marginal likelihood of
-    the trained people's held-out residuals from the plain encoder strangers are served
-    (``prior.fitted_spread``; needs ``model.strangers`` 'base_encoder' and equal scale weights,
-    since g and fitted weights would trade off; that encoder then does not train on those ratings).
-    ``stranger_noise``: the rating noise of a person the model was not trained on:
-    'trained_people', the trained people's σ²_a, or 'held_out_plain', s·σ²_a with s fitted
-    together with ``prior_spread``'s g (needs ``prior_spread`` 'held_out_plain').
-    ``distil_members`` K ≥ 2: first K teachers are fitted on the same rows with seeds ``seed``,
-    ``seed`` + 1, …, ``seed`` + K − 1 and otherwise these settings; the model is then trained
-    (seed ``seed``) on the teachers' mean prediction of each rated entry in place of its rating:
-    one network, served at one model's cost, distilled from a seed ensemble (Hinton et al.
-    2015); 0 trains on the ratings. ``device`` is where ``fit`` trains
-    ('cpu', 'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints,
-    fold-in and serving never see a GPU tensor."""
+    joint training (0 leaves only AdamW's weight decay). ``posterior_sweeps`` > 0: after joint
+    training, with the encoder frozen, a blocked Gibbs sampler with learned prior precisions
+    runs that many sweeps over the factorisation part (user, scene and action rows and
+    offsets) from the trained weights, and the fitted rows are the means of the draws after
+    the first ``posterior_burn_in`` sweeps (``model.posterior``): a Bayesian head with myFM's
+    edge, one model served at the same cost; 0 keeps the trained point estimate. Not for
+    ``base``, which has no factorisation part. ``device`` is where ``fit`` trains ('cpu',
+    'cuda' or 'cuda:N'); the fitted model comes back on the CPU, so checkpoints, fold-in and
+    serving never see a GPU tensor."""
 
     pretrain_epochs: Annotated[Int, Field(ge=0)] = 10
     joint_epochs: Annotated[Int, Field(ge=0)] = 100
@@ -260,16 +218,8 @@ class TrainConfig(Section):
     weight_decay: Annotated[Float, Field(ge=0.0)] = 1e-5
     grad_clip: Annotated[Float, Field(gt=0.0)] = 1.0
     embedding_l2: Annotated[Float, Field(ge=0.0)] = 0.0
-    average_last: Annotated[Int, Field(ge=0)] = 0
     posterior_sweeps: Annotated[Int, Field(ge=0)] = 0
     posterior_burn_in: Annotated[Int, Field(ge=0)] = 50
-    user_dropout: Annotated[Float, Field(ge=0.0, le=1.0)] = 0.0
-    pooled_stranger: bool = True
-    prior_scale_weights: Literal[PRIOR_SCALE_WEIGHTS] = 'equal'
-    prior_noise: Literal[PRIOR_NOISE] = 'held_out_residual'
-    prior_spread: Literal[PRIOR_SPREAD] = 'trained_rows'
-    stranger_noise: Literal[STRANGER_NOISE] = 'trained_people'
-    distil_members: Annotated[Int, Field(ge=0)] = 0
     seed: Annotated[Int, Field(ge=0)] = 0
     threads: Annotated[Int, Field(ge=1)] = 1
     device: str = 'cpu'
@@ -280,13 +230,6 @@ class TrainConfig(Section):
         if not re.fullmatch(r'cpu|cuda(:\d+)?', device):
             raise ValueError(f"must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
         return device
-
-    @field_validator('distil_members')
-    @classmethod
-    def _an_ensemble_to_distil(cls, members: int) -> int:
-        if members == 1:
-            raise ValueError('must be 0 (no distillation) or at least 2: one teacher is the model itself')
-        return members
 
     @model_validator(mode='after')
     def _burn_in_below_sweeps(self) -> 'TrainConfig':
@@ -323,24 +266,6 @@ class ExperimentConfig(Section):
             raise ValueError("training.posterior_sweeps: the 'base' variant has no factorisation part to sample")
         return self
 
-    @model_validator(mode='after')
-    def _plain_residuals_need_a_plain_encoder(self) -> 'ExperimentConfig':
-        training = self.training
-        for setting, value in (('prior_scale_weights', training.prior_scale_weights),
-                               ('prior_spread', training.prior_spread)):
-            if value == 'held_out_plain' and self.model.variant != 'base' and self.model.strangers != 'base_encoder':
-                raise ValueError(f"training.{setting} 'held_out_plain' fits residuals from the plain encoder "
-                                 "strangers are served: it needs model.strangers 'base_encoder'")
-        if training.prior_spread != 'trained_rows' and training.prior_scale_weights != 'equal':
-            raise ValueError(f"training.prior_spread '{training.prior_spread}' fits the size of the scale mixture "
-                             f"with its scales equally likely: it needs training.prior_scale_weights 'equal', not "
-                             f"'{training.prior_scale_weights}'")
-        if training.stranger_noise != 'trained_people' and training.prior_spread != 'held_out_plain':
-            raise ValueError(f"training.stranger_noise '{training.stranger_noise}' is fitted together with the "
-                             f"prior's spread: it needs training.prior_spread 'held_out_plain', not "
-                             f"'{training.prior_spread}'")
-        return self
-
     def stranger_encoder(self) -> 'ExperimentConfig':
         """The plain encoder with these settings (the ``base`` variant, as an evaluation's
         ``base`` row trains it): what strangers are served where ``model.strangers`` is
@@ -357,6 +282,17 @@ class ExperimentConfig(Section):
         if values is not None and not isinstance(values, dict):
             raise ConfigError(f'{source or "config"}: a config must be a mapping, got {type(values).__name__}')
         return validated(cls, values or {}, source)
+
+    @classmethod
+    def from_checkpoint(cls, values: dict, source=None) -> 'ExperimentConfig':
+        """``from_dict`` of a checkpoint's config, less the training settings this version does
+        not know: those of experiments that did not ship, which an older checkpoint may hold
+        (what they did is in its weights and prior; serving never reads training settings).
+        A YAML file naming one is refused, as any unknown key is."""
+        if isinstance(values, dict) and isinstance(values.get('training'), dict):
+            values = {**values, 'training': {key: value for key, value in values['training'].items()
+                                             if key in TrainConfig.model_fields}}
+        return cls.from_dict(values, source)
 
     @classmethod
     def from_yaml(cls, path) -> 'ExperimentConfig':

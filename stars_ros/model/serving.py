@@ -61,14 +61,6 @@ def _numpy_form(forward: Callable) -> Callable:
     return encode
 
 
-def inference_of(model) -> InferenceModel:
-    """The serving arithmetic of a torch ``StarsModel`` held in memory, over a snapshot of
-    its weights (training's own uses: the prior's estimate, checks against the torch form)."""
-    encoder = model.encoder
-    encode = encoder.serving_form() if encoder.input_kind == 'graph' else _numpy_form(model.encode)
-    return InferenceModel(arrays(model.state_dict()), model.variant, encoder.out_dim, encode)
-
-
 def arrays(state: Mapping) -> dict:
     """A torch state dict as numpy arrays (copies)."""
     return {name: value.detach().cpu().numpy().copy() for name, value in state.items()}
@@ -88,7 +80,7 @@ class ServedModel(Rows):
     """
 
     def __init__(self, metadata: dict, state: Mapping[str, np.ndarray], user_prior: dict | None = None):
-        self.config = ExperimentConfig.from_dict(metadata['config'])
+        self.config = ExperimentConfig.from_checkpoint(metadata['config'])
         self.user_vocabulary = Vocabulary(metadata['users'])
         self.scene_vocabulary = Vocabulary(metadata['scene_keys'])
         self.action_names = tuple(metadata['actions'])

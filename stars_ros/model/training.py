@@ -37,7 +37,6 @@ from stars_ros.errors import ConfigError, TrainingDivergedError
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import FittedModel, build_model
 from stars_ros.model.posterior import posterior_head, training_observations
-from stars_ros.model.vocabulary import UNKNOWN
 
 log = logging.getLogger(__name__)
 
@@ -78,9 +77,9 @@ def torch_state_kept():
 
 class StarsTrainer(FittedModel):
     """The training side of a StARS model: a ``FittedModel`` that fits and fine-tunes on
-    ``RatingData`` rows (``fit``, ``fine_tune``, ``extended``) and evaluates on them
-    (``predict_rows``, ``evaluate``). The user-facing API (fit, predict, rank, fold_in,
-    test, save, load) is ``stars_ros.StarsRecommender``.
+    ``RatingData`` rows (``fit``, ``fine_tune``, ``extended``). The shipped model is fitted by
+    ``model.recipe`` and scored by its served form (``model.scoring``); the user-facing API
+    (fit, predict, rank, fold_in, test, save, load) is ``stars_ros.StarsRecommender``.
 
     Args:
         config (ExperimentConfig): encoder, model, training and split settings.
@@ -89,7 +88,6 @@ class StarsTrainer(FittedModel):
     def __init__(self, config: ExperimentConfig):
         super().__init__(config)
         self.history: dict = {'pretrain': [], 'joint': []}
-        self.teachers: list[StarsTrainer] = []  # what ``fit`` distilled the model from (not saved)
 
     @classmethod
     def resume(cls, fitted: FittedModel) -> 'StarsTrainer':
@@ -133,8 +131,6 @@ class StarsTrainer(FittedModel):
         device = torch.device(cfg.device)
         if device.type == 'cuda' and not torch.cuda.is_available():
             raise ConfigError(f"training.device is '{cfg.device}', but torch sees no CUDA GPU")
-        self.teachers = [StarsTrainer(self.config.replace(training={'distil_members': 0, 'seed': cfg.seed + k}))
-                         .fit(data, rows) for k in range(cfg.distil_members)]
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
         rng = np.random.default_rng(cfg.seed)
@@ -150,11 +146,7 @@ class StarsTrainer(FittedModel):
         self.model = model = build_model(self.config, data.store.feature_dim, data.kind,
                                          len(self.users), len(self.scene_keys), len(self.action_names))
         self._set_statistics(data, rows, train_scenes)
-        examples = self.training_set(data, rows)
-        if self.teachers:
-            teaching = torch.stack([teacher.z_predictions(data, examples) for teacher in self.teachers]).mean(0)
-            examples = examples._replace(targets=torch.where(examples.rated, teaching, examples.targets))
-        examples = examples.to(device)
+        examples = self.training_set(data, rows).to(device)
         model.to(device)
 
         # The pre-training head is made on the CPU under a fresh seed, so a seed gives the same
@@ -170,34 +162,12 @@ class StarsTrainer(FittedModel):
             if model.personalised:
                 model.start_from_head(head)
         self._run_epochs('joint', cfg.joint_epochs, data, examples, model, self.trainable_parameters(), rng,
-                         cfg.embedding_l2, on_epoch, average_last=cfg.average_last, user_dropout=cfg.user_dropout)
+                         cfg.embedding_l2, on_epoch)
         model.cpu()
         model.eval()
         if cfg.posterior_sweeps:
             self._apply_posterior_head(data, examples)
         return self
-
-    def z_predictions(self, data: RatingData, examples: 'TrainingSet') -> torch.Tensor:
-        """The fitted model's z-scores of every action for each of ``examples`` [n, actions]
-        (the scale training targets are on)."""
-        model = self.require_model()
-        model.eval()
-        scores = []
-        with torch.no_grad():
-            for start in range(0, len(examples.users), 1024):
-                part = slice(start, start + 1024)
-                distinct, inverse = torch.unique(examples.scenes[part], return_inverse=True)
-                h = model.encode(data.store.batch(distinct).to(model.device))[inverse.to(model.device)]
-                scores.append(model(examples.users[part].to(model.device), examples.items[part].to(model.device),
-                                    h).cpu())
-        return torch.cat(scores)
-
-    def teachers_predict_rows(self, data: RatingData, rows: np.ndarray) -> np.ndarray:
-        """The mean prediction of the seed ensemble the model was distilled from
-        (``distil_members``), to compare the one network with what it was taught by."""
-        if not self.teachers:
-            raise ValueError('the model was not distilled: training.distil_members is 0')
-        return np.mean([teacher.predict_rows(data, rows) for teacher in self.teachers], axis=0)
 
     def with_posterior_head(self, data: RatingData, rows: np.ndarray) -> 'StarsTrainer':
         """A copy, on the CPU, whose factorisation part is the posterior head (``posterior_sweeps``)
@@ -227,8 +197,8 @@ class StarsTrainer(FittedModel):
             torch.set_num_threads(cfg.threads)
             rows = np.arange(len(data)) if rows is None else np.asarray(rows)
             losses = self._run_epochs('joint', epochs, data, self.training_set(data, rows), model,
-                                      self.trainable_parameters(), np.random.default_rng(cfg.seed), cfg.embedding_l2,
-                                      user_dropout=cfg.user_dropout)
+                                      self.trainable_parameters(), np.random.default_rng(cfg.seed),
+                                      cfg.embedding_l2)
         model.eval()
         return losses
 
@@ -256,31 +226,18 @@ class StarsTrainer(FittedModel):
         return TrainingSet(self.user_index(data.users[rows[first]]), self.scene_index([items[s] for s in scenes]),
                            torch.from_numpy(scenes), targets, rated)
 
-    def _run_epochs(self, stage, epochs, data, examples, score, parameters, rng, l2, on_epoch=None,
-                    average_last: int = 0, user_dropout: float = 0.0) -> list:
-        """``epochs`` epochs of ``stage``; with ``average_last``, ``parameters`` end as the mean of
-        their values after each of the last ``average_last`` epochs, and with ``user_dropout``
-        each example is scored as a stranger's with that probability (``TrainConfig``)."""
+    def _run_epochs(self, stage, epochs, data, examples, score, parameters, rng, l2, on_epoch=None) -> list:
+        """``epochs`` epochs of ``stage``; returns their losses."""
         cfg = self.config.training
         optimiser = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=cfg.weight_decay)
-        losses, averaged = [], 0
-        sums = [torch.zeros_like(p, dtype=torch.float64) for p in parameters] if average_last else []
+        losses = []
         for epoch in range(epochs):
-            loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2, user_dropout)
+            loss = self._epoch(data, examples, score, parameters, optimiser, rng, l2)
             losses.append(loss)
             self.history[stage].append(loss)
             log.info('%s epoch %d/%d loss %.4f', stage, epoch + 1, epochs, loss)
-            if epoch >= epochs - average_last:
-                with torch.no_grad():
-                    for total, parameter in zip(sums, parameters):
-                        total += parameter
-                averaged += 1
             if on_epoch is not None:
                 on_epoch(stage, epoch + 1)
-        if averaged:
-            with torch.no_grad():
-                for total, parameter in zip(sums, parameters):
-                    parameter.copy_(total / averaged)
         return losses
 
     def _set_statistics(self, data, rows, train_scenes):
@@ -296,12 +253,9 @@ class StarsTrainer(FittedModel):
             std = features.std(0, unbiased=False)
             model.feature_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)))
 
-    def _epoch(self, data, examples, score, parameters, optimiser, rng, l2: float, user_dropout: float = 0.0) -> float:
+    def _epoch(self, data, examples, score, parameters, optimiser, rng, l2: float) -> float:
         """One pass over the training examples; returns the mean squared error over the
-        rated targets (z-scale). ``examples.scenes`` stays on the CPU (it indexes the store).
-        With ``user_dropout`` an example's person becomes UNKNOWN (-1, the zero row) with that
-        probability, drawn afresh each epoch; 0 draws nothing, so the seeds' streams are as
-        without the setting."""
+        rated targets (z-scale). ``examples.scenes`` stays on the CPU (it indexes the store)."""
         cfg = self.config.training
         device = self.model.device
         self.model.train()
@@ -313,9 +267,6 @@ class StarsTrainer(FittedModel):
             h = self.model.encode(data.store.batch(distinct).to(device))[inverse.to(device)]
             pick = pick.to(device)
             users, items, rated = examples.users[pick], examples.items[pick], examples.rated[pick]
-            if user_dropout:
-                strangers = torch.from_numpy(rng.random(len(pick)) < user_dropout).to(device)
-                users = torch.where(strangers, torch.full_like(users, UNKNOWN), users)
             squared = (score(users, items, h) - examples.targets[pick]).pow(2)
             n_rated = int(rated.sum())
             loss = squared[rated].sum() / n_rated

@@ -86,12 +86,11 @@ def choose_question(personalisation, user_id: str, requests: list, recent_scenes
         raise NoQuestion('no scene to ask about: the request has no candidates and the node has seen no scene '
                          'it can ask about yet')
     targets = targets + offered if requests else targets
-    covariance, noise = uncertainty.covariance(user_id, predictor.user_model(user_id)), uncertainty.noise(user_id)
+    covariance = uncertainty.covariance(user_id, predictor.user_model(user_id))
     target_rows = (np.stack([t.x for t in targets]), np.array([t.column for t in targets]))
-    spread = uncertainty.rating_sd(np.stack([q.x for q in offered]), np.array([q.column for q in offered]), covariance,
-                                   noise)
+    spread = uncertainty.rating_sd(np.stack([q.x for q in offered]), np.array([q.column for q in offered]), covariance)
     best = offered[int(np.argmax(spread))]
-    gain = uncertainty.variance_reduction([(best.x[None], np.array([best.column]))], target_rows, covariance, noise)[0]
+    gain = uncertainty.variance_reduction([(best.x[None], np.array([best.column]))], target_rows, covariance)[0]
     if predictor.hands_over(user_id):  # the score served around the plain encoder
         scene_ids = None if best.candidate is not None else [best.scene_id]
         score = float(predictor.score(user_id, [best.graph], scene_ids, validate=False)[0, best.column])

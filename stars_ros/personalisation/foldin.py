@@ -16,8 +16,7 @@ prior) and independent noise z_j − c_j − x_jᵀθ ~ N(0, σ²_{a_j}) give th
 one (d+1)×(d+1) Cholesky solve in float64 per prior scale: a person's departure from the
 population is not known in advance, so the prior covariance is τS₀ with τ one of
 ``prior.PRIOR_SCALES`` (0: the person is the population mean), each weighted by the
-marginal likelihood of the person's answers under it times its prior weight
-(``UserPrior.scale_prior``: equal, or fitted to held-out ratings; ``scale_mixture_posterior``). A person
+marginal likelihood of the person's answers under it (``scale_mixture_posterior``). A person
 whose answers the population explains keeps close to it; one who departs consistently moves
 as far as their answers warrant. The served θ is the mixture's mean, its covariance (the
 mixture's, moment-matched) what ``uncertainty`` turns into a score's standard deviation. A
@@ -151,22 +150,18 @@ def gaussian_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_me
 
 def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, prior_mean: np.ndarray,
                             prior_precision: np.ndarray, prior_logdet: float,
-                            scales: Sequence[float] = PRIOR_SCALES, with_covariance: bool = True,
-                            scale_prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+                            scales: Sequence[float] = PRIOR_SCALES,
+                            with_covariance: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """(mean, covariance, weights) of θ given y ~ N(xθ, diag(noise)) and θ ~ N(prior_mean, τΣ)
-    with τ one of ``scales`` with probabilities ``scale_prior`` (default: equal; Σ =
-    prior_precision⁻¹, ``prior_logdet`` its log determinant; τ = 0 pins θ to the mean).
-    ``weights`` [scales] are the posterior probabilities of the scales, each one's prior
-    probability times its marginal likelihood of y; the mean and covariance are the mixture's
-    (``with_covariance`` False: None, and d fewer solves per scale)."""
+    with τ equally likely each of ``scales`` (Σ = prior_precision⁻¹, ``prior_logdet`` its log
+    determinant; τ = 0 pins θ to the mean). ``weights`` [scales] are the posterior
+    probabilities of the scales, from each one's marginal likelihood of y; the mean and
+    covariance are the mixture's (``with_covariance`` False: None, and d fewer solves per scale)."""
     x, noise = np.asarray(x, dtype=np.float64), np.asarray(noise, dtype=np.float64)
     size = len(prior_mean)
-    scale_prior = (np.full(len(scales), 1 / len(scales)) if scale_prior is None
-                   else np.asarray(scale_prior, dtype=np.float64))
     if not len(x):
-        covariance = (float(scale_prior @ np.asarray(scales)) * np.linalg.inv(prior_precision)
-                      if with_covariance else None)
-        return prior_mean.copy(), covariance, scale_prior.copy()
+        covariance = float(np.mean(scales)) * np.linalg.inv(prior_precision) if with_covariance else None
+        return prior_mean.copy(), covariance, np.full(len(scales), 1 / len(scales))
     residual = np.asarray(y, dtype=np.float64) - x @ prior_mean
     weighted = x / noise[:, None]
     gram, pull = weighted.T @ x, weighted.T @ residual
@@ -185,8 +180,7 @@ def scale_mixture_posterior(x: np.ndarray, y: np.ndarray, noise: np.ndarray, pri
         means.append(prior_mean + shift)
         if with_covariance:
             covariances.append(cho_solve(factor, np.eye(size)))
-    with np.errstate(divide='ignore'):  # a scale of prior weight 0 gets none after
-        log_evidence = np.array(log_evidence) + np.log(scale_prior)
+    log_evidence = np.array(log_evidence)
     weights = np.exp(log_evidence - log_evidence.max())
     weights /= weights.sum()
     mean = np.einsum('s,sd->d', weights, np.array(means))
@@ -242,13 +236,11 @@ class FoldIn:
         self.user_prior = prior_of(served, self.inference) if prior is None else prior
         self.population = self.user_prior.mean
         self.noise = self.user_prior.noise
-        self.stranger_noise = self.noise if self.user_prior.stranger_noise is None else self.user_prior.stranger_noise
         self.implicit_noise = self._implicit_noise(implicit_variance, served.rating_scale)
         self._population_precision = np.linalg.inv(self.user_prior.covariance)
         self._population_logdet = float(np.linalg.slogdet(self.user_prior.covariance)[1])
-        self._scale_prior = self.user_prior.scale_prior
-        self._stranger_covariance = float(self._scale_prior @ np.asarray(PRIOR_SCALES)) * self.user_prior.covariance
-        self._stranger_covariance.flags.writeable = False  # read per ranking
+        self._stranger_covariance = float(np.mean(PRIOR_SCALES)) * self.user_prior.covariance  # read per ranking
+        self._stranger_covariance.flags.writeable = False
         self._precisions = collections.OrderedDict()  # trained user row -> precision of their prior
         self._cache = collections.OrderedDict()  # id(scene) -> _Encoded
         self.stored: Callable[[list], dict] | None = None  # scenes -> {id(scene): h} a store keeps for them
@@ -270,21 +262,14 @@ class FoldIn:
             raise ValueError(f'implicit_variance must be positive, got {variance}')
         return variance / np.asarray(self.inference.target_std, dtype=np.float64) ** 2
 
-    def noise_for(self, user_id=None) -> np.ndarray:
-        """z-scale noise variance of ``user_id``'s ratings per action [actions]: the trained
-        people's σ²_a for a person the checkpoint knows, else a stranger's (``UserPrior.stranger_noise``)."""
-        return self.noise if self.predictor.trained_row(user_id) != UNKNOWN else self.stranger_noise
+    def rating_noise(self, ratings: Sequence[Rating]) -> np.ndarray:
+        """z-scale noise variance of each rating (``noise_of``)."""
+        return self.noise_of(self.action_index([r.action for r in ratings]), [r.implicit for r in ratings])
 
-    def rating_noise(self, ratings: Sequence[Rating], user_id=None) -> np.ndarray:
-        """z-scale noise variance of each of ``user_id``'s ratings (``noise_of``)."""
-        return self.noise_of(self.action_index([r.action for r in ratings]), [r.implicit for r in ratings], user_id)
-
-    def noise_of(self, actions: np.ndarray, implicit, user_id=None) -> np.ndarray:
-        """z-scale noise variance of ``user_id``'s observations of ``actions`` (indices): the
-        action's (``noise_for``), plus ``implicit_noise`` where ``implicit`` (bools) marks an
-        implicit outcome."""
-        return (self.noise_for(user_id)[actions]
-                + np.where(np.asarray(implicit, dtype=bool), self.implicit_noise[actions], 0.0))
+    def noise_of(self, actions: np.ndarray, implicit) -> np.ndarray:
+        """z-scale noise variance of observations of ``actions`` (indices): the action's, plus
+        ``implicit_noise`` where ``implicit`` (bools) marks an implicit outcome."""
+        return self.noise[actions] + np.where(np.asarray(implicit, dtype=bool), self.implicit_noise[actions], 0.0)
 
     @property
     def cached(self) -> tuple[int, int]:
@@ -333,18 +318,18 @@ class FoldIn:
         departure from the population is already measured). ``implicit`` (bools [n]) marks
         implicit outcomes, which take ``noise_of``'s larger noise. ``with_covariance`` False:
         the covariance of a new person's posterior is not computed (None), only its mean."""
-        noise = self.noise_of(actions, np.zeros(len(actions), dtype=bool) if implicit is None else implicit, user_id)
+        noise = self.noise_of(actions, np.zeros(len(actions), dtype=bool) if implicit is None else implicit)
         mean, covariance, precision = self.prior_distribution(user_id)
         if precision is self._population_precision:
             return scale_mixture_posterior(x, y, noise, mean, precision, self._population_logdet,
-                                           with_covariance=with_covariance, scale_prior=self._scale_prior)[:2]
+                                           with_covariance=with_covariance)[:2]
         if not len(x):
             return mean, covariance
         return gaussian_posterior(x, y, noise, mean, precision)
 
     def covariance(self, user_id=None) -> np.ndarray:
         """Cov θ of ``user_id`` before any feedback, as ``fit`` gives it with no ratings: a
-        known person's own, else the population's scale mixture's (Σ₀ times the scales' prior mean)."""
+        known person's own, else the population's scale mixture's (Σ₀ times the mean scale)."""
         _, covariance, precision = self.prior_distribution(user_id)
         return self._stranger_covariance if precision is self._population_precision else covariance
 
@@ -493,10 +478,9 @@ class FoldIn:
         x, y = self.regression(ratings, hand_over)
         actions = self.action_index([r.action for r in ratings])
         if lam > 0:  # implicit outcomes weigh less here too: rows scaled by their noise ratio
-            noise = self.noise_for(user_id)
-            weight = np.sqrt(noise[actions] / self.rating_noise(ratings, user_id))[:, None]
+            weight = np.sqrt(self.noise[actions] / self.rating_noise(ratings))[:, None]
             theta = solve_ridge(x * weight, y * weight[:, 0], self.prior(user_id), lam)
-            covariance = float(noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
+            covariance = float(self.noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
         else:
             theta, covariance = self.posterior(x, y, actions, user_id, [r.implicit for r in ratings])
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)

@@ -33,9 +33,9 @@ from typing import Callable
 from stars_ros.personalisation import fleet
 from stars_ros import messages
 from stars_ros.errors import StarsError, UnknownActionError
-from stars_ros.personalisation.uncertainty import Uncertainty
 from stars_ros.personalisation.foldin import FoldIn, rating_from_feedback
 from stars_ros.personalisation.histories import FeedbackHistories
+from stars_ros.personalisation.stack import serving_stack
 from stars_ros.state.forgotten import folder_secret
 from stars_ros.state import Forgotten, PersonUpdate, PersonWriter, Rating, UserModel, check_ratings, mentions
 
@@ -145,28 +145,25 @@ class Personalisation:
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.store = store
-        self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
-        self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
+        self.predictor, self.foldin, self.uncertainty = self._serving_stack(predictor)
 
-    def _fold_in_model(self, predictor) -> FoldIn | None:
-        """The FoldIn of ``predictor``, reading the h of restored people's scenes from the
-        store (not with fleet sharing, which encodes each scene on its own so that peers' models
-        agree to the last bit); None (and a warning) for a model without users."""
-        try:
-            foldin = FoldIn(predictor, scene_by_scene=self.sharing)
-        except StarsError as error:
-            self._logger.warning(f'no online fold-in with this checkpoint: {error}')
-            return None
-        if self.store is not None and not self.sharing:
-            foldin.stored = lambda scenes: self.store.encodings(scenes, predictor.fingerprint)
-        return foldin
+    def _serving_stack(self, predictor) -> tuple:
+        """(predictor, fold-in, uncertainty) of ``predictor`` (``stack.serving_stack``), the fold-in
+        reading the h of restored people's scenes from the store (not with fleet sharing, which
+        encodes each scene on its own so that peers' models agree to the last bit); no fold-in
+        nor uncertainty (and a warning) for a model without users."""
+        from_store = self.store is not None and not self.sharing
+        stack = serving_stack(predictor, scene_by_scene=self.sharing, stored=(
+            lambda scenes: self.store.encodings(scenes, predictor.fingerprint)) if from_store else None)
+        if stack.foldin is None:
+            self._logger.warning(f'no online fold-in with this checkpoint: {stack.no_foldin}')
+        return stack.predictor, stack.foldin, stack.uncertainty
 
     def use(self, predictor) -> None:
         """Serve ``predictor`` from now on (a reload). Users the new checkpoint was refit on
         keep only the feedback it did not absorb; everyone with a history left waits to be
         re-solved against the new model."""
-        self.predictor, self.foldin = predictor, self._fold_in_model(predictor)
-        self.uncertainty = None if self.foldin is None else Uncertainty(self.foldin)
+        self.predictor, self.foldin, self.uncertainty = self._serving_stack(predictor)
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
         had = set(self.histories.users())
         for user_id in [*self.histories.absorb(absorbed), *self.peers.users()]:

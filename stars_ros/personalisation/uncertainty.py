@@ -6,7 +6,7 @@ for a person the checkpoint knows, else the population prior). So
 
 - **score_sd**: the predictive standard deviation of the person's rating, on the rating
   scale: σ_a · sqrt(xᵀΣx + σ²_a(noise)), σ_a the action's training standard deviation and
-  σ²_a(noise) the person's rating noise (``FoldIn.noise_for``: a stranger's may differ).
+  σ²_a(noise) the rating noise (``UserPrior.noise``).
   Clipping the served score to the rating scale does not change it: it describes the
   unclipped predictive, whose mean the clipped score is.
 - **intervals**: the predictive is a Student-t with that standard deviation and the prior's
@@ -96,10 +96,6 @@ class Uncertainty:
             return loaded(model.covariance)
         return self.foldin.covariance(user_id)
 
-    def noise(self, user_id) -> np.ndarray:
-        """z-scale rating noise per action [actions] of ``user_id`` (``FoldIn.noise_for``)."""
-        return self.foldin.noise_for(user_id)
-
     def spread(self, predictor, user_id, h: np.ndarray, scene_rows: np.ndarray, actions: Sequence[int],
                served_z: np.ndarray | None = None) -> Spread:
         """The ``Spread`` of entries scored from h [n, dim] (their scenes' encodings), the
@@ -113,13 +109,11 @@ class Uncertainty:
         theta = predictor.user_theta(user_id)
         if served_z is not None:
             c = np.asarray(served_z, dtype=np.float64) - x @ theta
-        sd = self.rating_sd(x, actions, covariance, self.noise(user_id))
-        return Spread(self, x, c, actions, theta, covariance, sd)
+        return Spread(self, x, c, actions, theta, covariance, self.rating_sd(x, actions, covariance))
 
-    def rating_sd(self, x: np.ndarray, actions: np.ndarray, covariance: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """Predictive sd on the rating scale [R] of rows x [R, dim+1] of ``actions`` [R], for a
-        person whose ratings carry ``noise`` [actions] (``noise``)."""
-        variance = np.einsum('rd,rd->r', x @ covariance, x) + noise[actions]  # one product, then rows
+    def rating_sd(self, x: np.ndarray, actions: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+        """Predictive sd on the rating scale [R] of rows x [R, dim+1] of ``actions`` [R]."""
+        variance = np.einsum('rd,rd->r', x @ covariance, x) + self.foldin.noise[actions]  # one product, then rows
         return np.sqrt(np.maximum(variance, 0.0)) * self.inference.target_std[actions]
 
     def p_first_is_best(self, x: np.ndarray, c: np.ndarray, actions: np.ndarray, mean: np.ndarray,
@@ -132,28 +126,26 @@ class Uncertainty:
         scores = (thetas @ x.T + c) * self.inference.target_std[actions] + self.inference.target_mean[actions]
         return float(np.mean(np.argmax(scores, axis=1) == first))
 
-    def variance_reduction(self, blocks: Sequence[tuple], targets: tuple, covariance: np.ndarray,
-                           noise: np.ndarray) -> np.ndarray:
+    def variance_reduction(self, blocks: Sequence[tuple], targets: tuple, covariance: np.ndarray) -> np.ndarray:
         """Expected drop of the summed rating-scale predictive variance over ``targets``
         (x_T [T, dim+1], actions_T [T]) for each candidate question in ``blocks``, each
-        (x_c [m, dim+1], actions_c [m]): the rows a person's answer would rate, with ``noise``
-        [actions] (``noise``)."""
+        (x_c [m, dim+1], actions_c [m]): the rows a person's answer would rate."""
         target_x, target_actions = targets
         weight = self.inference.target_std[target_actions] ** 2
         gains = np.empty(len(blocks))
         for k, (x, actions) in enumerate(blocks):
             projected = x @ covariance  # [m, dim+1]
-            innovation = projected @ x.T + np.diag(noise[actions])
+            innovation = projected @ x.T + np.diag(self.foldin.noise[actions])
             cross = projected @ target_x.T  # [m, T]
             gains[k] = float(np.sum(weight * np.sum(cross * np.linalg.solve(innovation, cross), axis=0)))
         return gains
 
     def log_decision_value(self, blocks: Sequence[tuple], decisions: Sequence[tuple], mean: np.ndarray,
-                           covariance: np.ndarray, noise: np.ndarray) -> np.ndarray:
+                           covariance: np.ndarray) -> np.ndarray:
         """log of the expected gain in the rating-scale score of the entry chosen first, summed
         over ``decisions`` (each (x [n, dim+1], c [n], actions [n]): entries ranked together),
         from each candidate question in ``blocks`` (x_c [m, dim+1], actions_c [m]), with θ ~
-        N(``mean``, ``covariance``) and ratings of ``noise`` [actions]; see the module docstring. In logs because clear choices
+        N(``mean``, ``covariance``); see the module docstring. In logs because clear choices
         give gains far below the smallest float, and the questions must still be told apart;
         −inf: the question changes no choice."""
         gaps, offsets = [], []
@@ -173,7 +165,7 @@ class Uncertainty:
         gap_rows, gap_means = np.concatenate(gaps), np.abs(np.concatenate(offsets))
         for k, (x, actions) in enumerate(blocks):
             projected = x @ covariance
-            innovation = projected @ x.T + np.diag(noise[actions])
+            innovation = projected @ x.T + np.diag(self.foldin.noise[actions])
             cross = projected @ gap_rows.T  # [m, gaps]
             spread = np.sqrt(np.maximum(np.sum(cross * np.linalg.solve(innovation, cross), axis=0), 0.0))
             moved = spread > 0

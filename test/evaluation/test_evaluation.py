@@ -20,8 +20,6 @@ from stars_ros.errors import ConfigError
 from stars_ros.evaluation.executors import FitTask, run_fit
 from stars_ros.evaluation.folds import grouped_folds, make_folds, sweep_samples
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
-from stars_ros.model.training import StarsTrainer
-from stars_ros.personalisation.prior import held_out_split
 from stars_ros.evaluation.summaries import paired_tests, time_accounting
 
 REPO = Path(__file__).resolve().parents[2]
@@ -351,27 +349,6 @@ def test_device_option_reaches_every_fit_and_the_results(synthetic_root, tmp_pat
     assert json.loads((out / 'machine.json').read_text())['device'] == 'cuda:1'
     assert 'training on cuda:1' in (out / 'tables.md').read_text()
     assert evaluate.main(['--quick', '--device', 'gpu', '--data-root', str(synthetic_root), '--out', str(out)]) == 2
-
-
-def test_a_distilled_fit_also_scores_the_ensemble_it_was_taught_by(synthetic):
-    """A fit with distil_members reports its teachers' mean prediction on the same test rows
-    beside its own, so a results table can say how much of the ensemble's gain one network keeps."""
-    fold = make_folds(synthetic, 'rows', 5, 0)[0]
-    experiment = ExperimentConfig.from_dict({
-        'encoder': {'name': 'gcn', 'hidden': 8, 'layers': 1}, 'model': {'dim': 8, 'variant': 'stars'},
-        'training': {'pretrain_epochs': 1, 'joint_epochs': 2, 'lr': 3e-3, 'threads': 1, 'distil_members': 2}})
-    train, test = fold.train[:500], fold.test[:200]
-    scored = run_fit(FitTask('m', '0:0', 'final', experiment.to_dict(), train, test), synthetic)
-    trained, _ = held_out_split(synthetic, train, seed=experiment.split.seed)  # as fit holds out the prior's rows
-    teachers = [StarsTrainer(experiment.replace(training={'distil_members': 0, 'seed': seed})).fit(synthetic, trained)
-                for seed in (0, 1)]
-    ensemble = np.mean([teacher.predict_rows(synthetic, test) for teacher in teachers], axis=0)
-    by_hand = np.mean((ensemble - synthetic.scores[test]) ** 2)  # one action: the macro mean is the mean
-    assert scored['teachers']['mse'] == pytest.approx(by_hand, rel=1e-6)
-    assert scored['mse'] != scored['teachers']['mse']
-    plain = run_fit(FitTask('m', '0:0', 'final', experiment.replace(training={'distil_members': 0}).to_dict(),
-                            train, test), synthetic)
-    assert 'teachers' not in plain
 
 
 @pytest.mark.parametrize('program', ['evaluate', 'kshot'])

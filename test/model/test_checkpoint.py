@@ -4,6 +4,7 @@ import torch
 
 from stars_ros.model.checkpoint import FORMAT_VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from stars_ros.errors import CheckpointError
+from conftest import served_rows
 
 
 def test_round_trip_predicts_the_same(tiny_checkpoint, synthetic, tmp_path):
@@ -12,7 +13,7 @@ def test_round_trip_predicts_the_same(tiny_checkpoint, synthetic, tmp_path):
     path = tmp_path / 'again.pt'
     save_checkpoint(recommender, path, data={'fingerprint': 'x'}, metrics={'mse': 0.1})
     again, again_metadata = load_checkpoint(path)
-    assert np.array_equal(recommender.predict_rows(synthetic, rows), again.predict_rows(synthetic, rows))
+    assert np.array_equal(served_rows(recommender, synthetic, rows), served_rows(again, synthetic, rows))
     assert again_metadata['metrics'] == {'mse': 0.1}
     assert again.users == recommender.users and again.action_names == ('navigate',)
     assert again.rating_scale == recommender.rating_scale == (0.0, 1.0)

@@ -4,16 +4,26 @@ import numpy as np
 import pytest
 import torch
 
-from stars_ros.model.serving import inference_of
+from stars_ros.model.numpy_model import InferenceModel
+from stars_ros.model.serving import arrays
 from stars_ros.model.vocabulary import UNKNOWN
 from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_source import read_scenes
 from stars_ros.data.scene_store import GraphStore
+from conftest import torch_scores
 from test_model import small_model
 
 H = np.array([[0.5, 1.0]], dtype=np.float32)
+
+
+def inference_of(model) -> InferenceModel:
+    """The serving arithmetic over a small torch model's weights (its encoder's torch forward)."""
+    def encode(features):
+        with torch.no_grad():
+            return model.encode(torch.from_numpy(features)).numpy()
+    return InferenceModel(arrays(model.state_dict()), model.variant, model.encoder.out_dim, encode)
 
 
 def test_scores_by_hand():
@@ -77,13 +87,11 @@ def test_predictor_equals_the_torch_model_on_a_trained_checkpoint(tiny_checkpoin
     keys = [s['identifier'] for s in scenes]  # training scenes: their q_i and b_i apply
     assert sum(k in recommender.scene_vocabulary for k in keys) > 10
     batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
-    expected = recommender.predict_scores([recommender.users[0]] * len(scenes), keys, batch)
+    expected = torch_scores(recommender, [recommender.users[0]] * len(scenes), keys, batch)
     assert np.allclose(predictor.score(recommender.users[0], scenes, keys), expected, atol=1e-5)
     mean = torch.as_tensor(recommender.user_prior['mean'], dtype=torch.float32)  # a stranger gets the prior's mean
     stranger = (mean[:-1].expand(len(scenes), -1), mean[-1:].expand(len(scenes), 1))
-    with torch.no_grad():
-        h = recommender.model.encode(batch)
-        for scene_keys in (keys, [None] * len(scenes)):
-            expected = recommender.predict_scores_from_h([None] * len(scenes), scene_keys, h, stranger)
-            assert np.allclose(predictor.score('nobody', scenes, scene_keys), expected, atol=1e-5)
+    for scene_keys in (keys, [None] * len(scenes)):
+        expected = torch_scores(recommender, [None] * len(scenes), scene_keys, batch, stranger)
+        assert np.allclose(predictor.score('nobody', scenes, scene_keys), expected, atol=1e-5)
     assert mean.abs().max() > 0  # the prior's mean is not the zero row an unknown user has in the table

@@ -16,6 +16,7 @@ from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.fitted import build_model
 from stars_ros.model.posterior import Chain, Layout, Observations, gaussian_rows, training_observations
 from stars_ros.model.training import StarsTrainer, split_rows
+from conftest import served_report, served_rows
 
 from generic_data import write_generic_data
 
@@ -49,8 +50,8 @@ def test_it_never_reads_a_test_row(synthetic, rows):
     turned = dataclasses.replace(synthetic, scores=synthetic.scores.copy())
     others = np.setdiff1d(np.arange(len(synthetic)), train)
     turned.scores[others] = high + low - turned.scores[others]  # every score but the training rows' turned over
-    first = StarsTrainer(config).fit(synthetic, train).predict_rows(synthetic, test)
-    second = StarsTrainer(config).fit(turned, train).predict_rows(turned, test)
+    first = served_rows(StarsTrainer(config).fit(synthetic, train), synthetic, test)
+    second = served_rows(StarsTrainer(config).fit(turned, train), turned, test)
     assert np.array_equal(first, second)
 
 
@@ -73,7 +74,7 @@ def test_a_posterior_head_checkpoint_round_trips_and_old_configs_still_load(synt
     fitted = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(training=SAMPLED)).fit(synthetic, train)
     save_checkpoint(fitted, tmp_path / 'bayes.pt', data={'fingerprint': synthetic.fingerprint})
     loaded, metadata = load_checkpoint(tmp_path / 'bayes.pt')
-    assert np.array_equal(loaded.predict_rows(synthetic, test), fitted.predict_rows(synthetic, test))
+    assert np.array_equal(served_rows(loaded, synthetic, test), served_rows(fitted, synthetic, test))
     assert metadata['config']['training']['posterior_sweeps'] == 40
     written_before = fitted.config.to_dict()
     for key in ('posterior_sweeps', 'posterior_burn_in'):
@@ -213,7 +214,8 @@ def test_on_stars_form_data_the_posterior_means_do_no_worse_than_the_point_estim
     point = StarsTrainer(config).fit(stars_form, train)
     bayes = StarsTrainer(config.replace(training={'posterior_sweeps': 200, 'posterior_burn_in': 50}))
     bayes.fit(stars_form, train)
-    point_mse, bayes_mse = point.evaluate(stars_form, test)['mse'], bayes.evaluate(stars_form, test)['mse']
+    point_mse = served_report(point, stars_form, test)['mse']
+    bayes_mse = served_report(bayes, stars_form, test)['mse']
     assert bayes_mse <= point_mse, (bayes_mse, point_mse)
     observations = training_observations(bayes.model, stars_form.store, bayes.training_set(stars_form, train))
     assert len(observations.targets) == len(train)  # every training rating is one entry, and nothing else

@@ -1,11 +1,13 @@
 import json
 
 import numpy as np
+import torch
 import pytest
 
 from stars_ros.errors import CheckpointError, SceneGraphError, UnknownActionError
 from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
+from conftest import torch_scores
 
 
 @pytest.fixture(scope='module')
@@ -72,8 +74,10 @@ def test_missing_checkpoint_is_a_checkpoint_error(tmp_path):
 def test_predictor_matches_training_scale(predictor, synthetic, tiny_checkpoint):
     """Predictor on a raw scene == recommender on the featurised dataset row (same user)."""
     rows = np.flatnonzero(synthetic.users == 'a')[:3]
-    expected = load_checkpoint(tiny_checkpoint)[0].predict_rows(synthetic, rows)  # the torch form
+    fitted = load_checkpoint(tiny_checkpoint)[0]
     keys = [synthetic.scene_keys[s] for s in synthetic.scenes[rows]]
+    batch = synthetic.store.batch(torch.from_numpy(synthetic.scenes[rows]))
+    expected = torch_scores(fitted, ['a'] * len(rows), keys, batch)[:, 0]  # training's torch form
     raw = {}
     with open(synthetic.source + '/a.jsonl') as handle:
         for line in handle:

@@ -14,6 +14,7 @@ from stars_ros.data.ratings import load_dataset
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
 from stars_ros.evaluation.summaries import by_model
 from stars_ros.model.training import StarsTrainer, split_rows
+from conftest import served_report
 
 from generic_data import write_generic_data
 
@@ -66,5 +67,5 @@ def test_every_tabular_backbone_recovers_it(planted, backbone):
                                              'model': {'variant': variant, 'dim': 8},
                                              'training': {**EXPERIMENT['training'], 'pretrain_epochs': 5,
                                                           'joint_epochs': 60}})
-        rmse[variant] = StarsTrainer(config).fit(planted, train).evaluate(planted, test)['rmse']
+        rmse[variant] = served_report(StarsTrainer(config).fit(planted, train), planted, test)['rmse']
     assert rmse['stars'] < 0.5 * rmse['base'], rmse

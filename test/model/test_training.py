@@ -8,9 +8,8 @@ import torch
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import ConfigError, DataError, TrainingDivergedError
 from stars_ros.errors import NotFittedError
-from stars_ros.model.model import StarsModel
 from stars_ros.model.training import StarsTrainer, split_rows
-from stars_ros.model.vocabulary import UNKNOWN
+from conftest import served_report, served_rows
 
 SMALL = {'encoder': {'name': 'gcn', 'hidden': 16, 'layers': 1}, 'model': {'dim': 16},
          'training': {'pretrain_epochs': 2, 'joint_epochs': 4, 'lr': 3e-3, 'batch_size': 128, 'threads': 1}}
@@ -40,10 +39,11 @@ def test_stars_and_its_ablations_start_exactly_where_base_ends(synthetic, rows):
     yet predicts what the scene-only model predicts."""
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL).replace(training={'pretrain_epochs': 2, 'joint_epochs': 0})
-    base = StarsTrainer(config.replace(model={'variant': 'base'})).fit(synthetic, train).predict_rows(synthetic, test)
+    base = served_rows(StarsTrainer(config.replace(model={'variant': 'base'})).fit(synthetic, train),
+                       synthetic, test)
     for variant in ('stars', 'base_user_bias', 'stars_no_q'):
         started = StarsTrainer(config.replace(model={'variant': variant})).fit(synthetic, train)
-        np.testing.assert_allclose(started.predict_rows(synthetic, test), base, atol=1e-6)
+        np.testing.assert_allclose(served_rows(started, synthetic, test), base, atol=1e-6)
 
 
 def test_ablations_keep_their_missing_parts_at_zero(synthetic, rows):
@@ -65,7 +65,7 @@ def test_predictions_stay_on_the_rating_scale(synthetic, rows):
     assert recommender.rating_scale == (0.0, 1.0)
     with torch.no_grad():
         recommender.model.bias.fill_(40.0)  # far above the scale
-    assert np.all(recommender.predict_rows(synthetic, test) == 1.0)
+    assert np.all(served_rows(recommender, synthetic, test) == 1.0)
 
 
 def test_prefix_keying_merges_scenes_that_share_a_numeric_prefix(synthetic):
@@ -91,7 +91,7 @@ def test_training_lowers_the_loss_and_beats_the_mean(synthetic, rows, variant):
     joint = recommender.history['joint']
     assert joint[-1] < joint[0]
     assert len(recommender.history['pretrain']) == (0 if variant == 'mf' else 2)
-    metrics = recommender.evaluate(synthetic, test)
+    metrics = served_report(recommender, synthetic, test)
     mean_mse = float(np.mean((synthetic.scores[test] - synthetic.scores[train].mean()) ** 2))
     if variant != 'mf':  # content models must beat the global mean already
         assert metrics['mse'] < mean_mse
@@ -101,113 +101,9 @@ def test_training_lowers_the_loss_and_beats_the_mean(synthetic, rows, variant):
 def test_training_is_deterministic(synthetic, rows):
     train, test = rows
     config = ExperimentConfig.from_dict(SMALL)
-    first = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
-    second = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
+    first = served_rows(StarsTrainer(config).fit(synthetic, train[:800]), synthetic, test)
+    second = served_rows(StarsTrainer(config).fit(synthetic, train[:800]), synthetic, test)
     assert np.array_equal(first, second)
-
-
-def test_weight_averaging_is_the_mean_of_the_last_joint_epochs_and_off_is_todays_fit(synthetic, rows):
-    train, test = rows
-    config = ExperimentConfig.from_dict(SMALL)
-    trainer = StarsTrainer(config.replace(training={'average_last': 0}))
-    snapshots = []
-
-    def keep(stage, epoch):
-        if stage == 'joint':
-            snapshots.append([p.detach().clone() for p in trainer.trainable_parameters()])
-    trainer.fit(synthetic, train[:800], on_epoch=keep)
-    assert np.array_equal(trainer.predict_rows(synthetic, test),  # switched off: the fit of before
-                          StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test))
-    averaging = StarsTrainer(config.replace(training={'average_last': 3}))
-    averaging.fit(synthetic, train[:800])
-    for k, parameter in enumerate(averaging.trainable_parameters()):  # the same trajectory, its last 3 points
-        by_hand = torch.stack([snapshot[k].double() for snapshot in snapshots[-3:]]).mean(0)
-        assert torch.allclose(parameter.double(), by_hand, atol=1e-6)
-    assert not np.array_equal(averaging.predict_rows(synthetic, test), trainer.predict_rows(synthetic, test))
-
-
-def test_weight_averaging_never_reads_a_test_row(synthetic, rows):
-    train, test = rows
-    config = ExperimentConfig.from_dict(SMALL).replace(training={'average_last': 3})
-    low, high = synthetic.scale
-    turned = dataclasses.replace(synthetic, scores=synthetic.scores.copy())
-    turned.scores[test] = high + low - turned.scores[test]  # every test score turned over
-    first = StarsTrainer(config).fit(synthetic, train[:800]).predict_rows(synthetic, test)
-    second = StarsTrainer(config).fit(turned, train[:800]).predict_rows(turned, test)
-    assert np.array_equal(first, second)
-
-
-def test_user_dropout_scores_that_share_of_examples_as_strangers_each_epoch(synthetic, rows, monkeypatch):
-    """Joint training sees a person's row for about 1 − user_dropout of the examples, drawn
-    afresh each epoch; with 0 every example keeps its person."""
-    train, _ = rows
-    seen = []
-    forward = StarsModel.forward
-
-    def spy(self, users, scenes, h, user_rows=None):
-        if self.training:
-            seen.append(users.clone())
-        return forward(self, users, scenes, h, user_rows)
-    monkeypatch.setattr(StarsModel, 'forward', spy)
-    config = ExperimentConfig.from_dict(SMALL)
-    StarsTrainer(config).fit(synthetic, train[:800])
-    assert seen and all((users >= 0).all() for users in seen)
-    seen.clear()
-    StarsTrainer(config.replace(training={'user_dropout': 0.5})).fit(synthetic, train[:800])
-    strangers = torch.cat(seen) == UNKNOWN
-    examples = len(np.unique(synthetic.examples[train[:800]]))
-    assert len(strangers) == examples * 4  # 4 joint epochs
-    assert abs(float(strangers.float().mean()) - 0.5) < 0.05
-    by_epoch = strangers.view(4, examples)
-    assert not torch.equal(by_epoch[0], by_epoch[1])  # the draw is redone each epoch (order differs too)
-
-
-def test_user_dropout_of_one_trains_no_person_row(synthetic, rows):
-    """Every example a stranger's: p_u and b_u never leave zero (nor q_i, whose only path to
-    the prediction is p_u ⊙ (q_i + h_i)), so a known person is predicted exactly as a stranger
-    is, by h_iᵀ r_a + b_i + b."""
-    train, test = rows
-    trainer = StarsTrainer(ExperimentConfig.from_dict(SMALL).replace(training={'user_dropout': 1.0}))
-    trainer.fit(synthetic, train[:800])
-    model = trainer.model
-    for zero in (model.user_embedding, model.user_bias, model.scene_embedding):
-        assert zero.weight.abs().sum() == 0
-    assert model.scene_bias.weight.abs().sum() > 0
-    strangers = dataclasses.replace(synthetic, users=np.array(['never seen'] * len(synthetic), dtype=object))
-    np.testing.assert_array_equal(trainer.predict_rows(synthetic, test), trainer.predict_rows(strangers, test))
-
-
-def test_a_distilled_model_is_trained_on_its_seed_teachers_mean_prediction(synthetic, rows, monkeypatch):
-    """distil_members K: K teachers fitted as plain fits with seeds seed … seed + K − 1, then the
-    model trained (its own seed) on their mean z-prediction of each rated entry, by hand."""
-    train, test = rows
-    config = ExperimentConfig.from_dict(SMALL).replace(training={'seed': 3})
-    taught = []
-    run_epochs = StarsTrainer._run_epochs
-
-    def spy(self, stage, epochs, data, examples, *args, **kwargs):
-        taught.append((self, examples))
-        return run_epochs(self, stage, epochs, data, examples, *args, **kwargs)
-    monkeypatch.setattr(StarsTrainer, '_run_epochs', spy)
-    distilled = StarsTrainer(config.replace(training={'distil_members': 2})).fit(synthetic, train[:600])
-    monkeypatch.setattr(StarsTrainer, '_run_epochs', run_epochs)
-    plain = [StarsTrainer(config.replace(training={'seed': seed})).fit(synthetic, train[:600]) for seed in (3, 4)]
-    for teacher, alone in zip(distilled.teachers, plain):
-        assert np.array_equal(teacher.predict_rows(synthetic, test), alone.predict_rows(synthetic, test))
-    student = [examples for trainer, examples in taught if trainer is distilled]
-    assert len(student) == 2  # pre-training and joint training, both on the teachers' targets
-    examples = plain[0].training_set(synthetic, train[:600])
-    by_hand = (plain[0].z_predictions(synthetic, examples) + plain[1].z_predictions(synthetic, examples)) / 2
-    for seen in student:
-        assert torch.equal(seen.rated, examples.rated)
-        torch.testing.assert_close(seen.targets[seen.rated], by_hand[examples.rated])
-    np.testing.assert_allclose(distilled.teachers_predict_rows(synthetic, test),
-                               (plain[0].predict_rows(synthetic, test) + plain[1].predict_rows(synthetic, test)) / 2)
-    assert not np.array_equal(distilled.predict_rows(synthetic, test), plain[0].predict_rows(synthetic, test))
-    with pytest.raises(ValueError, match='not distilled'):
-        plain[0].teachers_predict_rows(synthetic, test)
-    with pytest.raises(ConfigError, match='distil_members: must be 0 .* or at least 2'):
-        config.replace(training={'distil_members': 1})
 
 
 def test_vocabularies_come_from_training_rows_only(synthetic, rows):
@@ -227,7 +123,7 @@ def test_divergence_is_reported(synthetic, rows):
 
 def test_predict_before_fit():
     with pytest.raises(NotFittedError, match='not fitted'):
-        StarsTrainer(ExperimentConfig()).predict_scores(['a'], [None], None)
+        StarsTrainer(ExperimentConfig()).require_model()
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason='checks the message torch gives without a GPU')
@@ -254,9 +150,9 @@ def test_cuda_fit_matches_the_cpu_fit(synthetic, rows, encoder, variant):
         recommender = StarsTrainer(config.replace(training={'device': device}))
         seen = []
         recommender.fit(synthetic, train, on_epoch=lambda stage, epoch: seen.append(
-            (next(recommender.model.parameters()).device.type, recommender.predict_rows(synthetic, test))))
+            (next(recommender.model.parameters()).device.type, served_rows(recommender, synthetic, test))))
         assert {t.device.type for t in recommender.model.state_dict().values()} == {'cpu'}
-        fitted[device] = (seen, recommender.predict_rows(synthetic, test), recommender.history)
+        fitted[device] = (seen, served_rows(recommender, synthetic, test), recommender.history)
     (cpu_seen, cpu_final, cpu_history), (gpu_seen, gpu_final, gpu_history) = fitted['cpu'], fitted['cuda']
     assert {d for d, _ in gpu_seen} == {'cuda'} and len(gpu_seen) == len(cpu_seen)
     for (_, on_cpu), (_, on_gpu) in zip(cpu_seen, gpu_seen):

@@ -12,7 +12,6 @@ from stars_ros.evaluation import kshot_run
 from stars_ros.evaluation.kshot import (EXACT_SETS, STRATEGIES, Design, Person, annotator_folds, coverage, known_split,
                                        random_sets, reveal_pools)
 from stars_ros import StarsRecommender
-from stars_ros.personalisation.prior import NOISE_SHARE_BOUNDS, SPREAD_BOUNDS
 from conftest import TINY_CONFIG
 
 
@@ -74,8 +73,7 @@ def test_random_answers_score_the_mean_over_every_first_answer(design, synthetic
     MSE of the posterior from that one answer (by hand, through ``Design``)."""
     held = ['a', 'b']
     people, left_out = reveal_pools(synthetic, held, 4, seed=0)
-    fold = (0, 0, held, np.zeros(0, dtype=np.int64), people, left_out, np.zeros(0, dtype=np.int64),
-            np.zeros(0, dtype=np.int64))
+    fold = (0, 0, held, np.zeros(0, dtype=np.int64), people, left_out, np.zeros(0, dtype=np.int64))
     settings = kshot_run.KShotSettings(folds=2, seeds=(0,), pool=4, ks=(1,), strategies=('random',), retrain_ks=(0,),
                                        known_test=0.0, ridge_lambda=1.0, random_sets=64)
     records, _ = kshot_run.score_fold(settings, synthetic, design, fold, {})
@@ -96,8 +94,7 @@ def test_the_first_active_question_is_the_one_with_the_largest_expected_variance
     _, covariance = design.posterior(np.zeros(0, dtype=np.int64))
     blocks = [design.rows(rows) for rows in person.pool]
     targets = (np.concatenate([b[0] for b in blocks]), np.concatenate([b[3] for b in blocks]))
-    gains = design.uncertainty.variance_reduction([(b[0], b[3]) for b in blocks], targets, covariance,
-                                                 design.uncertainty.noise(None))
+    gains = design.uncertainty.variance_reduction([(b[0], b[3]) for b in blocks], targets, covariance)
     assert design.reveal_order(person, 'active', 1) == [int(np.argmax(gains))]
 
 
@@ -108,8 +105,7 @@ def test_the_first_decision_question_is_the_one_with_the_largest_log_decision_va
     blocks = [design.rows(rows) for rows in person.pool]
     assert all(len(b[0]) == 1 for b in blocks)  # one action, as SocNav1: the pool's scenes are ranked as one set
     pooled = tuple(np.concatenate([b[part] for b in blocks]) for part in (0, 1, 3))
-    values = design.uncertainty.log_decision_value([(b[0], b[3]) for b in blocks], [pooled], theta, covariance,
-                                                   design.uncertainty.noise(None))
+    values = design.uncertainty.log_decision_value([(b[0], b[3]) for b in blocks], [pooled], theta, covariance)
     assert np.isfinite(values).all() and len(set(values.tolist())) > 1  # clear choices still tell questions apart
     assert design.reveal_order(person, 'decision', 1) == [int(np.argmax(values))]
 
@@ -188,27 +184,19 @@ def test_the_hand_over_k_is_where_the_fold_in_stays_at_or_below_the_base_encoder
 
 
 def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root, synthetic, tmp_path, monkeypatch):
-    """On the packaged config with the prior's spread and a stranger's noise fitted to the plain
-    encoder's residuals: a selection fit serves no stranger, so it fits no plain encoder, no
-    spread and no noise (a config with any refused), and the kept fits do, each record saying
-    its spread and noise share."""
+    """On the packaged config: a selection fit serves no stranger, so it fits no plain encoder;
+    the kept fits do."""
     seen = []
     original = kshot_run.fit_rows
 
-    def fit_rows(experiment, train, test, keep, noise_rows=None, data=None):
+    def fit_rows(experiment, train, test, keep, data=None):
         if experiment['model'].get('variant') != 'base':  # the plain encoder beside each fold is not selection
             seen.append((experiment['training']['joint_epochs'], np.asarray(train), np.asarray(test), keep))
-            training = experiment['training']
-            assert (experiment['model']['strangers'], training['prior_spread'], training['stranger_noise']) == (
-                ('base_encoder', 'held_out_plain', 'held_out_plain') if keep
-                else ('prior_mean', 'trained_rows', 'trained_people'))
-        return original(experiment, train, test, keep, noise_rows, data)
+            assert experiment['model']['strangers'] == ('base_encoder' if keep else 'prior_mean')
+        return original(experiment, train, test, keep, data)
     monkeypatch.setattr(kshot_run, 'fit_rows', fit_rows)
-    config = yaml.safe_load(open('config/socnav1_gat.yaml'))
-    config['training'].update(prior_spread='held_out_plain', stranger_noise='held_out_plain')
-    (tmp_path / 'config.yaml').write_text(yaml.safe_dump(config))
     out = tmp_path / 'kshot'
-    assert kshot.main(['--config', str(tmp_path / 'config.yaml'), '--data-root', str(synthetic_root), '--out',
+    assert kshot.main(['--config', 'config/socnav1_gat.yaml', '--data-root', str(synthetic_root), '--out',
                        str(out), '--quick', '--retrain-ks', '0', '--select', 'joint_epochs=1,3']) == 0
     results = json.loads((out / 'results.json').read_text())
     held_out = [set(people) for people in results['folds']['0']]
@@ -226,9 +214,6 @@ def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root
     finals = [fit for fit in seen if fit[3]]
     assert sorted(fit[0] for fit in finals) == sorted(e['chosen']['joint_epochs'] for e in results['selection'])
     assert 'chosen per fold inside its training people' in (out / 'results.md').read_text()
-    assert all(SPREAD_BOUNDS[0] <= record['prior_spread'] <= SPREAD_BOUNDS[1] for record in results['records'])
-    assert all(NOISE_SHARE_BOUNDS[0] <= record['stranger_noise_share'] <= NOISE_SHARE_BOUNDS[1]
-               for record in results['records'])
 
 
 @pytest.mark.slow

@@ -14,6 +14,7 @@ from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_store import GraphStore
+from conftest import torch_scores
 
 
 @pytest.fixture()
@@ -42,11 +43,9 @@ def test_design_reproduces_the_model_for_any_user_rows(predictor, ratings, tiny_
     assert np.allclose(foldin.predict(user, ratings[:10]), expected, atol=1e-5)
     batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
     fitted = load_checkpoint(tiny_checkpoint)[0]  # the torch form
-    model = fitted.model
-    with torch.no_grad():
-        rows = (torch.tensor(user.p, dtype=torch.float32).expand(10, -1), torch.full((10, 1), user.b))
-        torch_scores = fitted.predict_scores_from_h([None] * 10, keys, model.encode(batch), rows)
-    assert np.allclose(foldin.predict(user, ratings[:10]), torch_scores[:, 0], atol=1e-5)
+    rows = (torch.tensor(user.p, dtype=torch.float32).expand(10, -1), torch.full((10, 1), user.b))
+    expected = torch_scores(fitted, [None] * 10, keys, batch, rows)
+    assert np.allclose(foldin.predict(user, ratings[:10]), expected[:, 0], atol=1e-5)
     mean = np.asarray(predictor.served.user_prior['mean'], dtype=np.float64)
     prior_mean = UserModel(mean[:-1], float(mean[-1]), 0, 1.0)  # the prior's mean: the stranger's prediction
     stranger = predictor.score('stranger', [r.scene for r in ratings[:10]], [r.scene_id for r in ratings[:10]])[:, 0]
@@ -68,7 +67,7 @@ def test_design_reproduces_the_model_for_a_trained_user(predictor, ratings, tiny
                               recommender.scene_vocabulary.rows(keys))[:, 0]
     assert np.allclose(designed, recommender.clip(served), atol=1e-5)
     batch = GraphStore([featurise(s) for s in scenes]).batch(torch.arange(len(scenes)))
-    assert np.allclose(designed, recommender.predict_scores(['a'] * len(scenes), keys, batch)[:, 0], atol=1e-5)
+    assert np.allclose(designed, torch_scores(recommender, ['a'] * len(scenes), keys, batch)[:, 0], atol=1e-5)
 
 
 def test_solve_is_the_ridge_solution(predictor, ratings):

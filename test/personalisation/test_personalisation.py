@@ -9,6 +9,7 @@ import pytest
 
 from stars_ros import messages
 from stars_ros.personalisation import online as personalisation
+from stars_ros.personalisation import stack
 from stars_ros.errors import SceneGraphError, StarsError
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.messages import Feedback
@@ -287,7 +288,7 @@ def test_a_restored_persons_ratings_are_read_at_first_use_and_then_reported_once
 def test_a_model_without_users_serves_without_fold_in(predictor, scenes, monkeypatch):
     def refuse(predictor, **options):
         raise StarsError("fold-in needs a personalised model; this one is 'base'")
-    monkeypatch.setattr(personalisation, 'FoldIn', refuse)
+    monkeypatch.setattr(stack, 'FoldIn', refuse)
     log = Log()
     core = _personalisation(predictor, log)
     assert core.foldin is None and log.lines == [('warning', 'no online fold-in with this checkpoint: fold-in needs '
