@@ -1,9 +1,11 @@
 """The package's rooms (its top-level subpackages) and who owns a person's state, read from
 the source: no two rooms import each other, and one module writes a person."""
 import ast
+import sys
 from pathlib import Path
 
 import stars_ros
+from stars_ros import state
 
 PACKAGE = Path(stars_ros.__file__).parent
 # the store's methods that change a person (or the checkpoint the people rows belong to)
@@ -67,3 +69,28 @@ def test_one_module_writes_a_person():
     assert {module for module, _ in writers} - OWNER == {'stars_ros.recording.erasure'}
     assert {module for module, _ in writers} & OWNER
     assert {name for module, name in writers if module == 'stars_ros.recording.erasure'} == {'_erase_offline'}
+
+
+def test_people_are_written_only_through_the_store_s_queued_writes():
+    """No way past the owner: ``write_people`` (which wrote rows through the store's private
+    methods) is gone from ``stars_ros.state``; outside ``state`` no module imports the rows a
+    store's writer changes (``state.rows``) or touches a private member of a store, and only
+    the node's records and the offline erasure open one."""
+    assert 'write_people' not in state.__all__ and not hasattr(state, 'write_people')
+    assert not any(hasattr(module, 'write_people') for name, module in list(sys.modules.items())
+                   if name.startswith('stars_ros.state'))
+    outside = [(module, path, tree) for module, path, tree in _modules() if _room(module) != 'state']
+    internals = {'stars_ros.state.rows', 'stars_ros.state.legacy', 'stars_ros.state.locking'}
+    assert {module for module, path, tree in outside if _imported(module, path, tree) & internals} == set()
+    defined = {node.attr if isinstance(node, ast.Attribute) else node.name for module, _, tree in _modules()
+               if _room(module) == 'state' for node in ast.walk(tree) if isinstance(node, ast.FunctionDef)
+               or isinstance(node, ast.Attribute) and ast.unparse(node.value) == 'self'}
+    private = {name for name in defined if name.startswith('_') and not name.startswith('__')}
+    assert {'_rows', '_queue', '_connection'} <= private
+    reached = {(module, ast.unparse(node)) for module, _, tree in outside for node in ast.walk(tree)
+               if isinstance(node, ast.Attribute) and node.attr in private
+               and ast.unparse(node.value) != 'self'}
+    assert reached == set()
+    openers = {module for module, _, tree in outside for node in ast.walk(tree)
+               if isinstance(node, ast.Call) and ast.unparse(node.func).endswith('StateStore')}
+    assert openers == {'stars_ros.node.records', 'stars_ros.recording.erasure'}
