@@ -102,8 +102,8 @@ def from_key_file(path, max_age: Callable[[], float], logger) -> FeedbackAuthent
     ``logger`` warns that feedback is not authenticated). A key file that cannot be read
     raises ConfigError: the node does not start unprotected."""
     if not path:
-        logger.warning('feedback_key_file is empty: feedback is not authenticated, anyone who reaches the ROS '
-                       'domain can rate for any person (docs/security.md)')
+        logger.warning('feedback_key_file is empty: feedback is not authenticated, anyone who reaches the '
+                       'ROS domain can rate for any person (docs/security.md)')
         return None
     keys = load_keys(path)
     if readable_by_others(path):

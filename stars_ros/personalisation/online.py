@@ -444,7 +444,7 @@ class Personalisation(Keeping):
         named = mentions(user_id)
         intake = [staged for staged in self.intake if staged.user_id == user_id]
         rated = [*self.histories.ratings(user_id), *self.peers.ratings(user_id),
-                 *self.solved_from.get(user_id, ()), *(rating for staged in intake for rating in staged.ratings)]
+                 *self.solved_from.get(user_id, ()), *(r for staged in intake for r in staged.ratings)]
         removed = {'ratings': self.histories.drop(user_id), 'peer_ratings': len(self.peers.ratings(user_id)),
                    'model': int(self.predictor.user_model(user_id) is not None),
                    'scene_requests': self.scenes.forget(named), 'peer_messages_in_intake': len(intake),

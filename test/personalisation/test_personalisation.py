@@ -144,7 +144,7 @@ def test_a_restored_person_is_encoded_a_few_scenes_a_call_and_once(strangers, re
     predictor = Predictor.load(checkpoint)
     ratings = [Rating(scene, 'navigate', (k % 5) / 4, scene['identifier'], f'r{k}') for k, scene in enumerate(many)]
     fill_store(tmp_path, predictor.fingerprint, [PersonUpdate('ann', None, predictor.fingerprint, ratings, 0, [],
-                                                                False)])
+                                                              False)])
 
     def restored(predictor):
         core = _personalisation(predictor, Log(), store=_store(tmp_path, pytest.fail))

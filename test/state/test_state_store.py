@@ -335,8 +335,8 @@ def test_a_version_1_store_is_upgraded_keeping_every_covariance(tmp_path):
     progress = []
     store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_progress=progress.append)
     [ann], problem = store.load(FINGERPRINT)
-    assert problem is None and progress == [f'upgrading {tmp_path / schema.DATABASE} from schema version 1 to 2 '
-                                            '(covariances in a table of their own)']
+    assert problem is None and progress == [f'upgrading {tmp_path / schema.DATABASE} from schema version 1 '
+                                            'to 2 (covariances in a table of their own)']
     assert isinstance(ann.model.covariance, Deferred)  # read when first used
     assert np.array_equal(loaded(ann.model.covariance), model.covariance) and np.array_equal(ann.model.p, model.p)
     store.close()
