@@ -6,7 +6,7 @@ and how long importing a state file of an earlier version takes.
     python benchmarks/state_scale.py [--checkpoint models/socnav1_gat_stars.pt] \
         [--data-root ../shared/datasets/socnav1] [--out results/state_scale.json]
 
-For each size a store is filled (``state.write_people``: every person with a solved
+For each size a store is filled (``StateStore.write_person``: every person with a solved
 model and covariance of the served checkpoint, their ratings of scenes drawn from the data,
 and the served checkpoint's h of those scenes, as the node stores them with the ratings)
 and then, in this process:
@@ -51,7 +51,7 @@ from stars_ros.personalisation.foldin import Rating  # noqa: E402
 from stars_ros.personalisation.stack import serving_stack  # noqa: E402
 from stars_ros.personalisation.online import Personalisation  # noqa: E402
 from stars_ros.state import migration  # noqa: E402
-from stars_ros.state.store import PersonUpdate, StateStore, write_people  # noqa: E402
+from stars_ros.state import PersonUpdate, StateStore  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 
 SIZES = ((50, 5), (1000, 20), (1000, 200))
@@ -80,7 +80,12 @@ def fill(folder: Path, predictor, model, scenes: list, people: int, ratings: int
         held = [Rating(scenes[rng.randrange(len(scenes))], 'navigate', rng.random(), None, f'p{k}-r{j}', j, ORIGIN)
                 for j in range(ratings)]
         updates.append(PersonUpdate(f'person-{k}', model, predictor.fingerprint, held, 0, [], True, encoded))
-    write_people(folder, predictor.fingerprint, updates)
+    store = StateStore(folder, 'state_scale', on_error=print)  # each person through the store's one write
+    store.set_fingerprint(predictor.fingerprint)
+    for update in updates:
+        store.write_person(update)
+    if store.close():
+        raise OSError(f'the state store in {folder} was not filled')
     return [update._replace(encoded=None) for update in updates]
 
 

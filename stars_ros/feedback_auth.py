@@ -97,6 +97,21 @@ def sign(fields: Mapping, key_id: str, secret: bytes, stamp: int, scale: Sequenc
     return {**unsigned, 'auth': {'key_id': key_id, 'stamp': int(stamp), 'mac': mac(secret, unsigned, stamp)}}
 
 
+def from_key_file(path, max_age: Callable[[], float], logger) -> FeedbackAuthenticator | None:
+    """The ranker's checks of signed feedback with the keys of ``path`` (None without one:
+    ``logger`` warns that feedback is not authenticated). A key file that cannot be read
+    raises ConfigError: the node does not start unprotected."""
+    if not path:
+        logger.warning('feedback_key_file is empty: feedback is not authenticated, anyone who reaches the '
+                       'ROS domain can rate for any person (docs/security.md)')
+        return None
+    keys = load_keys(path)
+    if readable_by_others(path):
+        logger.warning(f'feedback key file {path} is readable by its group or others: chmod 600 it')
+    logger.info(f'feedback is taken only when signed by a key of {path} ({", ".join(keys)})')
+    return FeedbackAuthenticator(keys, max_age)
+
+
 class FeedbackAuthenticator:
     """The ranker's checks of signed feedback and of the signed ratings peers share.
 

@@ -18,7 +18,8 @@ from stars_ros.node.parameters import PARAMETERS
 from stars_ros.examples import demo
 from stars_ros.ros import feedback_page, hri_bridge, hri_world, replay, scene_publisher, usage
 from stars_ros.errors import LaunchArgumentError
-from stars_ros.state.store import PersonUpdate, write_people
+from stars_ros.state import PersonUpdate
+from state_fill import fill_store
 
 REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = dict(re.findall(r"'(\w+) = ([\w.]+):main'", (REPO / 'setup.py').read_text()))
@@ -349,6 +350,6 @@ def test_demo_records_into_a_folder_of_its_own_unless_told(tmp_path, capsys):
     given = tmp_path / 'mine'
     given.mkdir()
     assert demo.record_folder(given, tmp_path / 'run') == given and not capsys.readouterr().out
-    write_people(given, 'f' * 64, [PersonUpdate('ann', None, 'f' * 64, [], 0, [], False)])
+    fill_store(given, 'f' * 64, [PersonUpdate('ann', None, 'f' * 64, [], 0, [], False)])
     demo.record_folder(given, tmp_path / 'run')
     assert 'holds folded-in users of an earlier run' in capsys.readouterr().out

@@ -108,6 +108,14 @@ class Problems:
         with self._lock:
             self._counts['ranking'] += 1
 
+    def forget(self, named: Callable[[bytes], bool]) -> int:
+        """Let go of the latest details that ``named`` finds a person in (a forget); how many."""
+        with self._lock:
+            gone = [kind for kind, (_, detail) in self._period.items() if named(detail.encode('utf-8'))]
+            for kind in gone:
+                self._period[kind] = (self._period[kind][0], '(withheld: it named a person since forgotten)')
+        return len(gone)
+
     def take_period(self) -> tuple[dict, dict]:
         """(kind -> (count, latest detail) since the last call, totals since start); a new
         period starts."""

@@ -6,8 +6,8 @@ minutes on a full record folder; on the node's executor, every ranking would wai
 asked (two rewrites of one bag never overlap), and hands each outcome back to the executor:
 the thread only queues it and calls ``wake``; ``finished`` (called by the executor's
 ``work``) returns what is done. While a person's erase runs, ``NodeRecords`` leaves out of the
-recording every message that names them (``unrecorded``), so the bag file the erase rotates
-to holds nothing of them either.
+recording every message that names them (``withheld``: the owner of people says who), so the
+bag file the erase rotates to holds nothing of them either.
 """
 from __future__ import annotations
 

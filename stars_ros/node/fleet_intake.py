@@ -30,20 +30,20 @@ class FleetIntake:
         self._peers_reported = set()  # (peer, fingerprint or λ) warned about once
         self.may_store = lambda user_id: True  # store_policy: whose models may be taken in (node.consent)
 
-    def accept(self, text: str, predictor, personalisation) -> bool:
-        """Take in a peer's stars/user_model message for ``personalisation`` serving
-        ``predictor``: the ratings it was solved from that this node lacks join the user's.
+    def accept(self, text: str, personalisation) -> bool:
+        """Take in a peer's stars/user_model message for ``personalisation`` (the owner of
+        people): the ratings it was solved from that this node lacks join the user's.
         True when the user now waits to be re-solved. A message of another checkpoint is
         ignored (warned about once per peer and checkpoint); a bad one is reported and
         changes nothing."""
-        topic = self.topic
+        topic, predictor = self.topic, personalisation.predictor
         try:
             payload = messages.parse_user_model(text, self.params['max_message_bytes'])
         except messages.BadMessage as error:
             self.report(error.kind, f'peer user model refused: {error}', topic)
             return False
         peer, user_id = payload.get('origin', 'a ranker without fleet sharing'), payload['user_id']
-        if user_id in personalisation.forgotten:  # the report does not name them: stars/errors is recorded
+        if personalisation.is_forgotten(user_id):  # the report does not name them: stars/errors is recorded
             self.report('forgotten', f'a user model from {peer} of a person forgotten here: refused, nothing taken in',
                         topic)
             return False

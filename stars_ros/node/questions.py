@@ -59,16 +59,15 @@ def candidates_of(predictor, request: messages.SceneRequest, h: np.ndarray) -> l
 def choose_question(personalisation, user_id: str, requests: list, recent_scenes: int) -> dict:
     """The stars/question reply for ``user_id`` over ``requests`` [(SceneRequest, text)]
     (empty: the remembered scenes); raises StarsError when there is nothing to ask about."""
-    predictor, uncertainty = personalisation.predictor, personalisation.uncertainty
+    predictor, _, uncertainty = personalisation.serving
     if uncertainty is None:
         raise StarsError('this checkpoint has no fold-in (no users), so there is no question to choose')
-    memory = personalisation.scenes
-    remembered = memory.recent(recent_scenes)
+    remembered = personalisation.recent_scenes(recent_scenes)
     offered, targets = [], []
     for request, text in requests:
         h = predictor.encode(request.graphs, validate=False)  # parse_scene_request validated them
-        memory.received(request.scene_id, text)
-        memory.ranked(request.scene_id, text, predictor, h)
+        personalisation.scene_received(request.scene_id, text)
+        personalisation.scene_ranked(request.scene_id, text, predictor, h)
         offered += candidates_of(predictor, request, h)
     for scene_id, message, encoded in remembered:
         request = messages.parse_scene_request(message)

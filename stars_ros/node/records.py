@@ -38,7 +38,7 @@ class NodeRecords:
         self.folder = recording.node_folder(folder, node_name) if folder else None
         self.recorder = None
         self.consent = None  # node.consent.Consent: whose id may reach the bag (None: everyone's)
-        self.unrecorded = {}  # user id -> state.mentions of them: people being erased, whose messages wait for no bag
+        self.withheld = lambda data: False  # names someone being erased (the owner's): not for the bag
         self.left_out = 0  # messages left out because they named someone being erased
         self.store = self._open_store(node_name)  # first: StoreLockedError when another node holds the folder
         self.recorder = self._start_recorder(node_name, custom, markers_type)
@@ -91,12 +91,12 @@ class NodeRecords:
         that names a person being erased."""
         if self.recorder is not None:
             text = self.without_strangers(topic, text)
-            if text is not None and not (self.unrecorded and self._names_someone_erased(text.encode())):
+            if text is not None and not self._names_someone_erased(text.encode()):
                 self.recorder.write(self.topics[topic], text, self._now() if log_time is None else log_time)
 
     def _names_someone_erased(self, data: bytes) -> bool:
-        """True (and counted) when ``data`` names a person whose erase runs (``unrecorded``)."""
-        if any(named(data) for named in list(self.unrecorded.values())):
+        """True (and counted) when ``data`` names a person whose erase runs (``withheld``)."""
+        if self.withheld(data):
             self.left_out += 1
             return True
         return False
@@ -129,7 +129,7 @@ class NodeRecords:
     def record_markers(self, data: bytes, stamp: int):
         """Record a stars/markers array (its CDR bytes), if ``record_markers`` says so."""
         if (self.recorder is not None and self.params['record_markers']
-                and not (self.unrecorded and self._names_someone_erased(data))):
+                and not self._names_someone_erased(data)):
             self.recorder.write_encoded(self.topics['stars/markers'], data, stamp)
 
     def _committed(self, entry: dict):

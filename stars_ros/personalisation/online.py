@@ -1,24 +1,30 @@
-"""Online personalisation for the ranker node, without ROS: which feedback becomes a rating,
-the users waiting to be re-solved, the per-user solve, eviction, carrying users across a
-checkpoint reload, and the scene memory that feedback is matched against.
+"""The owner of a person in the ranker node, without ROS (``Personalisation``): everything
+the node holds about a person is held here or indexed from here, and the node core, fleet
+intake, forget, retention and restore reach a person only through it.
 
-Accepted feedback on a scene the node ranked (its request text and the h its ranking
-computed, remembered in a bounded LRU map, ``SceneMemory``: strings and arrays cost the
-garbage collector little, parsed JSON would cost it much more) is added to that user's
-history (bounded: histories.FeedbackHistories), and the user waits in ``pending``. The node
-calls ``solve_next`` when no scene waits, one user per turn, so the ranking of others waits
-for at most one solve (timings in docs/personalisation.md); a person with many ratings whose
-rows are not built yet (restored after a restart) has them built ``PREPARE_ROWS`` a turn. The result goes into the
-predictor's overlay (swapped whole): the person's own next rankings use it at once.
+It holds the one model served (a ``stack.ServingStack``: the predictor with its overlay of folded-in
+people, the ``FoldIn`` with its caches of their rows, the ``Uncertainty``), swapped whole by
+``use`` at a reload; each person's history (bounded: histories.FeedbackHistories) and peers'
+ratings (``fleet``), the ratings their served model was solved from, what waits to be
+solved, written, announced or sent once durable (``outgoing``), peers' messages being
+checked, the scene requests that feedback is matched against (``scene_memory``), the person
+served now (stars/user_id), the strangers reported once, and the tombstones. It indexes the
+holders outside it: the authenticator's replay memory, the state store it writes, and what
+the node gives it in ``holders`` (its problem reports). ``forget_person`` is the one call
+that reaches every one of them (docs/privacy.md).
 
-This module is the one writer of a person (``stars_ros.state``): each change of a person's
-ratings queues one write, with the feedback entry that brought it (one write per feedback),
-which the store's own thread commits. A solved model is written with that person's next
-write, and at ``flush`` (a clean shutdown); a restart with the same checkpoint serves the
-stored model when it was solved from exactly the stored ratings and solves anyone else
-again. ``durable_after(user)`` is the write the served model of a person was solved from:
-what others see of the model waits for its commit. With fleet sharing (``fleet``), peers'
-ratings join a user's own and the model is solved from the union.
+Accepted feedback on a scene the node ranked is added to that user's history, and the user
+waits in ``pending``. The node calls ``solve_next`` when no scene waits, one user per turn,
+so the ranking of others waits for at most one solve (timings in docs/personalisation.md); a
+person with many ratings whose rows are not built yet (restored after a restart) has them
+built ``PREPARE_ROWS`` a turn. The result goes into the predictor's overlay (swapped whole):
+the person's own next rankings use it at once.
+
+This is the one writer of a person (``stars_ros.state``; ``keeping``): each change of a
+person's ratings queues one write, with the feedback entry that brought it (one write per
+feedback), which the store's own thread commits. What others see of a served model waits for
+that commit (``publish_when_durable``). With fleet sharing, peers' ratings join a user's own
+and the model is solved from the union.
 
 One thread (the node's executor) calls ``Personalisation``.
 """
@@ -28,68 +34,22 @@ import collections
 import dataclasses
 import logging
 import os
-from typing import Callable
+from typing import Callable, Mapping
 
 from stars_ros.personalisation import fleet
 from stars_ros import messages
 from stars_ros.errors import StarsError, UnknownActionError
 from stars_ros.personalisation.foldin import FoldIn, rating_from_feedback
 from stars_ros.personalisation.histories import FeedbackHistories
-from stars_ros.personalisation.stack import serving_stack
+from stars_ros.personalisation.keeping import Keeping
+from stars_ros.personalisation.outgoing import Outgoing
+from stars_ros.personalisation.scene_memory import SCENE_MEMORY, SceneMemory
+from stars_ros.personalisation.stack import ServingStack, serving_stack
 from stars_ros.state.forgotten import folder_secret
-from stars_ros.state import Forgotten, PersonUpdate, PersonWriter, Rating, UserModel, check_ratings, mentions
+from stars_ros.state import Forgotten, PersonWriter, Rating, UserModel, check_ratings, mentions
 
-SCENE_MEMORY = 4096  # scene requests remembered for feedback (least recently received go)
 PREPARE_ROWS = 8  # ratings' scenes encoded per call of solve_next: bounds how long one holds the executor
-
-
-class SceneMemory:
-    """The latest ``size`` scene requests by scene id: the request (its text, or a typed
-    request's ``messages.Twin``; ``messages.parse_scene_request`` takes either) and, once it
-    is ranked, the predictor that ranked it and the h of its scenes (so feedback on them is
-    folded in without encoding them again)."""
-
-    def __init__(self, size: int = SCENE_MEMORY):
-        self.size = size
-        self._scenes = collections.OrderedDict()  # scene_id -> [request, (predictor, h) once ranked]
-
-    def __len__(self) -> int:
-        return len(self._scenes)
-
-    def received(self, scene_id: str, request) -> None:
-        self._scenes[scene_id] = [request, None]
-        self._scenes.move_to_end(scene_id)
-        if len(self._scenes) > self.size:
-            self._scenes.popitem(last=False)
-
-    def ranked(self, scene_id: str, request, predictor, h, plain=None) -> None:
-        """Keep the h [len(graphs), dim] that ranking ``request`` computed (and the plain
-        encoder's scores, ``Scored.plain``, where it computed them), unless a newer request took
-        its scene id since."""
-        remembered = self._scenes.get(scene_id)
-        if remembered is not None and remembered[0] is request:
-            remembered[1] = (predictor, h, plain)
-
-    def recent(self, count: int) -> list:
-        """[(scene_id, request, (predictor, h, plain) or None)] of the ``count`` latest, newest first."""
-        latest = []
-        for scene_id in reversed(self._scenes):
-            if len(latest) == count:
-                break
-            latest.append((scene_id, *self._scenes[scene_id]))
-        return latest
-
-    def get(self, scene_id: str) -> tuple:
-        """(request, (predictor, h, plain) or None); (None, None) for a scene not remembered."""
-        return tuple(self._scenes.get(scene_id, (None, None)))
-
-    def forget(self, named: Callable[[bytes], bool]) -> int:
-        """Let go of the requests whose text ``named`` finds a person in; how many."""
-        gone = [scene_id for scene_id, (request, _) in self._scenes.items()
-                if named(messages.text_of(request).encode('utf-8'))]
-        for scene_id in gone:
-            del self._scenes[scene_id]
-        return len(gone)
+MAX_STRANGERS_REMEMBERED = 10000
 
 
 @dataclasses.dataclass
@@ -103,8 +63,9 @@ class PeerIntake:
     encoded: int = 0
 
 
-class Personalisation:
-    """Fold-in of the users who give feedback, for the model the node serves.
+class Personalisation(Keeping):
+    """The owner of the people the node serves: their fold-in into the model served, and
+    everything else the node holds of them (see the module docstring).
 
     Args:
         predictor (Predictor): the model served; ``use`` replaces it on a reload.
@@ -123,16 +84,22 @@ class Personalisation:
         after_person_read (callable, optional): called after a person restored from the
             store has their ratings read (the ranker process moves them out of the garbage
             collector's generations then: ``gc.freeze``).
+        holders (Mapping, optional): what else holds something of a person, by name:
+            ``forget(named) -> entries removed``, ``named`` a ``state.mentions``; each is
+            called by ``forget_person``.
     """
 
     def __init__(self, predictor, max_ratings: int, max_users: int, report: Callable[[str, str], None],
                  logger=None, store: PersonWriter | None = None, scene_memory: int = SCENE_MEMORY, origin: str = '',
-                 sharing: bool = False, authenticator=None, after_person_read: Callable[[], None] | None = None):
+                 sharing: bool = False, authenticator=None,
+                 after_person_read: Callable[[], None] | None = None,
+                 holders: Mapping[str, Callable[[Callable[[bytes], bool]], int]] | None = None):
         self.histories = FeedbackHistories(max_ratings, max_users)
         self.peers = fleet.PeerRatings(max_ratings, max_users)
         if after_person_read is not None:
             self.histories.after_read = self.peers.after_read = after_person_read
         self.origin, self.sharing, self.authenticator = origin, sharing, authenticator
+        self.holders = dict(holders or {})
         self.scenes = SceneMemory(scene_memory)
         self.pending = collections.OrderedDict()  # users to re-solve, longest waiting first
         self.to_announce = collections.OrderedDict()  # users whose model peers are to be sent again
@@ -140,30 +107,47 @@ class Personalisation:
         self.solved_from = {}  # user -> the ratings their served model was solved from
         self.written = {}  # user -> sequence number of their latest write to the store
         self.unsaved = set()  # users whose served model the store does not hold yet
+        self.outgoing = Outgoing()  # models waiting to be sent once durable; people whose erase runs
+        self.served_user = None  # the person stars/user_id says is served now
+        self._strangers_reported = set()  # unknown users reported once per checkpoint
         self.forgotten = self._with_fleet_keys(Forgotten(None))  # the tombstones of people erased (the store's,
         # once restored)
         self._report = report
         self._logger = logger or logging.getLogger(__name__)
         self.store = store
-        self.predictor, self.foldin, self.uncertainty = self._serving_stack(predictor)
+        self.serving = self._serving(predictor)
 
-    def _serving_stack(self, predictor) -> tuple:
-        """(predictor, fold-in, uncertainty) of ``predictor`` (``stack.serving_stack``), the fold-in
-        reading the h of restored people's scenes from the store (not with fleet sharing, which
-        encodes each scene on its own so that peers' models agree to the last bit); no fold-in
-        nor uncertainty (and a warning) for a model without users."""
+    @property
+    def predictor(self):
+        """The Predictor served (with its overlay of folded-in people)."""
+        return self.serving.predictor
+
+    @property
+    def foldin(self) -> FoldIn | None:
+        return self.serving.foldin
+
+    @property
+    def uncertainty(self):
+        return self.serving.uncertainty
+
+    def _serving(self, predictor) -> ServingStack:
+        """``predictor``'s stack (``stack.serving_stack``), the fold-in reading the h of restored
+        people's scenes from the store (not with fleet sharing, which encodes each scene on its
+        own so that peers' models agree to the last bit); no fold-in (and a warning) for a model
+        without users."""
         from_store = self.store is not None and not self.sharing
         stack = serving_stack(predictor, scene_by_scene=self.sharing, stored=(
             lambda scenes: self.store.encodings(scenes, predictor.fingerprint)) if from_store else None)
         if stack.foldin is None:
             self._logger.warning(f'no online fold-in with this checkpoint: {stack.no_foldin}')
-        return stack.predictor, stack.foldin, stack.uncertainty
+        return stack
 
     def use(self, predictor) -> None:
-        """Serve ``predictor`` from now on (a reload). Users the new checkpoint was refit on
-        keep only the feedback it did not absorb; everyone with a history left waits to be
-        re-solved against the new model."""
-        self.predictor, self.foldin, self.uncertainty = self._serving_stack(predictor)
+        """Serve ``predictor`` from now on (a reload), the one place the model changes. Users
+        the new checkpoint was refit on keep only the feedback it did not absorb; everyone with
+        a history left waits to be re-solved against the new model."""
+        self.serving = self._serving(predictor)
+        self._strangers_reported = set()  # who is a stranger depends on the model
         absorbed = predictor.metadata.get('provenance', {}).get('refit', {}).get('ratings_per_user', {})
         had = set(self.histories.users())
         for user_id in [*self.histories.absorb(absorbed), *self.peers.users()]:
@@ -175,6 +159,63 @@ class Personalisation:
                     self._save(user_id)
                 else:
                     self._forget_stored(user_id)
+
+    # -- what the node core asks -----------------------------------------------------------
+    def scene_received(self, scene_id: str, request) -> None:
+        """Remember a scene request (its text or ``Twin``) for the feedback that will name it."""
+        self.scenes.received(scene_id, request)
+
+    def scene_ranked(self, scene_id: str, request, predictor, h, plain=None) -> None:
+        """Keep what ranking a remembered request computed (``SceneMemory.ranked``)."""
+        self.scenes.ranked(scene_id, request, predictor, h, plain)
+
+    def recent_scenes(self, count: int) -> list:
+        return self.scenes.recent(count)
+
+    def is_forgotten(self, user_id: str) -> bool:
+        """True for a person forgotten here or by a fleet peer: nothing of theirs is taken."""
+        return user_id in self.forgotten
+
+    def first_report_of_stranger(self, user_id: str) -> bool:
+        """True the first time (per checkpoint) ``user_id`` is ranked as a stranger."""
+        if user_id in self._strangers_reported:
+            return False
+        if len(self._strangers_reported) >= MAX_STRANGERS_REMEMBERED:
+            self._strangers_reported.clear()
+        self._strangers_reported.add(user_id)
+        return True
+
+    def waiting(self) -> dict:
+        """How many peer messages wait to be checked, people to be solved, models to be
+        announced and models to be sent once durable."""
+        return {'intake': len(self.intake), 'solve': len(self.pending), 'announce': len(self.to_announce),
+                'durable': int(bool(self.outgoing))}
+
+    def next_to_announce(self) -> str:
+        return self.to_announce.popitem(last=False)[0]
+
+    def publish_when_durable(self, user_id: str, send: Callable[[str], None],
+                             wake: Callable[[], None]) -> None:
+        """``send`` the stars/user_model payload of ``user_id``'s served model once the store
+        has committed the ratings it was solved from (nobody sees a model a hard kill could
+        take back): now without a store; else it waits in ``outgoing`` (``models_to_send``)
+        and ``wake`` is called from the store's thread."""
+        message = self.model_message(user_id)
+        if message is None:
+            return
+        payload = messages.dumps(message)
+        if self.store is None:
+            send(payload)
+            return
+
+        def committed():  # on the store's thread, or on this one if it is committed already
+            self.outgoing.committed(user_id, payload)
+            wake()
+        self.store.when_committed(self.durable_after(user_id), committed)
+
+    def models_to_send(self) -> list:
+        """The payloads of models now durable, those of people being erased left out."""
+        return self.outgoing.take()
 
     # -- feedback ------------------------------------------------------------------------
     def add_feedback(self, feedback, max_bytes: int = messages.DEFAULT_MAX_BYTES, stamp: int = 0,
@@ -198,11 +239,6 @@ class Personalisation:
         self.pending[feedback.user_id] = None
         self._save(feedback.user_id, journal)
         return None
-
-    def record_feedback(self, journal: tuple[dict, str] | None) -> None:
-        """Journal feedback that changes nobody (not folded in)."""
-        if self.store is not None and journal is not None:
-            self.store.write_person(None, [journal])
 
     def _rating(self, feedback, max_bytes: int) -> Rating | str:
         """The Rating ``feedback`` gives, or why it cannot be folded in."""
@@ -384,47 +420,36 @@ class Personalisation:
                          'the MCAP log for the offline refit)')
             self._forget_stored(user_id)
 
-    # -- the state store ---------------------------------------------------------------
-    def _update(self, user_id: str) -> PersonUpdate:
-        """What the store is to hold of ``user_id`` now: ``solved`` when their served model
-        was solved from exactly their ratings as they are."""
-        ratings, dropped = self.histories.ratings(user_id), self.histories.dropped(user_id)
-        solved_from = self.solved_from.get(user_id)
-        solved = solved_from is not None and [r.rating_id for r in solved_from] == [
-            r.rating_id for r in self.ratings(user_id)]
-        peer_ratings = self.peers.ratings(user_id)
-        encoded = None if self.foldin is None or self.sharing else self.foldin.take_encodings(
-            [r.scene for r in (*ratings, *peer_ratings)])
-        return PersonUpdate(user_id, self.predictor.user_model(user_id), self.predictor.fingerprint, ratings, dropped,
-                            peer_ratings, solved, encoded)
 
-    def _save(self, user_id: str, journal: tuple[dict, str] | None = None) -> None:
-        """Write ``user_id`` as they are now, with the feedback entry that changed them."""
-        if self.store is not None:
-            self.written[user_id] = self.store.write_person(self._update(user_id), [journal] if journal else [])
-            self.unsaved.discard(user_id)
-
-    def _forget_stored(self, user_id: str) -> None:
-        self.written.pop(user_id, None)
-        if self.store is not None:
-            self.store.forget_person(user_id)
-
+    # -- forget ------------------------------------------------------------------------------
     def forget_person(self, user_id: str) -> dict:
-        """Erase ``user_id`` from memory (history, peers' ratings, served model, what waits
-        to be solved, written or announced, peers' ratings being checked, the scene requests
-        that name them) and mark them forgotten, so their feedback and peers' models of them
-        are refused from now on; {what: entries removed}. The store's and the bags' part is
+        """Erase ``user_id`` from every holder in memory and mark them forgotten, so their
+        feedback and peers' models of them are refused from now on; {what: entries removed}:
+        their history, peers' ratings, served model, what waits to be solved, written or
+        announced, peers' messages being checked, the scene requests that name them, the
+        fold-in's rows of their ratings, the authenticator's replay memory, the person
+        served, the strangers reported, and each of ``holders``. Their erase is marked as
+        running (``erase_begins``) until ``erase_ends``. The store's and the bags' part is
         ``recording.erasure.forget``'s, which the caller runs next with ``erase_stored``."""
+        named = mentions(user_id)
         intake = [staged for staged in self.intake if staged.user_id == user_id]
+        rated = [*self.histories.ratings(user_id), *self.peers.ratings(user_id),
+                 *self.solved_from.get(user_id, ()), *(r for staged in intake for r in staged.ratings)]
         removed = {'ratings': self.histories.drop(user_id), 'peer_ratings': len(self.peers.ratings(user_id)),
                    'model': int(self.predictor.user_model(user_id) is not None),
-                   'scene_requests': self.scenes.forget(mentions(user_id)), 'peer_messages_in_intake': len(intake),
-                   'replay_memory': 0 if self.authenticator is None else self.authenticator.forget_person(user_id)}
+                   'scene_requests': self.scenes.forget(named), 'peer_messages_in_intake': len(intake),
+                   'replay_memory': (0 if self.authenticator is None
+                                     else self.authenticator.forget_person(user_id)),
+                   'fold_in_rows': 0 if self.foldin is None else self.foldin.forget_rows(rated)}
+        removed.update({what: forget(named) for what, forget in self.holders.items()})
         self.peers.drop(user_id)
         self.predictor.set_user_model(user_id, None)
         for kept in (self.pending, self.to_announce, self.solved_from, self.written):
             kept.pop(user_id, None)
         self.unsaved.discard(user_id)
+        self._strangers_reported.discard(user_id)
+        if self.served_user == user_id:
+            self.served_user = None
         for staged in intake:
             self.intake.remove(staged)
         if self.forgotten.secret is None and self.store is not None:
@@ -435,101 +460,21 @@ class Personalisation:
         self.forgotten.add(user_id)
         return removed
 
-    def erase_stored(self, user_id: str, timeout: float = 600) -> dict:
-        """Erase ``user_id`` from the state store, their tombstone kept (``StateStore.erase_person``):
-        {table: rows removed}, once committed; {} with nothing recorded."""
-        return {} if self.store is None else self.store.erase_person(user_id).result(timeout)
+    def erase_begins(self, user_id: str) -> None:
+        """An erase of ``user_id`` runs: their models are held back, no message naming them is recorded."""
+        self.outgoing.erase_begins(user_id)
 
-    def _with_fleet_keys(self, forgotten: Forgotten) -> Forgotten:
-        """``forgotten`` checking fleet tombstones with the feedback keys (``state.forgotten``)."""
-        forgotten.fleet_keys = {} if self.authenticator is None else dict(self.authenticator.keys)
-        return forgotten
+    def erase_ends(self, user_id: str) -> int:
+        """One erase of ``user_id`` ended: the models of theirs held back are dropped; how many."""
+        return self.outgoing.erase_ends(user_id)
 
-    def keep_fleet_tombstone(self, kept: str) -> None:
-        """A fleet peer forgot someone (``forgotten.fleet_tombstone``): refused here from now
-        on, and after a restart when the store keeps it."""
-        self.forgotten.tags.add(kept)
-        if self.store is not None:
-            self.store.keep_tombstone(kept)
+    def names_someone_erased(self, data: bytes) -> bool:
+        """True when ``data`` names a person whose erase runs (the recording leaves it out)."""
+        return self.outgoing.names_someone_erased(data)
 
     def known_people(self) -> set:
-        """Every id this node holds something of in memory: histories, peers' ratings,
-        served models, what waits."""
-        return {*self.histories.users(), *self.peers.users(), *self.predictor.user_models, *self.pending,
-                *(staged.user_id for staged in self.intake)}
-
-    def apply_retention(self, cutoff: int, timeout: float) -> dict:
-        """Retention (``retention_days``): every rating, own or a peer's, stamped before
-        ``cutoff`` (ROS time, ns) leaves memory; a person left with some is re-solved and
-        written as they are now, one left with none goes back to the checkpoint. Every
-        person held is read (a Deferred one too). Then the store erases what is older still
-        (``StateStore.erase_older``, its journal too; waited for up to ``timeout`` s).
-        {'memory': {what: entries removed}, 'state_store': {table: rows removed}}."""
-        removed = {'ratings': 0, 'peer_ratings': 0, 'people': 0}
-        for user_id in {*self.histories.users(), *self.peers.users()}:
-            own = [r for r in self.histories.ratings(user_id) if r.stamp < cutoff]
-            shared = [r for r in self.peers.ratings(user_id) if r.stamp < cutoff]
-            if not own and not shared:
-                continue
-            removed['ratings'] += len(own)
-            removed['peer_ratings'] += len(shared)
-            self.histories.discard(user_id, own)
-            self.peers.discard(user_id, shared)
-            if self.histories.ratings(user_id) or self.peers.ratings(user_id):
-                self.solved_from.pop(user_id, None)
-                self.pending[user_id] = None
-                self._save(user_id)
-                continue
-            removed['people'] += 1
-            self.histories.drop(user_id)
-            self.peers.drop(user_id)
-            self.predictor.set_user_model(user_id, None)
-            for kept in (self.pending, self.to_announce, self.solved_from):
-                kept.pop(user_id, None)
-            self.unsaved.discard(user_id)
-            self._forget_stored(user_id)
-        if self.store is None:
-            return {'memory': removed}
-        return {'memory': removed, 'state_store': self.store.erase_older(cutoff).result(timeout)}
-
-    def durable_after(self, user_id: str) -> int:
-        """The store's write that ``user_id``'s served model waits for before anyone else may
-        see it: the latest write of their ratings (0: nothing in flight)."""
-        return self.written.get(user_id, 0)
-
-    def flush(self) -> None:
-        """Write every served model the store does not hold yet (a clean shutdown), so that
-        the restart serves them without solving again."""
-        for user_id in list(self.unsaved):
-            if user_id in self.histories or user_id in self.peers:
-                self._save(user_id)
-        self.unsaved.clear()
-
-    def restore(self) -> None:
-        """Folded-in users of the last run, if they were solved against the served
-        checkpoint: their models now, their ratings read when first used. A stored model
-        solved from the ratings stored with it is served as it was (mean and covariance);
-        anyone else waits to be solved again."""
-        if self.store is None:
-            return
-        self.forgotten = self._with_fleet_keys(self.store.forgotten())
-        people, problem = self.store.load(self.predictor.fingerprint)
-        if problem is not None:
-            self._report('user_models', problem)
-        if not people:
-            return
-        evicted = set(self.histories.restore({p.user_id: (p.ratings, p.dropped) for p in people if p.ratings}))
-        if self.authenticator is not None:  # a replay across a restart is still a replay
-            self.authenticator.remember(self.store.signed_feedback())
-        evicted.update(self.peers.restore({p.user_id: p.peer_ratings for p in people if p.peer_ratings}))
-        current = self.predictor.fingerprint
-        restored = {p.user_id: p.model for p in people
-                    if p.user_id not in evicted and p.model is not None and p.fingerprint == current}
-        self.predictor.set_user_models(restored)
-        self.pending.update(dict.fromkeys(p.user_id for p in people if p.user_id not in evicted and not (
-            p.user_id in restored and p.solved and p.model.covariance is not None)))
-        for user_id in evicted:  # beyond fold_in_max_users now: gone, as an eviction would take them
-            self.peers.drop(user_id)
-            self._forget_stored(user_id)
-        self._logger.info(f'restored {len(restored)} folded-in users from {self.store.path}'
-                          + (f' ({len(self.pending)} to solve again)' if self.pending else ''))
+        """Every id this node holds something of: in memory (histories, peers' ratings,
+        served models, what waits, the person served) and in the state store."""
+        known = {*self.histories.users(), *self.peers.users(), *self.predictor.user_models, *self.pending,
+                 *(staged.user_id for staged in self.intake), *({self.served_user} - {None})}
+        return known | (set() if self.store is None else self.store.known_people())

@@ -15,7 +15,7 @@ from stars_ros.files import atomic_write
 from stars_ros.recording.bag import (PID_FILE, STRING, FileStats, McapFile, MessageType, bag_files, encode_string,
                                      is_finished, metadata_text, qos_profile, topic_qos, write_metadata)
 from stars_ros.state.migration import JOURNAL, read_journal
-from stars_ros.state.store import committed_feedback
+from stars_ros.state.reader import committed_feedback
 
 
 class Salvage(NamedTuple):

@@ -12,7 +12,8 @@ from stars_ros.model.checkpoint import load_checkpoint
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
-from stars_ros.state.store import PersonUpdate, write_people
+from stars_ros.state import PersonUpdate
+from state_fill import fill_store
 
 QOS = recording.qos_profile()
 
@@ -82,7 +83,7 @@ def test_user_mode_from_the_state_store_solves_the_ratings_it_holds(tiny_checkpo
     ratings = {user: [Rating(r.scene, r.action, r.score, r.scene_id, f'{user}-{k}', k, '/ranker')
                       for k, r in enumerate(held)] for user, held in expected.items()}
     models = {'newbie': foldin.fit(ratings['newbie'], 'newbie', 0.5), 'a': None}
-    write_people(tmp_path / 'records', parent.fingerprint, [
+    fill_store(tmp_path / 'records', parent.fingerprint, [
         PersonUpdate(user, models[user], parent.fingerprint, ratings[user], 3 if user == 'a' else 0, [], True)
         for user in ratings])
     out = tmp_path / 'refit.pt'

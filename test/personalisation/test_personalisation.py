@@ -13,12 +13,13 @@ from stars_ros.personalisation import stack
 from stars_ros.errors import SceneGraphError, StarsError
 from stars_ros.personalisation.foldin import FoldIn, Rating
 from stars_ros.messages import Feedback
-from stars_ros.personalisation.online import Personalisation, SceneMemory
+from stars_ros.personalisation.online import Personalisation
+from stars_ros.personalisation.scene_memory import SceneMemory
 from stars_ros.model.predictor import Predictor
 from stars_ros.data.scene_source import read_scenes, scene_request
 from stars_ros.node.batching import Pending, rank_batch
-from stars_ros.state import loaded
-from stars_ros.state.store import PersonUpdate, StateStore, write_people
+from stars_ros.state import PersonUpdate, StateStore, loaded
+from state_fill import fill_store
 
 
 class Log:
@@ -143,8 +144,8 @@ def test_a_restored_person_is_encoded_a_few_scenes_a_call_and_once(strangers, re
     many = [scene for name in 'ab' for scene in read_scenes(synthetic_root / 'raw' / f'{name}.jsonl')][:40]
     predictor = Predictor.load(checkpoint)
     ratings = [Rating(scene, 'navigate', (k % 5) / 4, scene['identifier'], f'r{k}') for k, scene in enumerate(many)]
-    write_people(tmp_path, predictor.fingerprint, [PersonUpdate('ann', None, predictor.fingerprint, ratings, 0, [],
-                                                                False)])
+    fill_store(tmp_path, predictor.fingerprint, [PersonUpdate('ann', None, predictor.fingerprint, ratings, 0, [],
+                                                              False)])
 
     def restored(predictor):
         core = _personalisation(predictor, Log(), store=_store(tmp_path, pytest.fail))
@@ -165,7 +166,7 @@ def test_a_restored_person_is_encoded_a_few_scenes_a_call_and_once(strangers, re
     np.testing.assert_allclose(model.p, expected.p, rtol=1e-6, atol=1e-9)
 
     unsolved = [PersonUpdate('ann', None, predictor.fingerprint, ratings, 0, [], False)]
-    write_people(tmp_path, predictor.fingerprint, unsolved)  # to be solved again: the h it needs are stored
+    fill_store(tmp_path, predictor.fingerprint, unsolved)  # to be solved again: the h it needs are stored
     predictor = Predictor.load(checkpoint)
     predictor.encode = lambda scenes: pytest.fail('a stored h was encoded again')
     calls, (_, again) = restored(predictor)

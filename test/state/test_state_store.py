@@ -17,10 +17,10 @@ import pytest
 from stars_ros.personalisation.foldin import Rating, UserModel
 from stars_ros.errors import StoreError
 from stars_ros.recording import __main__ as inspect_cli
-from stars_ros.state import migration, store as state_store
+from stars_ros.state import migration, schema, store as state_store
 from stars_ros.state import Deferred, loaded
 from stars_ros.errors import StoreLockedError
-from stars_ros.state.store import PersonUpdate, StateStore, open_reader
+from stars_ros.state import PersonUpdate, StateStore, open_reader
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = {'identifier': 's1', 'humans': [{'id': 1, 'xPos': 0.5, 'yPos': -1.0, 'orientation': 90}]}
@@ -82,7 +82,7 @@ def test_an_update_writes_the_rows_it_changes_and_scenes_once(tmp_path):
     store.write_person(PersonUpdate('ann', _model(), FINGERPRINT, ratings[1:] + [newer], 1, [], True))
     store.write_person(PersonUpdate('cat', None, FINGERPRINT, [newer], 0, [], False))
     store.close()
-    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    database = sqlite3.connect(tmp_path / schema.DATABASE)
     assert database.execute('SELECT person, id FROM ratings ORDER BY position').fetchall() == [
         ('ann', 'r2'), ('ann', 'r4'), ('cat', 'r4')]
     assert sorted(database.execute('SELECT refs FROM scenes')) == [(1,), (2,)]
@@ -95,7 +95,7 @@ def test_an_update_writes_the_rows_it_changes_and_scenes_once(tmp_path):
     store.close()
     with open_reader(tmp_path) as reader:
         assert reader.people() == [] and reader.summary() == []
-    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    database = sqlite3.connect(tmp_path / schema.DATABASE)
     assert database.execute('SELECT COUNT(*) FROM scenes').fetchone() == (0,)  # no rating names them
     database.close()
 
@@ -121,7 +121,7 @@ def test_the_h_of_rated_scenes_is_kept_per_checkpoint_until_no_rating_names_the_
     assert store.encodings([dict(SCENE)], FINGERPRINT) == {}  # a scene the store did not give
     store.write_person(PersonUpdate('ann', None, FINGERPRINT, ratings, 0, [], False))
     store.close()
-    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    database = sqlite3.connect(tmp_path / schema.DATABASE)
     assert database.execute('SELECT COUNT(*) FROM encodings').fetchone() == (1,)  # OTHER_SCENE's went with it
     database.close()
 
@@ -296,7 +296,7 @@ def test_the_inspection_command_lists_people_and_their_ratings(tmp_path, capsys)
     store.close()
     assert inspect_cli.main(['state', str(tmp_path), '--json']) == 0
     shown = json.loads(capsys.readouterr().out)
-    assert shown['schema_version'] == state_store.SCHEMA_VERSION and shown['fingerprint'] == FINGERPRINT
+    assert shown['schema_version'] == schema.SCHEMA_VERSION and shown['fingerprint'] == FINGERPRINT
     assert shown['feedback'] == 1
     [ann] = shown['people']
     assert (ann['person'], ann['ratings'], ann['peer_ratings'], ann['model'], ann['solved']) == (
@@ -308,8 +308,8 @@ def test_the_inspection_command_lists_people_and_their_ratings(tmp_path, capsys)
 
 
 def test_a_damaged_store_is_a_store_error_saying_what_to_do(tmp_path, capsys):
-    (tmp_path / state_store.DATABASE).write_bytes(b'not a database, ' * 512)
-    with pytest.raises(StoreError, match=f'cannot read the state store {tmp_path / state_store.DATABASE}: .*check '
+    (tmp_path / schema.DATABASE).write_bytes(b'not a database, ' * 512)
+    with pytest.raises(StoreError, match=f'cannot read the state store {tmp_path / schema.DATABASE}: .*check '
                                          'that it is a stars_ros state.db'):
         open_reader(tmp_path)
     assert inspect_cli.main(['state', str(tmp_path)]) == 1  # said in one line, no traceback
@@ -318,7 +318,7 @@ def test_a_damaged_store_is_a_store_error_saying_what_to_do(tmp_path, capsys):
 
 def test_a_version_1_store_is_upgraded_keeping_every_covariance(tmp_path):
     """Version 1 kept each covariance in ``people``: reading anybody's later columns read it."""
-    database = sqlite3.connect(tmp_path / state_store.DATABASE)
+    database = sqlite3.connect(tmp_path / schema.DATABASE)
     database.executescript('''
         CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
         CREATE TABLE people (
@@ -335,12 +335,12 @@ def test_a_version_1_store_is_upgraded_keeping_every_covariance(tmp_path):
     progress = []
     store = StateStore(tmp_path, '/ranker', on_error=pytest.fail, on_progress=progress.append)
     [ann], problem = store.load(FINGERPRINT)
-    assert problem is None and progress == [f'upgrading {tmp_path / state_store.DATABASE} from schema version 1 to 2 '
-                                            '(covariances in a table of their own)']
+    assert problem is None and progress == [f'upgrading {tmp_path / schema.DATABASE} from schema version 1 '
+                                            'to 2 (covariances in a table of their own)']
     assert isinstance(ann.model.covariance, Deferred)  # read when first used
     assert np.array_equal(loaded(ann.model.covariance), model.covariance) and np.array_equal(ann.model.p, model.p)
     store.close()
     with open_reader(tmp_path) as reader:
-        assert reader.meta()['schema_version'] == str(state_store.SCHEMA_VERSION)
+        assert reader.meta()['schema_version'] == str(schema.SCHEMA_VERSION)
         [ann] = reader.people()
     assert np.array_equal(ann.model.covariance, model.covariance)
