@@ -7,7 +7,7 @@ generated crowd data.
 Per data set, people are dealt into ``--folds`` leave-people-out folds; per fold a model is
 trained on the other people (SocNav1: config/socnav1_gat.yaml, the published settings; crowd:
 config/implicit_crowd.yaml; ``--config DATASET=PATH`` trains with another) by the one recipe
-(``stars_ros.model.recipe``). Each held-out person's seeded pool of ``--pool`` examples is
+(``stars_ros.personalisation.recipe``). Each held-out person's seeded pool of ``--pool`` examples is
 where the robot acts; the rest are test rows.
 MSE per number n of implicit outcomes (``--flips``: ε of the outcome model; its exact
 expectation over every outcome sequence up to ``--exact-up-to`` outcomes, above that

@@ -9,7 +9,7 @@ refused (``--allow-dirty`` runs anyway, ``--quick`` always may); results.json re
 commit, whether the tree was dirty and the device every fit ran on.
 
 Leave-people-out folds (people shuffled with each of ``--seeds`` and dealt into ``--folds``
-groups). Per fold a model is trained by the one recipe (``stars_ros.model.recipe``) on the
+groups). Per fold a model is trained by the one recipe (``stars_ros.personalisation.recipe``) on the
 other people's examples, less half of a seeded ``--known-test`` share of them, which checks
 the known people's calibration. With ``--select SETTING=V1,V2`` (repeatable) the fold's training settings are
 chosen first, inside its training people: each combination is fitted on their examples less a

@@ -269,7 +269,7 @@ class StarsRecommender:
         called after each epoch of the model's training (``history`` holds the losses;
         ``fitted_now`` the model so far). Earlier fold-ins are dropped. Leaves torch's threads,
         default dtype and random state as it found them."""
-        from stars_ros.model.recipe import Recipe  # training (and pandas): only to fit
+        from stars_ros.personalisation.recipe import Recipe  # training (and pandas): only to fit
 
         data = _data(data)
         rows = np.arange(len(data)) if rows is None else np.asarray(rows, dtype=np.int64)
@@ -402,8 +402,9 @@ class StarsRecommender:
         return options
 
     def _fold_in_solver(self) -> FoldIn:
-        if self._stack is None:
-            self._stack = serving_stack(self.predictor)
+        if self._stack is None:  # each scene encoded on its own, as the node ranks one scene a request:
+            # a scene's h (and so a fold-in) does not depend on the scenes encoded beside it
+            self._stack = serving_stack(self.predictor, scene_by_scene=True)
         return self._stack.require_foldin()
 
     def predict(self, user, scene, action: str, uncertainty: bool = False, explain: bool = False) -> Prediction:

@@ -146,7 +146,7 @@ def _encoded_scenes(data: RatingData, train, experiment: dict) -> tuple:
     """(h_i of every scene, epochs) under a base model trained on ``train`` by the one recipe,
     each scene encoded by its served form (``model.scoring``)."""
     from stars_ros.model.predictor import Predictor
-    from stars_ros.model.recipe import Recipe
+    from stars_ros.personalisation.recipe import Recipe
     from stars_ros.model.scoring import served_encodings
     config = ExperimentConfig.from_dict(experiment)
     trainer = Recipe(config).fit(data, train)

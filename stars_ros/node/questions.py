@@ -59,7 +59,7 @@ def candidates_of(predictor, request: messages.SceneRequest, h: np.ndarray) -> l
 def choose_question(personalisation, user_id: str, requests: list, recent_scenes: int) -> dict:
     """The stars/question reply for ``user_id`` over ``requests`` [(SceneRequest, text)]
     (empty: the remembered scenes); raises StarsError when there is nothing to ask about."""
-    predictor, _, uncertainty = personalisation.serving
+    predictor, uncertainty = personalisation.serving.predictor, personalisation.serving.uncertainty
     if uncertainty is None:
         raise StarsError('this checkpoint has no fold-in (no users), so there is no question to choose')
     remembered = personalisation.recent_scenes(recent_scenes)

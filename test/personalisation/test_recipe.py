@@ -1,4 +1,4 @@
-"""The one fit recipe (stars_ros.model.recipe): the shipped model learns from every rating it
+"""The one fit recipe (stars_ros.personalisation.recipe): the shipped model learns from every rating it
 is given; the prior's noise comes from a hold-out fit's served predictions of ratings it did
 not see."""
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 from conftest import TINY_CONFIG, served_rows
 from stars_ros import StarsRecommender
 from stars_ros.model.config import ExperimentConfig
-from stars_ros.model.recipe import Recipe
+from stars_ros.personalisation.recipe import Recipe
 from stars_ros.model.training import StarsTrainer, split_rows
 from stars_ros.personalisation.prior import held_out_split
 
