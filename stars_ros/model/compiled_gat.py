@@ -18,6 +18,7 @@ from typing import Sequence
 import numba
 import numpy as np
 
+from stars_ros.data.placements import SceneBatch
 from stars_ros.data.scene_graph import SceneGraph
 
 
@@ -99,7 +100,9 @@ def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
     """(x, node_starts, edge_source, edge_target) of ``graphs`` as one disjoint graph, always
     as contiguous float32 / int64 arrays: numba compiles once per layout, and the warm-up in
     ``GATKernel`` must have compiled the one every request uses."""
-    if len(graphs) == 1:  # the serving case: no copies
+    if isinstance(graphs, SceneBatch):  # scenes of one layout (a placement map's): stacked without a loop
+        x, node_starts, edges = graphs.stacked()
+    elif len(graphs) == 1:  # the serving case: no copies
         graph = graphs[0]
         x, node_starts, edges = graph.x, np.array([0, graph.num_nodes]), graph.edge_index
     else:
@@ -112,7 +115,7 @@ def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
 
 class GATKernel:
     """``GAT``'s encoder over a snapshot of its weights: a function of a list of
-    ``SceneGraph`` returning h [graphs, out_dim] (float32). Built from arrays laid out as
+    ``SceneGraph`` (or a ``placements.SceneBatch``) returning h [graphs, out_dim] (float32). Built from arrays laid out as
     ``x @ w + b`` multiplies them (see ``GAT.serving_form``)."""
 
     def __init__(self, project: tuple, layer_weights: list, attention_source: list, attention_target: list,
