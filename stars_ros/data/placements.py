@@ -90,15 +90,15 @@ def placed_scene(scene: dict, x: float, y: float, heading: float | None = None) 
     if heading is None:
         return move_robot(scene, dx, dy)
     turn = math.degrees(heading)
-
-    def placed(entity):
-        px, py = _placed(entity['xPos'], entity['yPos'], dx, dy, heading)
-        return {**entity, 'xPos': float(px), 'yPos': float(py), 'orientation': entity['orientation'] - turn}
-
     out = {k: v for k, v in scene.items() if k not in ('identifier', 'score')}
-    out['humans'] = [placed(h) for h in scene.get('humans') or []]
-    out['objects'] = [placed(o) for o in scene.get('objects') or []]
-    out['room'] = [[float(v) for v in _placed(px, py, dx, dy, heading)] for px, py in scene['room']]
+    for key in ('humans', 'objects'):
+        entities = scene.get(key) or []
+        px, py = _placed(np.array([e['xPos'] for e in entities], dtype=np.float64),
+                         np.array([e['yPos'] for e in entities], dtype=np.float64), dx, dy, heading)
+        out[key] = [{**e, 'xPos': float(u), 'yPos': float(v), 'orientation': e['orientation'] - turn}
+                    for e, u, v in zip(entities, px, py)]
+    room = np.array(scene['room'], dtype=np.float64)
+    out['room'] = [[float(u), float(v)] for u, v in zip(*_placed(room[:, 0], room[:, 1], dx, dy, heading))]
     return out
 
 

@@ -46,13 +46,18 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
         sources[filled[edge_target[e]]] = edge_source[e]
         filled[edge_target[e]] += 1
 
-    h = np.maximum(x @ project_w + project_b, np.float32(0.0))
+    # large arrays are made once and updated in place: a fresh one per step cost more than its arithmetic
+    h = x @ project_w
+    for n in range(nodes):
+        for c in range(hidden):
+            h[n, c] = max(h[n, c] + project_b[c], np.float32(0.0))
+    values = np.empty((nodes, hidden), dtype=np.float32)
     score_source = np.empty((nodes, heads), dtype=np.float32)
     score_target = np.empty((nodes, heads), dtype=np.float32)
     attended = np.empty(channels, dtype=np.float32)
     logits = np.empty(edge_source.shape[0], dtype=np.float32)  # of the incoming edges of one target
     for layer in range(layers):
-        values = h @ layer_w[layer]  # [nodes, heads * channels]
+        np.dot(h, layer_w[layer], values)  # [nodes, heads * channels]: the layer's inputs, kept while h changes
         for n in range(nodes):
             for k in range(heads):
                 s, t = np.float32(0.0), np.float32(0.0)
@@ -60,7 +65,6 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
                     s += values[n, k * channels + c] * attention_source[layer, k, c]
                     t += values[n, k * channels + c] * attention_target[layer, k, c]
                 score_source[n, k], score_target[n, k] = s, t
-        update = np.empty((nodes, hidden), dtype=np.float32)
         for i in range(nodes):
             for k in range(heads):
                 # softmax over the sources of i: its own self loop (GATConv adds one), then its
@@ -79,9 +83,9 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
                     normaliser += weight
                     for c in range(channels):
                         attended[c] += weight * values[sources[e], k * channels + c]
-                for c in range(channels):
-                    update[i, k * channels + c] = attended[c] / normaliser + layer_b[layer, k * channels + c]
-        h += np.maximum(update, np.float32(0.0))  # residual, as GraphEncoder.forward
+                for c in range(channels):  # residual, as GraphEncoder.forward
+                    update = attended[c] / normaliser + layer_b[layer, k * channels + c]
+                    h[i, k * channels + c] += max(update, np.float32(0.0))
 
     graphs = node_starts.shape[0] - 1
     state = np.empty((graphs, 2 * hidden), dtype=np.float32)  # [robot node, mean over nodes]
