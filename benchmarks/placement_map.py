@@ -58,7 +58,8 @@ def timed(run) -> float:
 def matmul_gflops(rows: int = 65536, width: int = 64, repeats: int = 7) -> float:
     """Best single-thread float32 rate of the product the map does most: [rows, width] @ [width, width]."""
     rng = np.random.default_rng(0)
-    a, b = rng.standard_normal((rows, width), dtype=np.float32), rng.standard_normal((width, width), dtype=np.float32)
+    a = rng.standard_normal((rows, width), dtype=np.float32)
+    b = rng.standard_normal((width, width), dtype=np.float32)
     best = min(timed(lambda: a @ b) for _ in range(repeats))
     return 2 * rows * width * width / (best * 1e6)
 
@@ -70,8 +71,8 @@ def map_multiply_adds(batch, config, passes: int) -> int:
     cells, nodes, features = batch.x.shape
     edges = batch.edge_index.shape[1] + nodes  # GATConv adds a self loop per node
     hidden, dim, layers = config.encoder.hidden, config.model.dim, config.encoder.layers
-    per_graph = nodes * features * hidden + layers * (nodes * hidden * hidden + 2 * nodes * hidden + edges * hidden)
-    per_graph += 2 * hidden * hidden + hidden * dim
+    per_layer = nodes * hidden * hidden + 2 * nodes * hidden + edges * hidden
+    per_graph = nodes * features * hidden + layers * per_layer + 2 * hidden * hidden + hidden * dim
     return cells * (passes * per_graph + dim + (dim + 1) ** 2)
 
 
@@ -82,7 +83,8 @@ def torch_map(fitted, user_row, scene, x, y, heading, timings) -> np.ndarray:
     graphs = [featurise(placed_scene(scene, cx, cy, heading)) for cx, cy in zip(x, y)]
     batch = Batch.from_data_list([Data(x=torch.from_numpy(g.x), edge_index=torch.from_numpy(g.edge_index),
                                        edge_type=torch.from_numpy(g.edge_type)) for g in graphs])
-    graphs = GraphBatch(batch.x, batch.edge_index, batch.edge_type, batch.batch, batch.ptr[:-1], batch.num_graphs)
+    graphs = GraphBatch(batch.x, batch.edge_index, batch.edge_type, batch.batch, batch.ptr[:-1],
+                        batch.num_graphs)
     started = time.perf_counter()
     with torch.inference_mode():
         unknown = torch.full((len(x),), -1)
@@ -92,7 +94,8 @@ def torch_map(fitted, user_row, scene, x, y, heading, timings) -> np.ndarray:
             scores = plain.to_rating_scale(plain(unknown, unknown, plain.encoder(graphs)))
         else:
             model = fitted.model
-            scores = model.to_rating_scale(model(torch.full((len(x),), user_row), unknown, model.encoder(graphs)))
+            users = torch.full((len(x),), user_row)
+            scores = model.to_rating_scale(model(users, unknown, model.encoder(graphs)))
     timings.append((time.perf_counter() - started) * 1e3)
     return scores.numpy()[:, 0]
 
@@ -101,7 +104,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--checkpoint', help='default: the packaged model')
     parser.add_argument('--scenes', type=int, default=20, help='SocNav1 scenes (default: %(default)s)')
-    parser.add_argument('--rounds', type=int, default=3, help="the map's timings per scene (default: %(default)s)")
+    parser.add_argument('--rounds', type=int, default=3,
+                        help="the map's timings per scene (default: %(default)s)")
     parser.add_argument('--data-root', default=str(DEFAULT_SOCNAV1))
     parser.add_argument('--out', default=str(REPO / 'results' / 'placement_map.json'))
     args = parser.parse_args(argv)
@@ -125,11 +129,13 @@ def main(argv=None) -> int:
             for kind in np.roll(list(people), n):
                 person, figures = people[kind], ms[grid][kind]
                 for _ in range(args.rounds):
-                    figures['map'].append(timed(lambda: recommender.placement_map(person, scene, 8.0, resolution)))
+                    figures['map'].append(timed(
+                        lambda: recommender.placement_map(person, scene, 8.0, resolution)))
                 placement_map = recommender.placement_map(person, scene, 8.0, resolution)
                 x, y = (c[placement_map.valid] for c in placement_map.centres())
                 requests = [(person, placed_scene(scene, cx, cy), action) for cx, cy in zip(x, y)]
-                figures['pointwise'].append(timed(lambda: recommender.predict_batch(requests, uncertainty=True)))
+                figures['pointwise'].append(timed(
+                    lambda: recommender.predict_batch(requests, uncertainty=True)))
                 scores = []
                 figures['torch'].append(timed(lambda: scores.append(
                     torch_map(fitted, rows[kind], scene, x, y, None, figures['torch_forward']))))
@@ -147,23 +153,29 @@ def main(argv=None) -> int:
         for kind, figures in summary[grid].items():
             p50 = {path: figures[path]['p50'] for path in paths}
             print(f"{grid} {kind}: map p50 {p50['map']:.1f} ms p99 {figures['map']['p99']:.1f} | point-wise "
-                  f"{p50['pointwise']:.1f} | torch+PyG {p50['torch']:.1f} (forward {p50['torch_forward']:.1f}) "
-                  f"| bound {p50['bound']:.1f} ms")
+                  f"{p50['pointwise']:.1f} | torch+PyG {p50['torch']:.1f} "
+                  f"(forward {p50['torch_forward']:.1f}) | bound {p50['bound']:.1f} ms")
             goals[f'{grid}_{kind}'] = {
                 'p50_ms': p50['map'], 'goal_ms': GOALS_MS[grid], 'within_goal': p50['map'] <= GOALS_MS[grid],
-                'speedup_vs_torch': p50['torch'] / p50['map'], 'speedup_vs_torch_forward': p50['torch_forward'] / p50['map'],
+                'speedup_vs_torch': p50['torch'] / p50['map'],
+                'speedup_vs_torch_forward': p50['torch_forward'] / p50['map'],
                 'at_least_3x_vs_torch': p50['torch'] / p50['map'] >= GOAL_SPEEDUP,
                 'at_least_3x_vs_torch_forward': p50['torch_forward'] / p50['map'] >= GOAL_SPEEDUP,
-                'speedup_vs_pointwise': p50['pointwise'] / p50['map'], 'times_the_bound': p50['map'] / p50['bound']}
-        print(f"{grid}: valid cells per map, median {np.median(cells[grid]):.0f} of {(8 / GRIDS[grid]) ** 2:.0f}")
-    print(f'single-core float32 matmul: {rate:.1f} GFLOP/s; torch path vs map, largest score difference {worst:.1e}')
+                'speedup_vs_pointwise': p50['pointwise'] / p50['map'],
+                'times_the_bound': p50['map'] / p50['bound']}
+        print(f"{grid}: valid cells per map, median {np.median(cells[grid]):.0f} "
+              f"of {(8 / GRIDS[grid]) ** 2:.0f}")
+    print(f'single-core float32 matmul: {rate:.1f} GFLOP/s; '
+          f'torch path vs map, largest score difference {worst:.1e}')
     for name, goal in goals.items():
         print(f"{name}: p50 {goal['p50_ms']:.1f} ms (goal {goal['goal_ms']:.0f}: {goal['within_goal']}), "
-              f"{goal['speedup_vs_torch']:.1f}× torch+PyG, {goal['speedup_vs_torch_forward']:.1f}× its forward")
+              f"{goal['speedup_vs_torch']:.1f}× torch+PyG, "
+              f"{goal['speedup_vs_torch_forward']:.1f}× its forward")
     record = {**run_record(program_argv('benchmarks/placement_map.py', argv)),
               'settings': {**vars(args), 'checkpoint': str(checkpoint), 'grids_m': GRIDS, 'size_m': 8.0},
               'checkpoint_digest': recommender.fingerprint, 'matmul_gflops': rate,
-              'valid_cells': {grid: {'median': float(np.median(v)), 'min': min(v), 'max': max(v)} for grid, v in cells.items()},
+              'valid_cells': {grid: {'median': float(np.median(v)), 'min': min(v), 'max': max(v)}
+                              for grid, v in cells.items()},
               'torch_vs_map_largest_score_difference': worst, 'ms': summary, 'goals': goals}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(record, indent=1) + '\n')

@@ -107,8 +107,8 @@ def _geometry(x, y, sin_o, cos_o, size) -> np.ndarray:
     distance = np.hypot(x, y)
     away = distance > 0
     safe = np.where(away, distance, 1.0)
-    columns = np.broadcast_arrays(x, y, distance, np.where(away, x / safe, 0.0), np.where(away, y / safe, 0.0),
-                                  sin_o, cos_o, size)
+    bearing = np.where(away, x / safe, 0.0), np.where(away, y / safe, 0.0)
+    columns = np.broadcast_arrays(x, y, distance, *bearing, sin_o, cos_o, size)
     return np.stack(columns, axis=-1)
 
 

@@ -57,7 +57,7 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
     attended = np.empty(channels, dtype=np.float32)
     logits = np.empty(edge_source.shape[0], dtype=np.float32)  # of the incoming edges of one target
     for layer in range(layers):
-        np.dot(h, layer_w[layer], values)  # [nodes, heads * channels]: the layer's inputs, kept while h changes
+        np.dot(h, layer_w[layer], values)  # [nodes, heads * channels]: the layer's input, kept as h changes
         for n in range(nodes):
             for k in range(heads):
                 s, t = np.float32(0.0), np.float32(0.0)
@@ -119,8 +119,8 @@ def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
 
 class GATKernel:
     """``GAT``'s encoder over a snapshot of its weights: a function of a list of
-    ``SceneGraph`` (or a ``placements.SceneBatch``) returning h [graphs, out_dim] (float32). Built from arrays laid out as
-    ``x @ w + b`` multiplies them (see ``GAT.serving_form``)."""
+    ``SceneGraph`` (or a ``placements.SceneBatch``) returning h [graphs, out_dim] (float32). Built
+    from arrays laid out as ``x @ w + b`` multiplies them (see ``GAT.serving_form``)."""
 
     def __init__(self, project: tuple, layer_weights: list, attention_source: list, attention_target: list,
                  layer_biases: list, slope: float, hidden_layer: tuple, output_layer: tuple):

@@ -79,8 +79,9 @@ def _cells(size, resolution) -> int:
         raise BadMapRequest('schema', f'size and resolution must be positive, got {size} and {resolution}')
     per_side = size / resolution
     if not per_side < MAX_CELLS_PER_SIDE + 0.5:
-        raise BadMapRequest('too_large', f'size {size} m at resolution {resolution} m is {per_side:.0f} cells a side; '
-                                         f'a map has at most {MAX_CELLS_PER_SIDE} × {MAX_CELLS_PER_SIDE}')
+        most = f'{MAX_CELLS_PER_SIDE} × {MAX_CELLS_PER_SIDE}'
+        raise BadMapRequest('too_large', f'size {size} m at resolution {resolution} m is {per_side:.0f} '
+                                         f'cells a side; a map has at most {most}')
     return max(1, round(per_side))
 
 
@@ -141,6 +142,8 @@ def _scored(predictor, uncertainty, user, batch, column: int) -> tuple:
         raise StarsError('the model produced a non-finite score')
     if uncertainty is None:
         return scores[:, column], None
-    served_z = None if plain is None else (unclipped[:, column] - inference.target_mean[column]) / inference.target_std[column]
+    served_z = None  # one served around the plain encoder: their z, which their uncertainty centres on
+    if plain is not None:
+        served_z = (unclipped[:, column] - inference.target_mean[column]) / inference.target_std[column]
     spread = uncertainty.spread(predictor, user, h, rows, [column] * count, served_z=served_z)
     return scores[:, column], spread.sd

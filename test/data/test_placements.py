@@ -14,13 +14,15 @@ from stars_ros.errors import SceneGraphError
 
 SCENE = {'humans': [{'id': 1, 'xPos': 0.0, 'yPos': 100.0, 'orientation': 30.0}],
          'objects': [{'id': 2, 'xPos': -150.0, 'yPos': -100.0, 'orientation': 0.0}],
-         'links': [[1, 2, 'interact']], 'room': [[-300, -300], [300, -300], [300, 300], [-300, 300], [-300, -300]]}
+         'links': [[1, 2, 'interact']],
+         'room': [[-300, -300], [300, -300], [300, 300], [-300, 300], [-300, -300]]}
 
 
 def test_hundredths_rounds_as_python_does_to_the_bit():
     rng = np.random.default_rng(0)
-    values = np.concatenate([rng.uniform(-1e5, 1e5, 20000), rng.integers(-10**7, 10**7, 20000) / 1000 + 0.005,
-                             np.array([2.675, 0.125, 0.375, 1.005, -2.675, -0.125, 0.0, -0.0, 1e-9, 99999.995])])
+    near_ties = rng.integers(-10**7, 10**7, 20000) / 1000 + 0.005
+    known = np.array([2.675, 0.125, 0.375, 1.005, -2.675, -0.125, 0.0, -0.0, 1e-9, 99999.995])
+    values = np.concatenate([rng.uniform(-1e5, 1e5, 20000), near_ties, known])
     ours = hundredths(values)
     assert [float(v) for v in ours] == [round(float(v), 2) for v in values]
 
@@ -33,7 +35,8 @@ def test_a_placement_keeping_the_heading_is_the_rankers_moved_robot():
 def test_turning_the_robot_left_turns_the_scene_right():
     turned = placed_scene(SCENE, 0.0, 0.0, math.pi / 2)
     person = turned['humans'][0]
-    assert (person['xPos'], person['yPos'], person['orientation']) == (100.0, 0.0, -60.0)  # ahead is now right
+    # what was ahead is now on the right
+    assert (person['xPos'], person['yPos'], person['orientation']) == (100.0, 0.0, -60.0)
     assert turned['room'][0] == [-300.0, 300.0]
 
 
@@ -69,8 +72,8 @@ def test_placements_that_leave_the_schemas_range_are_refused():
 def test_valid_placements_by_hand():
     points = {(0.0, 0.0): True,  # the robot where it is
               (0.0, 1.0 - PERSON_RADIUS + 0.01): False, (0.0, 1.0 - PERSON_RADIUS - 0.01): True,  # the person
-              (-1.5, -1.0 + OBJECT_RADIUS - 0.01): False, (-1.5, -1.0 + OBJECT_RADIUS + 0.01): True,  # the object
-              (3.0 - WALL_THICKNESS / 2 + 0.01, 0.0): False, (3.0 - WALL_THICKNESS / 2 - 0.01, 0.0): True,  # a wall
+              (-1.5, -1.0 + OBJECT_RADIUS - 0.01): False, (-1.5, -1.0 + OBJECT_RADIUS + 0.01): True,
+              (3.0 - WALL_THICKNESS / 2 + 0.01, 0.0): False, (3.0 - WALL_THICKNESS / 2 - 0.01, 0.0): True,
               (3.5, 0.0): False, (0.0, -3.2): False}  # outside the room
     x, y = np.array([p[0] for p in points]), np.array([p[1] for p in points])
     assert valid_placements(SCENE, x, y).tolist() == list(points.values())
