@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stars_ros.data.placements import featurise_placements, valid_placements
+from stars_ros.data.scene_graph import validate_scene
 from stars_ros.errors import BadMapRequest, SceneGraphError, StarsError
 from stars_ros.model.vocabulary import UNKNOWN
 
@@ -115,8 +116,9 @@ def placement_map(predictor, uncertainty, user, scene: dict, size: float = 8.0, 
     column = predictor.action_columns([action])[0]
     origin = (-cells * resolution / 2, -cells * resolution / 2)
     x, y = cell_centres(origin, resolution, cells)
-    valid = valid_placements(scene, x, y)
     try:
+        validate_scene(scene)  # before the mask reads it; featurise_placements checks the rest
+        valid = valid_placements(scene, x, y)
         batch = featurise_placements(scene, x[valid], y[valid], heading)
     except SceneGraphError as error:
         raise BadMapRequest('scene_graph', str(error)) from None

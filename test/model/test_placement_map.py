@@ -93,7 +93,8 @@ def test_bad_scenes_are_refused_with_their_kind(tiny_checkpoint, synthetic_scene
     scene = synthetic_scenes[0]
     for bad, kind in [({**scene, 'room': [[NAN, 0], [100, 0], [0, 100]]}, 'non_finite'),
                       ('00001 A', 'schema'),  # an id: the map needs the scene's content
-                      ({**scene, 'room': [[0, 0], [100, 0]]}, 'scene_graph')]:
+                      ({**scene, 'room': [[0, 0], [100, 0]]}, 'scene_graph'),
+                      ({key: value for key, value in scene.items() if key != 'room'}, 'scene_graph')]:
         with pytest.raises(BadMapRequest) as refused:
             recommender.placement_map('a', bad, 2.0, 0.5)
         assert refused.value.kind == kind, bad
