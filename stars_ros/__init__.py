@@ -8,6 +8,7 @@ _EXPORTS = {
     'StarsRecommender': 'stars_ros.recommender',
     'Prediction': 'stars_ros.recommender',
     'Ranking': 'stars_ros.recommender',
+    'PlacementMap': 'stars_ros.model.placement_map',
     'load_dataset': 'stars_ros.data.ratings',
     'RatingData': 'stars_ros.data.ratings',
     'ExperimentConfig': 'stars_ros.model.config',

@@ -53,6 +53,13 @@ class BadMessage(MessageError):
         self.scene_id = scene_id
 
 
+class BadMapRequest(BadMessage):
+    """A placement map refused (``model.placement_map``): ``kind`` is ``too_large`` (more
+    cells than it makes), ``non_finite``, ``schema`` (a value out of its range, an id too
+    long), ``scene_graph`` (a scene the featuriser refuses) or ``model`` (one that reads no
+    scene graphs), as the node reports its refusals on stars/errors."""
+
+
 class NoQuestion(StarsError):
     """Nothing to ask about: no candidates given and no usable scene remembered."""
 

@@ -59,6 +59,7 @@ import numpy as np
 
 from stars_ros.errors import NotFittedError, OutOfScaleError, StarsError, UnknownActionError, UnknownSceneError
 from stars_ros.model.config import ExperimentConfig
+from stars_ros.model.placement_map import PlacementMap, placement_map
 from stars_ros.model.predictor import Predictor, RankQuery
 from stars_ros.personalisation.foldin import FoldIn
 from stars_ros.personalisation.stack import ServingStack, serving_stack
@@ -461,6 +462,15 @@ class StarsRecommender:
                           action=action)
         scored = self.predictor.rank_many(user, [query], **self._options(uncertainty, explain))[0]
         return Ranking(scored.ranked, self._details(user, None), scored.p_first_is_best)
+
+    def placement_map(self, user, scene: dict, size: float = 8.0, resolution: float = 0.125,
+                      heading: float | None = None, action: str | None = None) -> PlacementMap:
+        """``user``'s scores and ``score_sd`` of the robot placed at the centre of every cell of a
+        square grid ``size`` metres wide centred on it in ``scene`` (content), keeping its heading
+        or turned by ``heading``: each cell what ``rank_scenes`` gives that placement
+        (``model.placement_map``; BadMapRequest, with its ``kind``, for what it refuses)."""
+        uncertainty = self._options(True, False)['uncertainty'] if self.predictor.inference.personalised else None
+        return placement_map(self.predictor, uncertainty, user, scene, size, resolution, heading, action)
 
     def fold_in(self, user, ratings: Sequence[tuple], regularisation: float | None = None) -> 'StarsRecommender':
         """Solve ``user`` from ``ratings``, ``(scene, action, score)`` triples (scores on the

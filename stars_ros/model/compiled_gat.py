@@ -18,6 +18,7 @@ from typing import Sequence
 import numba
 import numpy as np
 
+from stars_ros.data.placements import SceneBatch
 from stars_ros.data.scene_graph import SceneGraph
 
 
@@ -45,13 +46,18 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
         sources[filled[edge_target[e]]] = edge_source[e]
         filled[edge_target[e]] += 1
 
-    h = np.maximum(x @ project_w + project_b, np.float32(0.0))
+    # large arrays are made once and updated in place: a fresh one per step cost more than its arithmetic
+    h = x @ project_w
+    for n in range(nodes):
+        for c in range(hidden):
+            h[n, c] = max(h[n, c] + project_b[c], np.float32(0.0))
+    values = np.empty((nodes, hidden), dtype=np.float32)
     score_source = np.empty((nodes, heads), dtype=np.float32)
     score_target = np.empty((nodes, heads), dtype=np.float32)
     attended = np.empty(channels, dtype=np.float32)
     logits = np.empty(edge_source.shape[0], dtype=np.float32)  # of the incoming edges of one target
     for layer in range(layers):
-        values = h @ layer_w[layer]  # [nodes, heads * channels]
+        np.dot(h, layer_w[layer], values)  # [nodes, heads * channels]: the layer's input, kept as h changes
         for n in range(nodes):
             for k in range(heads):
                 s, t = np.float32(0.0), np.float32(0.0)
@@ -59,7 +65,6 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
                     s += values[n, k * channels + c] * attention_source[layer, k, c]
                     t += values[n, k * channels + c] * attention_target[layer, k, c]
                 score_source[n, k], score_target[n, k] = s, t
-        update = np.empty((nodes, hidden), dtype=np.float32)
         for i in range(nodes):
             for k in range(heads):
                 # softmax over the sources of i: its own self loop (GATConv adds one), then its
@@ -78,9 +83,9 @@ def _gat_encode(x, node_starts, edge_source, edge_target, project_w, project_b, 
                     normaliser += weight
                     for c in range(channels):
                         attended[c] += weight * values[sources[e], k * channels + c]
-                for c in range(channels):
-                    update[i, k * channels + c] = attended[c] / normaliser + layer_b[layer, k * channels + c]
-        h += np.maximum(update, np.float32(0.0))  # residual, as GraphEncoder.forward
+                for c in range(channels):  # residual, as GraphEncoder.forward
+                    update = attended[c] / normaliser + layer_b[layer, k * channels + c]
+                    h[i, k * channels + c] += max(update, np.float32(0.0))
 
     graphs = node_starts.shape[0] - 1
     state = np.empty((graphs, 2 * hidden), dtype=np.float32)  # [robot node, mean over nodes]
@@ -99,7 +104,9 @@ def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
     """(x, node_starts, edge_source, edge_target) of ``graphs`` as one disjoint graph, always
     as contiguous float32 / int64 arrays: numba compiles once per layout, and the warm-up in
     ``GATKernel`` must have compiled the one every request uses."""
-    if len(graphs) == 1:  # the serving case: no copies
+    if isinstance(graphs, SceneBatch):  # scenes of one layout (a placement map's): stacked without a loop
+        x, node_starts, edges = graphs.stacked()
+    elif len(graphs) == 1:  # the serving case: no copies
         graph = graphs[0]
         x, node_starts, edges = graph.x, np.array([0, graph.num_nodes]), graph.edge_index
     else:
@@ -112,8 +119,8 @@ def _stacked(graphs: Sequence[SceneGraph]) -> tuple:
 
 class GATKernel:
     """``GAT``'s encoder over a snapshot of its weights: a function of a list of
-    ``SceneGraph`` returning h [graphs, out_dim] (float32). Built from arrays laid out as
-    ``x @ w + b`` multiplies them (see ``GAT.serving_form``)."""
+    ``SceneGraph`` (or a ``placements.SceneBatch``) returning h [graphs, out_dim] (float32). Built
+    from arrays laid out as ``x @ w + b`` multiplies them (see ``GAT.serving_form``)."""
 
     def __init__(self, project: tuple, layer_weights: list, attention_source: list, attention_target: list,
                  layer_biases: list, slope: float, hidden_layer: tuple, output_layer: tuple):
