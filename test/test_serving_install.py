@@ -11,7 +11,7 @@ import pytest
 
 from stars_ros import StarsRecommender
 from stars_ros.errors import INSTALL_TRAIN
-from stars_ros.data import crowd_data
+from stars_ros.evaluation import crowd_data
 
 TRAIN_ONLY = ('torch', 'torch_geometric', 'pandas', 'matplotlib')  # requirements-train.txt's libraries
 BLOCKER = f"""
