@@ -30,15 +30,13 @@ if [ ! -x /usr/bin/chromium ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/
 fi
 # Register stars_ros in the venv's ament index, as colcon would in an install folder, so a
 # ROS 2 command line with AMENT_PREFIX_PATH=$PWD/.venv finds it (`ros2 run stars_ros ranker`,
-# `ros2 launch stars_ros hri.launch.py`): the package marker, share/stars_ros (package.xml,
-# launch, config, msg_schemas, models: links to this checkout, so edits are live) and
-# lib/stars_ros (links to the executables pip put in .venv/bin).
-index=.venv/share/ament_index/resource_index/packages
-mkdir -p "$index" .venv/share/stars_ros .venv/lib/stars_ros
-cp resource/stars_ros "$index/stars_ros"
-for item in package.xml launch config msg_schemas models; do
-  ln -sfn "$(pwd)/$item" ".venv/share/stars_ros/$item"
-done
+# `ros2 launch stars_ros hri.launch.py`): setup.py's data_files (the package marker,
+# share/stars_ros's package.xml, launch files, shipped configs, msg_schemas, models) as
+# `colcon build --symlink-install` lays them out, real folders of links to this checkout's files
+# (scripts/link_share.py: `ros2 launch` does not look inside a linked folder), and lib/stars_ros
+# (links to the executables pip put in .venv/bin).
+.venv/bin/python scripts/link_share.py .venv
+mkdir -p .venv/lib/stars_ros
 for executable in $(sed -n "s/^ *'\([a-z_]*\) = stars_ros\..*/\1/p" setup.py); do
   ln -sfn "../../bin/$executable" ".venv/lib/stars_ros/$executable"
 done
