@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Create .venv (Python 3.11) with every pinned dependency (runtime, rclpy wheels, Ray and
+# Create .venv (Python 3.11) with every pinned dependency (serving, training, rclpy wheels, Ray and
 # test/build tools: requirements-dev.txt), the typed interfaces stars_ros_msgs built into it
 # (scripts/build_interfaces.sh) and stars_ros installed editable, so `ranker`, `scene_publisher` and
 # `replay` are on its PATH. Re-running is cheap: nothing is reinstalled while the
@@ -12,7 +12,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 stamp=.venv/.stars_ros-installed
-want=$(cat requirements.txt requirements-rclpy.txt requirements-ray.txt requirements-peers.txt requirements-dev.txt setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
+want=$(cat requirements.txt requirements-train.txt requirements-rclpy.txt requirements-ray.txt requirements-peers.txt requirements-dev.txt setup.py setup.cfg package.xml | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   .venv/bin/python -m pip install --quiet --upgrade pip
   .venv/bin/python -m pip install --quiet -r requirements-dev.txt
