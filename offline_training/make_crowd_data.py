@@ -1,4 +1,5 @@
-"""Write the generated MannersDB+-shaped crowd data set (stars_ros.evaluation.crowd_data) in the generic format.
+"""Write the generated MannersDB+-shaped crowd data set (stars_ros.evaluation.crowd_data) in the generic
+format.
 
     python -m offline_training.make_crowd_data --out data/crowd [--seed 0]
 

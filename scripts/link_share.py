@@ -18,12 +18,14 @@ def data_files() -> list:
     """setup.py's data_files: (folder under the prefix, [files relative to the checkout]),
     its globs read from the checkout."""
     captured, cwd = {}, os.getcwd()
-    stand_in = types.SimpleNamespace(setup=lambda **kwargs: captured.update(kwargs), find_packages=lambda **kwargs: [])
+    stand_in = types.SimpleNamespace(setup=lambda **kwargs: captured.update(kwargs),
+                                     find_packages=lambda **kwargs: [])
     saved = sys.modules.get('setuptools')
     sys.modules['setuptools'] = stand_in
     os.chdir(REPO)
     try:
-        exec(compile((REPO / 'setup.py').read_text(), 'setup.py', 'exec'), {'__file__': str(REPO / 'setup.py')})
+        setup_py = REPO / 'setup.py'
+        exec(compile(setup_py.read_text(), 'setup.py', 'exec'), {'__file__': str(setup_py)})
     finally:
         os.chdir(cwd)
         if saved is None:

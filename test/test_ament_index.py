@@ -48,7 +48,8 @@ def test_the_share_folder_holds_real_folders_of_links_to_the_shipped_files(tmp_p
     link_share.link_share(tmp_path)
     assert not linked_folders(share) and launch_files_found(share) == {'ranker.launch.py', 'hri.launch.py'}
     for path in share.rglob('*'):
-        assert path.is_dir() and not path.is_symlink() or path.resolve() == REPO / path.relative_to(share), path
+        linked_to_its_file = path.resolve() == REPO / path.relative_to(share)
+        assert (path.is_dir() and not path.is_symlink()) or linked_to_its_file, path
     assert {path.name for path in (share / 'config').glob('*.yaml')} == SHIPPED_CONFIGS
     assert [path.name for path in (share / 'config' / 'security').iterdir()] == ['ranker.policy.xml']
     assert (share / 'models' / 'socnav1_gat_stars.pt').is_file() and (share / 'package.xml').is_file()

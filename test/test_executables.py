@@ -362,8 +362,9 @@ def test_a_misspelt_launch_argument_is_named_with_the_closest_declared_one(monke
                                '`ros2 launch stars_ros ranker.launch.py --show-args` lists them')]
     assert 'top_k' not in node['parameters'][1] and 'top_kk' not in node['parameters'][1]
     _run_launch_file(monkeypatch, zzz='1')
-    assert _Logger.logged == [('warning', 'ranker.launch.py', "launch argument 'zzz' is not one of ranker.launch.py's: "
-                               'ignored; `ros2 launch stars_ros ranker.launch.py --show-args` lists them')]
+    assert _Logger.logged == [('warning', 'ranker.launch.py', "launch argument 'zzz' is not one of "
+                               "ranker.launch.py's: ignored; `ros2 launch stars_ros ranker.launch.py "
+                               "--show-args` lists them")]
     _run_launch_file(monkeypatch, top_k='3', params_file=str(REPO / 'config' / 'ranker.yaml'), managed='true')
     assert _Logger.logged == []  # every declared argument, a parameter's or the file's own, is known
 
@@ -372,7 +373,7 @@ def test_unknown_arguments_reads_the_command_line_as_ros2_launch_gives_it():
     from stars_ros.ros.launch_arguments import unknown_arguments
     warnings = unknown_arguments(['top_kk:=3', 'top_k:=2', 'top_kk:=4', 'not-an-argument', 'a:=b:=c'],
                                  ['top_k', 'explain'], 'ranker.launch.py')
-    assert [warning.split("'")[1] for warning in warnings] == ['top_kk', 'a']  # once each; the value may hold :=
+    assert [warning.split("'")[1] for warning in warnings] == ['top_kk', 'a']  # once each; values may hold :=
     assert "(did you mean 'top_k'?)" in warnings[0] and 'did you mean' not in warnings[1]
     assert unknown_arguments([], ['top_k'], 'ranker.launch.py') == []
 

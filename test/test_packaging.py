@@ -90,8 +90,8 @@ def test_every_library_the_package_imports_is_declared():
     for module in used:
         key, distribution = LIBRARIES[module]
         if module in TRAIN:
-            assert key is None or (key in test_depends and key not in exec_depends), f'{module}: {key} at run time'
-            assert distribution in train_pins and distribution not in serving_pins, f'{module}: not train-only'
+            assert key is None or (key in test_depends and key not in exec_depends), f'{module}: {key} runs'
+            assert distribution in train_pins and distribution not in serving_pins, f'{module}: a serving pin'
             continue
         assert key is None or key in exec_depends, f'{module}: <exec_depend>{key}</exec_depend> missing'
         if distribution is not ROS:
@@ -108,7 +108,8 @@ import stars_ros.recording.__main__, stars_ros.node.core, stars_ros.sign_feedbac
 from stars_ros import StarsRecommender
 from stars_ros.data.scene_source import random_scene
 from stars_ros.resources import resolve_checkpoint
-StarsRecommender.load(resolve_checkpoint('')).rank('someone', random_scene(np.random.default_rng(0)), uncertainty=True)
+scene = random_scene(np.random.default_rng(0))
+StarsRecommender.load(resolve_checkpoint('')).rank('someone', scene, uncertainty=True)
 print(json.dumps(sorted({name.split('.')[0] for name in sys.modules})))
 """
 
@@ -122,8 +123,8 @@ def test_what_serving_loads_is_pinned_in_requirements_txt():
     """The executables' modules and the packaged model loaded and ranking, in a fresh
     interpreter: every distribution whose modules that loads is requirements.txt's (or one
     of theirs), or ROS's, so ``pip install stars_ros`` serves."""
-    done = subprocess.run([sys.executable, '-c', SERVING_PROCESSES], capture_output=True, text=True, timeout=120,
-                          cwd=REPO, check=True)
+    done = subprocess.run([sys.executable, '-c', SERVING_PROCESSES], capture_output=True, text=True,
+                          timeout=120, cwd=REPO, check=True)
     loaded = set(json.loads(done.stdout.splitlines()[-1])) - set(sys.stdlib_module_names) - OWN
     wanted, unread = set(), {'setuptools', *pins('requirements.txt')}  # install_requires
     while unread:  # and what they require, and so on,
@@ -135,14 +136,15 @@ def test_what_serving_loads_is_pinned_in_requirements_txt():
             continue  # required on other Pythons only: it loads nothing here
         # their extras too: a library imports an optional one where it is installed (aiohttp's
         # backports.zstd here, which rosbags brings), and serves without it where it is not
-        unread.update({normalised(re.split(r'[\s\[=<>;~!(]', requirement)[0]) for requirement in requires} - wanted)
+        names = {normalised(re.split(r'[\s\[=<>;~!(]', requirement)[0]) for requirement in requires}
+        unread.update(names - wanted)
     providers = importlib.metadata.packages_distributions()
     for module in sorted(loaded):
         distributions = {normalised(name) for name in providers.get(module, ())}
         if LIBRARIES.get(module, (None, None))[1] is ROS or not distributions or any(
                 name.startswith('ros-') for name in distributions):
             continue  # ROS's: rclpy's wheels and what they bring, the interface packages built into the venv
-        assert distributions & wanted, f'serving loads {module} ({distributions}), which requirements.txt lacks'
+        assert distributions & wanted, f'serving loads {module} ({distributions}): not in requirements.txt'
     assert not loaded & TRAIN
 
 

@@ -61,9 +61,8 @@ def tabular_checkpoint(tmp_path_factory):
     """A tiny MLP (tabular) checkpoint fitted on generated crowd data."""
     from stars_ros.data.ratings import load_dataset
 
-    root = crowd_data.write(tmp_path_factory.mktemp('crowd'), crowd_data.CrowdShape(users=8, scenes=24, features=5,
-                                                                                     raters_per_scene=4, latent=2),
-                            seed=1)
+    shape = crowd_data.CrowdShape(users=8, scenes=24, features=5, raters_per_scene=4, latent=2)
+    root = crowd_data.write(tmp_path_factory.mktemp('crowd'), shape, seed=1)
     config = {'encoder': {'name': 'mlp', 'hidden': 8, 'layers': 1}, 'model': {'dim': 4},
               'training': {'pretrain_epochs': 1, 'joint_epochs': 1, 'batch_size': 64, 'threads': 1}}
     path = tmp_path_factory.mktemp('tabular') / 'mlp.pt'

@@ -45,8 +45,9 @@ def encoder_serving_form(config: ExperimentConfig, input_kind: str, feature_dim:
     except ModuleNotFoundError as error:
         if (error.name or '').split('.')[0] not in ('torch', 'torch_geometric'):
             raise
-        raise TrainExtraMissing(f"the tabular backbone '{config.encoder.name}' runs on {error.name}, which this "
-                                f'serving install leaves out (it serves graph checkpoints): {INSTALL_TRAIN}') from None
+        raise TrainExtraMissing(f"the tabular backbone '{config.encoder.name}' runs on {error.name}, which "
+                                'this serving install leaves out (it serves graph checkpoints): '
+                                f'{INSTALL_TRAIN}') from None
     with torch.random.fork_rng(devices=[]):  # its initial weights, replaced at once, draw on no one's random state
         encoder = resolve_encoder(name, feature_dim, config.model.dim, hidden=config.encoder.hidden,
                                   layers=config.encoder.layers, dropout=config.encoder.dropout,

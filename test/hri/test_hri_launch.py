@@ -85,8 +85,9 @@ def test_store_policy_goes_to_the_bridge_and_the_ranker_alike(monkeypatch, tmp_p
 
 def test_a_misspelt_argument_is_named_and_the_loop_starts_without_it(monkeypatch):
     nodes = launched(monkeypatch, pose_sorce='topic')
-    assert Logger.warnings == ["launch argument 'pose_sorce' is not one of hri.launch.py's: ignored (did you mean "
-                               "'pose_source'?); `ros2 launch stars_ros hri.launch.py --show-args` lists them"]
+    assert Logger.warnings == ["launch argument 'pose_sorce' is not one of hri.launch.py's: ignored (did you "
+                               "mean 'pose_source'?); `ros2 launch stars_ros hri.launch.py --show-args` "
+                               'lists them']
     assert set(nodes) == {'hri_world', 'hri_bridge', 'ranker'}
     launched(monkeypatch, pose_source='topic', world='false', store_policy='all')
     assert Logger.warnings == []
