@@ -105,6 +105,7 @@ import numpy as np
 import stars_ros.ros.ranker, stars_ros.ros.managed_ranker, stars_ros.ros.hri_bridge  # noqa: E401
 import stars_ros.ros.feedback_page, stars_ros.hri.feedback_server, stars_ros.ros.replay  # noqa: E401
 import stars_ros.recording.__main__, stars_ros.node.core, stars_ros.sign_feedback  # noqa: E401
+import stars_ros.ros.scene_publisher, stars_ros.ros.hri_world  # noqa: E401
 from stars_ros import StarsRecommender
 from stars_ros.data.scene_source import random_scene
 from stars_ros.resources import resolve_checkpoint

@@ -39,6 +39,7 @@ from stars_ros.errors import TrainExtraMissing
 from stars_ros.resources import resolve_checkpoint
 import stars_ros.ros.ranker, stars_ros.ros.managed_ranker, stars_ros.ros.hri_bridge  # noqa: E401
 import stars_ros.ros.feedback_page, stars_ros.ros.replay, stars_ros.recording.__main__  # noqa: E401
+import stars_ros.ros.scene_publisher, stars_ros.ros.hri_world, stars_ros.sign_feedback  # noqa: E401
 
 graph_checkpoint, tabular_checkpoint = sys.argv[1:3]
 scene = random_scene(np.random.default_rng(0))
