@@ -1,8 +1,8 @@
 """What a robot gets from the serving install alone: a venv holding `pip install .` (no
 `train` extra), rclpy's PyPI wheels and stars_ros_msgs built into it, and nothing else.
 
-    python benchmarks/serving_install.py --venv /tmp/serving-venv --make [--full .venv] [--starts 5] \
-        [--out results/serving_install.json]
+    python benchmarks/serving_install.py --venv /tmp/serving-venv --make [--train] [--full .venv] \
+        [--starts 5] [--out results/serving_install.json]
 
 ``--make`` creates the venv first: ``python3.11 -m venv``, ``pip install -r requirements-rclpy.txt``,
 ``pip install`` of the checkout's committed tree (``git archive HEAD``), then stars_ros_msgs as
@@ -13,7 +13,10 @@ torch"``, which must fail; the venv's size (``du -sm``) against ``--full``'s; ``
 that a client, already running in the same venv and domain, receives (the first start is the first
 after the install when ``--make`` is given), then as many of ``--full``'s ranker for comparison;
 and ``hri_bridge`` and ``feedback_page`` started for ``--watch`` seconds: whether each is still
-running then, and its last lines.
+running then, and its last lines. ``--train`` then installs the ``train`` extra into the venv
+(``pip install '<tree>[train]'``) and, from a scratch folder holding copies of offline_training/
+and config/, trains the quick-start model on SocNav1 (``--data-root``) and runs the quick
+evaluation of one backbone: exit status, seconds and last lines of each.
 """
 from __future__ import annotations
 
@@ -145,6 +148,35 @@ def watch(venv: Path, executable: str, domain: int, scratch: Path, seconds: floa
     return {'exited': process.returncode, 'last_lines': process.stdout.read().strip().splitlines()[-3:]}
 
 
+def train_extra(venv: Path, data_root: Path) -> dict:
+    """The train extra installed into ``venv``, then a training and a quick evaluation run there."""
+    source, scratch = Path(tempfile.mkdtemp(prefix='stars-ros-source-')), Path(tempfile.mkdtemp(prefix='train-'))
+    run(['bash', '-c', f'git -C {REPO} archive HEAD | tar -x -C {source}'], check=True)
+    for folder in ('offline_training', 'config'):
+        shutil.copytree(source / folder, scratch / folder)
+    python, record = str(venv / 'bin' / 'python'), {}
+    steps = {
+        'pip install .[train]': [python, '-m', 'pip', 'install', '--quiet', f'{source}[train]'],
+        'train': [python, '-m', 'offline_training.train', '--config', 'config/quickstart.yaml', '--data-root',
+                  str(data_root), '--out', str(scratch / 'model.pt')],
+        'evaluate': [python, '-m', 'offline_training.evaluate', '--config', 'config/eval_socnav1.yaml', '--quick',
+                     '--backbones', 'gcn', '--jobs', '1', '--data-root', str(data_root), '--out',
+                     str(scratch / 'evaluation')],
+    }
+    for name, command in steps.items():
+        started = time.perf_counter()
+        done = run(command, cwd=scratch, env=child_env(0, scratch / 'ros_home'))
+        record[name] = {'exit': done.returncode, 'seconds': round(time.perf_counter() - started, 1),
+                        'last_lines': (done.stdout + done.stderr).strip().splitlines()[-3:]}
+        if name == 'pip install .[train]':
+            record[name]['size_mb_after'] = megabytes(venv)
+        if done.returncode:
+            break
+    shutil.rmtree(source)
+    shutil.rmtree(scratch)
+    return record
+
+
 def megabytes(folder: Path) -> int:
     return int(run(['du', '-sm', str(folder)], check=True).stdout.split()[0])
 
@@ -156,6 +188,8 @@ def main(argv=None) -> int:
     parser.add_argument('--full', type=Path, default=REPO / '.venv', help="the full venv (setup_venv.sh's)")
     parser.add_argument('--starts', type=int, default=5)
     parser.add_argument('--watch', type=float, default=8.0, help='seconds hri_bridge and feedback_page run')
+    parser.add_argument('--train', action='store_true', help='then install the train extra, train and evaluate')
+    parser.add_argument('--data-root', type=Path, default=REPO.parent / 'shared' / 'datasets' / 'socnav1')
     parser.add_argument('--out', type=Path, default=REPO / 'results' / 'serving_install.json')
     args = parser.parse_args(argv)
     sys.path.insert(0, str(REPO))
@@ -179,6 +213,8 @@ def main(argv=None) -> int:
     record['hri_bridge'] = watch(venv, 'hri_bridge', domain_id(1 + args.starts), scratch, args.watch)
     record['feedback_page'] = watch(venv, 'feedback_page', domain_id(2 + args.starts), scratch, args.watch)
     shutil.rmtree(scratch)
+    if args.train:
+        record['train_extra'] = train_extra(venv, args.data_root.resolve())
     print(json.dumps(record, indent=2))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(args.out, lambda handle: handle.write((json.dumps(record, indent=2) + '\n').encode()))
