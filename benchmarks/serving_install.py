@@ -150,7 +150,8 @@ def watch(venv: Path, executable: str, domain: int, scratch: Path, seconds: floa
 
 def train_extra(venv: Path, data_root: Path) -> dict:
     """The train extra installed into ``venv``, then a training and a quick evaluation run there."""
-    source, scratch = Path(tempfile.mkdtemp(prefix='stars-ros-source-')), Path(tempfile.mkdtemp(prefix='train-'))
+    source = Path(tempfile.mkdtemp(prefix='stars-ros-source-'))
+    scratch = Path(tempfile.mkdtemp(prefix='train-'))
     run(['bash', '-c', f'git -C {REPO} archive HEAD | tar -x -C {source}'], check=True)
     for folder in ('offline_training', 'config'):
         shutil.copytree(source / folder, scratch / folder)
@@ -159,8 +160,8 @@ def train_extra(venv: Path, data_root: Path) -> dict:
         'pip install .[train]': [python, '-m', 'pip', 'install', '--quiet', f'{source}[train]'],
         'train': [python, '-m', 'offline_training.train', '--config', 'config/quickstart.yaml', '--data-root',
                   str(data_root), '--out', str(scratch / 'model.pt')],
-        'evaluate': [python, '-m', 'offline_training.evaluate', '--config', 'config/eval_socnav1.yaml', '--quick',
-                     '--backbones', 'gcn', '--jobs', '1', '--data-root', str(data_root), '--out',
+        'evaluate': [python, '-m', 'offline_training.evaluate', '--config', 'config/eval_socnav1.yaml',
+                     '--quick', '--backbones', 'gcn', '--jobs', '1', '--data-root', str(data_root), '--out',
                      str(scratch / 'evaluation')],
     }
     for name, command in steps.items():
@@ -188,7 +189,8 @@ def main(argv=None) -> int:
     parser.add_argument('--full', type=Path, default=REPO / '.venv', help="the full venv (setup_venv.sh's)")
     parser.add_argument('--starts', type=int, default=5)
     parser.add_argument('--watch', type=float, default=8.0, help='seconds hri_bridge and feedback_page run')
-    parser.add_argument('--train', action='store_true', help='then install the train extra, train and evaluate')
+    parser.add_argument('--train', action='store_true',
+                        help='then install the train extra, train and evaluate')
     parser.add_argument('--data-root', type=Path, default=REPO.parent / 'shared' / 'datasets' / 'socnav1')
     parser.add_argument('--out', type=Path, default=REPO / 'results' / 'serving_install.json')
     args = parser.parse_args(argv)
