@@ -31,7 +31,7 @@ from rclpy.node import Node  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
-from stars_ros.ros.loopback import stop  # noqa: E402
+from test_support.loopback import stop  # noqa: E402
 
 
 def serve(participant_after: float, service_after: float):

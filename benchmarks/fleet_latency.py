@@ -38,7 +38,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
-from stars_ros.ros.loopback import RosClient, domain_id, start_node  # noqa: E402
+from test_support.loopback import RosClient, domain_id, start_node  # noqa: E402
 from stars_ros.model.predictor import Predictor  # noqa: E402
 from stars_ros.resources import resolve_checkpoint  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402

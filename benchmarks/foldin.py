@@ -107,7 +107,7 @@ def time_updates(predictor, scenes_by_user: dict, regularisation: float, prefix:
 
 def live(checkpoint: str, scenes: list, args) -> dict:
     from std_msgs.msg import String
-    from stars_ros.ros.loopback import RELIABLE, RosClient, start_node, stop
+    from test_support.loopback import RELIABLE, RosClient, start_node, stop
 
     domain = 150 + os.getpid() % 50
     client = RosClient(domain, listen=False)  # its only subscription: the rankings it times
@@ -198,7 +198,7 @@ class Streamer:
     """The streaming user's process for a ``with`` block; ``counts`` once it has ended."""
 
     def __init__(self, domain: int, args, tag: str):
-        from stars_ros.ros.loopback import ros_env
+        from test_support.loopback import ros_env
         self.command = [sys.executable, __file__, '--streamer', '--data-root', args.data_root,
                         '--stream-rate', str(args.stream_rate), '--phase', tag]
         self.env = ros_env(domain)
@@ -240,7 +240,7 @@ def streamer_main(args) -> int:
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String
 
-    from stars_ros.ros.loopback import RELIABLE
+    from test_support.loopback import RELIABLE
     from stars_ros.ros.spinning import spin_until_shutdown
 
     scenes = read_scenes(Path(args.data_root) / 'raw' / 'g.jsonl')[:200]

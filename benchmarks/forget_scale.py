@@ -88,7 +88,7 @@ def summary(values: list) -> dict:
 
 
 def measure(folder: Path, checkpoint: str, scenes: list, people: int, args) -> dict:
-    from stars_ros.ros.loopback import RosClient, domain_id, start_node, stop
+    from test_support.loopback import RosClient, domain_id, start_node, stop
     from stars_ros_msgs.srv import ForgetPerson
     import signal
     domain = domain_id(0)

@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
 from stars_ros.hri.people import DISENGAGED, ENGAGED  # noqa: E402
-from stars_ros.ros.loopback import RELIABLE, RosClient, domain_id, start_node, stop  # noqa: E402
+from test_support.loopback import RELIABLE, RosClient, domain_id, start_node, stop  # noqa: E402
 
 
 def parse_args(argv=None):

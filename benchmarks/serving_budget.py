@@ -60,7 +60,7 @@ import node_latency  # noqa: E402  (the JSON path's client and requests)
 import service_latency  # noqa: E402  (the typed service's caller and requests)
 from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import program_argv, run_record  # noqa: E402
-from stars_ros.ros.loopback import stop  # noqa: E402
+from test_support.loopback import stop  # noqa: E402
 from stars_ros.data.scene_source import read_scenes  # noqa: E402
 
 LOADED = re.compile(r'\[(\d+\.\d+)\] \[ranker\]: serving ')

@@ -176,7 +176,7 @@ def fold_in_work(diagnostics: list) -> dict:
 
 
 def measure_node(folder: Path, checkpoint: str, scenes: list, people: int, domain: int, args) -> dict:
-    from stars_ros.ros.loopback import RosClient, start_node
+    from test_support.loopback import RosClient, start_node
     client = RosClient(domain)
     started = time.perf_counter()
     process = start_node('stars_ros.ros.ranker', domain, {'checkpoint': checkpoint, 'record_folder': folder,
@@ -279,7 +279,7 @@ def main(argv=None) -> int:
                   f"{figures['update']['bytes_written_per_update']['mean'] / 1024:.1f} KiB written; restart "
                   f"{figures['restart_in_process']['open_load_restore_s']:.2f} s", flush=True)
         if not args.no_node:
-            from stars_ros.ros.loopback import domain_id
+            from test_support.loopback import domain_id
             domain = domain_id(16)
             runs = [('empty', 0)] + [(f'{p}x{r}', p) for p, r in node_sizes]
             for name, people in runs:

@@ -10,17 +10,19 @@ Recording goes to the ranker's default folder unless
 ``record_folder`` is set. ``store_policy:=consented`` (with ``consent_file`` and/or the latched
 stars/consent) goes to the ranker and the bridge alike: one consent list for the loop
 (docs/privacy.md); a ``consent_file`` that names no file is refused before anything starts.
-``--show-args`` lists the arguments.
+``--show-args`` lists the arguments; one the file does not declare is named in a warning, with
+the closest declared name, and ignored.
 
     ros2 launch stars_ros hri.launch.py world:=false store_policy:=consented consent_file:=/etc/stars/consent.txt
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition
+from launch.logging import get_logger
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from stars_ros.ros.launch_arguments import existing_file
+from stars_ros.ros.launch_arguments import existing_file, unknown_arguments
 
 
 def _tf2_available() -> bool:
@@ -44,7 +46,9 @@ def _privacy(context) -> dict:
     return {'store_policy': store_policy, **({'consent_file': consent_file} if consent_file else {})}
 
 
-def _nodes(context):
+def _nodes(context, declared):
+    for warning in unknown_arguments(context.argv, declared, 'hri.launch.py'):
+        get_logger('hri.launch.py').warning(warning)
     source = LaunchConfiguration('source').perform(context)
     if source:
         existing_file('source', source)  # the world would die on it while the launch runs on
@@ -66,22 +70,27 @@ def _nodes(context):
 
 
 def generate_launch_description():
+    declared = []
+
+    def declare(name, **options):
+        declared.append(name)
+        return DeclareLaunchArgument(name, **options)
     return LaunchDescription([
-        DeclareLaunchArgument('source', default_value='', description='SocNav1 JSONL file placing the scripted '
-                              'people; empty: a generated scene'),
-        DeclareLaunchArgument('world', default_value='true', choices=['true', 'false'],
-                              description='false: no scripted world (a robot publishes ROS4HRI)'),
-        DeclareLaunchArgument('pose_source', default_value='', description='tf or topic; empty: tf where tf2_ros '
-                              'is importable'),
-        DeclareLaunchArgument('base_frame', default_value='base_link', description="the robot's frame"),
-        DeclareLaunchArgument('goal_frame', default_value='map', description='frame of stars/goal, one that does not '
-                              'move with the robot (map, odom)'),
-        DeclareLaunchArgument('record_folder', default_value='', description="the ranker's record folder; empty: "
-                              'its default'),
-        DeclareLaunchArgument('store_policy', default_value='all', choices=['all', 'consented'],
-                              description="whom the ranker stores and the bridge relays feedback of: 'all'; "
-                              "'consented': the people on the consent list only (docs/privacy.md)"),
-        DeclareLaunchArgument('consent_file', default_value='', description="with store_policy 'consented': ids of "
-                              'people who agreed to be stored, one a line; empty: stars/consent only'),
-        OpaqueFunction(function=_nodes),
+        declare('source', default_value='', description='SocNav1 JSONL file placing the scripted '
+                'people; empty: a generated scene'),
+        declare('world', default_value='true', choices=['true', 'false'],
+                description='false: no scripted world (a robot publishes ROS4HRI)'),
+        declare('pose_source', default_value='', description='tf or topic; empty: tf where tf2_ros '
+                'is importable'),
+        declare('base_frame', default_value='base_link', description="the robot's frame"),
+        declare('goal_frame', default_value='map', description='frame of stars/goal, one that does not '
+                'move with the robot (map, odom)'),
+        declare('record_folder', default_value='', description="the ranker's record folder; empty: "
+                'its default'),
+        declare('store_policy', default_value='all', choices=['all', 'consented'],
+                description="whom the ranker stores and the bridge relays feedback of: 'all'; "
+                "'consented': the people on the consent list only (docs/privacy.md)"),
+        declare('consent_file', default_value='', description="with store_policy 'consented': ids of "
+                'people who agreed to be stored, one a line; empty: stars/consent only'),
+        OpaqueFunction(function=lambda context: _nodes(context, declared)),
     ])

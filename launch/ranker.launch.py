@@ -15,25 +15,31 @@ launch argument is refused on the command line (``record_folder:=''``), so recor
 turned off with ``record:=false``. A robot of a fleet runs in its ``namespace`` and remaps
 stars/user_model to ``fleet_topic``. ``managed:=true`` starts the managed (lifecycle) ranker,
 ``ros2 run stars_ros managed_ranker``: configure loads the checkpoint, activate serves.
+An argument the file does not declare (``top_kk:=3``) is named in a warning, with the closest
+declared name, and ignored, as the node names a parameter it does not declare.
 """
 from pathlib import Path
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.logging import get_logger
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
 
 from stars_ros.node.parameters import PARAMETERS
-from stars_ros.ros.launch_arguments import existing_file, parameter_value
+from stars_ros.ros.launch_arguments import existing_file, parameter_value, unknown_arguments
 
 LOG_LEVELS = ['debug', 'info', 'warn', 'error', 'fatal']
 
 
-def _ranker(context):
+def _ranker(context, declared):
     """The node, given only the parameters whose arguments were set, each as its own type:
     launch_ros reads an empty substitution as YAML null and refuses it, and left out, the
-    params file's value holds."""
+    params file's value holds. First, a warning for each given argument not ``declared``."""
+    for warning in unknown_arguments(context.argv, declared, 'ranker.launch.py'):
+        get_logger('ranker.launch.py').warning(warning)
+
     def argument(name):
         return LaunchConfiguration(name).perform(context)
     parameters = {name: parameter_value(name, argument(name), PARAMETERS) for name in PARAMETERS if argument(name)}
@@ -56,22 +62,27 @@ def _ranker(context):
 
 
 def generate_launch_description():
+    declared = []
+
+    def declare(name, **options):
+        declared.append(name)
+        return DeclareLaunchArgument(name, **options)
     return LaunchDescription([
-        *[DeclareLaunchArgument(name, default_value='', description=f'{spec[1]} (empty: the params file\'s value)')
+        *[declare(name, default_value='', description=f'{spec[1]} (empty: the params file\'s value)')
           for name, spec in PARAMETERS.items()],
-        DeclareLaunchArgument('params_file', default_value='',
-                              description="the node's params file; empty: the packaged config/ranker.yaml"),
-        DeclareLaunchArgument('log_level', default_value='info', choices=LOG_LEVELS,
-                              description="the node's log level"),
-        DeclareLaunchArgument('use_sim_time', default_value='false', choices=['true', 'false'],
-                              description='true: the node reads time from /clock (bag replays, simulators)'),
-        DeclareLaunchArgument('managed', default_value='false', choices=['true', 'false'],
-                              description='true: the managed (lifecycle) ranker, which serves once configured and '
-                              'activated'),
-        DeclareLaunchArgument('record', default_value='true', choices=['true', 'false'],
-                              description='false: do not record (record_folder is ignored)'),
-        DeclareLaunchArgument('namespace', default_value='', description="the robot's namespace, e.g. robot1"),
-        DeclareLaunchArgument('fleet_topic', default_value='',
-                              description='remap stars/user_model to this fleet-wide topic, e.g. /fleet/user_model'),
-        OpaqueFunction(function=_ranker),
+        declare('params_file', default_value='',
+                description="the node's params file; empty: the packaged config/ranker.yaml"),
+        declare('log_level', default_value='info', choices=LOG_LEVELS,
+                description="the node's log level"),
+        declare('use_sim_time', default_value='false', choices=['true', 'false'],
+                description='true: the node reads time from /clock (bag replays, simulators)'),
+        declare('managed', default_value='false', choices=['true', 'false'],
+                description='true: the managed (lifecycle) ranker, which serves once configured and '
+                'activated'),
+        declare('record', default_value='true', choices=['true', 'false'],
+                description='false: do not record (record_folder is ignored)'),
+        declare('namespace', default_value='', description="the robot's namespace, e.g. robot1"),
+        declare('fleet_topic', default_value='',
+                description='remap stars/user_model to this fleet-wide topic, e.g. /fleet/user_model'),
+        OpaqueFunction(function=lambda context: _ranker(context, declared)),
     ])

@@ -1,4 +1,5 @@
-"""Write the generated MannersDB+-shaped crowd data set (stars_ros.data.crowd_data) in the generic format.
+"""Write the generated MannersDB+-shaped crowd data set (stars_ros.evaluation.crowd_data) in the generic
+format.
 
     python -m offline_training.make_crowd_data --out data/crowd [--seed 0]
 
@@ -10,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from stars_ros.data import crowd_data
+from stars_ros.evaluation import crowd_data
 
 
 def main(argv=None) -> int:

@@ -7,7 +7,7 @@ coloured by their removal effect on that person's best entry (docs/explanations.
 
 The scene is the line of that identifier in the first person's SocNav1 file
 (``<data-root>/raw/<user>.jsonl``; default: the first scene every person rated). Needs
-matplotlib (requirements.txt); without it the command says how to install it.
+matplotlib (requirements-train.txt, the train extra); without it the command says how to install it.
 """
 from __future__ import annotations
 

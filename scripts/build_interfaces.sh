@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Build ament_cmake interface packages (.msg/.srv) into .venv from PyPI wheels alone, so a
 # plain .venv/bin/python imports them with nothing to source (../shared/notes/ros-interfaces.md).
-# Usage: scripts/build_interfaces.sh PACKAGE_DIR...   (paths from the repository root)
+# Usage: scripts/build_interfaces.sh PACKAGE_DIR...   (paths from the repository root; STARS_VENV
+# names another venv than .venv, as benchmarks/serving_install.py's serving-only one)
 # Each package is rebuilt only when its files change (a stamp per package in .venv); a ROS
 # workspace builds the same packages with colcon instead (docs/interfaces.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-VENV=$(pwd)/.venv
+VENV=${STARS_VENV:-$(pwd)/.venv}
 PY=$VENV/bin/python
 stamp=$VENV/.stars_ros-interface-wheels
 want=$(sha256sum requirements-interfaces.txt | cut -d' ' -f1)

@@ -30,6 +30,14 @@ class ConfigError(StarsError):
     """A configuration has unknown keys or invalid values."""
 
 
+INSTALL_TRAIN = "pip install 'stars_ros[train]'"  # the extra of training, evaluation and tabular serving
+
+
+class TrainExtraMissing(CheckpointError):
+    """A checkpoint this install cannot serve: its tabular backbone runs on torch, which the
+    serving install (``pip install stars_ros``) leaves out; the message names the extra."""
+
+
 class TrainingDivergedError(StarsError):
     """Parameters became non-finite during training: lower the learning rate."""
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 
 from stars_ros import StarsRecommender
-from stars_ros.data import synthetic_socnav
 from stars_ros.data.ratings import load_dataset
 from stars_ros.data.scene_source import socnav1_root as default_socnav1_root
 from stars_ros.data.scene_source import read_scenes
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.training import split_rows
+from test_support import synthetic_socnav
 
 REPO = Path(__file__).resolve().parents[1]
 os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(REPO / 'test' / 'fastdds_profile.xml'))

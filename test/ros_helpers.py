@@ -1,4 +1,4 @@
-"""Helpers for tests that run real nodes over loopback DDS: ``stars_ros.ros.loopback`` (which
+"""Helpers for tests that run real nodes over loopback DDS: ``test_support.loopback`` (which
 the benchmarks share) and what only the tests need."""
 import contextlib
 import json
@@ -6,9 +6,9 @@ import signal
 from pathlib import Path
 
 from stars_ros import state
-from stars_ros.ros.loopback import (DOMAINS_PER_BLOCK, LATCHED, RELIABLE, RosClient, domain_id,  # noqa: F401
+from test_support.loopback import (DOMAINS_PER_BLOCK, LATCHED, RELIABLE, RosClient, domain_id,  # noqa: F401
                                     reserve_block, ros_env, start_node, stop)
-from stars_ros.ros.loopback import die_with_the_parent as die_with_the_tests  # noqa: F401
+from test_support.loopback import die_with_the_parent as die_with_the_tests  # noqa: F401
 from waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]

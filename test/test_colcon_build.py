@@ -109,7 +109,12 @@ def test_colcon_build_installs_what_ros2_run_needs(workspace, built):
     assert python_dirs and (python_dirs[0] / 'ros' / 'ranker.py').is_file()
     [installed] = importlib.metadata.distributions(name='stars_ros', path=[str(python_dirs[0].parent)])
     pins = [line.split('#', 1)[0].strip() for line in (REPO / 'requirements.txt').read_text().splitlines()]
-    assert installed.requires == ['setuptools', *filter(None, pins)]  # install_requires, as pip would see them
+    serving = [requirement for requirement in installed.requires if 'extra ==' not in requirement]
+    assert serving == ['setuptools', *filter(None, pins)]  # install_requires, as pip would see them
+    assert any(requirement.startswith('torch==') and 'extra == "train"' in requirement
+               for requirement in installed.requires)  # torch comes with the train extra only
+    assert {path.name for path in (share / 'stars_ros' / 'config').glob('*.yaml')} == {
+        'ranker.yaml', 'socnav1_gat.yaml', 'quickstart.yaml'}  # the shipped configs, not the evaluation's
 
 
 def test_source_install_setup_bash_finds_the_built_package(workspace, built):

@@ -266,12 +266,28 @@ class _LaunchConfiguration:
         return context.launch_configurations[self.name]
 
 
+class _Logger:
+    """Stands in for launch.logging.get_logger: keeps what is logged, by level."""
+
+    logged = []
+
+    def __init__(self, name):
+        self.name = name
+
+    def warning(self, message):
+        self.logged.append(('warning', self.name, message))
+
+
 def _run_launch_file(monkeypatch, **given) -> tuple:
-    """launch/ranker.launch.py run as ros2 launch runs it with ``given`` arguments, on
-    stand-ins for launch and launch_ros (they do not install from PyPI): the declared
-    arguments and the ranker Node's keyword arguments (its ``kind``: Node or LifecycleNode)."""
+    """launch/ranker.launch.py run as ``ros2 launch stars_ros ranker.launch.py name:=value ...``
+    runs it with ``given`` arguments, on stand-ins for launch and launch_ros (they do not
+    install from PyPI): every given argument a launch configuration and in the context's argv,
+    as launch makes them. The declared arguments and the ranker Node's keyword arguments (its
+    ``kind``: Node or LifecycleNode); what the file logged is in ``_Logger.logged``."""
+    _Logger.logged = []
     stand_ins = {'launch': {'LaunchDescription': _Recorded},
                  'launch.actions': {'DeclareLaunchArgument': _Recorded, 'OpaqueFunction': _Recorded},
+                 'launch.logging': {'get_logger': _Logger},
                  'launch.substitutions': {'LaunchConfiguration': _LaunchConfiguration},
                  'launch_ros': {}, 'launch_ros.actions': {'Node': type('Node', (_Recorded,), {}),
                                                            'LifecycleNode': type('LifecycleNode', (_Recorded,), {})}}
@@ -284,11 +300,13 @@ def _run_launch_file(monkeypatch, **given) -> tuple:
     spec.loader.exec_module(module)
     entities = module.generate_launch_description().args[0]
     declared = {e.args[0]: e.kwargs for e in entities if 'default_value' in e.kwargs}
-    configurations = {name: given.get(name, kwargs['default_value']) for name, kwargs in declared.items()}
+    configurations = {**{name: kwargs['default_value'] for name, kwargs in declared.items()}, **given}
     for name, kwargs in declared.items():
         assert configurations[name] in kwargs.get('choices', [configurations[name]]), f'launch refuses {name}'
     opaque = next(e for e in entities if 'function' in e.kwargs)
-    [node] = opaque.kwargs['function'](types.SimpleNamespace(launch_configurations=configurations))
+    context = types.SimpleNamespace(launch_configurations=configurations,
+                                    argv=[f'{name}:={value}' for name, value in given.items()])
+    [node] = opaque.kwargs['function'](context)
     return declared, {**node.kwargs, 'kind': type(node).__name__}
 
 
@@ -333,6 +351,32 @@ def test_launch_takes_a_params_file_log_level_sim_time_and_a_managed_ranker(monk
 def test_launch_refuses_a_value_its_parameter_cannot_take(monkeypatch, given, refusal):
     with pytest.raises(LaunchArgumentError, match=re.escape(refusal)):
         _run_launch_file(monkeypatch, **given)
+
+
+def test_a_misspelt_launch_argument_is_named_with_the_closest_declared_one(monkeypatch):
+    """``ros2 launch stars_ros ranker.launch.py top_kk:=3``: launch sets top_kk as a
+    configuration nobody reads; the file warns, naming it and top_k, as the node warns of a
+    misspelt parameter, and starts the node with top_k as the params file has it."""
+    _, node = _run_launch_file(monkeypatch, top_kk='3', record='false')
+    assert _Logger.logged == [('warning', 'ranker.launch.py', "launch argument 'top_kk' is not one of "
+                               "ranker.launch.py's: ignored (did you mean 'top_k'?); "
+                               '`ros2 launch stars_ros ranker.launch.py --show-args` lists them')]
+    assert 'top_k' not in node['parameters'][1] and 'top_kk' not in node['parameters'][1]
+    _run_launch_file(monkeypatch, zzz='1')
+    assert _Logger.logged == [('warning', 'ranker.launch.py', "launch argument 'zzz' is not one of "
+                               "ranker.launch.py's: ignored; `ros2 launch stars_ros ranker.launch.py "
+                               "--show-args` lists them")]
+    _run_launch_file(monkeypatch, top_k='3', params_file=str(REPO / 'config' / 'ranker.yaml'), managed='true')
+    assert _Logger.logged == []  # every declared argument, a parameter's or the file's own, is known
+
+
+def test_unknown_arguments_reads_the_command_line_as_ros2_launch_gives_it():
+    from stars_ros.ros.launch_arguments import unknown_arguments
+    warnings = unknown_arguments(['top_kk:=3', 'top_k:=2', 'top_kk:=4', 'not-an-argument', 'a:=b:=c'],
+                                 ['top_k', 'explain'], 'ranker.launch.py')
+    assert [warning.split("'")[1] for warning in warnings] == ['top_kk', 'a']  # once each; values may hold :=
+    assert "(did you mean 'top_k'?)" in warnings[0] and 'did you mean' not in warnings[1]
+    assert unknown_arguments([], ['top_k'], 'ranker.launch.py') == []
 
 
 def test_demo_scores_print_with_the_digits_that_tell_them_apart():

@@ -11,13 +11,14 @@ import pytest
 import torch
 
 from stars_ros import Prediction, StarsRecommender, load_dataset
-from stars_ros.data import crowd_data, synthetic_socnav
 from stars_ros.data.scene_source import socnav1_root
 from stars_ros.errors import DataError, StarsError, UnknownActionError, UnknownSceneError
+from stars_ros.evaluation import crowd_data
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.errors import NotFittedError
 from stars_ros.evaluation.executors import FitTask, fit_and_predict
 from stars_ros.model.metrics import regression_report
+from test_support import synthetic_socnav
 
 REPO = Path(__file__).resolve().parents[1]
 TABULAR = {'encoder': {'name': 'mlp', 'hidden': 16, 'layers': 1}, 'model': {'dim': 8},

@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / 'stars_ros'
 # and the front door loading a checkpoint, replay and the markers.
 SERVING = ('stars_ros.model.predictor', 'stars_ros.recommender', 'stars_ros.node.core', 'stars_ros.ros.ranker',
            'stars_ros.ros.replay', 'stars_ros.ros.markers')
-TRAINING = ('stars_ros.model.training', 'stars_ros.data.ratings', 'stars_ros.data.crowd_data')
+TRAINING = ('stars_ros.model.training', 'stars_ros.data.ratings', 'stars_ros.evaluation.crowd_data')
 
 
 def module_name(path: Path) -> str:

@@ -1,2 +1,2 @@
 """Rating data: SocNav1 and generic loaders, scene graphs and their featurisation, the
-encoder-ready scene stores, scene sources for the companion nodes, generated crowd data."""
+encoder-ready scene stores and scene sources for the companion nodes."""

@@ -39,41 +39,6 @@ def _ranges(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
     return torch.repeat_interleave(starts - offsets, counts, output_size=total) + torch.arange(total)
 
 
-class DenseGraphs(NamedTuple):
-    """A few graphs padded to the largest one, for inference on small scene graphs
-    (numpy arrays: see ``serving_forms.graph_serving_form``).
-
-    ``x`` [G, N, F]; ``mask`` [G, N] (real nodes); ``adjacency`` [G, N, N] with
-    ``adjacency[g, i, j]`` = number of edges j → i (messages flow to i, as in PyG);
-    ``relation_adjacency`` [G, R, N, N] the same per edge type, or None when not asked
-    for. The robot node is node 0 of every graph.
-    """
-
-    x: np.ndarray
-    mask: np.ndarray
-    adjacency: np.ndarray
-    relation_adjacency: np.ndarray | None
-
-
-def dense_graphs(graphs: Sequence[SceneGraph], relations: int | None = None) -> DenseGraphs:
-    """Pad ``graphs`` into a DenseGraphs; ``relations`` (the number of edge types) adds the
-    per-relation adjacency. Built in numpy: a scene of ~20 nodes costs microseconds."""
-    n = max(g.num_nodes for g in graphs)
-    x = np.zeros((len(graphs), n, graphs[0].x.shape[1]), dtype=np.float32)
-    mask = np.zeros((len(graphs), n), dtype=bool)
-    adjacency = np.zeros((len(graphs), n, n), dtype=np.float32)
-    typed = np.zeros((len(graphs), relations, n, n), dtype=np.float32) if relations else None
-    for k, graph in enumerate(graphs):
-        x[k, :graph.num_nodes] = graph.x
-        mask[k, :graph.num_nodes] = True
-        source, target = graph.edge_index
-        cell = target * n + source  # edges counted with bincount: np.add.at costs 3x as much here
-        adjacency[k] = np.bincount(cell, minlength=n * n).reshape(n, n)
-        if typed is not None:
-            typed[k] = np.bincount(graph.edge_type * (n * n) + cell, minlength=relations * n * n).reshape(relations, n, n)
-    return DenseGraphs(x, mask, adjacency, typed)
-
-
 class GraphStore:
     """All featurised graphs of a dataset; ``batch(indices)`` collates a subset."""
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stars_ros.data import crowd_data
 from stars_ros.data.ratings import load_dataset
+from stars_ros.evaluation import crowd_data
 from stars_ros.evaluation.implicit import (OutcomeModel, exchange_rate, expected_mse_implicit, mse_explicit,
                                           mse_implicit)
 from stars_ros.evaluation.kshot import Design, annotator_folds, reveal_pools

@@ -16,7 +16,7 @@ from stars_ros.errors import StarsError
 from stars_ros.model.explain import removal_effects
 from stars_ros.data.frames import heading_yaw, robot_pose_in, to_rep103
 
-MATPLOTLIB = 'matplotlib==3.11.2'  # requirements.txt's pin
+MATPLOTLIB = 'matplotlib==3.11.2'  # requirements-train.txt's pin (the train extra)
 
 
 def pyplot():

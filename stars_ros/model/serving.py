@@ -5,7 +5,8 @@ It is built from a checkpoint's content alone (config, vocabularies, normalisati
 scale, personalisation prior and weights as numpy arrays), never from a torch model: graph
 backbones run their numpy form (``model.serving_forms``, GAT compiled), so serving a
 graph checkpoint imports neither torch, torch-geometric nor training; a tabular backbone's
-one torch module is built from its registry entry, torch imported then. A model fitted in
+one torch module is built from its registry entry, torch imported then (refused, naming the
+``train`` extra, on a serving install without it). A model fitted in
 memory is served the same way, from the content its checkpoint would hold
 (``checkpoint.served_content``), so a saved and a fitted model serve identically.
 """
@@ -15,7 +16,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from stars_ros.errors import ConfigError
+from stars_ros.errors import INSTALL_TRAIN, ConfigError, TrainExtraMissing
 from stars_ros.model.checkpoint import incompatible, read_checkpoint, split_stranger, stored_prior
 from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.backbones import normalise_name
@@ -37,10 +38,16 @@ def encoder_serving_form(config: ExperimentConfig, input_kind: str, feature_dim:
         if name not in GRAPH_BACKBONES:
             raise ConfigError(f"encoder '{config.encoder.name}' does not read scene graphs")
         return graph_serving_form(name, {key: np.asarray(value, dtype=np.float32) for key, value in weights.items()})
-    import torch  # a tabular backbone is a torch module
+    try:
+        import torch  # a tabular backbone is a torch module
 
-    from stars_ros.model.encoders import resolve_encoder
-
+        from stars_ros.model.encoders import resolve_encoder
+    except ModuleNotFoundError as error:
+        if (error.name or '').split('.')[0] not in ('torch', 'torch_geometric'):
+            raise
+        raise TrainExtraMissing(f"the tabular backbone '{config.encoder.name}' runs on {error.name}, which "
+                                'this serving install leaves out (it serves graph checkpoints): '
+                                f'{INSTALL_TRAIN}') from None
     with torch.random.fork_rng(devices=[]):  # its initial weights, replaced at once, draw on no one's random state
         encoder = resolve_encoder(name, feature_dim, config.model.dim, hidden=config.encoder.hidden,
                                   layers=config.encoder.layers, dropout=config.encoder.dropout,

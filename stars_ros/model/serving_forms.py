@@ -18,13 +18,49 @@ Both rely on what ``featurise`` guarantees: no self loops.
 """
 from __future__ import annotations
 
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from stars_ros.data.scene_graph import RELATIONS, SceneGraph
 
 GAT_NEGATIVE_SLOPE = 0.2  # GATConv's LeakyReLU slope: graph.GAT builds its convolutions with it
+
+
+class DenseGraphs(NamedTuple):
+    """A few graphs padded to the largest one, for inference on small scene graphs
+    (numpy arrays: see ``graph_serving_form``).
+
+    ``x`` [G, N, F]; ``mask`` [G, N] (real nodes); ``adjacency`` [G, N, N] with
+    ``adjacency[g, i, j]`` = number of edges j → i (messages flow to i, as in PyG);
+    ``relation_adjacency`` [G, R, N, N] the same per edge type, or None when not asked
+    for. The robot node is node 0 of every graph.
+    """
+
+    x: np.ndarray
+    mask: np.ndarray
+    adjacency: np.ndarray
+    relation_adjacency: np.ndarray | None
+
+
+def dense_graphs(graphs: Sequence[SceneGraph], relations: int | None = None) -> DenseGraphs:
+    """Pad ``graphs`` into a DenseGraphs; ``relations`` (the number of edge types) adds the
+    per-relation adjacency. Built in numpy: a scene of ~20 nodes costs microseconds."""
+    n = max(g.num_nodes for g in graphs)
+    x = np.zeros((len(graphs), n, graphs[0].x.shape[1]), dtype=np.float32)
+    mask = np.zeros((len(graphs), n), dtype=bool)
+    adjacency = np.zeros((len(graphs), n, n), dtype=np.float32)
+    typed = np.zeros((len(graphs), relations, n, n), dtype=np.float32) if relations else None
+    for k, graph in enumerate(graphs):
+        x[k, :graph.num_nodes] = graph.x
+        mask[k, :graph.num_nodes] = True
+        source, target = graph.edge_index
+        cell = target * n + source  # edges counted with bincount: np.add.at costs 3x as much here
+        adjacency[k] = np.bincount(cell, minlength=n * n).reshape(n, n)
+        if typed is not None:
+            typed[k] = np.bincount(graph.edge_type * (n * n) + cell,
+                                   minlength=relations * n * n).reshape(relations, n, n)
+    return DenseGraphs(x, mask, adjacency, typed)
 
 
 def _relu(x: np.ndarray) -> np.ndarray:
@@ -139,8 +175,6 @@ def graph_serving_form(name: str, weights: Mapping[str, np.ndarray]) -> Callable
                          [conv['bias'] for conv in layers], GAT_NEGATIVE_SLOPE, hidden_layer, output_layer)
     if name not in _CONVOLUTIONS:
         raise ValueError(f"no serving form for graph backbone '{name}'; these have one: {sorted(GRAPH_BACKBONES)}")
-    from stars_ros.data.scene_store import dense_graphs
-
     convolutions = [_CONVOLUTIONS[name](conv) for conv in layers]
     structure_of = _STRUCTURES.get(name, lambda graphs: graphs.adjacency)
     relations = len(RELATIONS) if name == 'rgcn' else None

@@ -1,15 +1,18 @@
 """Launch arguments as node parameters: a value read as the parameter's own type and checked
-against its range, or refused with a clear error, as ``ros2 run ... -p`` refuses it.
+against its range, or refused with a clear error, as ``ros2 run ... -p`` refuses it; and a
+misspelt argument named, as a node names a misspelt parameter.
 
 Without this, ``ros2 launch stars_ros ranker.launch.py top_k:=abc`` hands the node the
 string 'abc' after the packaged params file's 0, and ROS drops the later value of another
-type without a word. ROS-free, so it is tested without launch.
+type without a word; ``top_kk:=3`` would be set as a launch configuration nobody reads.
+ROS-free, so it is tested without launch.
 """
 from __future__ import annotations
 
+import difflib
 import math
 from pathlib import Path
-from typing import Mapping
+from typing import Iterable, Mapping, Sequence
 
 from stars_ros.errors import LaunchArgumentError
 
@@ -50,3 +53,23 @@ def existing_file(name: str, text: str) -> str:
     if not Path(text).expanduser().is_file():
         raise LaunchArgumentError(f'{name}:={text}: no such file')
     return text
+
+
+def unknown_arguments(argv: Sequence[str], declared: Iterable[str], launch_file: str) -> list:
+    """A warning for each ``name:=value`` of ``argv`` (what ``ros2 launch`` was given after
+    the file: launch's ``context.argv``) whose name ``launch_file`` does not declare, with the
+    closest declared name when one is close, as ``unknown_parameters`` words it for a node.
+    Launch sets every given argument as a configuration, read or not, and checks none
+    (ros2/launch#313: an argument may be meant for a file included further down); this
+    package's launch files include none, so an undeclared name is a mistake, or, where another
+    launch file includes one of them, that file's own argument: a warning, not a refusal."""
+    declared = list(declared)
+    warnings = []
+    for name in dict.fromkeys(argument.split(':=', 1)[0] for argument in argv if ':=' in argument):
+        if name in declared:
+            continue
+        near = difflib.get_close_matches(name, declared, n=1)
+        warnings.append(f"launch argument '{name}' is not one of {launch_file}'s: ignored"
+                        + (f" (did you mean '{near[0]}'?)" if near else '')
+                        + f'; `ros2 launch stars_ros {launch_file} --show-args` lists them')
+    return warnings

@@ -9,11 +9,11 @@ import pytest
 import yaml
 
 from stars_ros import load_dataset
-from stars_ros.data.crowd_data import CrowdShape, write
 from stars_ros.data.scene_graph import featurise
 from stars_ros.data.scene_summary import ABSENT_DISTANCE, SUMMARY_FEATURES, summarise
 from stars_ros.errors import ConfigError
 from stars_ros.evaluation import executors, peers
+from stars_ros.evaluation.crowd_data import CrowdShape, write
 from stars_ros.evaluation.protocol import ProtocolConfig, run_protocol
 from stars_ros.evaluation.summaries import best_peer, by_model, grid_edge, peer_tests
 

@@ -22,9 +22,25 @@ class Configuration:
         return context.launch_configurations[self.name]
 
 
+class Logger:
+    """Stands in for launch.logging.get_logger: keeps the warnings logged."""
+
+    warnings = []
+
+    def __init__(self, name):
+        self.name = name
+
+    def warning(self, message):
+        self.warnings.append(message)
+
+
 def launched(monkeypatch, **given) -> dict:
+    """The nodes of ``ros2 launch stars_ros hri.launch.py name:=value ...`` (``given``), by
+    executable: every given argument a configuration and in argv, as launch makes them."""
+    Logger.warnings = []
     stand_ins = {'launch': {'LaunchDescription': Recorded},
                  'launch.actions': {'DeclareLaunchArgument': Recorded, 'OpaqueFunction': Recorded},
+                 'launch.logging': {'get_logger': Logger},
                  'launch.conditions': {'IfCondition': Recorded},
                  'launch.substitutions': {'LaunchConfiguration': Configuration},
                  'launch_ros': {}, 'launch_ros.actions': {'Node': Recorded}}
@@ -35,9 +51,10 @@ def launched(monkeypatch, **given) -> dict:
     spec.loader.exec_module(module)
     entities = module.generate_launch_description().args[0]
     declared = {e.args[0]: e.kwargs for e in entities if 'default_value' in e.kwargs}
-    configurations = {name: given.get(name, kwargs['default_value']) for name, kwargs in declared.items()}
+    configurations = {**{name: kwargs['default_value'] for name, kwargs in declared.items()}, **given}
     opaque = next(e for e in entities if 'function' in e.kwargs)
-    nodes = opaque.kwargs['function'](types.SimpleNamespace(launch_configurations=configurations))
+    nodes = opaque.kwargs['function'](types.SimpleNamespace(
+        launch_configurations=configurations, argv=[f'{name}:={value}' for name, value in given.items()]))
     return {node.kwargs['executable']: node.kwargs for node in nodes}
 
 
@@ -64,3 +81,13 @@ def test_store_policy_goes_to_the_bridge_and_the_ranker_alike(monkeypatch, tmp_p
     nodes = launched(monkeypatch, store_policy='consented')  # the latched stars/consent only
     assert nodes['ranker']['parameters'] == [{'store_policy': 'consented'}]
     assert 'store_policy' not in launched(monkeypatch)['hri_bridge']['parameters'][0]  # 'all': their defaults
+
+
+def test_a_misspelt_argument_is_named_and_the_loop_starts_without_it(monkeypatch):
+    nodes = launched(monkeypatch, pose_sorce='topic')
+    assert Logger.warnings == ["launch argument 'pose_sorce' is not one of hri.launch.py's: ignored (did you "
+                               "mean 'pose_source'?); `ros2 launch stars_ros hri.launch.py --show-args` "
+                               'lists them']
+    assert set(nodes) == {'hri_world', 'hri_bridge', 'ranker'}
+    launched(monkeypatch, pose_source='topic', world='false', store_policy='all')
+    assert Logger.warnings == []

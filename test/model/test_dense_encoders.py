@@ -7,7 +7,8 @@ import torch
 from stars_ros.model.encoders import BACKBONES, encoder_class, resolve_encoder
 from stars_ros.data.scene_graph import NODE_FEATURES, RELATIONS, SceneGraph, featurise
 from stars_ros.data.scene_source import random_scene
-from stars_ros.data.scene_store import GraphStore, dense_graphs
+from stars_ros.data.scene_store import GraphStore
+from stars_ros.model.serving_forms import dense_graphs
 
 GRAPH_BACKBONES = sorted(name for name in BACKBONES if encoder_class(name).input_kind == 'graph')
 OPTIONS = {'gat': [{'heads': 4}, {'heads': 1}], 'rgcn': [{}, {'num_bases': 3}]}

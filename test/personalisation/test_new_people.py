@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stars_ros import StarsRecommender, load_dataset
-from stars_ros.data import crowd_data
+from stars_ros.evaluation import crowd_data
 
 CONFIG = {'encoder': {'name': 'mlp', 'hidden': 32, 'layers': 2}, 'model': {'dim': 8},
           'training': {'pretrain_epochs': 5, 'joint_epochs': 15, 'lr': 1.0e-2, 'batch_size': 64, 'threads': 1}}

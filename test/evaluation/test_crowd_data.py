@@ -9,10 +9,10 @@ training and the memoriser has nothing to memorise.
 import numpy as np
 import pytest
 
-from stars_ros.data import crowd_data
-from stars_ros.model.config import ExperimentConfig
 from stars_ros.data.ratings import load_dataset
+from stars_ros.evaluation import crowd_data
 from stars_ros.evaluation.folds import Fold, make_folds
+from stars_ros.model.config import ExperimentConfig
 from stars_ros.model.training import StarsTrainer
 from conftest import served_rows
 

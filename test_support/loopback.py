@@ -31,7 +31,7 @@ from std_srvs.srv import Trigger
 
 from stars_ros.waiting import wait_for
 
-PACKAGE_ROOT = Path(__file__).resolve().parents[2]  # the folder holding this stars_ros, for a node's process
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # the checkout, whose stars_ros a node's process imports
 RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
