@@ -5,14 +5,17 @@ re-sent with a new stamp at every ranking makes it replan without end; one given
 that moves with the robot ("0.5 m ahead" of wherever the robot is now) makes it drive on for
 ever. So ``GoalPolicy`` sends a goal only when the decision changes:
 
-* the first goal, or the first after an abstain ended,
-* another person is served,
+* the first goal for the person served (another person's was cancelled as they were served),
+  or the first after an abstain ended,
 * another placement is best, and it beats the placement of the goal followed now by more
   than ``hysteresis`` in the same ranking (two near-equal placements do not alternate), and
   its goal lies more than ``position_tolerance`` m or ``yaw_tolerance`` rad from that goal.
 
 An abstain, or the served person leaving, cancels the goal followed (a navigation action is
-then cancelled; a goal topic has nothing to send). Goals are compared in the navigation
+then cancelled; a goal topic has nothing to send). Goals are for the person served now: a
+decision about a scene sent while nobody was served, or while someone who has since left
+was, sends none (after a person leaves, the rankings of the scenes that serve nobody would
+otherwise send the cancelled goal again, for nobody). Goals are compared in the navigation
 frame, which the bridge requires to be one that does not move with the robot (``map``,
 ``odom``) unless a goal in the robot's frame is asked for (``robot_frame_goal_refusal``).
 """
@@ -80,16 +83,19 @@ class GoalPolicy:
     def __init__(self, settings: GoalSettings = GoalSettings()):
         self.settings = settings
         self.followed: Followed | None = None
+        self.served: str | None = None  # the person served now (``on_served``)
 
     def on_decision(self, decision: Decision, person_id: str | None) -> GoalStep:
-        """The step for ``decision``, taken for the served ``person_id``."""
+        """The step for ``decision``, about a scene sent while ``person_id`` was served."""
+        if person_id is None:
+            return GoalStep(reason='the scene was sent while nobody was served: no goal')
+        if person_id != self.served:
+            return GoalStep(reason=f"the scene was sent while '{person_id}' was served, who is no longer: no goal")
         if decision.abstain or decision.goal is None:
             return self._cancel(f'abstain: {decision.reason}' if decision.abstain else f'no goal: {decision.reason}')
         followed = self.followed
-        if followed is None:
+        if followed is None:  # the first for this person (``on_served`` cancelled another's)
             reason = 'first goal'
-        elif followed.person_id != person_id:
-            reason = f"another person: '{person_id}' instead of '{followed.person_id}'"
         elif decision.choice == followed.choice:
             return GoalStep(reason=f"'{decision.choice}' is still best")
         else:
@@ -106,6 +112,7 @@ class GoalPolicy:
 
     def on_served(self, person_id: str | None) -> GoalStep:
         """The served person is now ``person_id`` (None: nobody): a goal for someone else is cancelled."""
+        self.served = person_id
         if self.followed is not None and self.followed.person_id != person_id:
             return self._cancel(f"'{self.followed.person_id}' is no longer served")
         return GoalStep()

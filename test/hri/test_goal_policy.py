@@ -24,6 +24,13 @@ def ranking(scores: dict, p_best=None, scene_id='hri-1') -> dict:
 
 
 def step(policy, scores, person='alice', robot=ROBOT, p_best=None):
+    """As the bridge does: ``person`` served (its tick), then a ranking of a scene sent for them."""
+    policy.on_served(person)
+    return decide_for(policy, scores, person, robot, p_best)
+
+
+def decide_for(policy, scores, person, robot=ROBOT, p_best=None):
+    """A ranking of a scene sent while ``person`` was served, whoever is served now."""
     return policy.on_decision(decide(ranking(scores, p_best), 0.5, robot), person)
 
 
@@ -77,6 +84,19 @@ def test_another_person_sends_a_goal_and_a_person_leaving_cancels():
     assert not policy.on_served('bob').cancel
     assert policy.on_served(None).cancel
     assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}, person='bob').send is not None
+
+
+def test_after_the_served_person_leaves_no_goal_is_sent_for_nobody_or_for_them():
+    """The bridge cancels the goal as they leave; the rankings that follow (of scenes sent
+    for nobody, or for them before they left) send no goal, identical or not."""
+    policy = GoalPolicy()
+    assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}).send is not None
+    assert policy.on_served(None).cancel
+    for scores in ({'back_50cm': 0.8, 'stay': 0.3}, {'back_50cm': 0.2, 'stay': 0.9}):
+        for person in (None, 'alice'):
+            left = decide_for(policy, scores, person)
+            assert left.send is None and not left.cancel and 'no goal' in left.reason
+    assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}).send is not None  # served again: a goal again
 
 
 def test_goal_frames_that_move_with_the_robot_need_the_opt_in():
