@@ -60,6 +60,7 @@ from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
+from stars_ros.ros.replies import resend_dropped
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 from stars_ros.ros.typed_interface import TypedInterface
 from stars_ros.ros.unknown_parameters import warn_unknown_overrides
@@ -160,6 +161,9 @@ class RankerParts:
                          *TypedInterface(self, self.core, self.params, self._more_work.trigger,
                                          self.qos_watch).entities]
         self._serving += self._activate_privacy()
+        for service in self._serving:
+            if isinstance(service, Service):  # answers to a client that called as it found the service
+                resend_dropped(self, service)
 
     def _configure_privacy(self):
         """With fleet sharing, the publisher of stars/forget_person (docs/privacy.md)."""
