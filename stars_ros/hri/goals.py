@@ -90,7 +90,8 @@ class GoalPolicy:
         if person_id is None:
             return GoalStep(reason='the scene was sent while nobody was served: no goal')
         if person_id != self.served:
-            return GoalStep(reason=f"the scene was sent while '{person_id}' was served, who is no longer: no goal")
+            return GoalStep(reason=f"the scene was sent while '{person_id}' was served, who is no longer: "
+                                   'no goal')
         if decision.abstain or decision.goal is None:
             return self._cancel(f'abstain: {decision.reason}' if decision.abstain else f'no goal: {decision.reason}')
         followed = self.followed

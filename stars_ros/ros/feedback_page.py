@@ -12,9 +12,9 @@ stars/feedback. After an answer the page shows what the robot does now, from the
 next stars/ranking. A ``no_question`` on stars/errors (the ranker has seen no scene to ask
 about yet) is shown to the person, and the question asked for again at their next ranking; a
 request is sent again when a ranker's stars/question_request, stars/question or stars/errors
-endpoint joins (the page started while someone was served). Refusals go back to the page and out on stars/errors. The logic is
-``stars_ros.hri.feedback_page``, the HTTP side ``stars_ros.hri.feedback_server``;
-docs/feedback_page.md.
+endpoint joins (the page started while someone was served). Refusals go back to the page
+and out on stars/errors. The logic is ``stars_ros.hri.feedback_page``, the HTTP side
+``stars_ros.hri.feedback_server``; docs/feedback_page.md.
 
     ros2 run stars_ros feedback_page --ros-args -p port:=8080
 """
@@ -107,8 +107,8 @@ class FeedbackPageNode(Node):
         self.page = FeedbackPage(settings, lambda: self.get_clock().now().nanoseconds)
         answers = 'stars/person_feedback' if settings.via_bridge else 'stars/feedback'
         joined = PublisherEventCallbacks(matched=self._on_matched)
-        self._out = {'stars/question_request': self.create_publisher(String, 'stars/question_request', QUESTIONS,
-                                                                     event_callbacks=joined),
+        self._out = {'stars/question_request': self.create_publisher(
+                         String, 'stars/question_request', QUESTIONS, event_callbacks=joined),
                      answers: self.create_publisher(String, answers, RELIABLE),
                      'stars/errors': self.create_publisher(String, 'stars/errors', RELIABLE)}
         self._errors_topic = self.resolve_topic_name('stars/errors')

@@ -19,6 +19,7 @@ from test_feedback_page_browser import _chromium
 pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings('ignore::DeprecationWarning:lark.*')]
 START_TIMEOUT = 90
 ADDRESS = re.compile(r'serving the page at (http://\S+)')
+TOPICS_OUT = ('ranking', 'question', 'errors')  # the ranker's, found once it is up
 NO_SCENE_YET = 'The robot has not seen anything to ask you about yet: it will ask you once it has.'
 
 
@@ -37,13 +38,13 @@ class Graph:
         return process
 
     def start_ranker(self):
-        process = self.start('stars_ros.ros.ranker', {'checkpoint': self.checkpoint, 'record_folder': self.folder},
-                             'ranker.log')
+        process = self.start('stars_ros.ros.ranker',
+                             {'checkpoint': self.checkpoint, 'record_folder': self.folder}, 'ranker.log')
 
         def found():
             assert process.poll() is None, (self.folder / 'ranker.log').read_text()
             return self.client.scene_pub.get_subscription_count() and all(
-                self.client.node.count_publishers(f'/stars/{topic}') for topic in ('ranking', 'question', 'errors'))
+                self.client.node.count_publishers(f'/stars/{topic}') for topic in TOPICS_OUT)
         assert self.client.wait(found, START_TIMEOUT), 'the ranker did not come up'
 
     def start_page(self):
@@ -93,7 +94,8 @@ def _buttons_after_ranking(graph, expect, page, scene, user_id: str, what: str):
     assert client.wait(lambda: client.ranking_for(f'{user_id}-first') is not None, 30), 'no ranking came back'
     ranked = time.monotonic()
     expect(page.get_by_role('button', name='very good, rating 1')).to_be_visible(timeout=30_000)
-    print(f'{what}: rating buttons {time.monotonic() - ranked:.3f} s after the first ranking reached the test')
+    waited = time.monotonic() - ranked
+    print(f'{what}: rating buttons {waited:.3f} s after the first ranking reached the test')
 
 
 def test_a_person_served_before_the_first_scene_is_asked_once_their_scene_is_ranked(graph, browser,
@@ -120,7 +122,8 @@ def test_a_page_started_while_someone_is_served_shows_their_question(graph, brow
     page = chromium.new_page()
     page.goto(graph.start_page())
     expect(page.get_by_role('button', name='very good, rating 1')).to_be_visible(timeout=30_000)
-    print(f'page started while served: rating buttons {time.monotonic() - started:.3f} s after its process started')
+    waited = time.monotonic() - started
+    print(f'page started while served: rating buttons {waited:.3f} s after its process started')
     page.close()
 
 

@@ -56,7 +56,8 @@ REQUEST = ('stars/question_request', '{"user_id":"pat"}')
 
 
 def _ranking(user_id):
-    return json.dumps({'scene_id': 'x', 'user_id': user_id, 'ranking': [{'action': 'navigate', 'score': 0.5}]})
+    return json.dumps({'scene_id': 'x', 'user_id': user_id,
+                       'ranking': [{'action': 'navigate', 'score': 0.5}]})
 
 
 def test_a_question_not_chosen_yet_is_asked_for_again_at_the_persons_next_ranking_and_said_so_meanwhile():
