@@ -123,17 +123,18 @@ def end(name: str, node, close: Callable | None) -> None:
     CLOSE_WAIT_S), shut ROS down. The middleware's part runs on a thread of its own: it has
     hung in Fast DDS's ``set_listener`` at shutdown, and when it has not finished within
     DESTROY_WAIT_S the node is closed anyway and the ending returns, saying so; the process
-    then exits with the status it has, that thread left behind (a daemon)."""
-    destroyed, closed = threading.Event(), threading.Event()
+    then exits with the status it has, that thread left behind (a daemon). An error of the
+    middleware's part is raised once the ending is done."""
+    destroyed, closed, errors = threading.Event(), threading.Event(), []
 
     def middleware():
-        try:
-            if node is not None:
-                node.destroy_node()
-        finally:
-            destroyed.set()
-        closed.wait()
-        rclpy.try_shutdown()
+        for step in (lambda: node is not None and node.destroy_node(), destroyed.set, closed.wait,
+                     rclpy.try_shutdown):
+            try:
+                step()
+            except Exception as error:  # noqa: BLE001 - raised in the ending's own thread
+                errors.append(error)
+        destroyed.set()
 
     ending = threading.Thread(target=middleware, name='stars-shutdown', daemon=True)
     ending.start()
@@ -146,6 +147,8 @@ def end(name: str, node, close: Callable | None) -> None:
     if not (on_time and _joined(ending, DESTROY_WAIT_S)):
         print(f'{name}: the middleware did not shut down within {DESTROY_WAIT_S:g} s; closed, exiting',
               file=sys.stderr, flush=True)
+    elif errors:
+        raise errors[0]
 
 
 def _joined(thread: threading.Thread, timeout: float) -> bool:

@@ -121,6 +121,19 @@ def test_an_error_of_a_node_starting_as_a_signal_shuts_ros_down_is_a_clean_end(m
         spinning.run_node('test', make_node)
 
 
+def test_an_error_destroying_the_node_is_raised_once_it_is_closed_and_ros_shut_down(monkeypatch):
+    calls = []
+    _fake_ros(monkeypatch, calls)
+    node = _Node()
+
+    def destroy_node():
+        raise RuntimeError('destroyed already')
+    node.destroy_node = destroy_node
+    with pytest.raises(RuntimeError, match='destroyed already'):
+        spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
+    assert node.calls == ['closed'] and calls[-1] == 'shutdown'
+
+
 def test_a_middleware_that_hangs_in_destroy_node_still_closes_and_returns(monkeypatch, capsys):
     """The node is closed (its store commits) and the ending returns, saying why."""
     calls = []
