@@ -17,7 +17,7 @@ request (beyond ``queue_depth`` waiting it is refused as ``overload``); the guar
 callback scores up to ``max_batch`` of them in one pass with one model snapshot, or solves a
 fold-in. rclpy's executor takes one message per subscription per wait, and runs a node's
 subscriptions before its guard conditions: so while requests keep arriving the guard
-condition's callback puts the scoring off by one wait at a time, at most ``queue_depth``
+condition's callback puts each batch off by one wait at a time, at most ``queue_depth``
 times in a row, and a flood fills the queue (and is refused as overload) rather than the
 middleware's history (dropped without a word). Other ready callbacks (feedback, ``~/reload``,
 parameters) have their turn between two passes. Handing requests to a worker thread cost more
@@ -96,7 +96,7 @@ class RankerParts:
     (create the subscriptions, services and timers that serve). Mixed into a ``Node``."""
 
     core, _configured, _serving, _more_work = None, (), (), None  # before configure, after cleanup
-    _scoring_due = False  # the guard condition was triggered by a scene, and its callback has not run since
+    _scoring_due = False  # the guard condition was triggered to score (by a scene, or by a pass with more to do)
     _scenes_meanwhile = _put_off = 0  # scenes taken since then; times in a row the scoring was put off
 
     def _declare_parameters(self):
@@ -250,15 +250,17 @@ class RankerParts:
         """Score a batch, fold in, send what waits. A scene taken since this was triggered
         (in this wait: subscriptions run first) says more may wait in the middleware: the
         scoring is put off by one wait, at most ``queue_depth`` times in a row, so at most
-        that many requests are taken per batch scored, as they come."""
-        self._scoring_due = False
+        that many requests are taken per batch scored, as they come, and those beyond the
+        queue are refused as overload rather than dropped by the middleware's history."""
         if self._scenes_meanwhile and self._put_off < self.params['queue_depth']:
-            self._scenes_meanwhile, self._scoring_due = 0, True
+            self._scenes_meanwhile = 0
             self._put_off += 1
             self._more_work.trigger()
             return
         self._scenes_meanwhile = self._put_off = 0
-        self._work()
+        self._scoring_due = self.core.work()
+        if self._scoring_due:
+            self._more_work.trigger()
 
     def _on_feedback(self, msg: String):
         if self.core.accept_feedback(msg.data):
@@ -303,10 +305,6 @@ class RankerParts:
         response.removed_places = [place for place, _ in places]
         response.removed_counts = [int(count) for _, count in places]
         return response
-
-    def _work(self):
-        if self.core.work():
-            self._more_work.trigger()
 
     def _wake_work(self):
         """From the state store's thread: a committed model waits for the executor to send it."""
