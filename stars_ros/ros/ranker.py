@@ -220,8 +220,11 @@ class RankerParts:
         try:
             self.publishers_by_topic[topic].publish(String(data=text))
         except (InvalidHandle, RuntimeError):  # RuntimeError: rclpy's RCLError
-            if topic not in ('stars/errors', 'stars/user_model'):  # shutting down: a thread of close() (errors
-                raise  # are logged and recorded; a model whose write the close committed is in the store)
+            # a signal shut ROS down during the work: nothing goes out any more (what the work
+            # recorded is in the bag); shutting down, a thread of close() publishes errors (logged
+            # and recorded) and models (a model whose write the close committed is in the store)
+            if self.context.ok() and topic not in ('stars/errors', 'stars/user_model'):
+                raise
 
     def _publish_diagnostics(self):
         for topic, problem in self.qos_watch.new_mismatches():
