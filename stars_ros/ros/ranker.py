@@ -16,10 +16,11 @@ Threads: the executor thread does the serving. The scene callback validates and 
 request (beyond ``queue_depth`` waiting it is refused as ``overload``); the guard condition's
 callback scores up to ``max_batch`` of them in one pass with one model snapshot, or solves a
 fold-in. rclpy's executor takes one message per subscription per wait, and runs a node's
-subscriptions before its guard conditions: so while requests keep arriving the guard
-condition's callback puts each batch off by one wait at a time, at most ``queue_depth``
-times in a row, and a flood fills the queue (and is refused as overload) rather than the
-middleware's history (dropped without a word). Other ready callbacks (feedback, ``~/reload``,
+subscriptions before its guard conditions: so while the scenes it takes had waited in the
+middleware, the guard condition's callback puts each batch off by one wait at a time, at most
+``queue_depth`` times in a row, and a flood fills the queue (and is refused as overload)
+rather than the middleware's history (dropped without a word); a steady stream is scored as
+it comes. Other ready callbacks (feedback, ``~/reload``,
 parameters) have their turn between two passes. Handing requests to a worker thread cost more
 in waiting for the GIL (docs/performance.md). The callbacks share the node's default,
 mutually exclusive callback group, so a multi-threaded executor keeps this order too.
@@ -96,8 +97,9 @@ class RankerParts:
     (create the subscriptions, services and timers that serve). Mixed into a ``Node``."""
 
     core, _configured, _serving, _more_work = None, (), (), None  # before configure, after cleanup
-    _scoring_due = False  # the guard condition was triggered to score (by a scene, or by a pass with more to do)
-    _scenes_meanwhile = _put_off = 0  # scenes taken since then; times in a row the scoring was put off
+    _scoring_due = False  # the guard condition was triggered to score (by a scene, or a pass with more)
+    _scenes_meanwhile = _put_off = 0  # scenes taken since then that had waited; times in a row put off
+    _due_since = 0  # time.time_ns() when the scoring became due
 
     def _declare_parameters(self):
         self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
@@ -242,26 +244,28 @@ class RankerParts:
 
     def _on_scene(self, msg: String, info: dict):
         """Queue this request; the guard condition's callback scores it (``_on_more_work``)."""
-        self.core.accept_scene(msg.data, _received(info))
-        if self._scoring_due:
-            self._scenes_meanwhile += 1
-        else:
-            self._scoring_due = True
+        received = _received(info)
+        self.core.accept_scene(msg.data, received)
+        if not self._scoring_due:
+            self._scoring_due, self._due_since = True, time.time_ns()
             self._more_work.trigger()
+        elif received <= self._due_since:  # it waited in the middleware: more may wait behind it
+            self._scenes_meanwhile += 1
 
     def _on_more_work(self):
         """Score a batch, fold in, send what waits. A scene taken since this was triggered
-        (in this wait: subscriptions run first) says more may wait in the middleware: the
-        scoring is put off by one wait, at most ``queue_depth`` times in a row, so at most
-        that many requests are taken per batch scored, as they come, and those beyond the
-        queue are refused as overload rather than dropped by the middleware's history."""
+        (in this wait: subscriptions run first) that the middleware had received before the
+        scoring became due says more may wait there: the scoring is put off by one wait, at
+        most ``queue_depth`` times in a row, so that many requests waiting are taken per batch
+        scored, and those beyond the queue are refused as overload rather than dropped by the
+        middleware's history. A scene that came after is scored in this batch, at once."""
         if self._scenes_meanwhile and self._put_off < self.params['queue_depth']:
             self._scenes_meanwhile = 0
             self._put_off += 1
             self._more_work.trigger()
             return
         self._scenes_meanwhile = self._put_off = 0
-        self._scoring_due = self.core.work()
+        self._scoring_due, self._due_since = self.core.work(), time.time_ns()
         if self._scoring_due:
             self._more_work.trigger()
 
