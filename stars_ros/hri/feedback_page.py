@@ -3,8 +3,10 @@ answer sends, and what it refuses.
 
 ``stars_ros.ros.feedback_page`` feeds it the topics (``on_served_person`` from the bridge's
 stars/served_person or ``on_user_id`` from stars/user_id, ``on_scene``, ``on_question``,
-``on_ranking``) and the web server (``stars_ros.hri.feedback_server``) the person's taps
-(``answer``, ``skip``, ``next``). Each returns the messages to publish as (topic, payload);
+``on_ranking``, ``on_error``) and says when a ranker's end of stars/question_request,
+stars/question or stars/errors joins (``on_ranker_joined``); the web server
+(``stars_ros.hri.feedback_server``) feeds it the person's taps (``answer``, ``skip``,
+``next``). Each returns the messages to publish as (topic, payload);
 a bad request raises ``Refusal``, whose kind and message go back to the page and out on
 stars/errors. The page sees ``view()``: never a key, never another person's question.
 
@@ -14,6 +16,13 @@ store_policy consented that of a person not on the consent list: the page says t
 will not be kept, and why (stars/served_person's ``kept``). Without it, an answer is feedback
 on stars/feedback for the user id on stars/user_id. With a signing key, answers are signed
 here, server-side.
+
+A question the ranker cannot choose yet (``no_question`` on stars/errors: it has seen no scene
+to ask about) is asked for again at the served person's next ranking, and the page says why
+it waits meanwhile; a request sent before the ranker's endpoints had matched the page's
+(the page started while someone is served) is sent again when they match, and one that two
+of the person's rankings overtook unanswered (the request, its answer or its error lost) at
+the second.
 """
 from __future__ import annotations
 
@@ -29,6 +38,7 @@ from stars_ros import feedback_auth, messages
 # the question request of an anonymous person: they have no user id, and the ranker answers
 # any id it does not know with the population prior, so no person is named
 ANONYMOUS_ASKER = 'anonymous-visitor'
+RANKINGS_UNANSWERED = 2  # the served person's rankings that overtake a request before it is sent again
 SCENES_KEPT = 256  # scene requests remembered to draw the scene a question names
 PLACEMENT_WORDS = {'stay': 'stay where it is', 'left_50cm': 'move 50 cm to its left',
                    'right_50cm': 'move 50 cm to its right', 'back_50cm': 'move 50 cm back',
@@ -96,6 +106,9 @@ class FeedbackPage:
         self.phase = 'waiting'  # waiting (no question), question, thanks
         self.outcome = None  # after an answer: what the robot does now, from the next ranking
         self._awaiting_ranking = False
+        self._asked = False  # a question request is out, not yet answered by a question
+        self._overtaken = 0  # the served person's rankings since it went out
+        self.no_question = False  # the ranker could not choose one yet: asked again at the next ranking
         self._scenes = collections.OrderedDict()  # scene_id -> scene request payload
         self._bucket, self._bucket_at = float(settings.burst), None
 
@@ -134,6 +147,7 @@ class FeedbackPage:
         messages.check('question', question)
         if self.user_id is None or question['user_id'] != self.user_id:
             return
+        self._asked = self.no_question = False
         self.question_number += 1
         question = {**question, 'number': self.question_number}
         if self.phase == 'thanks':
@@ -142,20 +156,46 @@ class FeedbackPage:
             self.question, self.phase = question, 'question'
         self.version += 1
 
-    def on_ranking(self, text: str) -> None:
+    def on_ranking(self, text: str) -> list:
         """stars/ranking: after an answer, the served person's next one says what the robot
-        does now and how sure the model is."""
-        if not self._awaiting_ranking:
-            return
+        does now and how sure the model is; while no question is shown, after a
+        ``no_question`` or a request it overtook twice, it asks again (module docstring)."""
+        if not (self._awaiting_ranking or self.phase == 'waiting'):
+            return []
         ranking = json.loads(text)
         ranked_for = ranking.get('user_id') if isinstance(ranking, dict) else None
         if ranked_for != (None if self.anonymous else self.user_id) or not ranking.get('ranking'):
-            return
+            return []
+        if self.phase == 'waiting' and self.question is None:
+            self._overtaken += self._asked
+            if not self._asked or self._overtaken >= RANKINGS_UNANSWERED:
+                return self._ask()
+        if not self._awaiting_ranking:
+            return []
         first = ranking['ranking'][0]
         self.outcome = {'words': in_words(first if 'candidate' in first else {'action': first['action']}),
                         'score': first['score'], 'score_sd': first.get('score_sd')}
         self._awaiting_ranking = False
         self.version += 1
+        return []
+
+    def on_error(self, text: str) -> None:
+        """stars/errors: a ``no_question`` while a request is out is the ranker's answer to it
+        (its errors name no person): the page says it waits for a scene, and asks again at the
+        served person's next ranking."""
+        error = json.loads(text)
+        if not (isinstance(error, dict) and error.get('kind') == 'no_question' and self._asked):
+            return
+        self._asked, self.no_question = False, True
+        self.version += 1
+
+    def on_ranker_joined(self) -> list:
+        """A ranker's stars/question_request subscription, or stars/question or stars/errors
+        publisher, matched the page's: a request sent before, or its answer, could have been
+        lost, so one is sent again while the page waits for a question."""
+        if self.phase != 'waiting' or self.question is not None:
+            return []
+        return self._ask()
 
     # -- the person's taps --------------------------------------------------------------
     def check_token(self, given: str | None) -> None:
@@ -246,7 +286,7 @@ class FeedbackPage:
         not_kept = None if self.kept else 'anonymous' if self.anonymous else 'consent'
         return {'version': self.version, 'phase': self.phase, 'served': self.user_id is not None,
                 'anonymous': self.anonymous, 'not_kept': not_kept, 'question': question,
-                'pending': self.pending is not None,
+                'pending': self.pending is not None, 'no_question': self.no_question,
                 'outcome': self.outcome,
                 'scale': [round(low + (high - low) * k / (steps - 1), 6) for k in range(steps)]}
 
@@ -255,11 +295,12 @@ class FeedbackPage:
         if asker == self.user_id:
             return []
         self.user_id, self.question, self.pending, self.outcome = asker, None, None, None
-        self.phase, self._awaiting_ranking = 'waiting', False
+        self.phase, self._awaiting_ranking, self.no_question = 'waiting', False, False
         self.version += 1
         return self._ask()
 
     def _ask(self) -> list:
+        self._asked, self._overtaken = self.user_id is not None, 0
         if self.user_id is None:
             return []
         return [('stars/question_request', messages.dumps({'user_id': self.user_id}))]

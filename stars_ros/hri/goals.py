@@ -5,14 +5,17 @@ re-sent with a new stamp at every ranking makes it replan without end; one given
 that moves with the robot ("0.5 m ahead" of wherever the robot is now) makes it drive on for
 ever. So ``GoalPolicy`` sends a goal only when the decision changes:
 
-* the first goal, or the first after an abstain ended,
-* another person is served,
+* the first goal, for the person served now or for nobody (another person's goal was
+  cancelled as they stopped being served), or the first after an abstain ended,
 * another placement is best, and it beats the placement of the goal followed now by more
   than ``hysteresis`` in the same ranking (two near-equal placements do not alternate), and
   its goal lies more than ``position_tolerance`` m or ``yaw_tolerance`` rad from that goal.
 
 An abstain, or the served person leaving, cancels the goal followed (a navigation action is
-then cancelled; a goal topic has nothing to send). Goals are compared in the navigation
+then cancelled; a goal topic has nothing to send). A decision about a scene sent while
+someone else was served than now (a ranking that was on its way as the served person left or
+changed) sends nothing, and after the served person left, a goal for nobody at the place of
+the one cancelled is not sent again: it would be the goal just cancelled, for nobody. Goals are compared in the navigation
 frame, which the bridge requires to be one that does not move with the robot (``map``,
 ``odom``) unless a goal in the robot's frame is asked for (``robot_frame_goal_refusal``).
 """
@@ -80,16 +83,23 @@ class GoalPolicy:
     def __init__(self, settings: GoalSettings = GoalSettings()):
         self.settings = settings
         self.followed: Followed | None = None
+        self.served: str | None = None  # the person served now (``on_served``)
+        self.left: Followed | None = None  # the goal cancelled as its person left, until another is sent
 
     def on_decision(self, decision: Decision, person_id: str | None) -> GoalStep:
-        """The step for ``decision``, taken for the served ``person_id``."""
+        """The step for ``decision``, about a scene sent while ``person_id`` was served."""
+        if person_id != self.served:
+            return GoalStep(reason=f'the scene was sent while {_who(person_id)} was served, not '
+                                   f'{_who(self.served)}: no goal')
         if decision.abstain or decision.goal is None:
             return self._cancel(f'abstain: {decision.reason}' if decision.abstain else f'no goal: {decision.reason}')
         followed = self.followed
-        if followed is None:
+        if followed is None:  # ``on_served`` cancelled another person's
+            left = self.left
+            if left is not None and self._same_place(decision.goal, left.goal):
+                return GoalStep(reason=f"'{decision.choice}' is where the goal cancelled as {_who(left.person_id)} "
+                                       'left was: not sent again')
             reason = 'first goal'
-        elif followed.person_id != person_id:
-            reason = f"another person: '{person_id}' instead of '{followed.person_id}'"
         elif decision.choice == followed.choice:
             return GoalStep(reason=f"'{decision.choice}' is still best")
         else:
@@ -101,13 +111,18 @@ class GoalPolicy:
                 self.followed = Followed(person_id, decision.choice, followed.goal)
                 return GoalStep(reason=f"'{decision.choice}' is where the goal followed is: goal kept")
             reason = f"another placement: '{decision.choice}' instead of '{followed.choice}'"
-        self.followed = Followed(person_id, decision.choice, decision.goal)
+        self.followed, self.left = Followed(person_id, decision.choice, decision.goal), None
         return GoalStep(send=decision.goal, reason=reason)
 
     def on_served(self, person_id: str | None) -> GoalStep:
         """The served person is now ``person_id`` (None: nobody): a goal for someone else is cancelled."""
+        self.served = person_id
+        if person_id is not None:
+            self.left = None
         if self.followed is not None and self.followed.person_id != person_id:
-            return self._cancel(f"'{self.followed.person_id}' is no longer served")
+            if person_id is None:
+                self.left = self.followed
+            return self._cancel(f'{_who(self.followed.person_id)} is no longer served')
         return GoalStep()
 
     def _cancel(self, reason: str) -> GoalStep:
@@ -118,3 +133,7 @@ class GoalPolicy:
         turn = abs(math.atan2(math.sin(a.yaw - b.yaw), math.cos(a.yaw - b.yaw)))
         return math.hypot(a.x - b.x, a.y - b.y) <= self.settings.position_tolerance and \
             turn <= self.settings.yaw_tolerance
+
+
+def _who(person_id: str | None) -> str:
+    return 'nobody' if person_id is None else f"'{person_id}'"

@@ -9,9 +9,12 @@ picture of its scene (from stars/scene), a rating on the model's scale and "skip
 stars/served_person and an answer goes out on stars/person_feedback, which the bridge drops
 for an anonymous person; with ``ranker`` the served user is stars/user_id and an answer is
 stars/feedback. After an answer the page shows what the robot does now, from the person's
-next stars/ranking. Refusals go back to the page and out on stars/errors. The logic is
-``stars_ros.hri.feedback_page``, the HTTP side ``stars_ros.hri.feedback_server``;
-docs/feedback_page.md.
+next stars/ranking. A ``no_question`` on stars/errors (the ranker has seen no scene to ask
+about yet) is shown to the person, and the question asked for again at their next ranking; a
+request is sent again when a ranker's stars/question_request, stars/question or stars/errors
+endpoint joins (the page started while someone was served). Refusals go back to the page
+and out on stars/errors. The logic is ``stars_ros.hri.feedback_page``, the HTTP side
+``stars_ros.hri.feedback_server``; docs/feedback_page.md.
 
     ros2 run stars_ros feedback_page --ros-args -p port:=8080
 """
@@ -22,6 +25,7 @@ import json
 import threading
 
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -102,7 +106,9 @@ class FeedbackPageNode(Node):
         self._lock = threading.Lock()
         self.page = FeedbackPage(settings, lambda: self.get_clock().now().nanoseconds)
         answers = 'stars/person_feedback' if settings.via_bridge else 'stars/feedback'
-        self._out = {'stars/question_request': self.create_publisher(String, 'stars/question_request', QUESTIONS),
+        joined = PublisherEventCallbacks(matched=self._on_matched)
+        self._out = {'stars/question_request': self.create_publisher(
+                         String, 'stars/question_request', QUESTIONS, event_callbacks=joined),
                      answers: self.create_publisher(String, answers, RELIABLE),
                      'stars/errors': self.create_publisher(String, 'stars/errors', RELIABLE)}
         self._errors_topic = self.resolve_topic_name('stars/errors')
@@ -113,13 +119,16 @@ class FeedbackPageNode(Node):
         else:
             self._listen('stars/user_id', LATCHED, self.page.on_user_id, report)
         self._listen('stars/scene', RELIABLE, self.page.on_scene, report)
-        self._listen('stars/question', QUESTIONS, self.page.on_question, report)
+        self._listen('stars/question', QUESTIONS, self.page.on_question, report,
+                     SubscriptionEventCallbacks(matched=self._on_matched))
         self._listen('stars/ranking', RELIABLE, self.page.on_ranking, report)
+        self._listen('stars/errors', RELIABLE, self.page.on_error, report,
+                     SubscriptionEventCallbacks(matched=self._on_matched))
         self.address = self.server.start()
         self.get_logger().info(f'serving the page at {self.address}'
                                + ('' if not settings.token else ' (open it with ?token=...)'))
 
-    def _listen(self, topic: str, qos, handle, report):
+    def _listen(self, topic: str, qos, handle, report, events=None):
         """Subscribe ``topic``: ``handle(text)`` under the lock, what it returns published; a
         message it cannot read is reported, and the page serves on."""
         name = self.resolve_topic_name(topic)
@@ -133,7 +142,14 @@ class FeedbackPageNode(Node):
                 return
             self._publish(out or [])
             self.server.changed()
-        self.create_subscription(String, topic, callback, qos)
+        self.create_subscription(String, topic, callback, qos, event_callbacks=events)
+
+    def _on_matched(self, info):
+        if info.current_count_change > 0:
+            with self._lock:
+                out = self.page.on_ranker_joined()
+            self._publish(out)
+            self.server.changed()
 
     def _publish(self, out: list):
         for topic, payload in out:

@@ -17,7 +17,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from stars_ros.errors import StarsError
 from stars_ros.node.parameters import PARAMETERS
 from stars_ros.ros import usage
-from stars_ros.ros.ranker import RankerParts, serve
+from stars_ros.ros.ranker import RankerParts, one_thread_per_library, serve
 from stars_ros.ros.spinning import run_node
 
 
@@ -68,6 +68,7 @@ def main(args=None):
                                  'ros2 run stars_ros managed_ranker --ros-args -p top_k:=3 & '
                                  'ros2 lifecycle set /ranker configure && ros2 lifecycle set /ranker activate', args):
         return
+    one_thread_per_library()
     run_node('managed_ranker', ManagedRankerNode, serve, (), args, close=ManagedRankerNode.close)
 
 

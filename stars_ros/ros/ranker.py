@@ -12,14 +12,18 @@ folded-in user again when a subscriber joins that topic (``stars_ros.personalisa
 ("The ranker node") and docs/personalisation.md. Run with ``ros2 run stars_ros ranker`` or
 ``python -m stars_ros.ros.ranker --ros-args -p checkpoint:=PATH``.
 
-Threads: the executor thread does the serving. A scene callback takes every request
-already waiting on stars/scene, validates and queues them (beyond ``queue_depth`` waiting
-they are refused as ``overload``), and scores up to ``max_batch`` of them in one pass with
-one model snapshot; a guard condition brings the executor back for the rest, or for a
-fold-in solve, once other ready callbacks (feedback, ``~/reload``, parameters) have had
-their turn. Handing requests to a worker thread cost more in waiting for the GIL
-(docs/performance.md). The callbacks share the node's default, mutually exclusive callback
-group, so a multi-threaded executor keeps this order too.
+Threads: the executor thread does the serving. The scene callback validates and queues a
+request (beyond ``queue_depth`` waiting it is refused as ``overload``); the guard condition's
+callback scores up to ``max_batch`` of them in one pass with one model snapshot, or solves a
+fold-in. rclpy's executor takes one message per subscription per wait, and runs a node's
+subscriptions before its guard conditions: so while the scenes it takes had waited in the
+middleware, the guard condition's callback puts each batch off by one wait at a time, at most
+``queue_depth`` times in a row, and a flood fills the queue (and is refused as overload)
+rather than the middleware's history (dropped without a word); a steady stream is scored as
+it comes. Other ready callbacks (feedback, ``~/reload``,
+parameters) have their turn between two passes. Handing requests to a worker thread cost more
+in waiting for the GIL (docs/performance.md). The callbacks share the node's default,
+mutually exclusive callback group, so a multi-threaded executor keeps this order too.
 
 The work itself, ROS-free, is ``stars_ros.node.core.RankerCore``; this module declares the
 parameters (``node.core.PARAMETERS``; an override of a name it does not declare is warned
@@ -39,7 +43,6 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidHandle
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -58,6 +61,7 @@ from stars_ros.node.parameters import PARAMETERS, TOPICS, topic_qos
 from stars_ros.ros import usage
 from stars_ros.ros.markers import MarkerOutput
 from stars_ros.ros.qos_watch import NO_PUBLISHER_EVENTS, NO_SUBSCRIPTION_EVENTS, QosWatch
+from stars_ros.ros.replies import resend_dropped
 from stars_ros.ros.spinning import run_node, spin_until_shutdown
 from stars_ros.ros.typed_interface import TypedInterface
 from stars_ros.ros.unknown_parameters import warn_unknown_overrides
@@ -93,6 +97,9 @@ class RankerParts:
     (create the subscriptions, services and timers that serve). Mixed into a ``Node``."""
 
     core, _configured, _serving, _more_work = None, (), (), None  # before configure, after cleanup
+    _scoring_due = False  # the guard condition was triggered to score (by a scene, or a pass with more)
+    _scenes_meanwhile = _put_off = 0  # scenes taken since then that had waited; times in a row put off
+    _due_since = 0  # time.time_ns() when the scoring became due
 
     def _declare_parameters(self):
         self.params = {name: self.declare_parameter(name, spec[0], _descriptor(name)).value
@@ -101,14 +108,6 @@ class RankerParts:
         warn_unknown_overrides(self, 'ranker', PARAMETERS)
 
     def _configure(self):
-        # one torch thread (torch serves tabular models only, and is imported for them only)
-        os.environ['OMP_NUM_THREADS'] = '1'
-        if 'torch' in sys.modules:
-            sys.modules['torch'].set_num_threads(1)
-        # numpy's OpenBLAS spreads products above ~0.26 M multiply-adds (a fold-in solve over
-        # 200 ratings, a batch of scenes) over every core, and its idle workers then spin on the
-        # cores the executor, the DDS threads and the node's neighbours need
-        threadpool_limits(1, user_api='blas')
         durability = {True: DurabilityPolicy.TRANSIENT_LOCAL, False: DurabilityPolicy.VOLATILE}
         self.qos = {topic: QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                                       durability=durability[latched])
@@ -154,8 +153,8 @@ class RankerParts:
                          for topic, callback in callbacks.items()}
         for subscription in subscriptions.values():
             self.qos_watch.watch(subscription, publishes=False)
-        self._scene_subscription = subscriptions['stars/scene']
-        self._more_work = self.create_guard_condition(self._work)
+        self._scoring_due, self._scenes_meanwhile, self._put_off = False, 0, 0
+        self._more_work = self.create_guard_condition(self._on_more_work)
         self._serving = [*subscriptions.values(), self._more_work,
                          self.create_service(Trigger, '~/reload', self._on_reload),
                          self.create_service(ForgetPerson, '~/forget_person', self._on_forget_person,
@@ -164,6 +163,9 @@ class RankerParts:
                          *TypedInterface(self, self.core, self.params, self._more_work.trigger,
                                          self.qos_watch).entities]
         self._serving += self._activate_privacy()
+        for service in self._serving:
+            if isinstance(service, Service):  # answers to a client that called as it found the service
+                resend_dropped(self, service)
 
     def _configure_privacy(self):
         """With fleet sharing, the publisher of stars/forget_person (docs/privacy.md)."""
@@ -219,9 +221,12 @@ class RankerParts:
     def _publish(self, topic: str, text: str):
         try:
             self.publishers_by_topic[topic].publish(String(data=text))
-        except (InvalidHandle, _rclpy.RCLError):
-            if topic not in ('stars/errors', 'stars/user_model'):  # shutting down: a thread of close() (errors
-                raise  # are logged and recorded; a model whose write the close committed is in the store)
+        except (InvalidHandle, RuntimeError):  # RuntimeError: rclpy's RCLError
+            # a signal shut ROS down during the work: nothing goes out any more (what the work
+            # recorded is in the bag); shutting down, a thread of close() publishes errors (logged
+            # and recorded) and models (a model whose write the close committed is in the store)
+            if self.context.ok() and topic not in ('stars/errors', 'stars/user_model'):
+                raise
 
     def _publish_diagnostics(self):
         for topic, problem in self.qos_watch.new_mismatches():
@@ -238,17 +243,31 @@ class RankerParts:
         self.diagnostics_pub.publish(array)
 
     def _on_scene(self, msg: String, info: dict):
-        """Queue this request and those already waiting behind it (at most queue_depth per
-        call, so a flood cannot keep the executor from serving), then serve a batch."""
-        self.core.accept_scene(msg.data, _received(info))
-        subscription = self._scene_subscription
-        for _ in range(self.params['queue_depth']):
-            with subscription.handle:  # the next one waiting and its info, taken as the executor takes them
-                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-            if taken is None:
-                break
-            self.core.accept_scene(taken[0].data, _received(taken[1]))
-        self._work()
+        """Queue this request; the guard condition's callback scores it (``_on_more_work``)."""
+        received = _received(info)
+        self.core.accept_scene(msg.data, received)
+        if not self._scoring_due:
+            self._scoring_due, self._due_since = True, time.time_ns()
+            self._more_work.trigger()
+        elif received <= self._due_since:  # it waited in the middleware: more may wait behind it
+            self._scenes_meanwhile += 1
+
+    def _on_more_work(self):
+        """Score a batch, fold in, send what waits. A scene taken since this was triggered
+        (in this wait: subscriptions run first) that the middleware had received before the
+        scoring became due says more may wait there: the scoring is put off by one wait, at
+        most ``queue_depth`` times in a row, so that many requests waiting are taken per batch
+        scored, and those beyond the queue are refused as overload rather than dropped by the
+        middleware's history. A scene that came after is scored in this batch, at once."""
+        if self._scenes_meanwhile and self._put_off < self.params['queue_depth']:
+            self._scenes_meanwhile = 0
+            self._put_off += 1
+            self._more_work.trigger()
+            return
+        self._scenes_meanwhile = self._put_off = 0
+        self._scoring_due, self._due_since = self.core.work(), time.time_ns()
+        if self._scoring_due:
+            self._more_work.trigger()
 
     def _on_feedback(self, msg: String):
         if self.core.accept_feedback(msg.data):
@@ -294,10 +313,6 @@ class RankerParts:
         response.removed_counts = [int(count) for _, count in places]
         return response
 
-    def _work(self):
-        if self.core.work():
-            self._more_work.trigger()
-
     def _wake_work(self):
         """From the state store's thread: a committed model waits for the executor to send it."""
         guard = self._more_work
@@ -327,6 +342,18 @@ class RankerNode(RankerParts, Node):
         self._activate()
 
 
+def one_thread_per_library():
+    """The executables' threads, set in their ``main``, never by a node (one composed into
+    another process leaves that process's settings alone): numpy's and scipy's OpenBLAS spread
+    products above ~0.26 M multiply-adds (a fold-in solve over 200 ratings, a batch of scenes)
+    over every core, and their idle workers then spin on the cores the executor, the DDS
+    threads and the node's neighbours need; torch (tabular checkpoints only) likewise. One
+    thread each, unless the environment's OPENBLAS_NUM_THREADS or OMP_NUM_THREADS says otherwise."""
+    os.environ.setdefault('OMP_NUM_THREADS', '1')  # read by torch when a tabular checkpoint imports it
+    os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # read by a BLAS loaded later (scipy's, at configure)
+    threadpool_limits(int(os.environ['OPENBLAS_NUM_THREADS']), user_api='blas')  # those loaded now: numpy's
+
+
 def serve(node):
     """Spin ``node`` until shutdown, the imports and the model out of the collector's way."""
     gc.collect()
@@ -340,6 +367,7 @@ def main(args=None):
                                  'ros2 run stars_ros ranker --ros-args -p checkpoint:='
                                  '$(ros2 pkg prefix --share stars_ros)/models/socnav1_gat_stars.pt -p top_k:=3', args):
         return
+    one_thread_per_library()
     run_node('ranker', RankerNode, serve, (CheckpointError, ConfigError), args, close=RankerNode.close)
 
 

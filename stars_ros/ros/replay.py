@@ -10,6 +10,7 @@ at most every 5 s.
 """
 from __future__ import annotations
 
+import threading
 import time
 
 from mcap.exceptions import McapError
@@ -62,19 +63,24 @@ class Replay(Node):
         if missing:
             self.get_logger().warning(f'not in the bag, not played: {missing}; it holds {list(recorded)}')
         self._outputs = {t: self.create_publisher(String, t, _qos(recorded[t])) for t in topics if t in recorded}
+        self._stopped = threading.Event()  # a signal, or any other end of ROS, stops the playing
+        self.context.on_shutdown(self._stopped.set)
 
     def play(self) -> int:
-        """Publish everything; returns the number of messages played."""
+        """Publish everything, or until ROS shuts down; returns the number of messages played."""
         deadline = time.monotonic() + self.wait
         while time.monotonic() < deadline and not all(p.get_subscription_count() for p in self._outputs.values()):
-            time.sleep(0.1)
+            if self._stopped.wait(0.1):
+                return 0
         played, first, start = 0, None, time.monotonic()
         for topic, text, log_time in read_messages(self.bag, list(self._outputs)):
             if self.rate > 0:
                 first = log_time if first is None else first
                 delay = start + (log_time - first) / 1e9 / self.rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+                if delay > 0 and self._stopped.wait(delay):
+                    return played
+            if self._stopped.is_set():
+                return played
             self._outputs[topic].publish(String(data=text))
             played += 1
             self.get_logger().info(f'played a message on {self._outputs[topic].topic_name} ({played} in all)',

@@ -1,9 +1,13 @@
 """How the package's nodes run: ``rclpy.spin`` until a signal or a ROS shutdown, and the
-life of a node executable from ``rclpy.init`` to a clean shutdown, bounded in time."""
+life of a node executable from ``rclpy.init`` to a clean shutdown, bounded in time.
+
+Signals go through rclpy's own handlers (``rclpy.init``'s default ``SignalHandlerOptions.ALL``):
+on SIGINT or SIGTERM they shut the context down, which wakes the executor, and ``rclpy.spin``
+ends with ``ExternalShutdownException``, as in ros2/examples. rclpy then calls the Python
+handler it found; ``init`` puts in one that notes the signal and raises nothing, so no
+``KeyboardInterrupt`` lands in the middle of a callback, of rclpy's C++ code or of the ending."""
 from __future__ import annotations
 
-import ctypes
-import os
 import re
 import signal
 import sys
@@ -13,17 +17,24 @@ from typing import Callable
 import rclpy
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
+# rclpy exports its error types from its implementation module only (its own modules import them so)
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import LoggingSeverity, get_logger, get_logger_level, set_logger_level
+from rclpy.signals import SignalHandlerOptions
 
 from stars_ros.errors import CommandLineError
 from stars_ros.waiting import wait_for
 
 USAGE_ERROR = 2  # the exit status of a command line rcl or a parameter declaration refuses
 DESTROY_WAIT_S = 3.0  # longest wait for the middleware to destroy a node and shut down before closing anyway
-CLOSE_WAIT_S = 12.0  # longest wait for ``close`` then (the state store joins its writer for up to 10 s)
+CLOSE_WAIT_S = 12.0  # longest ``close`` then takes (the state store joins its writer for up to 10 s)
 SIGNAL_SHUTDOWN_WAIT_S = 1.0  # how long an error out of rclpy.spin may take to turn out to be a signal's shutdown
-_PY_EVAL_INPUT = 258  # Py_eval_input (Python.h)
+SIGNALLED = threading.Event()  # set by SIGINT or SIGTERM once ``init`` has run
+
+
+def _note_signal(number, frame) -> None:
+    """The Python handler rclpy's handlers call after shutting ROS down: the signal is noted."""
+    SIGNALLED.set()
 
 
 def _rcl_message(error: Exception) -> str:
@@ -33,35 +44,40 @@ def _rcl_message(error: Exception) -> str:
 
 
 def init(args=None) -> None:
-    """``rclpy.init(args)``; ``--ros-args`` rcl refuses (a params file it cannot open or parse,
-    an override, remap or log level it cannot read, an unknown ROS argument) raise
-    ``CommandLineError`` with rcl's reason. rcl's own "Failed to parse global arguments" log
-    line is held back: the error says more."""
+    """``rclpy.init(args)`` with rclpy's SIGINT and SIGTERM handlers, which call
+    ``_note_signal`` after theirs; a signal that came before them shuts ROS down at once.
+    ``--ros-args`` rcl refuses (a params file it cannot open or parse, an override, remap or
+    log level it cannot read, an unknown ROS argument) raise ``CommandLineError`` with rcl's
+    reason. rcl's own "Failed to parse global arguments" log line is held back: the error
+    says more."""
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, _note_signal)
     previous = get_logger_level('rcl')
     set_logger_level('rcl', LoggingSeverity.FATAL)
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.ALL)
     except _rclpy.UnknownROSArgsError as error:
         raise CommandLineError(f'unknown ROS arguments: {str(error).strip("[]")}') from None
     except _rclpy.RCLError as error:
         raise CommandLineError(_rcl_message(error)) from None
     finally:
-        if get_logger_level('rcl') == LoggingSeverity.FATAL:  # not set by the arguments (--log-level rcl:=...)
+        if get_logger_level('rcl') == LoggingSeverity.FATAL:  # not set by --log-level rcl:=...
             set_logger_level('rcl', previous)
+    if SIGNALLED.is_set():
+        rclpy.try_shutdown()
 
 
 def spin_until_shutdown(node) -> None:
-    """Spin ``node``; SIGINT, SIGTERM and a ROS shutdown return normally. A signal can land
-    inside rclpy's C++ code: between its check of the context and the wait set it then builds
-    (RCLError, seen once in CI), or while it converts a message it takes (RuntimeError "Unable
-    to convert call argument", seen in a clean-clone run). An error of either kind is a
-    shutdown too when the context stops being ok within SIGNAL_SHUTDOWN_WAIT_S (rclpy shuts it
-    down on its own thread); otherwise it is raised."""
+    """Spin ``node``; SIGINT, SIGTERM and a ROS shutdown return normally. A shutdown can come
+    between rclpy's check of the context and the wait set it then builds (RCLError, seen once
+    in CI), or while it converts a message it takes (RuntimeError "Unable to convert call
+    argument", seen in a clean-clone run). An error of either kind is a shutdown too when the
+    context stops being ok within SIGNAL_SHUTDOWN_WAIT_S; otherwise it is raised."""
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (_rclpy.RCLError, RuntimeError):
+    except RuntimeError:  # RCLError is one
         if not _shutting_down():
             raise
 
@@ -73,12 +89,13 @@ def _shutting_down() -> bool:
 
 def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown, fatal: tuple = (),
              args=None, ends: tuple = (), close: Callable | None = None) -> None:
-    """``rclpy.init(args)``, ``run(make_node())``, then destroy the node, ``close(node)`` and
-    shut ROS down, however it ended. A signal, or one of ``ends`` (exceptions the node ends
-    with on purpose), is a normal end; one of ``fatal`` is logged as ``name``'s fatal error
-    and exits with status 1. ``--ros-args`` that rcl refuses, and parameter values or names
-    the node refuses while it declares them, print one line, ``name: error: ...``, on stderr
-    and exit with status 2, as a command-line error."""
+    """``init(args)``, ``run(make_node())``, then destroy the node, ``close(node)`` and shut
+    ROS down, however it ended (``end``). A signal, or one of ``ends`` (exceptions the node
+    ends with on purpose), is a normal end, and so is an error of rclpy's while a signal shuts
+    ROS down (a node still starting when it came); one of ``fatal`` is logged as ``name``'s
+    fatal error and exits with status 1. ``--ros-args`` that rcl refuses, and parameter values
+    or names the node refuses while it declares them, print one line, ``name: error: ...``, on
+    stderr and exit with status 2, as a command-line error."""
     try:
         init(args)
     except CommandLineError as error:
@@ -94,106 +111,49 @@ def run_node(name: str, make_node: Callable, run: Callable = spin_until_shutdown
     except fatal as error:
         get_logger(name).fatal(str(error))
         raise SystemExit(1) from None
-    finally:
-        _Ending(name, node, close).run()
-
-
-class _Closing:
-    """``close(node)`` once, from whichever thread gets there first."""
-
-    def __init__(self, node, close: Callable | None):
-        self._node, self._close, self._lock, self._done = node, close, threading.Lock(), False
-
-    def __call__(self):
-        with self._lock:
-            if not self._done and self._node is not None and self._close is not None:
-                self._done = True
-                self._close(self._node)
-
-
-class _Ending:
-    """Destroy the node, ``close(node)``, shut ROS down; a signal meanwhile is ignored (a second
-    Ctrl-C would otherwise raise KeyboardInterrupt inside ``destroy_node``). A SIGINT whose
-    Python handler runs before the ending has ignored signals (at the first Python-level check,
-    which can be the ending's own first line; seen in CI), or after rclpy's shutdown put that
-    handler back, raises KeyboardInterrupt: that signal is the ending already under way, so
-    ``run`` goes on from the step it reached, each step done once. When the middleware has not
-    finished within DESTROY_WAIT_S (it has hung in Fast DDS's ``set_listener`` at shutdown), a
-    watchdog closes the node (the state store commits what waits) and ends the process with
-    status 0 once that is done or CLOSE_WAIT_S have passed."""
-
-    def __init__(self, name: str, node, close: Callable | None):
-        self.name, self.node = name, node
-        self.closing, self.finished = _Closing(node, close), threading.Event()
-        self.done: set = set()
-
-    def run(self) -> None:
-        while True:
-            try:
-                self._steps()
-                return
-            except KeyboardInterrupt:
-                continue
-
-    def _steps(self) -> None:
-        _ignore_signals()
-        if 'watchdog' not in self.done:
-            threading.Thread(target=self._watchdog, name='stars-shutdown-watchdog', daemon=True).start()
-            self.done.add('watchdog')
-        try:
-            if self.node is not None and 'destroyed' not in self.done:
-                self.done.add('destroyed')
-                self.node.destroy_node()
-            self.closing()
-            if 'shutdown' not in self.done:
-                self.done.add('shutdown')
-                rclpy.try_shutdown()
-            _ignore_signals()  # rclpy's shutdown puts back the handlers it found: Python's raises KeyboardInterrupt
-            _forget_handled_interrupt()
-        except KeyboardInterrupt:
-            raise  # ``run`` goes on, the watchdog still watching
-        except BaseException:
-            self.finished.set()
+    except Exception:
+        if not (SIGNALLED.is_set() and _shutting_down()):
             raise
-        self.finished.set()
-
-    def _watchdog(self):
-        if self.finished.wait(DESTROY_WAIT_S):
-            return
-        closer = threading.Thread(target=self.closing, name='stars-close', daemon=True)
-        closer.start()
-        closer.join(CLOSE_WAIT_S)
-        print(f'{self.name}: the middleware did not shut down within {DESTROY_WAIT_S:g} s; '
-              + ('closed, ' if not closer.is_alive() else f'close did not finish within {CLOSE_WAIT_S:g} s, ')
-              + 'exiting', file=sys.stderr, flush=True)
-        os._exit(0)
+    finally:
+        end(name, node, close)
 
 
-def _ignore_signals():
-    """Ignore SIGINT and SIGTERM from now on. A SIGINT that came while the thread waited in
-    rcl (rclpy's handler passes it on to Python's) raises KeyboardInterrupt at the first
-    Python-level check, which can be this very call (seen once in CI): that signal is the
-    ending already under way, so the handler is set again."""
-    for number in (signal.SIGINT, signal.SIGTERM):
-        while True:
+def end(name: str, node, close: Callable | None) -> None:
+    """Destroy the node, ``close(node)`` (the state store commits what waits, within
+    CLOSE_WAIT_S), shut ROS down. The middleware's part runs on a thread of its own: it has
+    hung in Fast DDS's ``set_listener`` at shutdown, and when it has not finished within
+    DESTROY_WAIT_S the node is closed anyway and the ending returns, saying so; the process
+    then exits with the status it has, that thread left behind (a daemon). An error of the
+    middleware's part is raised once the ending is done."""
+    destroyed, closed, errors = threading.Event(), threading.Event(), []
+
+    def middleware():
+        for step in (lambda: node is not None and node.destroy_node(), destroyed.set, closed.wait,
+                     rclpy.try_shutdown):
             try:
-                signal.signal(number, signal.SIG_IGN)
-                break
-            except KeyboardInterrupt:
-                continue
+                step()
+            except Exception as error:  # noqa: BLE001 - raised in the ending's own thread
+                errors.append(error)
+        destroyed.set()
+
+    ending = threading.Thread(target=middleware, name='stars-shutdown', daemon=True)
+    ending.start()
+    on_time = destroyed.wait(DESTROY_WAIT_S)
+    try:
+        if node is not None and close is not None:
+            close(node)
+    finally:
+        closed.set()
+    if not (on_time and _joined(ending, DESTROY_WAIT_S)):
+        print(f'{name}: the middleware did not shut down within {DESTROY_WAIT_S:g} s; closed, exiting',
+              file=sys.stderr, flush=True)
+    elif errors:
+        raise errors[0]
 
 
-def _forget_handled_interrupt():
-    """Let the process exit with its own status after a signal's KeyboardInterrupt was handled.
-    CPython marks a KeyboardInterrupt that ends code run by ``PyRun_String`` as unhandled even
-    when a caller catches it, and at exit then kills its own process with SIGINT (status -2, no
-    traceback); rclpy's extension runs Python code that way, so a Ctrl-C landing there ended a
-    node that had shut down cleanly with -2 (seen in CI). Each ``PyRun_String`` clears that mark
-    before it evaluates, so one of a constant does; signals are ignored by now, so nothing can
-    set it again."""
-    run = ctypes.pythonapi.PyRun_String
-    run.restype, run.argtypes = ctypes.py_object, [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
-    run(b'None', _PY_EVAL_INPUT, {}, {})
+def _joined(thread: threading.Thread, timeout: float) -> bool:
+    thread.join(timeout)
+    return not thread.is_alive()
 
 
 def _usage_error(name: str, message: str):

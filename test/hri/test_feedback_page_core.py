@@ -50,6 +50,50 @@ def test_an_answer_goes_to_the_ranker_as_the_served_users_feedback_and_the_next_
     assert page.next() == [] and page.view()['question']['number'] == 2
 
 
+NO_QUESTION = json.dumps({'kind': 'no_question', 'message': 'no scene to ask about', 'level': 'warning',
+                          'topic': '/stars/question_request', 'scene_id': None})
+REQUEST = ('stars/question_request', '{"user_id":"pat"}')
+
+
+def _ranking(user_id):
+    return json.dumps({'scene_id': 'x', 'user_id': user_id,
+                       'ranking': [{'action': 'navigate', 'score': 0.5}]})
+
+
+def test_a_question_not_chosen_yet_is_asked_for_again_at_the_persons_next_ranking_and_said_so_meanwhile():
+    page = FeedbackPage(PageSettings(via_bridge=False), Clock())
+    assert page.on_user_id('pat') == [REQUEST]
+    assert page.on_ranking(_ranking('pat')) == []  # a request is out: not asked twice
+    page.on_error(json.dumps({'kind': 'overload', 'message': 'full', 'level': 'error'}))
+    assert not page.view()['no_question']
+    version = page.version
+    page.on_error(NO_QUESTION)
+    assert page.view()['no_question'] and page.view()['phase'] == 'waiting' and page.version > version
+    assert page.on_ranking(_ranking('someone-else')) == []
+    assert page.on_ranking(_ranking('pat')) == [REQUEST]
+    assert page.on_ranking(_ranking('pat')) == []  # asked again once per no_question
+    page.on_error(NO_QUESTION)
+    assert page.on_ranking(_ranking('pat')) == [REQUEST]
+    page.on_question(question('pat'))
+    assert not page.view()['no_question'] and page.view()['phase'] == 'question'
+    page.on_error(NO_QUESTION)  # none out: another page's
+    assert not page.view()['no_question'] and page.on_ranking(_ranking('pat')) == []
+
+
+def test_a_request_a_ranker_may_not_have_had_is_sent_again():
+    """The page started while someone is served asked before the ranker's endpoints matched;
+    two of the person's rankings overtook a request unanswered."""
+    page = FeedbackPage(PageSettings(via_bridge=False), Clock())
+    assert page.on_ranker_joined() == []  # nobody served
+    assert page.on_user_id('pat') == [REQUEST]
+    assert page.on_ranker_joined() == [REQUEST]
+    page.on_question(question('pat'))
+    assert page.on_ranker_joined() == []  # a question is shown
+    assert page.on_user_id('kim') == [('stars/question_request', '{"user_id":"kim"}')]
+    assert page.on_ranking(_ranking('kim')) == []  # the answer may be on its way
+    assert page.on_ranking(_ranking('kim')) == [('stars/question_request', '{"user_id":"kim"}')]  # lost
+
+
 def test_through_the_bridge_an_anonymous_person_is_asked_under_no_id_and_told_it_is_not_kept():
     page = FeedbackPage(PageSettings(signing_key=('tablet', SECRET)), Clock())
     out = page.on_served_person('{"person_id": "p7", "anonymous": true}')

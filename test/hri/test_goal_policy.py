@@ -24,6 +24,13 @@ def ranking(scores: dict, p_best=None, scene_id='hri-1') -> dict:
 
 
 def step(policy, scores, person='alice', robot=ROBOT, p_best=None):
+    """As the bridge does: ``person`` served (its tick), then a ranking of a scene sent for them."""
+    policy.on_served(person)
+    return decide_for(policy, scores, person, robot, p_best)
+
+
+def decide_for(policy, scores, person, robot=ROBOT, p_best=None):
+    """A ranking of a scene sent while ``person`` was served, whoever is served now."""
     return policy.on_decision(decide(ranking(scores, p_best), 0.5, robot), person)
 
 
@@ -77,6 +84,30 @@ def test_another_person_sends_a_goal_and_a_person_leaving_cancels():
     assert not policy.on_served('bob').cancel
     assert policy.on_served(None).cancel
     assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}, person='bob').send is not None
+
+
+def test_after_the_served_person_leaves_their_cancelled_goal_is_not_sent_again_for_nobody():
+    """The bridge cancels the goal as they leave; the rankings that follow, of scenes sent for
+    nobody, send no goal at its place (identical or within the tolerances), nor do those of
+    scenes sent for them before they left; a placement elsewhere for nobody is a goal."""
+    policy = GoalPolicy()
+    assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}).send is not None
+    assert policy.on_served(None).cancel
+    for person in (None, 'alice', None):
+        left = decide_for(policy, {'back_50cm': 0.8, 'stay': 0.3}, person)
+        assert left.send is None and not left.cancel, left.reason
+    assert 'not sent again' in left.reason
+    elsewhere = decide_for(policy, {'back_50cm': 0.2, 'stay': 0.9}, None)
+    assert elsewhere.send is not None and elsewhere.send.x == pytest.approx(ROBOT.x)
+    assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}).send is not None  # served again: a goal again
+
+
+def test_nobody_served_gets_goals_and_a_ranking_from_before_a_change_sends_none():
+    policy = GoalPolicy()
+    assert step(policy, {'back_50cm': 0.8, 'stay': 0.3}, person=None).send is not None  # as at start-up
+    policy.on_served('bob')
+    stale = decide_for(policy, {'back_50cm': 0.2, 'stay': 0.9}, None)
+    assert stale.send is None and 'sent while nobody was served' in stale.reason
 
 
 def test_goal_frames_that_move_with_the_robot_need_the_opt_in():

@@ -242,6 +242,31 @@ def test_the_best_placement_is_a_pose_stamped_goal_in_the_navigation_frame(loop)
     assert {'score', 'score_sd', 'p_first_is_best', 'abstain'} <= set(decision)
 
 
+def _same_place(a: PoseStamped, b: PoseStamped, metres: float = 0.25, radians: float = 0.35) -> bool:
+    """Within the bridge's default goal_position_tolerance and goal_yaw_tolerance."""
+    def yaw(goal):
+        q = goal.pose.orientation
+        return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    turn = abs(math.atan2(math.sin(yaw(a) - yaw(b)), math.cos(yaw(a) - yaw(b))))
+    return math.hypot(a.pose.position.x - b.pose.position.x, a.pose.position.y - b.pose.position.y) <= metres \
+        and turn <= radians
+
+
+def test_as_the_served_person_leaves_their_goal_is_cancelled_and_not_sent_again_for_nobody(loop):
+    loop.engage({'alice': ENGAGED, 'bob': DISENGAGED, 'tmp': DISENGAGED})
+    assert loop.wait_user('alice')
+    decided = len(loop.decisions)
+    assert loop.client.wait(lambda: len(loop.decisions) > decided + 6, 30), loop.status()
+    cancelled, sent = int(loop.status().get('goals_cancelled', 0)), len(loop.goals)
+    followed = loop.goals[-1]  # alice's
+    loop.engage({'alice': DISENGAGED})
+    assert loop.wait_user('')
+    assert loop.client.wait(lambda: int(loop.status().get('goals_cancelled', 0)) > cancelled, 30), loop.status()
+    decided = len(loop.decisions)
+    assert loop.client.wait(lambda: len(loop.decisions) > decided + 8, 30), loop.status()
+    assert not [goal for goal in loop.client.snapshot(loop.goals)[sent:] if _same_place(goal, followed)]
+
+
 def test_implicit_outcomes_move_the_next_ranking_and_are_in_the_bag(loop):
     loop.engage({'alice': ENGAGED})
     assert loop.wait_user('alice')

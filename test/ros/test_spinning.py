@@ -4,12 +4,12 @@ import signal
 import subprocess
 import sys
 import threading
-import types
 
 import pytest
 import rclpy
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
+from ros_helpers import die_with_the_tests, domain_id, ros_env
 from stars_ros.ros import spinning
 
 
@@ -50,9 +50,11 @@ def test_an_error_of_rclpy_while_ros_runs_is_raised(monkeypatch, error):
 
 @pytest.fixture(autouse=True)
 def signal_handlers():
-    """run_node ignores signals while it shuts down: this process gets its own back."""
+    """``init`` puts in its own Python handlers: this process gets its own back, unsignalled."""
     kept = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    spinning.SIGNALLED.clear()
     yield
+    spinning.SIGNALLED.clear()
     for number, handler in kept.items():
         signal.signal(number, handler)
 
@@ -68,12 +70,16 @@ class _Node:
         self.calls.append('closed')
 
 
+def _fake_ros(monkeypatch, calls: list):
+    monkeypatch.setattr(rclpy, 'init', lambda args=None, **options: calls.append(('init', options)))
+    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: calls.append('shutdown'))
+
+
 @pytest.mark.parametrize('ending, status', [(KeyboardInterrupt(), None), (SystemExit(0), None),
                                             (ValueError('bad rate'), 1)])
 def test_run_node_ends_cleanly_and_exits_1_on_a_fatal_error(monkeypatch, ending, status):
     calls = []
-    monkeypatch.setattr(rclpy, 'init', lambda args=None: calls.append('init'))
-    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: calls.append('shutdown'))
+    _fake_ros(monkeypatch, calls)
     node = _Node()
 
     def run(running):
@@ -85,70 +91,98 @@ def test_run_node_ends_cleanly_and_exits_1_on_a_fatal_error(monkeypatch, ending,
         with pytest.raises(SystemExit) as exited:
             spinning.run_node('test', lambda: node, run, (ValueError,), close=_Node.close)
         assert exited.value.code == status
-    assert calls == ['init', 'shutdown'] and node.calls == ['destroyed', 'closed']
+    assert calls == [('init', {'signal_handler_options': rclpy.signals.SignalHandlerOptions.ALL}), 'shutdown']
+    assert node.calls == ['destroyed', 'closed']
 
 
-def test_a_middleware_that_hangs_in_destroy_node_still_closes_and_exits(monkeypatch, capsys):
-    """The watchdog closes the node (its store commits) and ends the process, status 0."""
-    monkeypatch.setattr(rclpy, 'init', lambda args=None: None)
-    monkeypatch.setattr(spinning, 'DESTROY_WAIT_S', 0.01)
-    exited, released = [], threading.Event()
+def test_a_signal_is_noted_and_raises_nothing_and_one_before_rclpy_shuts_ros_down(monkeypatch):
+    """After ``init``, the Python handler rclpy passes a signal on to only notes it; a signal
+    that came before rclpy's handlers were in (here: during ``rclpy.init``) shuts ROS down."""
+    calls = []
+    monkeypatch.setattr(rclpy, 'init', lambda args=None, **options: signal.raise_signal(signal.SIGTERM))
+    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: calls.append('shutdown'))
+    spinning.init()
+    assert spinning.SIGNALLED.is_set() and calls == ['shutdown']
+    signal.raise_signal(signal.SIGINT)  # no KeyboardInterrupt
 
-    def exit_process(status):  # the process would end here: release the hung destroy_node instead
-        exited.append(status)
-        released.set()
-    monkeypatch.setattr(spinning, 'os', types.SimpleNamespace(_exit=exit_process))
+
+def test_an_error_of_a_node_starting_as_a_signal_shuts_ros_down_is_a_clean_end(monkeypatch):
+    calls = []
+    _fake_ros(monkeypatch, calls)
+    monkeypatch.setattr(rclpy, 'ok', lambda: False)
+    spinning.SIGNALLED.set()
+
+    def make_node():
+        raise _rclpy.RCLError('the given context is not valid')
+    spinning.run_node('test', make_node)
+    assert calls[-1] == 'shutdown'
+    spinning.SIGNALLED.clear()  # no signal: the same error is raised
+    with pytest.raises(_rclpy.RCLError):
+        spinning.run_node('test', make_node)
+
+
+def test_an_error_destroying_the_node_is_raised_once_it_is_closed_and_ros_shut_down(monkeypatch):
+    calls = []
+    _fake_ros(monkeypatch, calls)
+    node = _Node()
+
+    def destroy_node():
+        raise RuntimeError('destroyed already')
+    node.destroy_node = destroy_node
+    with pytest.raises(RuntimeError, match='destroyed already'):
+        spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
+    assert node.calls == ['closed'] and calls[-1] == 'shutdown'
+
+
+def test_a_middleware_that_hangs_in_destroy_node_still_closes_and_returns(monkeypatch, capsys):
+    """The node is closed (its store commits) and the ending returns, saying why."""
+    calls = []
+    _fake_ros(monkeypatch, calls)
+    monkeypatch.setattr(spinning, 'DESTROY_WAIT_S', 0.05)
+    released = threading.Event()
     node = _Node()
     node.destroy_node = lambda: released.wait(60)  # Fast DDS busy in set_listener
-    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: None)
-    spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
-    assert exited == [0] and node.calls == ['closed']  # closed once, by the watchdog
-    assert 'test: the middleware did not shut down within 0.01 s; closed, exiting' in capsys.readouterr().err
-    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # a second Ctrl-C meanwhile raises nothing
+    try:
+        spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
+        assert node.calls == ['closed'] and 'shutdown' not in calls
+        expected = 'test: the middleware did not shut down within 0.05 s; closed, exiting'
+        assert expected in capsys.readouterr().err
+    finally:
+        released.set()
 
 
-@pytest.mark.parametrize('interrupted_call', [1, 2])
-def test_a_signal_whose_handler_runs_late_does_not_end_the_ending(monkeypatch, interrupted_call):
-    """A SIGINT's KeyboardInterrupt raised as the ending begins (the first ``_ignore_signals``,
-    before it ignored anything) or after rclpy's shutdown put Python's handler back (the
-    second): the node is still destroyed, closed and ROS shut down, each once."""
-    calls = []
-    monkeypatch.setattr(rclpy, 'init', lambda args=None: None)
-    monkeypatch.setattr(rclpy, 'try_shutdown', lambda: calls.append('shutdown'))
-    ignore, seen = spinning._ignore_signals, []
+_BUSY_NODE = '''
+import sys, time
+from rclpy.node import Node
+from stars_ros.ros import spinning
 
-    def late_signal():
-        seen.append(1)
-        if len(seen) == interrupted_call:
-            raise KeyboardInterrupt
-        ignore()
-    monkeypatch.setattr(spinning, '_ignore_signals', late_signal)
-    node = _Node()
-    spinning.run_node('test', lambda: node, _spin_raising(KeyboardInterrupt()), close=_Node.close)
-    assert calls == ['shutdown'] and node.calls == ['destroyed', 'closed']
-    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+class Busy(Node):
+    def __init__(self):
+        super().__init__('busy')
+        self.create_timer(0.001, self.work)
 
+    def work(self):  # Python code running when the signals land
+        end = time.monotonic() + 0.05
+        while time.monotonic() < end:
+            pass
+        print('working', flush=True)
 
-_INTERRUPTED_IN_PYRUN_STRING = '''
-import ctypes
-evaluate = ctypes.pythonapi.PyRun_String
-evaluate.restype, evaluate.argtypes = ctypes.py_object, [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]
-
-def interrupted(node=None):  # a Ctrl-C whose KeyboardInterrupt is raised in code rclpy's extension evaluates
-    evaluate(b'raise KeyboardInterrupt', 257, {}, {})  # Py_file_input
+spinning.run_node('busy', Busy, close=lambda node: print('closed', flush=True))
 '''
 
 
-@pytest.mark.parametrize('ended_by, status', [('caught', -signal.SIGINT), ('run_node', 0)])
-def test_a_signal_handled_inside_code_run_by_pyrun_string_still_exits_0(ended_by, status):
-    """CPython exits -2 at the end of a process whose PyRun_String code ended in a
-    KeyboardInterrupt, even one caught (``caught``: what a node's Ctrl-C gave in CI); a node
-    that ``run_node`` ended cleanly exits 0. The process is the subject: its exit status."""
-    ending = {'caught': 'try:\n    interrupted()\nexcept KeyboardInterrupt:\n    pass\n',
-              'run_node': ('import rclpy\nfrom stars_ros.ros import spinning\n'
-                           'rclpy.init, rclpy.try_shutdown = (lambda args=None: None), (lambda: None)\n'
-                           'spinning.run_node("test", lambda: types.SimpleNamespace(destroy_node=lambda: None), '
-                           'interrupted)\n')}[ended_by]
-    child = subprocess.run([sys.executable, '-c', _INTERRUPTED_IN_PYRUN_STRING + 'import types\n' + ending],
-                           capture_output=True, text=True, timeout=120)
-    assert child.returncode == status, child.stderr
+@pytest.mark.parametrize('signals', [[signal.SIGINT], [signal.SIGINT, signal.SIGINT, signal.SIGTERM]])
+def test_signals_landing_in_a_busy_callback_end_the_process_with_status_0(signals):
+    """The process is the subject: its exit status and what it printed."""
+    child = subprocess.Popen([sys.executable, '-c', _BUSY_NODE], env=ros_env(domain_id(16)), text=True,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, preexec_fn=die_with_the_tests)
+    try:
+        assert child.stdout.readline().strip() == 'working'
+        for number in signals:
+            child.send_signal(number)
+        output, _ = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    assert child.returncode == 0, output
+    assert 'closed' in output and 'Traceback' not in output and 'KeyboardInterrupt' not in output, output

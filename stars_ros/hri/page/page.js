@@ -43,7 +43,9 @@ function show(view) {
   $('waiting').hidden = view.phase !== 'waiting';
   $('asking').hidden = view.phase !== 'question';
   $('thanks').hidden = view.phase !== 'thanks';
-  $('waiting-title').textContent = view.served ? 'Thinking of a question for you…' : 'The robot has no question for you right now.';
+  $('waiting-title').textContent = !view.served ? 'The robot has no question for you right now.'
+    : view.no_question ? 'The robot has not seen anything to ask you about yet: it will ask you once it has.'
+    : 'Thinking of a question for you…';
   $('anonymous-note').hidden = !view.not_kept;
   $('anonymous-note').textContent = NOT_KEPT[view.not_kept] || '';
   current = view.question;
