@@ -36,7 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
-from stars_ros.ros.loopback import domain_id, ros_env, stop  # noqa: E402
+from test_support.loopback import domain_id, ros_env, stop  # noqa: E402
 
 SERVICE = '/ranker/rank_candidates'
 PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
