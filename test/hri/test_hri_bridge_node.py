@@ -154,7 +154,7 @@ def _wanted(people) -> list:
 
 def test_scene_positions_match_the_poses_to_a_centimetre(loop):
     count = len(loop.scenes)
-    assert loop.client.wait(lambda: len(loop.scenes) > count + 1, 10)
+    assert loop.client.wait(lambda: len(loop.scenes) > count + 1, 30)
     got, want = _positions(loop.scenes[-1]), _wanted(POSES)  # everyone tracked, the anonymous 'tmp' too
     assert len(got) == len(want)
     for (gx, gy), (wx, wy) in zip(got, want):
