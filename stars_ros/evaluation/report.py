@@ -214,7 +214,8 @@ def timing_table(timing: dict, load_seconds: float) -> list[str]:
              'sweep': 'sparsity sweep (fractions < 1)'}
     for stage, seconds in timing['by_stage'].items():
         lines.append(f'| {names.get(stage, stage)} | {seconds:.0f} | {seconds / busy:.0%} |')
-    lines += ['', '| Model | selection s | final s | sweep s | s/epoch (full pool) |', '| --- | --- | --- | --- | --- |']
+    lines += ['', '| Model | selection s | final s | sweep s | s/epoch (full pool) |',
+              '| --- | --- | --- | --- | --- |']
     for label, stages in timing['by_model'].items():
         per_epoch = timing['seconds_per_epoch_full_pool'].get(label)
         lines.append(f"| {label} | {stages.get('inner', 0):.0f} | {stages.get('final', 0):.1f} | "

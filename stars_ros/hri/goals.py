@@ -15,7 +15,8 @@ An abstain, or the served person leaving, cancels the goal followed (a navigatio
 then cancelled; a goal topic has nothing to send). A decision about a scene sent while
 someone else was served than now (a ranking that was on its way as the served person left or
 changed) sends nothing, and after the served person left, a goal for nobody at the place of
-the one cancelled is not sent again: it would be the goal just cancelled, for nobody. Goals are compared in the navigation
+the one cancelled is not sent again: it would be the goal just cancelled, for nobody. Goals are compared in the
+navigation
 frame, which the bridge requires to be one that does not move with the robot (``map``,
 ``odom``) unless a goal in the robot's frame is asked for (``robot_frame_goal_refusal``).
 """

@@ -5,7 +5,8 @@ file; empty: a generated scene), converted to REP 103 by ``data.frames``; they a
 as p1, p2, ... (latched /humans/persons/tracked), recognised (anonymous false), and their
 poses go out as TF frames person_<id> in ``base_frame`` where tf2_ros exists, else on
 hri/transforms (the bridge's ``pose_source:=topic``); the robot stands at the origin of
-``map`` (a static map -> base_frame transform), so the bridge's goals have a frame. A script of ``period`` seconds loops:
+``map`` (a static map -> base_frame transform), so the bridge's goals have a frame. A script of ``period`` seconds
+loops:
 
     0 s   p1 engages; p2 and p3 form a group; p1 and p2 gaze at each other
     1/4   an anonymous passer-by ('passer') walks across, engaged; an anonymous 'face_new' engages

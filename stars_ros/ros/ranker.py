@@ -127,7 +127,8 @@ class RankerParts:
         self.qos_watch = QosWatch(self)
         for publisher in [*self.publishers_by_topic.values(), self.diagnostics_pub, markers_pub]:
             self.qos_watch.watch(publisher, publishes=True)
-        type_hash = next((str(i.topic_type_hash) for i in self.get_publishers_info_by_topic(markers_pub.topic_name)), '')
+        type_hash = next((str(i.topic_type_hash)
+                          for i in self.get_publishers_info_by_topic(markers_pub.topic_name)), '')
         self._configured = [*self.publishers_by_topic.values(), self.diagnostics_pub, markers_pub]
         # imported here, not at the top: the node's DDS participant is up, and discoverable by
         # peers that start with it, during the half second this import and the checkpoint take
@@ -190,7 +191,8 @@ class RankerParts:
                                                     event_callbacks=NO_SUBSCRIPTION_EVENTS)
             self.qos_watch.watch(subscription, publishes=False)
             entities.append(subscription)
-        entities.append(self.create_timer(RETENTION_CHECK_PERIOD, lambda: self.core.apply_retention(in_background=True)))
+        entities.append(self.create_timer(RETENTION_CHECK_PERIOD,
+                                          lambda: self.core.apply_retention(in_background=True)))
         return entities
 
     def _on_forget_message(self, msg: String):

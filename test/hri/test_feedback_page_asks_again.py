@@ -8,7 +8,6 @@ import signal
 import time
 
 import pytest
-from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from ros_helpers import RosClient, domain_id, start_node, stop

@@ -353,7 +353,8 @@ def test_the_real_tf_path(hri_msgs, tmp_path):
     client = RosClient(domain, listen=False)
     scenes = client.collect('/stars/scene', RELIABLE)
     world = World(client.node, 'base_link', use_tf=True)
-    bridge = start_node('stars_ros.ros.hri_bridge', domain, {'pose_source': 'tf', 'max_age': 1.0, 'wait_for_ranker': False},
+    bridge = start_node('stars_ros.ros.hri_bridge', domain,
+                        {'pose_source': 'tf', 'max_age': 1.0, 'wait_for_ranker': False},
                         tmp_path / 'bridge.log')
     try:
         world.track(['alice'])

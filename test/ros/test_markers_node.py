@@ -108,7 +108,7 @@ def test_explained_rankings_and_markers_live_and_in_the_bag(tiny_checkpoint, syn
             messages.check('ranking', ranking)
             assert ranking['ranking'] and all('why' in entry for entry in ranking['ranking'])
 
-        for scene_id, array in live.items():
+        for array in live.values():
             assert array.markers[0].action == Marker.DELETEALL  # the previous scene's markers go
             assert {m.header.frame_id for m in array.markers} == {FRAME}
         _check_scene(_added(live['actions']), scene)

@@ -194,7 +194,8 @@ def test_fold_in_bounds_ratings_per_user_and_users(tiny_checkpoint, scenes, tmp_
         _rank(client, scenes, 'stranger')
         for scene in scenes[:3]:
             client.feedback({'user_id': USER, 'scene_id': scene['identifier'], 'action': 'navigate', 'score': 1.0})
-        assert client.wait(lambda: all(r.get('personalised_from') == 2 for r in _rank(client, scenes, 'window').values()), 20)
+        assert client.wait(lambda: all(r.get('personalised_from') == 2
+                                       for r in _rank(client, scenes, 'window').values()), 20)
         client.feedback({'user_id': 'other', 'scene_id': scenes[0]['identifier'], 'action': 'navigate', 'score': 0.0})
         assert client.wait(lambda: any(e['kind'] == 'user_models' and USER in e['message'] for e in client.errors), 20)
         assert all('personalised_from' not in r for r in _rank(client, scenes, 'evicted').values())

@@ -92,7 +92,7 @@ def _settle(client, scenes, attempts: int = 10):
     since, so the queue has had room made in it: a refusal comes back faster than a ranking
     is made), then, once that ranking is in, a request refused at once, whose error follows
     every earlier error."""
-    for attempt in range(attempts):
+    for _ in range(attempts):
         scene_id = f'{SETTLED}{time.monotonic_ns()}'
         client.scene({'scene_id': scene_id, 'user_id': KNOWN_USER, 'graph': scenes[0]})
         if client.wait(lambda: client.ranking_for(scene_id) is not None or any(
@@ -172,7 +172,7 @@ def error_totals_before(ranker) -> dict:
 
 def test_ranking_equals_predictor_rank(ranker, scenes, predictor):
     _, client = ranker
-    for k, scene in enumerate(scenes[:20]):
+    for scene in scenes[:20]:
         client.scene({'scene_id': scene['identifier'], 'user_id': KNOWN_USER, 'graph': scene})
     assert client.wait(lambda: all(client.ranking_for(s['identifier']) for s in scenes[:20]), 30)
     for scene in scenes[:20]:
@@ -612,7 +612,8 @@ def test_a_flood_beyond_queue_depth_is_refused_as_overload_and_serving_goes_on(t
     try:
         client.wait_ready(process, START_TIMEOUT, _probe(scenes))
         for k in range(1000):
-            client.scene(json.dumps({'scene_id': f'flood-{k}', 'user_id': KNOWN_USER, 'graph': scenes[k % len(scenes)]}))
+            client.scene(json.dumps({'scene_id': f'flood-{k}', 'user_id': KNOWN_USER,
+                                     'graph': scenes[k % len(scenes)]}))
 
         _settle(client, scenes)  # ranked once the queue has room again: the node served on
         ranked, refused = _answers(client, 'flood-')

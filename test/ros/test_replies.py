@@ -49,7 +49,7 @@ class _Service:
     def send_response(self, response, header):
         if self.drops:
             self.drops -= 1
-            warnings.warn(DROPPED, RuntimeWarning)
+            warnings.warn(DROPPED, RuntimeWarning, stacklevel=2)
             return
         self.sent.append((response, header))
 
@@ -74,7 +74,7 @@ def test_a_client_never_found_is_logged_and_other_warnings_are_issued_as_they_we
     assert node.logged == [f'{_Service.srv_name}: a response could not be sent: the client that called was not '
                            'discovered within 0.2 s']
     plain = _Service(drops=0)
-    plain.send_response = lambda response, header: warnings.warn('something else', UserWarning)
+    plain.send_response = lambda response, header: warnings.warn("something else", UserWarning, stacklevel=2)
     replies.resend_dropped(node, plain)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always')

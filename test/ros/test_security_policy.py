@@ -17,8 +17,9 @@ SUBSCRIBES = {'stars/scene', 'stars/user_id', 'stars/feedback', 'stars/question_
               'stars/typed/feedback'}
 PUBLISHES = {'stars/ranking', 'stars/errors', 'stars/question', 'stars/user_model', 'stars/markers', 'diagnostics',
              'rosout', 'parameter_events'}
-SERVES = {'reload', 'rank_actions', 'rank_candidates', 'choose_question', 'describe_parameters', 'get_parameter_types', 'get_parameters', 'get_type_description',
-          'list_parameters', 'set_parameters', 'set_parameters_atomically'}
+SERVES = {'reload', 'rank_actions', 'rank_candidates', 'choose_question', 'describe_parameters',
+          'get_parameter_types', 'get_parameters', 'get_type_description', 'list_parameters', 'set_parameters',
+          'set_parameters_atomically'}
 
 
 @pytest.fixture
