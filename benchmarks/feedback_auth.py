@@ -35,7 +35,7 @@ from offline_training.common import DEFAULT_SOCNAV1  # noqa: E402
 from stars_ros.evaluation.provenance import git_state, machine  # noqa: E402
 from stars_ros import feedback_auth, messages  # noqa: E402
 from stars_ros.data.scene_source import read_scenes, scene_request  # noqa: E402
-from stars_ros.node.core import RankerCore
+from stars_ros.node.core import RankerCore  # noqa: E402
 from stars_ros.node.parameters import PARAMETERS, TOPICS  # noqa: E402
 
 SECRET = bytes(range(32))

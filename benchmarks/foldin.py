@@ -395,7 +395,8 @@ def main(argv=None) -> int:
               f"most {account.get('delayed_processing_ms_max')} ms from reception to publication (any ranking: "
               f"{account.get('processing_ms_max')} ms)")
     results = {'checkpoint': args.checkpoint, 'fingerprint': predictor.fingerprint, 'settings': vars(args),
-               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(), 'git': git_state(),
+               'target_p99_ms': TARGET_P99_MS, 'offline': offline, 'node': node, 'machine': machine(),
+               'git': git_state(),
                'load_average': [round(v, 2) for v in os.getloadavg()]}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=1) + '\n')

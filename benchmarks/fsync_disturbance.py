@@ -3,10 +3,11 @@
     python benchmarks/fsync_disturbance.py [--out results/fsync_disturbance.json]
 
 The ranker commits each batch of feedback to its state store with an fsync (so accepted
-feedback survives a crash); a journal appended and fsync'd per rating came before it. In benchmarks/foldin.py other users' p99 rose when feedback streamed in even with
-fold-in off. This isolates the disk: the benchmark's echo node (a trivial callback) is timed
-back to back, one request in flight, in blocks that cycle through ``--conditions`` (the
-order rotating from block to block, so the VM's drift reaches all alike). In every condition
+feedback survives a crash); a journal appended and fsync'd per rating came before it. In
+benchmarks/foldin.py other users' p99 rose when feedback streamed in even with fold-in off.
+This isolates the disk: the benchmark's echo node (a trivial callback) is timed back to back,
+one request in flight, in blocks that cycle through ``--conditions`` (the order rotating from
+block to block, so the VM's drift reaches all alike). In every condition
 but ``quiet`` a separate process writes a 3 kB line (a feedback rating's size)
 ``--fsync-rate`` times a second (a generous feedback rate), in one of these ways:
   * ``write``: to the OS only, no sync (the control: a process waking up and writing);

@@ -213,7 +213,8 @@ def own_work(count: int) -> dict:
                 request = messages.parse_scene_request(text, params['max_message_bytes'])
                 parsed = time.perf_counter()
                 scored = rank_batch(core.predictor, [Pending(request, request.user_id, 0)], params['top_k'],
-                                    core.personalisation.uncertainty, (params['explain'], params['explain_entities']))[0]
+                                    core.personalisation.uncertainty, (params['explain'],
+                                                                       params['explain_entities']))[0]
                 ranked = time.perf_counter()
                 reply = messages.dumps(messages.ranking_payload(
                     request, request.user_id, False, scored.ranked, core.predictor.fingerprint, 0.0, scored.action,

@@ -102,7 +102,7 @@ GNNExplainer ({g['epochs']} epochs, node mask, regression; first {g['scenes']} s
 
 Captum (for `CaptumExplainer`, integrated gradients) is not installed, so only GNNExplainer is compared.
 Wall time {results['wall_seconds']:.0f} s on {results['machine']['cpus']} CPUs, one torch and one BLAS thread.
-"""
+"""  # noqa: E501 - a markdown table: one row a line
 
 
 def main(argv=None) -> int:

@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     try:
         finished = finish_interrupted(args.record_folder)
-        for user_id, removed in finished.items():
+        for removed in finished.values():
             print(f'finished an interrupted forget: {json.dumps(removed, sort_keys=True)}')
         if args.user_id is not None:
             removed = forget(args.record_folder, args.user_id)

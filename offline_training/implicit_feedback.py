@@ -80,7 +80,8 @@ def main(argv=None) -> int:
         return 0
     started = time.time()
     results = {**run_record(program_argv('offline_training.implicit_feedback', argv)),
-               'ns': list(ns), 'ks': list(ks), 'flips': args.flips, 'draws': args.draws, 'exact_up_to': args.exact_up_to,
+               'ns': list(ns), 'ks': list(ks), 'flips': args.flips, 'draws': args.draws,
+               'exact_up_to': args.exact_up_to,
                'pool': args.pool,
                'folds': args.folds, 'seed': args.seed,
                'datasets': {name: run_dataset(name, args, ns, ks) for name in args.datasets}}

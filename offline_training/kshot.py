@@ -83,7 +83,8 @@ def parse_args(argv=None):
     parser.add_argument('--retrain-ks', type=int, nargs='+',
                         help='the ks at which the model is also retrained (default: every k; 0 is always fitted)')
     parser.add_argument('--known-test', type=float, default=0.2,
-                        help="share of the training people's examples held out for their calibration (default: %(default)s)")
+                        help="share of the training people's examples held out for their calibration "
+                             '(default: %(default)s)')
     parser.add_argument('--random-sets', type=int, default=64,
                         help='seeded sets of k pool examples that random answers are averaged over where there are '
                              'too many to take every one (default: %(default)s)')

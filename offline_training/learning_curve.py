@@ -185,7 +185,8 @@ def main(argv=None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     header = run_record(program_argv('offline_training.learning_curve', argv))
     (folder / 'config.yaml').write_text(yaml.safe_dump(
-        {**config.to_dict(), 'protocol_resolved': config.protocol_config.to_dict(), 'data_fingerprint': data.fingerprint},
+        {**config.to_dict(), 'protocol_resolved': config.protocol_config.to_dict(),
+         'data_fingerprint': data.fingerprint},
         sort_keys=False))
     write_run_files(folder, header)
     print(f'{len(tasks)} fits of {config.joint_epochs} joint epochs; {fits.jobs} job(s) ({fits.settings["kind"]}); '

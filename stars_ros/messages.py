@@ -341,7 +341,8 @@ def ranking_payload(request: SceneRequest, user_id: str | None, known_user: bool
             entry['score_sd'] = r.score_sd
         if r.why is not None:
             entry['why'] = {'content': r.why.content, 'personal': r.why.personal, 'scene': r.why.scene,
-                            'entities': [{'id': i, 'kind': kind, 'effect': effect} for i, kind, effect in r.why.entities]}
+                            'entities': [{'id': i, 'kind': kind, 'effect': effect} for i, kind,
+                                         effect in r.why.entities]}
         entries.append(entry)
     reply = {
         'scene_id': request.scene_id,

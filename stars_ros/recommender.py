@@ -227,7 +227,7 @@ class StarsRecommender:
         """The torch model and its vocabularies (``model.fitted``): what ``save`` writes,
         what the offline programs fine-tune (``training.StarsTrainer.resume``). A loaded
         model's is read from its checkpoint when first asked for (serving never needs it)."""
-        self.predictor  # NotFittedError before fit or load
+        _ = self.predictor  # NotFittedError before fit or load
         if self._fitted is None:
             from stars_ros.model.checkpoint import load_checkpoint  # the torch modules: only for training
 
@@ -363,7 +363,8 @@ class StarsRecommender:
         child = StarsRecommender(self.config)
         child._serve(trainer, Predictor.from_model(trainer), self.data)
         parent = self._checkpoint
-        child._checkpoint = {'data': dict(parent.get('data', {})), 'metrics': {'parent': dict(parent.get('metrics', {}))},
+        child._checkpoint = {'data': dict(parent.get('data', {})), 'metrics': {'parent': dict(parent.get('metrics',
+                                                                                                         {}))},
                              'provenance': {'parent': dict(parent.get('provenance', {}))}}
         return Refitted(child, solved, failed, losses, fine_tuned_on)
 

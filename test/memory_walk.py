@@ -38,7 +38,7 @@ def reachable(root, outside=()) -> list:
 
 def _filled(cell) -> bool:
     try:
-        cell.cell_contents
+        _ = cell.cell_contents
     except ValueError:
         return False
     return True

@@ -40,7 +40,8 @@ def test_socnav1_format_line_parses(scenes):
 
 
 def test_action_and_scene_candidates(scenes):
-    request = messages.parse_scene_request(json.dumps({'scene_id': 's', 'graph': scenes[0], 'candidates': ['navigate']}))
+    request = messages.parse_scene_request(json.dumps({'scene_id': 's', 'graph': scenes[0],
+                                                       'candidates': ['navigate']}))
     assert request.actions == ('navigate',)
     payload = scene_request('s', scenes[1], placements=3)
     request = messages.parse_scene_request(json.dumps(payload))
@@ -87,7 +88,8 @@ def test_both_graph_and_candidate_scenes_refused_clearly(scenes):
 
 
 def test_repeated_candidate_labels_refused(scenes):
-    payload = {'scene_id': 's', 'candidates': [{'candidate': 'a', 'graph': scenes[0]}, {'candidate': 'a', 'graph': scenes[1]}]}
+    payload = {'scene_id': 's', 'candidates': [{'candidate': 'a', 'graph': scenes[0]}, {'candidate': 'a',
+                                                                                        'graph': scenes[1]}]}
     with pytest.raises(messages.BadMessage, match='labels repeat'):
         messages.parse_scene_request(json.dumps(payload))
 
@@ -96,7 +98,8 @@ def test_feedback():
     feedback = messages.parse_feedback('{"user_id": "g", "scene_id": "s", "action": "navigate", "score": 0.25}')
     assert (feedback.user_id, feedback.scene_id, feedback.action, feedback.candidate, feedback.score) == \
         ('g', 's', 'navigate', None, 0.25)
-    assert messages.parse_feedback('{"user_id": "g", "scene_id": "s", "candidate": "left", "score": 1}').candidate == 'left'
+    feedback = messages.parse_feedback('{"user_id": "g", "scene_id": "s", "candidate": "left", "score": 1}')
+    assert feedback.candidate == 'left'
     for text, kind in [('{"user_id": "g", "scene_id": "s", "score": 1}', 'schema'),
                        ('{"user_id": "g", "scene_id": "s", "action": "a", "candidate": "b", "score": 1}', 'schema'),
                        ('{"user_id": "g", "scene_id": "s", "action": "a", "score": "high"}', 'schema'),

@@ -43,7 +43,7 @@ def test_the_node_and_the_front_door_give_identical_scores_sds_and_fold_ins(stra
             ranked = {r.name: (r.score, r.score_sd) for r in front_door.rank(user, scene, uncertainty=True)}
             assert served == ranked  # bit for bit: one model, one arithmetic
     ratings = [(scenes[0], 'navigate', 0.9), (scenes[1], 'navigate', 0.2)]
-    for (scene, action, score), scene_id in zip(ratings, scene_ids):
+    for (_, action, score), scene_id in zip(ratings, scene_ids):
         core.accept_feedback(messages.dumps({'user_id': 'newcomer', 'scene_id': scene_id, 'action': action,
                                              'score': score}))
         drain(core)

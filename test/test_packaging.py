@@ -19,11 +19,11 @@ ROS = 'ROS'  # provided by a ROS install (requirements-rclpy.txt on a machine wi
 LIBRARIES = {
     'rclpy': ('rclpy', ROS), 'rcl_interfaces': ('rcl_interfaces', ROS), 'std_msgs': ('std_msgs', ROS),
     'std_srvs': ('std_srvs', ROS), 'diagnostic_msgs': ('diagnostic_msgs', ROS),
-    'visualization_msgs': ('visualization_msgs', ROS), 'geometry_msgs': ('geometry_msgs', ROS),
+    'visualization_msgs': ('visualization_msgs', ROS),
     'lifecycle_msgs': ('lifecycle_msgs', ROS),  # rclpy.lifecycle's (the managed ranker)
     'stars_ros_msgs': ('stars_ros_msgs', ROS),  # this repository's interfaces/stars_ros_msgs, built beside it
     'ament_index_python': ('ament_index_python', ROS), 'launch': ('launch', ROS), 'launch_ros': ('launch_ros', ROS),
-    'geometry_msgs': ('geometry_msgs', ROS),  # hri_bridge's goals and transforms
+    'geometry_msgs': ('geometry_msgs', ROS),  # the ranker's scenes, hri_bridge's goals and transforms
     'hri_msgs': ('hri_msgs', ROS), 'tf2_ros': ('tf2_ros', ROS),  # ROS4HRI, only in hri_bridge and hri_world
     'nav2_msgs': ('nav2_msgs', ROS), 'action_msgs': ('action_msgs', ROS),  # the bridge's NavigateToPose goals
     'numpy': ('python3-numpy', 'numpy'), 'yaml': ('python3-yaml', 'pyyaml'), 'pandas': ('python3-pandas', 'pandas'),

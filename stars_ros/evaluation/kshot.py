@@ -171,7 +171,8 @@ class Design:
     def predictive_design(self, design: tuple, theta: np.ndarray, covariance: np.ndarray) -> tuple:
         """``predictive`` of rows whose ``rows(...)`` is ``design``."""
         x, c, _, actions = design
-        return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions, covariance)
+        return self.inference.to_rating_scale(x @ theta + c, actions), self.uncertainty.rating_sd(x, actions,
+                                                                                                  covariance)
 
     def reveal_order(self, person: Person, strategy: str, count: int) -> list:
         """The first ``count`` pool examples ``strategy`` asks about, in order."""

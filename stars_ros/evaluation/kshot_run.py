@@ -120,7 +120,8 @@ def fit_rows_of(fold: tuple, k: int) -> np.ndarray:
     _, _, _, train, people, _, _ = fold
     if k == 0:
         return train
-    return np.sort(np.concatenate([train, *(person.rows(range(min(k, len(person.pool)))) for person in people.values())]))
+    return np.sort(np.concatenate([train, *(person.rows(range(min(k,
+                                                                  len(person.pool)))) for person in people.values())]))
 
 
 def test_rows(people: dict, k: int) -> tuple[list, np.ndarray]:
@@ -225,7 +226,8 @@ def coverage_part(y: np.ndarray, mean: np.ndarray, sd: np.ndarray, nu: float, dr
 
 def retrained_ks(settings) -> list:
     """The ks whose fits run: 0 (the fold's model) and those of ``--retrain-ks`` (default: all)."""
-    return sorted({0, *(settings.ks if settings.retrain_ks is None else [k for k in settings.retrain_ks if k in settings.ks])})
+    chosen = settings.ks if settings.retrain_ks is None else [k for k in settings.retrain_ks if k in settings.ks]
+    return sorted({0, *chosen})
 
 
 def fold_test(fold: tuple) -> np.ndarray:
@@ -244,7 +246,8 @@ def run(settings: 'KShotSettings', config, data, fits, log=print, on_fold=None) 
 
     def submit(folds):  # the largest fits first, so that the last wave is short
         experiments = {fold[:2]: with_settings(config.to_dict(), selection[fold[:2]]['chosen']) for fold in folds}
-        order = sorted(((fold, k) for fold in folds for k in retrained_ks(settings)), key=lambda f: -len(fit_rows_of(*f)))
+        order = sorted(((fold, k) for fold in folds for k in retrained_ks(settings)),
+                       key=lambda f: -len(fit_rows_of(*f)))
         for fold, k in order:
             submitted[fold[:2] + (k,)] = executor.submit(fit_rows, experiments[fold[:2]], fit_rows_of(fold, k),
                                                          fold_test(fold), k == 0)
@@ -464,24 +467,27 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
     lines += ['', f"Calibration: share of held-out ratings inside the central predictive intervals "
                   f"(new people: {header['strategies'][0]} questions, up to {CALIBRATION_DRAWS} of its draws at "
                   'each k; pooled over folds; ratings: those of one draw).', '',
-              '| people | k | ratings | mean score_sd | ν | ' + ' | '.join(f'{float(l):.0%}' for l in levels) + ' |',
+              '| people | k | ratings | mean score_sd | ν | '
+              + ' | '.join(f'{float(level):.0%}' for level in levels) + ' |',
               '| --- | --- | --- | --- | --- |' + ' --- |' * len(levels)]
     rows = [('new', k, calibration['new'][k]) for k in calibration.get('new', {})]
     if 'known' in calibration:
         rows.append(('known', '–', calibration['known']))
     for who, k, cells in rows:
-        lines.append(f"| {who} | {k} | {cells['n']} | {cells['mean_sd']:.4f} | {', '.join(f'{v:g}' for v in cells['nu'])} | "
-                     + ' | '.join(f'{100 * cells[l]:.1f}' for l in levels) + ' |')
+        nus = ', '.join(f'{v:g}' for v in cells['nu'])
+        lines.append(f"| {who} | {k} | {cells['n']} | {cells['mean_sd']:.4f} | {nus} | "
+                     + ' | '.join(f'{100 * cells[level]:.1f}' for level in levels) + ' |')
     by_fold = [r for r in result['records'] if 'calibration' in r]
     if by_fold:
         folds = sorted({(r['seed'], r['fold']) for r in by_fold})
         cells = {(r['seed'], r['fold'], r['k']): r['calibration'] for r in by_fold}
-        lines += ['', 'The same per fold (new people; ' + ', '.join(f'{float(l):.0%}' for l in levels) + '):', '',
+        lines += ['', 'The same per fold (new people; ' + ', '.join(f'{float(level):.0%}' for level in levels) + '):',
+                  '',
                   '| k | ' + ' | '.join(f'seed {s} fold {f}' for s, f in folds) + ' |',
                   '| --- |' + ' --- |' * len(folds)]
         for k in sorted({r['k'] for r in by_fold}):
             lines.append(f'| {k} | ' + ' | '.join(
-                ', '.join(f'{100 * cells[s, f, k][l]:.1f}' for l in levels) if (s, f, k) in cells else '–'
+                ', '.join(f'{100 * cells[s, f, k][level]:.1f}' for level in levels) if (s, f, k) in cells else '–'
                 for s, f in folds) + ' |')
     if checks:
         lines += ['', 'Goals:', '']
@@ -499,7 +505,8 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
         for method, k in checks.get('hand_over', {}).items():
             lines.append(f'- {method} at or below the {BASE_ENCODER} in every fold from k = '
                          + ('(not at any k)' if k is None else f'{k} on'))
-        worst = max((abs(100 * cells[l] - 100 * float(l)) for _, _, cells in rows for l in levels), default=0.0)
+        worst = max((abs(100 * cells[level] - 100 * float(level)) for _, _, cells in rows for level in levels),
+                    default=0.0)
         lines.append(f"- interval coverage within ±3 points of nominal: {'met' if worst <= 3 else 'NOT met'} "
                      f'(largest gap {worst:.1f} points)')
     fit_seconds = [f['seconds'] for f in result['fits']]

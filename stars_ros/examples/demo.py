@@ -54,7 +54,8 @@ def parse_args(argv=None):
     parser.add_argument('--data-root', type=Path, default=SOCNAV1, help='SocNav1 root (default: %(default)s)')
     parser.add_argument('--scenes', type=int, default=8, help='scenes per person (default: %(default)s)')
     parser.add_argument('--placements', type=int, default=6, choices=range(2, len(PLACEMENTS) + 1),
-                        metavar=f'2..{len(PLACEMENTS)}', help='robot placements ranked per scene (default: %(default)s)')
+                        metavar=f'2..{len(PLACEMENTS)}',
+                        help='robot placements ranked per scene (default: %(default)s)')
     parser.add_argument('--rate', type=float, default=4.0, help='scenes per second per person (default: %(default)s)')
     parser.add_argument('--record-folder', type=Path, help="where the ranker records (default: a new temporary "
                         "folder, so that no earlier run's folded-in users are restored)")
@@ -232,7 +233,8 @@ def run(args) -> int:
         theirs = {e['candidate']: e['score'] for e in twin['ranking']}
         gap = max(abs(e['score'] - theirs.get(e['candidate'], np.inf)) for e in served['ranking'])
         print(f"\nTyped service /ranker/rank_candidates (stars_ros_msgs, metres), the placements of "
-              f"{chosen[0][0]['identifier']} again: {ranking_line(user_a, served, score_decimals(served, twin)).strip()} "
+              f"{chosen[0][0]['identifier']} again: "
+              f"{ranking_line(user_a, served, score_decimals(served, twin)).strip()} "
               f'(largest difference from the JSON ranking above: {gap:.1e})')
         for n, (_, rating_a, rating_b) in enumerate(chosen):
             for user, rating in ((user_a, rating_a), (user_b, rating_b)):

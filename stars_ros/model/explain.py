@@ -110,7 +110,8 @@ def removal_effects(predictor, user_id, scenes, scene_ids=None) -> list:
         h = predictor.inference.encode(encoded, len(inputs))
         rows = (np.full(len(scenes), UNKNOWN) if scene_ids is None
                 else predictor.scene_rows(list(scene_ids)))
-        scores = predictor.unclipped_scores(user_id, encoded, h, np.repeat(rows, [len(found) + 1 for found in entities]))
+        scores = predictor.unclipped_scores(user_id, encoded, h, np.repeat(rows,
+                                                                           [len(found) + 1 for found in entities]))
     results, start = [], 0
     for found in entities:
         block = scores[start:start + len(found) + 1]

@@ -256,7 +256,8 @@ class Predictor:
         if self.user_model(user_id) is None:
             return np.zeros((len(h), len(self.actions)))
         inference = self._inference
-        return inference.scores(h, self._user_row(user_id), scene_rows) - inference.scores(h, self._stranger, scene_rows)
+        return inference.scores(h, self._user_row(user_id), scene_rows) - inference.scores(h, self._stranger,
+                                                                                           scene_rows)
 
     def unclipped_scores(self, user_id, inputs, h: np.ndarray, scene_rows: np.ndarray,
                          plain: np.ndarray | None = None) -> np.ndarray:

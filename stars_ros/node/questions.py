@@ -69,7 +69,7 @@ def choose_question(personalisation, user_id: str, requests: list, recent_scenes
         personalisation.scene_received(request.scene_id, text)
         personalisation.scene_ranked(request.scene_id, text, predictor, h)
         offered += candidates_of(predictor, request, h)
-    for scene_id, message, encoded in remembered:
+    for _, message, encoded in remembered:
         request = messages.parse_scene_request(message)
         mine = encoded is not None and encoded[0] is predictor
         if not requests or mine:

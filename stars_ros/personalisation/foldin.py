@@ -168,8 +168,8 @@ class FoldIn:
         self._rows = collections.OrderedDict()  # id(Rating) -> (rating, x row, y = z - c, hand_over_shift)
         self._lock = threading.Lock()
         scale_mixture_posterior(np.ones((1, self.dim + 1)), np.zeros(1), np.ones(1), self.population,
-                                self._population_precision, self._population_logdet)  # a process's first LAPACK solve costs
-        # milliseconds: paid at load, not by the first feedback
+                                self._population_precision, self._population_logdet)
+        # a process's first LAPACK solve costs milliseconds: paid at load, not by the first feedback
 
     def _implicit_noise(self, variance: float | None, scale) -> np.ndarray:
         """z-scale noise variance an implicit outcome adds, per action, on rating ``scale``."""
@@ -408,7 +408,8 @@ class FoldIn:
         if lam > 0:  # implicit outcomes weigh less here too: rows scaled by their noise ratio
             weight = np.sqrt(self.noise[actions] / self.rating_noise(ratings))[:, None]
             theta = solve_ridge(x * weight, y * weight[:, 0], self.prior(user_id), lam)
-            covariance = float(self.noise.mean()) * np.linalg.inv((x * weight).T @ (x * weight) + lam * np.eye(len(theta)))
+            weighted = x * weight
+            covariance = float(self.noise.mean()) * np.linalg.inv(weighted.T @ weighted + lam * np.eye(len(theta)))
         else:
             theta, covariance = self.posterior(x, y, actions, user_id, [r.implicit for r in ratings])
         return UserModel(theta[:-1], float(theta[-1]), len(ratings), lam, covariance)

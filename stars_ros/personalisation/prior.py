@@ -177,7 +177,8 @@ def population(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     norm = float(mean @ mean)
     mean_weight = 1.0 if size <= 2 or norm == 0 else max(0.0, 1.0 - (size - 2) * spread / norm)
     return mean * mean_weight, covariance, {'covariance': 'ledoit-wolf', 'shrinkage': round(float(shrinkage), 6),
-                                            'mean': 'james-stein towards 0', 'mean_weight': round(float(mean_weight), 6),
+                                            'mean': 'james-stein towards 0', 'mean_weight': round(float(mean_weight),
+                                                                                                  6),
                                             'users': int(users)}
 
 

@@ -132,7 +132,7 @@ def read_logs(paths, predictor, forgotten=()) -> LogRatings:
             items += read_log_file(path, found)
         items.sort(key=lambda item: item[2])  # log time: rotated files and recovered feedback interleave
         scenes = {}
-        for channel, text, log_time in items:
+        for channel, text, _ in items:
             found.messages += 1
             topic = _topic(channel)
             if topic is None:
@@ -239,7 +239,8 @@ def feedback_data(recommender, ratings: dict, original: RatingData | None) -> Ra
     index = {}
     for user, user_ratings in ratings.items():
         for rating in user_ratings:
-            key = rating.scene_id if rating.scene_id in recommender.scene_vocabulary else f'feedback:{scene_digest(rating.scene)}'
+            key = (rating.scene_id if rating.scene_id in recommender.scene_vocabulary
+                   else f'feedback:{scene_digest(rating.scene)}')
             if key not in index:
                 index[key] = len(keys)
                 keys.append(key)

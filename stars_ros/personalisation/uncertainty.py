@@ -11,8 +11,9 @@ for a person the checkpoint knows, else the population prior). So
   unclipped predictive, whose mean the clipped score is.
 - **intervals**: the predictive is a Student-t with that standard deviation and the prior's
   ν degrees of freedom (``prior.student_t_nu``; ν = ∞ is the Gaussian): the central
-  ``level`` interval is score ± ``student_t_quantile(0.5 + level / 2, ν)`` · score_sd. Real rating errors crowd the mean more than a Gaussian of
-  their variance says, so its 50 % interval is narrower and its 95 % one a little wider.
+  ``level`` interval is score ± ``student_t_quantile(0.5 + level / 2, ν)`` · score_sd. Real rating
+  errors crowd the mean more than a Gaussian of their variance says, so its 50 % interval is
+  narrower and its 95 % one a little wider.
 - **p_first_is_best**: the probability that the first entry's expected score is truly the
   highest of the ranking's, under the uncertainty of θ (noise excluded: it concerns what the
   person would rate on average). For more than two entries it has no closed form, so it is

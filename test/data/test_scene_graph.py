@@ -103,7 +103,8 @@ def test_open_polygon_and_no_humans_are_fine():
 
 
 def test_unknown_fields_allowed():
-    featurise(scene(extra={'anything': 1}, humans=[{'id': 1, 'xPos': 0, 'yPos': 50, 'orientation': 0, 'v': 2}], links=[]))
+    featurise(scene(extra={'anything': 1}, humans=[{'id': 1, 'xPos': 0, 'yPos': 50, 'orientation': 0, 'v': 2}],
+                    links=[]))
 
 
 @pytest.mark.parametrize('bad, message', [

@@ -17,7 +17,8 @@ OPTIONS = {'gat': [{'heads': 4}, {'heads': 1}], 'rgcn': [{}, {'num_bases': 3}]}
 def _case_list():
     for name in GRAPH_BACKBONES:
         for options in OPTIONS.get(name, [{}]):
-            yield pytest.param(name, options, id=f"{name}-{'-'.join(f'{k}{v}' for k, v in options.items()) or 'default'}")
+            yield pytest.param(name, options,
+                               id=f"{name}-{'-'.join(f'{k}{v}' for k, v in options.items()) or 'default'}")
 
 
 CASES = list(_case_list())
@@ -76,7 +77,8 @@ def test_serving_form_counts_parallel_edges_and_serves_a_lone_robot(name, option
     features = rng.normal(size=(3, len(NODE_FEATURES))).astype(np.float32)
     parallel = SceneGraph(x=features, edge_index=np.array([[1, 1, 1, 2, 0], [0, 0, 0, 1, 2]]),
                           edge_type=np.array([0, 0, 2, 1, 4]))
-    lone = SceneGraph(x=features[:1], edge_index=np.zeros((2, 0), dtype=np.int64), edge_type=np.zeros(0, dtype=np.int64))
+    lone = SceneGraph(x=features[:1], edge_index=np.zeros((2, 0), dtype=np.int64), edge_type=np.zeros(0,
+                                                                                                      dtype=np.int64))
     encoder = _encoder(name, options, seed=4)
     for graphs in ([parallel], [lone], [parallel, lone]):
         serving = encoder.serving_form()(graphs)

@@ -46,7 +46,8 @@ def test_rating_scale_and_batches_of_mixed_scenes():
     user_0 = (inference.user_rows[0], inference.user_offsets[0])
     scores = inference.scores(h, user_0, np.array([1, UNKNOWN]))
     assert scores.dtype == np.float64
-    assert scores.tolist() == [pytest.approx([1.8 * 2 + 3, -6.2 * 0.5 + 1]), pytest.approx([1.4 * 2 + 3, -0.6 * 0.5 + 1])]
+    assert scores.tolist() == [pytest.approx([1.8 * 2 + 3, -6.2 * 0.5 + 1]), pytest.approx([1.4 * 2 + 3,
+                                                                                            -0.6 * 0.5 + 1])]
 
 
 def test_base_and_mf_variants_match_the_model():

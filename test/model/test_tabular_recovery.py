@@ -58,7 +58,8 @@ def test_stars_recovers_what_base_cannot_through_the_protocol(planted):
     assert stars < 3 * NOISE, rmse
 
 
-@pytest.mark.parametrize('backbone', ['resmlp', 'dcnv2', 'graceae', pytest.param('fttransformer', marks=pytest.mark.slow)])
+@pytest.mark.parametrize('backbone', ['resmlp', 'dcnv2', 'graceae', pytest.param('fttransformer',
+                                                                                 marks=pytest.mark.slow)])
 def test_every_tabular_backbone_recovers_it(planted, backbone):
     train, test = split_rows(planted, 0.2, 0)
     rmse = {}

@@ -246,7 +246,8 @@ def test_a_full_disk_keeps_serving_reports_recording_and_stores_the_feedback_onc
     assert wait_for(lambda: woken_and_drained(node, core) and {m['user_id'] for m in node.on('stars/user_model')} == {
         f'person-{k}' for k in range(len(sent))}, 30), 'the models were not published once stored'
     core.close()
-    assert [text for topic, text, _ in recording.read_messages(core.recorder.path) if topic == '/stars/feedback'] == sent
+    assert [text for topic, text,
+            _ in recording.read_messages(core.recorder.path) if topic == '/stars/feedback'] == sent
     with state.open_reader(tmp_path) as store:
         people = store.people()
     assert [p.user_id for p in people] == [f'person-{k}' for k in range(len(sent))]

@@ -201,7 +201,7 @@ def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root
     results = json.loads((out / 'results.json').read_text())
     held_out = [set(people) for people in results['folds']['0']]
     assert len(results['selection']) == 2
-    for entry, people in zip(results['selection'], held_out):
+    for entry, _ in zip(results['selection'], held_out):
         errors = entry['validation_mse']
         assert set(errors) == {'{"joint_epochs": 1}', '{"joint_epochs": 3}'}
         assert np.isfinite(list(errors.values())).all()  # no selection fit failed

@@ -3,7 +3,6 @@ each user from the union of their ratings, so they serve the same model to the l
 duplicates and their own messages change nothing, another checkpoint's models are ignored
 with one warning, garbage is reported and changes nothing, and a restart keeps the peers'
 ratings. test_fleet_node.py checks the same over DDS between ranker processes."""
-import itertools
 import json
 
 import numpy as np
@@ -109,7 +108,7 @@ def test_simultaneous_feedback_converges_to_one_model_whatever_the_order(tiny_ch
     last = {name: published_models(node)[-1] for name, (node, _) in zip('abc', robots)}
     assert all(len(json.loads(text)['ratings']) == 3 for text in last.values())
     counts = [len(node.published) for node, _ in robots]
-    for (node, core) in robots:
+    for (_, core) in robots:
         deliver(list(last.values()), core)
     assert [len(node.published) for node, _ in robots] == counts
 

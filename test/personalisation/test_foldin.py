@@ -106,7 +106,8 @@ def test_prior_is_the_trained_row_or_the_shrunk_population_mean(predictor, tiny_
     row = predictor.served.user_vocabulary.row('a')
     trained = np.append(model.user_embedding.weight[row].detach().numpy(), model.user_bias.weight[row, 0].item())
     assert np.allclose(foldin.prior('a'), trained, atol=1e-6)
-    rows = np.concatenate([model.user_embedding.weight.detach().numpy(), model.user_bias.weight.detach().numpy()], axis=1)
+    rows = np.concatenate([model.user_embedding.weight.detach().numpy(), model.user_bias.weight.detach().numpy()],
+                          axis=1)
     weight = foldin.user_prior.details['mean_weight']  # James-Stein, towards the scene-only θ = 0
     assert 0 <= weight <= 1
     assert np.allclose(foldin.prior('never-seen'), weight * rows.mean(0), atol=1e-6)

@@ -9,7 +9,8 @@ import pytest
 from stars_ros import messages
 from stars_ros.model.predictor import Predictor
 from stars_ros.errors import OutOfScaleError
-from stars_ros.personalisation.foldin import FoldIn, Rating, check_feedback_score, gaussian_posterior, rating_from_feedback
+from stars_ros.personalisation.foldin import (FoldIn, Rating, check_feedback_score, gaussian_posterior,
+                                              rating_from_feedback)
 
 
 @pytest.fixture()
@@ -97,10 +98,12 @@ def test_the_offline_refit_folds_an_implicit_outcome_in_as_implicit(tiny_checkpo
     with recording.Recorder(tmp_path, {}, name='session') as recorder:
         for k, scene in enumerate(scenes[:4]):
             recorder.write('/stars/scene', json.dumps({'scene_id': f's{k}', 'graph': scene}), 10 ** 9 + 2 * k)
-            recorder.write('/stars/feedback', json.dumps({'user_id': 'newbie', 'scene_id': f's{k}', 'action': 'navigate',
+            recorder.write('/stars/feedback', json.dumps({'user_id': 'newbie', 'scene_id': f's{k}',
+                                                          'action': 'navigate',
                                                           'score': 1.0, 'implicit': True}), 10 ** 9 + 2 * k + 1)
     out = tmp_path / 'refit.pt'
-    assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(tmp_path / 'session'), '--out', str(out)]) == 0
+    assert refit.main(['--checkpoint', str(tiny_checkpoint), '--logs', str(tmp_path / 'session'), '--out',
+                       str(out)]) == 0
     parent, child = Predictor.load(tiny_checkpoint), Predictor.load(out)
     foldin = FoldIn(parent)
     messages_ = [{'user_id': 'newbie', 'scene_id': f's{k}', 'action': 'navigate', 'score': 1.0, 'implicit': True}

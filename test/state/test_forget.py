@@ -147,7 +147,8 @@ def test_rankings_are_served_while_the_disk_part_of_a_forget_runs(folder, tiny_c
     drain(core)
     rankings = {r['scene_id']: r for r in node.on('stars/ranking')}
     assert {f'meanwhile-{i}' for i in range(3)} <= set(rankings) and not answers
-    assert core.diagnostics()[2]['not_recorded_while_forgetting'] == 3  # their request, its ranking, the stranger warning
+    # their request, its ranking, the stranger warning:
+    assert core.diagnostics()[2]['not_recorded_while_forgetting'] == 3
     release.set()
     assert erase.done.wait(60)
     drain(core)
