@@ -56,7 +56,8 @@ from threadpoolctl import threadpool_limits
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.kshot import STRATEGIES
 from stars_ros.evaluation.provenance import program_argv, refuse_uncommitted, run_record
-from stars_ros.evaluation.kshot_run import SELECTABLE, KShotSettings, retrained_ks, run, write_results
+from stars_ros.evaluation.kshot_report import write_results
+from stars_ros.evaluation.kshot_run import SELECTABLE, KShotSettings, retrained_ks, run
 from stars_ros.model.config import ExperimentConfig
 
 from .common import DEFAULT_SOCNAV1, add_executor_options, build_executor, read_inputs, setup_logging

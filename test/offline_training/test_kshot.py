@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from offline_training import kshot
-from stars_ros.evaluation import kshot_run
+from stars_ros.evaluation import kshot_report, kshot_run
 from stars_ros.evaluation.kshot import (EXACT_SETS, STRATEGIES, Design, Person, annotator_folds, coverage, known_split,
                                        random_sets, reveal_pools)
 from stars_ros import StarsRecommender
@@ -178,9 +178,9 @@ def test_the_hand_over_k_is_where_the_fold_in_stays_at_or_below_the_base_encoder
     records = [record(0, 0, 3.0, 2.0), record(1, 0, 3.0, 2.0), record(0, 1, 1.0, 2.0), record(1, 1, 2.5, 2.0),
                record(0, 2, 1.0, 2.0), record(1, 2, 2.0, 2.0), record(0, 5, 2.1, 2.0), record(1, 5, 1.0, 2.0),
                record(0, 10, 1.0, 2.0), record(1, 10, 1.0, 2.0)]
-    assert kshot_run.hand_over_k(records, 'fold-in (x)') == 10  # k = 2 holds in both folds, k = 5 not in fold 0
-    assert kshot_run.hand_over_k(records[:6], 'fold-in (x)') == 2
-    assert kshot_run.hand_over_k([record(0, 0, 3.0, 2.0)], 'fold-in (x)') is None
+    assert kshot_report.hand_over_k(records, 'fold-in (x)') == 10  # k = 2 holds in both folds, k = 5 not in fold 0
+    assert kshot_report.hand_over_k(records[:6], 'fold-in (x)') == 2
+    assert kshot_report.hand_over_k([record(0, 0, 3.0, 2.0)], 'fold-in (x)') is None
 
 
 def test_settings_are_chosen_per_fold_on_its_training_people_only(synthetic_root, synthetic, tmp_path, monkeypatch):
