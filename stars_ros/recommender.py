@@ -10,19 +10,17 @@
 
 Also: ``predict_batch`` (many (user, scene, action) at once), ``rank_scenes`` (candidate
 scenes, e.g. robot placements, best first), ``test`` (held-out figures on data rows),
-``refit`` (folded-in or logged users made trained ones), and ``score_sd`` / ``why`` on
-predictions and rankings (``uncertainty=True``, ``explain=True``).
+``refit`` (folded-in or logged users made trained ones), ``placement_map`` (a person's scores
+of the robot at every cell of a grid), and ``score_sd`` / ``why`` on predictions and rankings
+(``uncertainty=True``, ``explain=True``).
 
 A *scene* is either a scene id the data knew, as written in its files (a string), or a
 scene's content: a scene-graph dict (msg_schemas/scene_graph.schema.json) for graph models,
 a feature row for tabular ones. Ids are looked up in the data the recommender was fitted
 on, or the ``data`` given to ``load``; a checkpoint alone knows ids only as rows of q_i and
-b_i, not their content. A checkpoint does not store the scenes' content: a graph model's
-scenes are the data set itself (SocNav1's are thousands of annotated scenes, under their own
-licence), and a prediction, a ``why`` and a fold-in all need that content, not an id. So a
-model loaded without ``data`` takes scenes as content, and an id raises UnknownSceneError
-saying to pass ``data``. (The node meets the same limit the same way: a scene request
-carries its graph, and its scene id only selects the trained q_i, b_i.)
+b_i, not their content (a graph model's scenes are the data set itself, under its own licence).
+So a model loaded without ``data`` takes scenes as content, and an id raises UnknownSceneError
+saying to pass ``data``, as a scene request to the node carries its graph.
 
 ``predict`` returns a ``Prediction``: a ``float`` (the score on the rating scale, clipped to
 it), so it adds and compares as one, carrying Surprise's fields ``user``, ``scene``,
