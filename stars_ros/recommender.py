@@ -34,12 +34,9 @@ solved from, 0 for none) and ``known_scene`` (has trained q_i, b_i). A reason is
 for a term the variant has (``base`` has neither; ``user_bias`` no scene term). ``rank``
 returns a ``Ranking``, a list with the same ``details``.
 
-Serving goes through the one serving form the ranker node uses: the recommender holds a
-``Predictor`` (``predictor``) over a ``model.serving.ServedModel``, built from the content
-the checkpoint holds, whether ``fit`` made it in memory or ``load`` read it (the node's
-``Predictor.load``); ``fold_in`` solves the user with ``personalisation.foldin.FoldIn`` and
-serves them through ``Predictor.set_user_model``.
-``save`` writes a weights-only checkpoint (``model.checkpoint``) that ``load`` and the node
+Serving goes through the one serving form the ranker node uses: a ``Predictor`` over a
+``model.serving.ServedModel`` of the checkpoint's content, whether ``fit`` made it or ``load``
+read it, and the fold-in of ``personalisation.stack.serving_stack``. ``save`` writes a weights-only checkpoint (``model.checkpoint``) that ``load`` and the node
 read; folded-in users are served state, not part of it (the node keeps them in its state
 file, ``refit`` writes them into a checkpoint as trained rows).
 
