@@ -243,6 +243,12 @@ class StarsRecommender:
         return self._recipe.now(stage, epoch)
 
     @property
+    def recipe(self):
+        """The ``personalisation.recipe.Recipe`` of the latest ``fit`` (its hold-out fit
+        among it), None for a loaded model."""
+        return self._recipe
+
+    @property
     def history(self) -> dict:
         """Training losses per epoch of the latest ``fit``, by stage ('pretrain', 'joint'),
         as they grow during it (empty for a loaded model)."""
