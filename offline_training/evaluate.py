@@ -57,7 +57,8 @@ def parse_args(argv=None):
                         help='merge config/eval_quick.yaml (fewer folds and epochs, tiny model)')
     parser.add_argument('--backbones', help='comma-separated subset of the config\'s backbones')
     parser.add_argument('--threads', type=int, default=1,
-                        help='torch threads per job (default: %(default)s; more busy-wait and collapse on a shared machine)')
+                        help='torch threads per job (default: %(default)s; more busy-wait and collapse on a '
+                             'shared machine)')
     parser.add_argument('--device', help="where every fit trains: 'cpu', 'cuda' or 'cuda:N' (default: the "
                                          "config's experiment.training.device, else cpu); jobs share the GPU")
     parser.add_argument('--out', required=True, help='results folder (created; the run name is the config\'s)')
@@ -134,7 +135,8 @@ def main(argv=None) -> int:
     print(f'{name}: {len(model_specs(config))} models × {len(config.seeds) * config.folds} folds; '
           f'{fits.jobs} job(s) × {threads} thread(s) on {device}{where}; writing {folder}', flush=True)
     if previous:
-        print(f'resuming: {len(previous)} entries in the earlier records.jsonl; their fits are not run again', flush=True)
+        print(f'resuming: {len(previous)} entries in the earlier records.jsonl; their fits are not run again',
+              flush=True)
     with (folder / 'records.jsonl').open('w') as stream:
         def keep(entry):
             stream.write(json.dumps(entry, default=json_default) + '\n')

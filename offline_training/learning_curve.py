@@ -30,7 +30,8 @@ from stars_ros.model.config import Int, KeyedError, Section, TrainConfig, read_y
 from stars_ros.errors import ConfigError, StarsError
 from stars_ros.evaluation.executors import FitFailure, FitTask, run_fits
 from stars_ros.evaluation.folds import make_folds
-from stars_ros.evaluation.protocol import DISPLAY, ProtocolConfig
+from stars_ros.evaluation.protocol import ProtocolConfig
+from stars_ros.evaluation.specs import DISPLAY
 from stars_ros.evaluation.stats import mean_sd
 from stars_ros.evaluation.plots import label_axis, mean_band, pyplot, save_png
 from stars_ros.evaluation.provenance import program_argv, run_record, write_run_files

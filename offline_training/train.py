@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     started = time.perf_counter()
     recommender = StarsRecommender(config)
     pretrain = config.training.pretrain_epochs if 'content' in config.model.parts else 0
-    try:  # the one recipe: every training rating, the prior's noise from a fit on less (model.recipe)
+    try:  # the one recipe: every training rating, the prior's noise from a fit on less (personalisation.recipe)
         recommender.fit(data, train, on_epoch=None if args.quiet else
                         Progress(recommender, pretrain, config.training.joint_epochs))
     except StarsError as error:

@@ -36,9 +36,9 @@ returns a ``Ranking``, a list with the same ``details``.
 
 Serving goes through the one serving form the ranker node uses: a ``Predictor`` over a
 ``model.serving.ServedModel`` of the checkpoint's content, whether ``fit`` made it or ``load``
-read it, and the fold-in of ``personalisation.stack.serving_stack``. ``save`` writes a weights-only checkpoint (``model.checkpoint``) that ``load`` and the node
-read; folded-in users are served state, not part of it (the node keeps them in its state
-file, ``refit`` writes them into a checkpoint as trained rows).
+read it, and the fold-in of ``personalisation.stack.serving_stack``. ``save`` writes a
+weights-only checkpoint (``model.checkpoint``) that ``load`` and the node read; folded-in users
+are served state, not part of it (the node's store keeps them, ``refit`` makes them trained rows).
 
 Serving imports neither training, torch-geometric nor pandas: ``fit``, ``refit``, ``test``,
 ``save`` of a loaded model and ``load_dataset`` bring them in when called (``fitted``), so
@@ -171,7 +171,7 @@ class StarsRecommender:
         self.config = _config(config)
         self._predictor: Predictor | None = None
         self._stack: ServingStack | None = None  # the predictor's fold-in and uncertainty, once needed
-        self._recipe = None  # the model.recipe.Recipe of the latest fit (None for a loaded model)
+        self._recipe = None  # the personalisation.recipe.Recipe of the latest fit (None for a loaded model)
         self._fitted: FittedModel | None = None  # the torch model; a loaded one's is read when first needed
         self._path = None  # the checkpoint a loaded model came from
         self._catalogue: SceneCatalogue | None = None
@@ -225,29 +225,30 @@ class StarsRecommender:
         _ = self.predictor  # NotFittedError before fit or load
         if self._fitted is None:
             from stars_ros.model.checkpoint import load_checkpoint  # the torch modules: only for training
-
             self._fitted = load_checkpoint(self._path)[0]
         return self._fitted
 
     def fitted_now(self, stage: str, epoch: int) -> FittedModel:
-        """Inside ``fit``'s ``on_epoch(stage, epoch)``: the model ``fit`` would return were
-        training to end now (``model.recipe.Recipe.now``), so that a learning curve scores what
-        its settings describe."""
+        """Inside ``fit``'s ``on_epoch(stage, epoch)``: the model ``fit`` would return were training
+        to end now (``personalisation.recipe.Recipe.now``): what a learning curve scores."""
         if self._recipe is None:
             raise NotFittedError('fitted_now is for on_epoch, while fit runs')
         return self._recipe.now(stage, epoch)
 
     @property
+    def recipe(self):
+        """The ``personalisation.recipe.Recipe`` of the latest ``fit`` (None for a loaded model)."""
+        return self._recipe
+
+    @property
     def history(self) -> dict:
-        """Training losses per epoch of the latest ``fit``, by stage ('pretrain', 'joint'),
-        as they grow during it (empty for a loaded model)."""
+        """Training losses per epoch of the latest ``fit`` by stage, as they grow (empty if loaded)."""
         trainer = None if self._recipe is None else self._recipe.trainer
         return {'pretrain': [], 'joint': []} if trainer is None else trainer.history
 
     @property
     def checkpoint_metadata(self) -> dict:
-        """What ``save`` writes besides the weights: ``data``, ``metrics``, ``provenance``
-        (a loaded model's are its file's)."""
+        """What ``save`` writes besides the weights: ``data``, ``metrics``, ``provenance``."""
         return {key: dict(value) for key, value in self._checkpoint.items()}
 
     def _serve(self, fitted: 'FittedModel | None', predictor: Predictor, data: 'RatingData | None') -> None:
@@ -258,7 +259,7 @@ class StarsRecommender:
     def fit(self, data, rows: Sequence[int] | None = None,
             on_epoch: Callable[[str, int], None] | None = None) -> 'StarsRecommender':
         """Train on ``rows`` of ``data`` (a RatingData, or what ``load_dataset`` reads;
-        every rating by default) by the one recipe (``model.recipe``): the model learns from
+        every rating by default) by the one recipe (``personalisation.recipe``): the model learns from
         every rating given, a personalised variant gets the fold-in's prior
         (``personalisation.prior``), its rating noise and tails from a fit on less, so a person
         folded in here is treated as on the robot. Returns self. ``on_epoch(stage, epoch)`` is

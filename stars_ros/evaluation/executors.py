@@ -48,6 +48,7 @@ class FitTask:
     settings: str = '{}'  # the searched settings in the experiment, as settings_key text
     peer: str = ''        # a peer library (``peers.PEERS``) fitted instead of a StARS model
     peer_settings: str = '{}'  # its settings, as settings_key text
+    holdout: bool = False  # also score the recipe's hold-out fit (specs.HOLDOUT_RECIPE), under ``holdout``
 
     @property
     def name(self) -> str:
@@ -107,7 +108,8 @@ def worker_data() -> RatingData:
 def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
     """Fit ``task``'s model as ``train`` fits it (``StarsRecommender.fit``, the one recipe) and
     return its test metrics, z-RMSE and seconds (and, with ``curve_at``, the same at those
-    joint epochs under ``curve``), every prediction the served form's (``fit_and_predict``)."""
+    joint epochs under ``curve``), every prediction the served form's (``fit_and_predict``);
+    with ``holdout`` the same of the recipe's hold-out fit, with its ``n_train``, under ``holdout``."""
     data = worker_data() if data is None else data
     if task.peer:
         from stars_ros.evaluation.peers import run_peer
@@ -121,10 +123,27 @@ def run_fit(task: FitTask, data: RatingData | None = None) -> dict:
                 'fit_seconds': time.perf_counter() - started, 'predict_seconds': 0.0, 'epochs': 0,
                 'error': str(error), **({'curve': []} if task.curve_at else {})}
     inference, training = fitted.predictor.inference, config.training
-    return {**_scores(data, task.test, predictions, inference), 'fit_seconds': fitted.fit_seconds,
-            'predict_seconds': fitted.predict_seconds,
-            'epochs': (training.pretrain_epochs if inference.uses_content else 0) + training.joint_epochs,
-            **({'curve': curve} if task.curve_at else {})}
+    epochs = (training.pretrain_epochs if inference.uses_content else 0) + training.joint_epochs
+    scores = {**_scores(data, task.test, predictions, inference), 'fit_seconds': fitted.fit_seconds,
+              'predict_seconds': fitted.predict_seconds, 'epochs': epochs,
+              **({'curve': curve} if task.curve_at else {})}
+    if task.holdout:
+        scores['holdout'] = holdout_scores(fitted.recommender.recipe, data, task.test, epochs)
+    return scores
+
+
+def holdout_scores(recipe, data: RatingData, test: np.ndarray, epochs: int) -> dict:
+    """The test metrics of ``recipe``'s hold-out fit with its own prior (``Recipe.holdout_model``),
+    scored in its served form, and the rows it was fitted on (``n_train``). Its fit is part of
+    the shipped fit's seconds, so ``fit_seconds`` is 0."""
+    from stars_ros.model.predictor import Predictor
+    from stars_ros.model.scoring import served_predictions
+
+    started = time.perf_counter()
+    predictor = Predictor.from_model(recipe.holdout_model())
+    predictions = served_predictions(predictor, data, test)
+    return {**_scores(data, test, predictions, predictor.inference), 'n_train': len(recipe.holdout_rows),
+            'fit_seconds': 0.0, 'predict_seconds': time.perf_counter() - started, 'epochs': epochs}
 
 
 class Fitted:

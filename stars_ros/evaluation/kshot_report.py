@@ -156,6 +156,13 @@ def write_results(folder: Path, result: dict, header: dict) -> dict:
                     default=0.0)
         lines.append(f"- interval coverage within ±3 points of nominal: {'met' if worst <= 3 else 'NOT met'} "
                      f'(largest gap {worst:.1f} points)')
+        gaps = {}  # a fold's largest gap over its ks and levels: a pooled figure hides no fold
+        for r in by_fold:
+            gap = max(abs(100 * r['calibration'][level] - 100 * float(level)) for level in levels)
+            gaps[r['seed'], r['fold']] = max(gap, gaps.get((r['seed'], r['fold']), 0.0))
+        missed = [f'{seed}/{fold} ({gap:.1f})' for (seed, fold), gap in sorted(gaps.items()) if gap > 3]
+        lines.append('- the same in every fold (new people, every k): ' + ('met' if not missed else
+                     'NOT met (seed/fold, largest gap in points: ' + ', '.join(missed) + ')'))
     fit_seconds = [f['seconds'] for f in result['fits']]
     lines += ['', f"{len(fit_seconds)} fits, {np.mean(fit_seconds) if fit_seconds else 0:.0f} s each on average, "
                   f"{header.get('seconds', 0):.0f} s in all (one torch thread each, {header['jobs']} at a time, "

@@ -96,7 +96,7 @@ def plan_folds(settings, data) -> list:
     """(seed, fold id, held-out people, training rows, {person: Person}, left out, known
     people's test rows) of every fold of every seed. Half of the known people's held-out
     examples check their calibration; the other half trains (the recipe holds out its own
-    ratings for the prior's noise, ``model.recipe``)."""
+    ratings for the prior's noise, ``personalisation.recipe``)."""
     plan = []
     for seed in settings.seeds:
         for fold_id, held_out in enumerate(annotator_folds(data.users, settings.folds, seed)):

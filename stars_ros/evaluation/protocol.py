@@ -16,12 +16,9 @@ Folds are dealt by ``folds`` (rows, cold-scene or cold-user); inner folds are gr
 same way, so the selection sees the situation it is selecting for. The model needs no
 special case: unseen scenes and users get zero embeddings and offsets.
 
-Every model of a table is scored on the same folds: the chosen backbones in the ``base``
-and ``stars`` variants, two baselines: ``population_mean`` (the training mean of each
-action) and ``mf`` (biased matrix factorisation, no scene content), and for
-``ablation_backbones`` the ``ablations`` of StARS, which take the full StARS model's choice
-in each fold so that each differs from it in one part only. The fits run through
-``executors``, at most ``jobs`` at a time.
+Every model of a table (``specs``: the backbones' variants, the baselines, StARS's
+ablations) is scored on the same folds. The fits run through ``executors``, at most
+``jobs`` at a time.
 
 A fit that raises, or whose worker dies, is a *failure*: reported by name, never recorded,
 so a resumed run tries it again; the other fits go on. A selection that lost an inner fit
@@ -47,17 +44,14 @@ from stars_ros.errors import ConfigError
 from stars_ros.evaluation import peers
 from stars_ros.evaluation.executors import METRICS, FitFailure, FitTask, fit_executor, run_fits
 from stars_ros.evaluation.folds import DEALS, PROTOCOLS, make_folds, sweep_samples
+from stars_ros.evaluation.specs import (ABLATIONS, BASELINES, PEER_FAMILIES, ModelSpec, candidates,
+                                       model_specs, settings_candidates, settings_key)
 from stars_ros.model.config import (EncoderConfig, ExperimentConfig, Float, Int, KeyedError, ModelConfig, Section,
                                     TrainConfig, read_yaml, validate_under, validated)
 from stars_ros.model.metrics import regression_report
 
 log = logging.getLogger(__name__)
 
-BASELINES = ('population_mean', 'mf', *peers.PEERS)
-DISPLAY = {'gcn': 'GCN', 'gin': 'GIN', 'graphsage': 'GraphSAGE', 'ggnn': 'GGNN', 'rgcn': 'RGCN',
-           'gat': 'GAT', 'mlp': 'MLP', 'resmlp': 'ResMLP', 'dcnv2': 'DCNv2', 'graceae': 'GraceAE',
-           'fttransformer': 'FT-Transformer'}
-BASELINE_LABELS = {'population_mean': 'Population mean', 'mf': 'MF (biased, no content)', **peers.LABELS}
 
 
 # -- configuration ----------------------------------------------------------------------
@@ -78,20 +72,6 @@ SEARCHABLE = {'lr': 'training', 'weight_decay': 'training', 'embedding_l2': 'tra
               'strangers': 'model'}
 #: Model families with a search space of their own; ablations follow StARS's choice.
 FAMILIES = ('base', 'stars', 'mf')
-#: Peer libraries with a search space of their own (``peers.SETTINGS``); myfm_encoder follows base.
-PEER_FAMILIES = ('surprise_svd', 'myfm')
-#: StARS ablations: label suffix and the settings that differ from full StARS (they win over
-#: the settings it chose; ``stars_point`` is StARS as chosen with the posterior head off,
-#: ``stars_prior_stranger`` with strangers served the prior's mean, never the plain encoder).
-ABLATIONS = {
-    'user_bias': ('user offsets only', {'variant': 'user_bias'}),
-    'base_user_bias': ('base + user offset', {'variant': 'base_user_bias'}),
-    'stars_no_q': ('StARS without q_i', {'variant': 'stars_no_q'}),
-    'stars_no_residual': ('StARS without the h_i residual', {'variant': 'stars_no_residual'}),
-    'stars_prefix': ('StARS, items keyed by prefix', {'item_key': 'prefix'}),
-    'stars_point': ('StARS, trained point estimate (no posterior head)', {'posterior_sweeps': 0}),
-    'stars_prior_stranger': ("StARS, strangers served the prior's mean", {'strangers': 'prior_mean'}),
-}
 
 
 class ProtocolConfig(Section):
@@ -110,7 +90,8 @@ class ProtocolConfig(Section):
             of candidate values of SEARCHABLE settings; a family without one uses ``experiment``'s.
             A peer (``surprise_svd``, ``myfm``) searches its own settings (``peers.SETTINGS``).
         fractions (tuple of float): training fractions of the sparsity sweep.
-        backbones (dict): encoder name -> encoder settings that differ from ``experiment``.
+        backbones (dict): encoder name -> encoder settings that differ from ``experiment``,
+            and under ``training`` the training settings that do (a backbone's packaged ones).
         variants (tuple of str): ``base`` and/or ``stars``, trained for every backbone.
         baselines (tuple of str): ``population_mean``, ``mf`` and the peer libraries
             (``peers``): ``surprise_svd``, ``myfm``, and ``myfm_encoder`` (one per backbone,
@@ -170,8 +151,11 @@ class ProtocolConfig(Section):
                                              'the data')
         experiment = validate_under(('experiment',), ExperimentConfig, self.experiment)
         for backbone, settings in self.backbones.items():
+            encoder = {key: value for key, value in (settings or {}).items() if key != 'training'}
             validate_under(('backbones', backbone), EncoderConfig,
-                           _merge(experiment.encoder.model_dump(), {**(settings or {}), 'name': backbone}))
+                           _merge(experiment.encoder.model_dump(), {**encoder, 'name': backbone}))
+            validate_under(('backbones', backbone, 'training'), TrainConfig,
+                           _merge(experiment.training.model_dump(), (settings or {}).get('training') or {}))
         sections = {'training': TrainConfig, 'model': ModelConfig}
         for family, space in self.search.items():
             if family in PEER_FAMILIES:
@@ -188,7 +172,7 @@ class ProtocolConfig(Section):
         try:  # anything left that only a whole model shows
             for spec in model_specs(self):
                 if spec.variant not in ('population_mean', *peers.PEERS):
-                    for settings in _settings_candidates(self, spec):
+                    for settings in settings_candidates(self, spec):
                         self.experiment_config(spec.backbone, spec.variant, {**settings, **spec.model})
         except ConfigError as error:
             raise ValueError(str(error)) from None
@@ -199,7 +183,9 @@ class ProtocolConfig(Section):
         ``settings`` (SEARCHABLE names, or ``item_key``) override the experiment's."""
         values = _merge(self.experiment, {'model': {'variant': variant}})
         if backbone is not None:
-            values = _merge(values, {'encoder': {**(self.backbones[backbone] or {}), 'name': backbone}})
+            encoder = dict(self.backbones[backbone] or {})
+            training = encoder.pop('training', None) or {}
+            values = _merge(values, {'encoder': {**encoder, 'name': backbone}, 'training': training})
         for key, value in (settings or {}).items():
             values = _merge(values, {SEARCHABLE.get(key, 'model'): {key: value}})
         return ExperimentConfig.from_dict(values)
@@ -229,60 +215,6 @@ class ProtocolConfig(Section):
 
 
 # -- the protocol -----------------------------------------------------------------------
-@dataclass(frozen=True)
-class ModelSpec:
-    label: str
-    backbone: str | None
-    variant: str            # 'base', 'stars', 'mf', 'population_mean' or an ablation's variant
-    family: str = ''        # whose search space: FAMILIES, or '' for a follower / the mean
-    model: dict = field(default_factory=dict)  # model settings that differ (an ablation's)
-    follows: str | None = None  # label of the spec whose per-fold choice this one takes
-
-
-def model_specs(config: ProtocolConfig) -> list[ModelSpec]:
-    """Baselines first, then each backbone in its variants (the paper's row order) and its
-    ablations."""
-    specs = [ModelSpec(BASELINE_LABELS[b], None, b, b if b in ('mf', *PEER_FAMILIES) else '') for b in BASELINES
-             if b in config.baselines and b in BASELINE_LABELS]
-    for backbone in config.backbones:
-        name = DISPLAY.get(backbone, backbone)
-        for variant in ('base', 'stars'):
-            if variant in config.variants:
-                specs.append(ModelSpec(f"{name} {'StARS' if variant == 'stars' else 'base'}", backbone, variant,
-                                       variant))
-        if 'myfm_encoder' in config.baselines and 'base' in config.variants:
-            specs.append(ModelSpec(peers.encoder_label(name), backbone, 'myfm_encoder', follows=f'{name} base'))
-        if backbone in config.ablation_backbones:
-            for ablation in config.ablations:
-                suffix, model = ABLATIONS[ablation]
-                specs.append(ModelSpec(f'{name} {suffix}', backbone, model.get('variant', 'stars'), '',
-                                       {k: v for k, v in model.items() if k != 'variant'}, f'{name} StARS'))
-    return specs
-
-
-def _settings_candidates(config: ProtocolConfig, spec: ModelSpec) -> list[dict]:
-    """The search space of ``spec``'s family as a list of settings (one empty: no search)."""
-    space = config.search.get(spec.family, {}) if spec.family else {}
-    return [dict(zip(space, values)) for values in itertools.product(*space.values())]
-
-
-def _candidates(config: ProtocolConfig, spec: ModelSpec) -> list[tuple[dict, tuple[int, int]]]:
-    """(settings, (T1, T2)) worth trying; a content-free model skips pre-training, so only
-    distinct T2 matter to it."""
-    if spec.variant in PEER_FAMILIES:  # no epochs to choose
-        pairs = [(0, 0)]
-    elif spec.variant == 'mf':
-        pairs = list(dict.fromkeys((0, t2) for _, t2 in config.grid))
-    else:
-        pairs = list(dict.fromkeys(config.grid))
-    return [(settings, pair) for settings in _settings_candidates(config, spec) for pair in pairs]
-
-
-def settings_key(settings: dict) -> str:
-    """A candidate's settings as canonical text (records, resume keys, tables)."""
-    return json.dumps(settings, sort_keys=True)
-
-
 @dataclass
 class EvaluationResult:
     """Everything a run measured: ``records`` one entry per (model, fold, fraction);
@@ -345,6 +277,7 @@ class ProtocolRun:
         for spec in self.specs:
             if spec.follows:
                 self.followers.setdefault(spec.follows, []).append(spec)
+        self.holdout_of = {spec.follows: spec for spec in self.specs if spec.from_holdout}
         self.swept = {s.label for s in self.specs if (s.backbone in config.sweep_backbones and not s.follows)
                       or (s.backbone is None and config.sweep_backbones)}
         self.fractions = sorted(set(config.fractions) | {1.0})
@@ -370,6 +303,10 @@ class ProtocolRun:
             elif fit.stage != 'inner':
                 self._record(spec, fit.fold, fit.fraction, settings, pair, len(fit.train), len(fit.test), scores,
                              fit.stage)
+                if fit.holdout and 'holdout' in scores:  # this fit's hold-out stage (specs.HOLDOUT_RECIPE)
+                    held = scores['holdout']
+                    self._record(self.holdout_of[spec.label], fit.fold, 1.0, settings, pair, held['n_train'],
+                                 len(fit.test), {**scores, **held}, 'final')
                 log.info('[%d/%d] %s fold %s fraction %g %s (T1, T2) = %s: %s %.4f (%.1f s)', done, self.total,
                          spec.label, fit.fold, fit.fraction, settings_key(settings), pair,
                          self.config.error.upper(), scores[self.config.error], scores['fit_seconds'])
@@ -430,14 +367,14 @@ class ProtocolRun:
         for spec in self.specs:
             if spec.variant == 'population_mean' or spec.follows:
                 continue
-            candidates = _candidates(self.config, spec)
+            options = candidates(self.config, spec)
             for fold_id, (_, inner, _) in self.outer.items():
-                if len(candidates) == 1:
-                    self.waiting.extend(self._choose(spec, fold_id, *candidates[0], math.nan))
+                if len(options) == 1:
+                    self.waiting.extend(self._choose(spec, fold_id, *options[0], math.nan))
                     continue
-                self.inner_scores[spec.label, fold_id] = {(settings_key(s), p): [] for s, p in candidates}
+                self.inner_scores[spec.label, fold_id] = {(settings_key(s), p): [] for s, p in options}
                 by_start = {}
-                for settings, (t1, t2) in candidates:
+                for settings, (t1, t2) in options:
                     by_start.setdefault((settings_key(settings), t1), (settings, []))[1].append(t2)
                 for (_, t1), (settings, ends) in by_start.items():
                     pair = (t1, max(ends))
@@ -488,9 +425,13 @@ class ProtocolRun:
         fold, _, samples = self.outer[fold_id]
         items = []
         for chosen_by in [spec, *self.followers.get(spec.label, [])]:
+            if chosen_by.from_holdout:  # scored by the fit of the spec it follows
+                continue
             chosen = self.fractions if chosen_by.label in self.swept else [1.0]
+            holdout = chosen_by.label in self.holdout_of  # its final fit also scores the hold-out row
             items += [(self._task(chosen_by, fold_id, 'final' if f == 1.0 else 'sweep', settings, pair, samples[f],
-                                  fold.test, fraction=f), chosen_by, settings, pair) for f in chosen]
+                                  fold.test, fraction=f, holdout=holdout and f == 1.0),
+                       chosen_by, settings, pair) for f in chosen]
         return items
 
     def _task(self, spec, fold_id, stage, settings, pair, train, test, **extra) -> FitTask:
@@ -510,8 +451,12 @@ class ProtocolRun:
     def _cached(self, task: FitTask) -> dict | None:
         """The scores an earlier run recorded for ``task``, if it did."""
         training = task.experiment['training']
-        found = self.earlier.get(_fit_key(task.model, task.fold, task.stage, task.fraction, task.inner_fold,
-                                          training['pretrain_epochs'], training['joint_epochs'], task.settings))
+        keys = (task.fold, task.stage, task.fraction, task.inner_fold, training['pretrain_epochs'],
+                training['joint_epochs'], task.settings)
+        found = self.earlier.get(_fit_key(task.model, *keys))
+        if found is not None and task.holdout:  # its hold-out row came from the same fit, else it runs again
+            held = self.earlier.get(_fit_key(self.holdout_of[task.model].label, *keys))
+            found = None if held is None else {**found, 'holdout': held}
         self.result.resumed += found is not None
         return found
 

@@ -18,10 +18,10 @@ import yaml
 
 from stars_ros.errors import StarsError
 from stars_ros.evaluation.plots import label_axis, mean_band, pyplot, save_png
-from stars_ros.evaluation.protocol import DISPLAY, model_specs, settings_key
+from stars_ros.evaluation.specs import DISPLAY, model_specs, settings_key
 from stars_ros.evaluation.stats import format_mean_sd, mean_sd
 from stars_ros.evaluation.summaries import (ablation_tests, by_model, grid_edge, paired_tests, peer_tests,
-                                           sparsity_summary, time_accounting)
+                                            recipe_tests, sparsity_summary, time_accounting)
 
 METRIC_NAMES = {'mse': 'MSE', 'rmse': 'RMSE', 'pearson_r': 'r', 'ccc': 'CCC'}
 RECORD_COLUMNS = ('protocol', 'model', 'backbone', 'variant', 'fold', 'fraction', 'stage', 'settings', 'T1', 'T2',
@@ -144,6 +144,17 @@ def ablation_table(result, tests: list, error: str) -> list[str]:
     return lines
 
 
+def recipe_table(tests: list, error: str) -> list[str]:
+    """One row per shipped model against its hold-out recipe row, with every fold's Δ."""
+    lines = [f'| Model | Δ{METRIC_NAMES[error]} | t | Holm p | at or below in folds | Δ per fold |',
+             '| --- | --- | --- | --- | --- | --- |']
+    for t in tests:
+        folds = ', '.join(f"{f['fold']} {f['delta']:+.{_digits(error)}f}" for f in t['folds'])
+        lines.append(f"| {t['model']} | {t['delta']:+.{_digits(error)}f} | {_number(t['t'], 2)} | "
+                     f"{_p(t['p_holm'])} | {t['at_or_below']} of {len(t['folds'])} | {folds} |")
+    return lines
+
+
 def tests_table(tests: list, error: str) -> list[str]:
     """One row per backbone of ``tests``; a column names the reference when the tests carry one."""
     metrics = (error, 'pearson_r', 'ccc')
@@ -262,6 +273,12 @@ def write_tables(path: Path, result, tests, timing, load_seconds, header: dict) 
                   'identifier prefix), trained with the full StARS model\'s choice of settings in each fold. '
                   'Δ against the backbone\'s base, corrected resampled t-test, Holm over the models of one '
                   'backbone and metric.', '']
+    if header.get('recipe_tests'):
+        lines += ['## The shipped recipe against its hold-out fit', '',
+                  *recipe_table(header['recipe_tests'], error), '',
+                  f'Δ{METRIC_NAMES[error]}: the shipped model (the refit on every training row) less the '
+                  'hold-out fit with its own prior (the model the recipe before the refit shipped), on the '
+                  'same test rows, from the same fit; the corrected test, Holm over the rows.', '']
     summary = sparsity_summary(result)
     if summary:
         lines += [f'## Sparsity: {METRIC_NAMES[error]} against the training fraction', '',
@@ -343,6 +360,7 @@ def write_results(folder: Path, result, config, header: dict, command: str, prot
     tests = paired_tests(result, (config.error, 'pearson_r', 'ccc'))
     header['ablation_tests'] = ablation_tests(result, (config.error, 'pearson_r', 'ccc'))
     header['peer_tests'] = peer_tests(result, (config.error, 'pearson_r', 'ccc'))
+    header['recipe_tests'] = recipe_tests(result, config.error)
     timing = {**time_accounting(result), 'load_seconds': load_seconds,
               'load_average_end': [round(v, 2) for v in os.getloadavg()]}
     write_csv(folder / 'folds.csv', [{**r, 'settings': settings_key(r['settings'])} for r in result.records],
@@ -356,6 +374,7 @@ def write_results(folder: Path, result, config, header: dict, command: str, prot
         {'command': command, 'protocol': protocol, 'config': config.to_dict(), 'folds': result.folds,
          'records': result.records, 'inner': result.inner, 'selection': result.selection,
          'choices': result.choices, 'tests': tests, 'ablation_tests': header['ablation_tests'],
-         'peer_tests': header['peer_tests'], 'grid_edge': grid_edge(result), 'timing': timing,
+         'peer_tests': header['peer_tests'], 'recipe_tests': header['recipe_tests'],
+         'grid_edge': grid_edge(result), 'timing': timing,
          'plots': plots, 'git': header['git'], 'machine': header['machine']},
         indent=1, default=json_default))

@@ -11,7 +11,8 @@ import numpy as np
 
 from stars_ros.evaluation.executors import METRICS
 from stars_ros.evaluation.peers import PEERS
-from stars_ros.evaluation.protocol import BASELINE_LABELS, DISPLAY, EvaluationResult, model_specs
+from stars_ros.evaluation.protocol import EvaluationResult
+from stars_ros.evaluation.specs import BASELINE_LABELS, DISPLAY, model_specs
 from stars_ros.evaluation.stats import corrected_resampled_ttest, holm
 
 
@@ -104,8 +105,8 @@ def ablation_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dic
     labels = [spec.label for spec in model_specs(result.config)]
     for backbone in result.config.ablation_backbones:
         name = DISPLAY.get(backbone, backbone)
-        compared = [BASELINE_LABELS['mf'], *(label for label in labels
-                                              if label.startswith(f'{name} ') and label != f'{name} base')]
+        compared = [label for label in labels if label.startswith(BASELINE_LABELS['mf'])
+                    or (label.startswith(f'{name} ') and label != f'{name} base')]  # MF and its hold-out row
         for metric in metrics:
             family = [{'backbone': backbone, 'model': label, 'reference': f'{name} base', **test}
                       for label in compared
@@ -114,6 +115,24 @@ def ablation_tests(result: EvaluationResult, metrics: Sequence[str]) -> list[dic
                 entry['p_holm'] = float(adjusted)
             tests.extend(family)
     return tests
+
+
+def recipe_tests(result: EvaluationResult, metric: str) -> list[dict]:
+    """Each shipped model with a hold-out recipe row (``specs.HOLDOUT_RECIPE``) against that row on
+    ``metric`` (an error): the corrected test, Holm over the rows, and per fold shipped − hold-out
+    with whether the shipped model is at or below it."""
+    final = by_model(result.final())
+    family = []
+    for spec in model_specs(result.config):
+        test = corrected_test(result, spec.follows, spec.label, metric) if spec.from_holdout else None
+        if test is not None:
+            folds = [{'fold': a['fold'], 'delta': a[metric] - b[metric]}
+                     for a, b in zip(final[spec.follows], final[spec.label])]
+            family.append({'model': spec.follows, 'reference': spec.label, **test, 'folds': folds,
+                           'at_or_below': sum(f['delta'] <= 0 for f in folds)})
+    for entry, adjusted in zip(family, holm([e['p'] for e in family])):
+        entry['p_holm'] = float(adjusted)
+    return family
 
 
 def sparsity_summary(result: EvaluationResult) -> dict:

@@ -78,7 +78,7 @@ def torch_state_kept():
 class StarsTrainer(FittedModel):
     """The training side of a StARS model: a ``FittedModel`` that fits and fine-tunes on
     ``RatingData`` rows (``fit``, ``fine_tune``, ``extended``). The shipped model is fitted by
-    ``model.recipe`` and scored by its served form (``model.scoring``); the user-facing API
+    ``personalisation.recipe`` and scored by its served form (``model.scoring``); the user-facing API
     (fit, predict, rank, fold_in, test, save, load) is ``stars_ros.StarsRecommender``.
 
     Args:

@@ -24,7 +24,7 @@ estimates what that needs from the trained people and their training ratings:
   mean as far as its own Σ₀/U error warrants.
 - **Noise σ²_a**: per action, the mean squared z-residual of held-out ratings of the trained
   people (``held_out_residuals``: examples a fit did not see, scored in its served form from
-  their rows of that fit; ``model.recipe`` makes that fit on the rows less those examples and
+  their rows of that fit; ``personalisation.recipe`` makes that fit on the rows less those examples and
   the shipped model on every row), else of the training ratings. Training residuals understate
   the noise a new person's ratings carry (the model has fitted them): the posterior then trusts
   a person's first answers too much, and its intervals are too narrow.
@@ -252,7 +252,7 @@ def estimate_prior(fitted, data, rows: np.ndarray, held_out: HeldOut | None = No
     """The prior of a model ``fitted`` (``model.fitted.FittedModel``) on its training ``rows``
     of ``data`` (RatingData), computed in its served form: Σ₀ and the known people's
     covariances from its trained rows and ``rows``; the noise, tails and the mean's weight from
-    ``held_out`` (ratings the model, or a fit of it on less, did not see: ``model.recipe``),
+    ``held_out`` (ratings the model, or a fit of it on less, did not see: ``personalisation.recipe``),
     else from the training ratings. See the module docstring."""
     from stars_ros.model.scoring import served_encodings
 

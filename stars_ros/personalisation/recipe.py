@@ -39,14 +39,15 @@ class Recipe:
 
     ``fit`` returns the fitted ``StarsTrainer`` (its ``stranger_model`` and ``user_prior``
     set); ``trainer`` is the shipped model's trainer and ``holdout`` the hold-out fit's (None
-    for ``base``, which has no prior). Inside ``fit``'s ``on_epoch``, ``now`` is the model
-    ``fit`` would return were both fits to end at that epoch.
+    for ``base``, which has no prior), fitted on ``holdout_rows``. Inside ``fit``'s ``on_epoch``,
+    ``now`` is the model ``fit`` would return were both fits to end at that epoch.
     """
 
     def __init__(self, config: ExperimentConfig):
         self.config = config
         self.trainer: StarsTrainer | None = None
         self.holdout: StarsTrainer | None = None
+        self.holdout_rows: np.ndarray | None = None
         self._fitting = None  # (data, every row, the hold-out fit's rows, its held-out rows)
         self._snapshots = {}  # (stage, epoch) -> the hold-out fit's weights then (only with on_epoch)
 
@@ -67,7 +68,7 @@ class Recipe:
                 stranger = StarsTrainer(config.stranger_encoder()).fit(data, rows).model
             if self.personalised:
                 fit_rows, noise_rows = held_out_split(data, rows, seed=config.split.seed)
-                self._fitting = (data, rows, fit_rows, noise_rows)
+                self._fitting, self.holdout_rows = (data, rows, fit_rows, noise_rows), fit_rows
                 self.holdout = StarsTrainer(config)
                 self.holdout.stranger_model = stranger  # served beside it; its held-out people are known ones
                 self.holdout.fit(data, fit_rows, on_epoch=None if on_epoch is None else self._snapshot)
@@ -77,6 +78,20 @@ class Recipe:
             if self.personalised:
                 self._with_prior(trainer, self.holdout)
         return trainer
+
+    def holdout_model(self) -> StarsTrainer:
+        """The hold-out fit as the recipe before the refit shipped it: its weights, its plain
+        encoder, and the prior of its own rows (Σ₀ and covariances from ``holdout_rows``, the
+        noise from the rows it did not see). The canonical runs' ablation row beside the shipped
+        model (``evaluation.specs.HOLDOUT_RECIPE``); costs no fit."""
+        if self.holdout is None or self.holdout.model is None:
+            raise NotFittedError('holdout_model is for a personalised variant, after fit')
+        data, _, fit_rows, noise_rows = self._fitting
+        earlier = self.holdout.copy_into(StarsTrainer(self.config))
+        with torch_state_kept():
+            earlier.user_prior = estimate_prior(earlier, data, fit_rows,
+                                                held_out_residuals(earlier, data, noise_rows)).to_dict()
+        return earlier
 
     def _snapshot(self, stage: str, epoch: int) -> None:
         state = self.holdout.model.state_dict()

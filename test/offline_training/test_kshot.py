@@ -169,6 +169,11 @@ def test_quick_run_writes_tables_plot_calibration_and_comparable_curves(stranger
     text = (out / 'results.md').read_text()
     assert '| 5 |' in text and 'retrained' in text and '| known |' in text
     assert '| k | seed 0 fold 0 | seed 0 fold 1 |' in text  # the calibration per fold
+    gaps = {fold: max(abs(100 * r['calibration'][level] - 100 * float(level)) for r in results['records']
+                      if r['fold'] == fold for level in ('0.5', '0.8', '0.9', '0.95')) for fold in (0, 1)}
+    per_fold = next(line for line in text.splitlines() if line.startswith('- the same in every fold'))
+    assert per_fold.endswith(': met') == all(gap <= 3 for gap in gaps.values())
+    assert all((f'0/{fold} ({gap:.1f})' in per_fold) == (gap > 3) for fold, gap in gaps.items())
     assert 'at or below unpersonalised MSE in every fold at every k ≥ 1' in capsys.readouterr().out
 
 
