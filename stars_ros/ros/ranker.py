@@ -44,6 +44,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
+from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.service import Service
@@ -135,7 +136,7 @@ class RankerParts:
         from stars_ros.node.core import RankerCore
 
         self.core = RankerCore(self.params, {name: self.resolve_topic_name(name) for name in TOPICS},
-                               self.get_fully_qualified_name(), self._publish, self.get_logger(),
+                               self.get_fully_qualified_name(), self._publish, ContextLogger(self),
                                lambda: self.get_clock().now().nanoseconds,
                                MarkerOutput(markers_pub, type_hash),
                                # a stored person's ratings, read at their first feedback, live as long as the
@@ -332,6 +333,29 @@ class RankerParts:
         context is invalid"."""
         if self.core is not None:
             self.core.close()
+
+
+class ContextLogger:
+    """The core's logger: the node's while its context is up, once a signal has shut that
+    down a logger of another name, which rcl's /rosout handler does not publish for. A line
+    the core logs between the signal and ``destroy_node`` (a report of the work in hand) would
+    otherwise end in "Failed to publish log message to rosout: publisher's context is invalid"."""
+
+    def __init__(self, node):
+        self._node = node
+        self._after_shutdown = get_logger(f'stars_ros.{node.get_name()}')
+
+    def _logger(self):
+        return self._node.get_logger() if self._node.context.ok() else self._after_shutdown
+
+    def info(self, line: str) -> None:
+        self._logger().info(line)
+
+    def warning(self, line: str) -> None:
+        self._logger().warning(line)
+
+    def error(self, line: str) -> None:
+        self._logger().error(line)
 
 
 class RankerNode(RankerParts, Node):
